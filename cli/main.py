@@ -1,0 +1,43 @@
+"""`gd2p` command line: one entry point, one sub-command module per concern.
+
+Each module listed in COMMAND_MODULES exposes `register(subparsers)`, which adds its
+sub-commands and sets `func` (called with the parsed args, returns an exit code).
+Modules are imported lazily by name so `gd2p --help` stays fast and a heavy import
+(torch, pybullet) is paid only by the command that needs it.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMAND_MODULES: list[str] = [
+    "cli.system",  # up, status, replay, demo
+    "cli.models",  # hands, objects, show
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="gd2p",
+        description="GD2P dexterous pushing and pulling: data engine, learning and execution over Zenoh.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code = args.func(args)
+    except KeyboardInterrupt:
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
