@@ -1,0 +1,40 @@
+"""Shared pytest fixtures: an in-process Zenoh router on a free loopback port."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+
+import pytest
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def router_config(endpoint: str):
+    import zenoh
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps("router"))
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("scouting/gossip/enabled", "false")
+    return cfg
+
+
+@pytest.fixture()
+def zenoh_router():
+    """Start an embedded router; yields its endpoint, e.g. 'tcp/127.0.0.1:40123'."""
+    import zenoh
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(router_config(endpoint))
+    try:
+        yield endpoint
+    finally:
+        session.close()
