@@ -12,8 +12,10 @@ import importlib
 import sys
 
 COMMAND_MODULES: list[str] = [
-    "cli.system",  # up, status, replay, demo
-    "cli.models",  # hands, objects, show
+    "cli.system",  # up, status, demo, health (platform)
+    "cli.recording",  # replay
+    "cli.hands",  # hands info
+    "cli.objects",  # objects list
 ]
 
 
