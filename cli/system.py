@@ -1,0 +1,291 @@
+"""`gd2p up | status | health | demo`: run the local system and look at it over the bus.
+
+    gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447]
+    gd2p status [--json] [bus flags]          live workers per service (liveliness)
+    gd2p health --service S [--worker-id ID | --this-host] [bus flags]   exit 0 iff it answers
+    gd2p demo                                  bring the system up, look at it, shut it down
+
+The supervision logic lives in `deploy.launcher.Launcher`; this module only parses and prints.
+Heavy imports (zenoh, pydantic models) happen inside the handlers so `gd2p --help` stays fast.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import time
+
+CLI_CONNECT_TIMEOUT_MS = 3000  # a CLI must fail clearly, not wait forever, when no router is up
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from shared.bus import BusConfig
+
+    up = subparsers.add_parser("up", help="start the router and every service locally (Ctrl-C stops all)",
+                               description="Start an embedded Zenoh router and every service as its own process; "
+                                           "Ctrl-C or SIGTERM stops them all within 10 s.")
+    up.add_argument("--validators", type=int, default=None,
+                    help=f"validator processes (default: one per core, {os.cpu_count()} here)")
+    up.add_argument("--record-dir", default="recordings", help="where the recorder writes MCAP (default %(default)s)")
+    up.add_argument("--listen", default=DEFAULT_LISTEN, help="router endpoint (default %(default)s)")
+    up.add_argument("--log-dir", default=None, help="per-process log files (default: a new temporary directory)")
+    up.add_argument("--ready-timeout", type=float, default=120.0, help="seconds to wait for every worker to register")
+    up.set_defaults(func=run_up)
+
+    status = subparsers.add_parser("status", help="live worker count per service",
+                                   description="Count the live workers of every service from their liveliness tokens.")
+    status.add_argument("--json", action="store_true", help='print {"service": count, ...}')
+    BusConfig.add_cli_args(status)
+    status.set_defaults(func=run_status)
+
+    health = subparsers.add_parser("health", help="exit 0 iff a worker of SERVICE answers a health query",
+                                   description="Send a HealthQuery to the workers of a service and print their "
+                                               "WorkerStatus; exit 0 iff at least one ready worker answered.")
+    health.add_argument("--service", required=True, help="service name, e.g. validator")
+    who = health.add_mutually_exclusive_group()
+    who.add_argument("--worker-id", default=None, help="ask only this worker")
+    who.add_argument("--this-host", action="store_true",
+                     help="only workers running on this host (container healthchecks)")
+    health.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers (default %(default)s)")
+    BusConfig.add_cli_args(health)
+    health.set_defaults(func=run_health)
+
+    demo = subparsers.add_parser("demo", help="bring the system up, health-check it over the bus, shut it down",
+                                 description="The platform demo: start everything in-process, ask every worker "
+                                             "for its status over the bus, send a job, stop cleanly.")
+    demo.add_argument("--validators", type=int, default=1, help="validator processes (default %(default)s)")
+    demo.add_argument("--record-dir", default="recordings", help="where the recorder writes MCAP (default %(default)s)")
+    demo.set_defaults(func=run_demo)
+
+
+# ---------------------------------------------------------------------------------------------
+# bus look-ups shared by the commands
+# ---------------------------------------------------------------------------------------------
+
+
+def query_health(session, service: str, worker_id: str | None = None, timeout: float = 5.0) -> list:
+    """WorkerStatus of every worker of `service` (or of `worker_id` only) that answers in time."""
+    import zenoh
+
+    from shared.bus import job_key
+    from shared.bus.keys import PREFIX, check_chunk
+    from shared.codec import CodecError, decode, encode
+    from shared.messages import HealthQuery, WorkerStatus
+
+    # Every worker of the service answers health queries on its own job key (shared.bus.keys).
+    key = job_key(service, worker_id) if worker_id else f"{PREFIX}/{check_chunk(service, 'service')}/worker/*/job"
+    payload, encoding = encode(HealthQuery())
+    statuses = []
+    # ALL: each worker has its own queryable; every one of them must get the query.
+    for reply in session.get(key, payload=payload, encoding=encoding, timeout=timeout, target=zenoh.QueryTarget.ALL):
+        if reply.ok is None:
+            continue
+        try:
+            status = decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding), expected=WorkerStatus)
+        except CodecError:
+            continue
+        if isinstance(status, WorkerStatus):
+            statuses.append(status)
+    return sorted(statuses, key=lambda s: s.worker_id)
+
+
+def _cli_bus_config(args: argparse.Namespace):
+    from shared.bus import BusConfig
+
+    return BusConfig.from_args(args, connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS)
+
+
+def _status_rows(statuses: list) -> list[tuple[str, ...]]:
+    rows = [("SERVICE", "WORKER", "PID", "HOST", "STATE", "UPTIME_S", "DONE", "FAILED")]
+    for s in statuses:
+        rows.append((s.service, s.worker_id, str(s.pid), s.host, s.state, f"{s.uptime_s:.1f}",
+                     str(s.jobs_done), str(s.jobs_failed)))
+    return rows
+
+
+def _print_table(rows: list[tuple[str, ...]], indent: str = "") -> None:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    for row in rows:
+        print(indent + "  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip())
+
+
+# ---------------------------------------------------------------------------------------------
+# gd2p status / health
+# ---------------------------------------------------------------------------------------------
+
+
+def service_counts(session, timeout: float = 2.0) -> dict[str, int]:
+    """Live worker count of every known service (0 when absent), then any other service seen."""
+    from deploy.launcher import SERVICES
+    from shared.bus.discovery import live_workers
+
+    live = live_workers(session, timeout=timeout)
+    counts = {svc: len(live.get(svc, [])) for svc in SERVICES}
+    counts.update({svc: len(ids) for svc, ids in live.items() if svc not in counts})
+    return counts
+
+
+def run_status(args: argparse.Namespace) -> int:
+    from shared.bus import BusError, open_session
+
+    try:
+        cfg = _cli_bus_config(args)
+        with open_session(cfg) as session:
+            counts = service_counts(session)
+    except BusError as exc:
+        print(f"gd2p status: {exc}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(counts))
+    else:
+        _print_table([("SERVICE", "WORKERS")] + [(svc, str(n)) for svc, n in counts.items()])
+    return 0
+
+
+def run_health(args: argparse.Namespace) -> int:
+    from shared.bus import BusError, open_session
+
+    try:
+        with open_session(_cli_bus_config(args)) as session:
+            statuses = query_health(session, args.service, args.worker_id, timeout=args.timeout)
+    except BusError as exc:
+        print(f"gd2p health: {exc}", file=sys.stderr)
+        return 1
+    if args.this_host:
+        statuses = [s for s in statuses if s.host == socket.gethostname()]
+    healthy = [s for s in statuses if s.state in ("ready", "busy")]
+    if statuses:
+        _print_table(_status_rows(statuses))
+    if not healthy:
+        who = args.worker_id or ("on this host" if args.this_host else "at all")
+        print(f"gd2p health: no ready {args.service} worker answered ({who}) within {args.timeout:g} s",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# gd2p up
+# ---------------------------------------------------------------------------------------------
+
+
+def _interrupt(signum: int, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def run_up(args: argparse.Namespace) -> int:
+    from deploy.launcher import Launcher, LaunchError
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops like Ctrl-C
+    try:
+        launcher = Launcher(validators=args.validators, listen=args.listen, record_dir=args.record_dir,
+                            log_dir=args.log_dir)
+    except LaunchError as exc:
+        print(f"gd2p up: {exc}", file=sys.stderr)
+        return 2
+    code = 0
+    try:
+        launcher.start()
+        t0 = time.monotonic()
+        launcher.wait_ready(args.ready_timeout)
+        print(f"all {len(launcher.children())} workers registered in {time.monotonic() - t0:.1f} s\n")
+        print(launcher.table())
+        print(f"\nrouter: {launcher.listen}   recordings: {launcher.record_dir}   logs: {launcher.log_dir}")
+        print(f"status: gd2p status --connect {launcher.endpoint}   scale: python deploy/scale_validators.py N")
+        print("Ctrl-C (or SIGTERM) stops everything.", flush=True)
+        while True:
+            time.sleep(3600)  # the launcher's threads supervise; a signal ends the wait
+    except KeyboardInterrupt:
+        print("\nstopping ...", flush=True)
+    except LaunchError as exc:
+        print(f"gd2p up: {exc}", file=sys.stderr)
+        code = 1
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)  # a second Ctrl-C must not cut the shutdown short
+        t0 = time.monotonic()
+        launcher.stop()
+        print(f"stopped in {time.monotonic() - t0:.1f} s")
+    return code
+
+
+# ---------------------------------------------------------------------------------------------
+# gd2p demo
+# ---------------------------------------------------------------------------------------------
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    """Platform demo: up, health over the bus, one job, down. The push demo comes with the planner."""
+    from deploy.launcher import Launcher, LaunchError, free_loopback_endpoint
+
+    print("GD2P demo — platform stage: the service system on a Zenoh bus.")
+    print("The push demo (push a bundled object 0.20 m with the shipped checkpoint, with MCAP and a")
+    print("storyboard PNG) arrives with the planner (issue 6); until then this shows the platform.\n")
+    launcher = Launcher(validators=args.validators, listen=free_loopback_endpoint(), record_dir=args.record_dir)
+    t0 = time.monotonic()
+    try:
+        launcher.start()
+        launcher.wait_ready(120.0)
+        print(f"1. started an embedded router on {launcher.listen} and {len(launcher.children())} service "
+              f"processes; all registered in {time.monotonic() - t0:.1f} s:")
+        print(launcher.table() + "\n")
+        ok = _demo_health(launcher) and _demo_generation_job(launcher)
+    except LaunchError as exc:
+        print(f"gd2p demo: {exc}", file=sys.stderr)
+        ok = False
+    finally:
+        t1 = time.monotonic()
+        launcher.stop()
+        print(f"\n4. stopped every process and the router in {time.monotonic() - t1:.1f} s "
+              f"(recording in {launcher.record_dir}).")
+    return 0 if ok else 1
+
+
+def _demo_client(launcher):
+    from shared.bus import BusConfig, open_session
+
+    return open_session(BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS))
+
+
+def _demo_health(launcher) -> bool:
+    from deploy.launcher import SERVICES
+    from shared.bus.discovery import live_workers
+
+    print("2. every worker's own answer to a HealthQuery, asked over the bus from a client session:")
+    with _demo_client(launcher) as session:
+        live = live_workers(session)
+        statuses = [s for svc in SERVICES if svc in live for s in query_health(session, svc)]
+    _print_table(_status_rows(statuses), indent="   ")
+    expected = {w for ids in launcher.expected_workers().values() for w in ids}
+    silent = sorted(expected - {s.worker_id for s in statuses})
+    if silent:
+        print(f"   workers that did not answer: {', '.join(silent)}", file=sys.stderr)
+    print()
+    return not silent
+
+
+def _demo_generation_job(launcher) -> bool:
+    from shared.bus import DispatchError, RemoteError
+    from shared.bus.dispatcher import Dispatcher
+    from shared.messages import GenerationJob, ObjectRef
+
+    job = GenerationJob(object=ObjectRef(library_id="random_urdfs/000"), hand="allegro", batch_size=8, seed=0)
+    print(f"3. a GenerationJob (id {job.id[:8]}…) through the dispatcher to the generator:")
+    with _demo_client(launcher) as session, Dispatcher(session, "generator", timeout_s=10.0) as dispatcher:
+        try:
+            result = dispatcher.call(job, timeout=30.0)
+        except RemoteError as exc:
+            print(f"   -> ErrorReply code={exc.code!r}: {exc.message}")
+            print("      (a clear error, never a fake result: the generator's algorithm arrives with issue 4)")
+            return exc.code == "not_implemented"
+        except (DispatchError, TimeoutError) as exc:
+            print(f"   -> no answer: {exc}", file=sys.stderr)
+            return False
+    print(f"   -> {type(result).__name__} with {len(result.model_dump())} fields")
+    return True

@@ -1,0 +1,432 @@
+"""Local launcher: an embedded Zenoh router plus every service as its own supervised process.
+
+    launcher = Launcher(validators=2, listen="tcp/127.0.0.1:7447")
+    launcher.start()              # router up, every service spawned
+    launcher.wait_ready(60)       # every worker registered (liveliness), or LaunchError
+    launcher.scale("validator", 4)
+    launcher.stop()               # SIGTERM all, SIGKILL stragglers, router closed: < 10 s
+
+The router is a Python Zenoh session in router mode on loopback (no `zenohd` is installed here).
+Each service runs as `python -m services.<name> --mode client --connect <router> --worker-id ID`,
+started through `deploy.child_guard` so that no worker outlives the launcher. A crashed service is
+restarted with exponential backoff. The launcher also serves `gd2p/launcher/control`: a
+`ScaleRequest` brings a scalable service to exactly N workers and is answered with a `ScaleReply`
+(what `deploy/scale_validators.py` uses against a running `gd2p up`).
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from shared.bus import DEFAULT_ROUTER_ENDPOINT, BusConfig, BusError, RemoteError, open_session
+from shared.bus.discovery import live_workers
+from shared.codec import CodecError, decode, encode
+from shared.messages import ErrorReply, Message, ScaleReply, ScaleRequest
+
+log = logging.getLogger("gd2p.launcher")
+
+SERVICES: tuple[str, ...] = ("generator", "validator", "sampler", "planner", "robot_bridge", "recorder")
+# Stateless job servers behind the dispatcher. The robot bridge (one robot) and the recorder
+# (one recording) are singletons.
+SCALABLE: frozenset[str] = frozenset({"generator", "validator", "sampler", "planner"})
+CONTROL_KEY = "gd2p/launcher/control"
+
+STOP_TIMEOUT_S = 10.0
+_POLL_S = 0.2
+_BACKOFF_START_S = 1.0
+_BACKOFF_MAX_S = 30.0
+_STABLE_AFTER_S = 30.0  # a child that ran this long before crashing restarts without backoff
+_PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class LaunchError(RuntimeError):
+    """The system could not be brought up, scaled or reached as asked."""
+
+
+@dataclass
+class Child:
+    """One service process and what the supervisor knows about it."""
+
+    service: str
+    worker_id: str
+    seq: int  # creation order within the service
+    log_path: Path
+    process: subprocess.Popen
+    started_at: float = field(default_factory=time.monotonic)
+    restarts: int = 0
+    crash_streak: int = 0
+    restart_at: float | None = None  # set while waiting to restart after a crash
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+
+@dataclass
+class ChildExit:
+    """An unexpected exit, kept for `wait_ready` and for the operator."""
+
+    service: str
+    worker_id: str
+    returncode: int
+    log_tail: str
+    at: float = field(default_factory=time.monotonic)
+
+    def describe(self) -> str:
+        tail = self.log_tail.strip() or "(no output)"
+        return f"{self.service} ({self.worker_id}) exited with code {self.returncode}; last output:\n{tail}"
+
+
+def client_endpoint(listen: str) -> str:
+    """Where a local client connects for a router listening on `listen` (wildcard -> loopback)."""
+    return listen.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+
+def free_loopback_endpoint() -> str:
+    """A tcp endpoint on a currently free loopback port (for demos and tests)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def log_tail(path: Path, max_lines: int = 20, max_bytes: int = 8192) -> str:
+    """The last lines of a child's log file ('' if there is none)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - max_bytes))
+            lines = f.read().decode("utf-8", "replace").splitlines()
+    except OSError:
+        return ""
+    return "\n".join(lines[-max_lines:])
+
+
+def terminate(processes: list[subprocess.Popen], grace_s: float) -> list[subprocess.Popen]:
+    """SIGTERM every process, wait up to `grace_s`, SIGKILL the rest; returns the ones killed."""
+    for p in processes:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and any(p.poll() is None for p in processes):
+        time.sleep(0.05)
+    killed = [p for p in processes if p.poll() is None]
+    for p in killed:
+        p.kill()
+    for p in processes:
+        p.wait()
+    return killed
+
+
+class Launcher:
+    """The embedded router and the supervised service processes of one local system."""
+
+    def __init__(
+        self,
+        validators: int | None = None,
+        listen: str = DEFAULT_ROUTER_ENDPOINT,
+        record_dir: str | os.PathLike = "recordings",
+        log_dir: str | os.PathLike | None = None,
+        restart: bool = True,
+    ):
+        n_validators = (os.cpu_count() or 1) if validators is None else validators
+        if n_validators < 0:
+            raise LaunchError(f"the number of validators must be >= 0, got {n_validators}")
+        self.listen = listen
+        self.endpoint = client_endpoint(listen)
+        self.record_dir = Path(record_dir).resolve()
+        self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="gd2p-up-logs-"))
+        self.restart = restart
+        self.initial_counts = {svc: 1 for svc in SERVICES} | {"validator": n_validators}
+        self.exits: list[ChildExit] = []
+        self._children: dict[str, Child] = {}  # worker id -> child
+        self._numbers = {svc: itertools.count(1) for svc in SERVICES}
+        self._lock = threading.RLock()
+        self._scale_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._exits_checked_since = time.monotonic()  # wait_ready reports exits after this
+        self._session: zenoh.Session | None = None
+        self._control: zenoh.Queryable | None = None
+        self._threads: list[threading.Thread] = []
+        # One long-lived thread spawns every child: child_guard's parent-death signal follows the
+        # spawning thread, so a short-lived caller thread must never be the one that forks.
+        self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gd2p-spawner")
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Open the router, serve the control key, spawn every service, start supervising."""
+        if self._session is not None:
+            raise LaunchError("launcher already started")
+        self.record_dir.mkdir(parents=True, exist_ok=True)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self._exits_checked_since = time.monotonic()
+        try:
+            self._session = open_session(BusConfig(mode="router", listen=[self.listen], connect=[]))
+        except BusError as exc:
+            raise LaunchError(f"cannot start the router on {self.listen} (is another `gd2p up` running?): {exc}") from None
+        self._control = self._session.declare_queryable(CONTROL_KEY, complete=True)
+        self._start_thread(self._serve_control, "gd2p-launcher-control")
+        with self._lock:
+            for service, count in self.initial_counts.items():
+                for _ in range(count):
+                    self._spawn(service)
+        self._start_thread(self._supervise, "gd2p-launcher-supervisor")
+        log.info("router on %s; services starting (logs in %s)", self.listen, self.log_dir)
+
+    def wait_ready(self, timeout: float = 60.0) -> dict[str, list[str]]:
+        """Block until every child has registered; returns {service: worker ids}.
+
+        Raises LaunchError naming the service and its last output if a child exits meanwhile,
+        or naming the missing workers on timeout.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            self._raise_on_exit_since(self._exits_checked_since)
+            expected = self.expected_workers()
+            live = self.live_workers()
+            missing = {svc: sorted(set(ids) - set(live.get(svc, []))) for svc, ids in expected.items()}
+            missing = {svc: ids for svc, ids in missing.items() if ids}
+            if not missing:
+                self._exits_checked_since = time.monotonic()
+                return expected
+            if time.monotonic() > deadline:
+                raise LaunchError(f"not registered after {timeout:.0f} s: {missing} (logs in {self.log_dir})")
+            time.sleep(_POLL_S)
+
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
+        """Stop every service (recorder last, so it records until the end), then the router."""
+        if self._stopping.is_set():
+            return
+        self._stopping.set()
+        t0 = time.monotonic()
+        if self._control is not None:
+            self._control.undeclare()  # ends the control thread's loop
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+        with self._lock:
+            children = list(self._children.values())
+            self._children.clear()
+        workers = [c.process for c in children if c.service != "recorder"]
+        recorders = [c.process for c in children if c.service == "recorder"]
+        budget = max(1.0, timeout - 1.0)  # keep a second for SIGKILL, reaping and the router
+        killed = terminate(workers, grace_s=budget * 0.5)
+        killed += terminate(recorders, grace_s=max(0.5, budget - (time.monotonic() - t0)))
+        if killed:
+            log.warning("killed %d process(es) that ignored SIGTERM: pids %s", len(killed), [p.pid for p in killed])
+        self._spawner.shutdown(wait=True)
+        if self._session is not None:
+            self._session.close()
+        log.info("stopped %d process(es) and the router in %.1f s", len(children), time.monotonic() - t0)
+
+    def __enter__(self) -> "Launcher":
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def session(self) -> zenoh.Session:
+        """The router's own session (usable as a bus session by in-process callers)."""
+        if self._session is None:
+            raise LaunchError("launcher not started")
+        return self._session
+
+    def expected_workers(self) -> dict[str, list[str]]:
+        """{service: worker ids} of the processes this launcher runs."""
+        with self._lock:
+            children = list(self._children.values())
+        expected: dict[str, list[str]] = {svc: [] for svc in SERVICES}
+        for child in children:
+            expected[child.service].append(child.worker_id)
+        return {svc: sorted(ids) for svc, ids in expected.items()}
+
+    def live_workers(self, timeout: float = 1.0) -> dict[str, list[str]]:
+        """{service: worker ids} registered on the bus right now (liveliness)."""
+        return live_workers(self.session, timeout=timeout)
+
+    def children(self) -> list[Child]:
+        with self._lock:
+            return sorted(self._children.values(), key=lambda c: (SERVICES.index(c.service), c.seq))
+
+    def table(self) -> str:
+        """A readable table of every service process: worker id, pid, registered or not, restarts."""
+        live = self.live_workers()
+        rows = [("SERVICE", "WORKER", "PID", "STATE", "RESTARTS", "LOG")]
+        for c in self.children():
+            if c.restart_at is not None:
+                state = "restarting"
+            else:
+                state = "ready" if c.worker_id in live.get(c.service, []) else "starting"
+            rows.append((c.service, c.worker_id, str(c.pid), state, str(c.restarts), str(c.log_path)))
+        widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+        return "\n".join("  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip() for row in rows)
+
+    # ------------------------------------------------------------------ scaling
+    def scale(self, service: str, count: int, ready_timeout: float = 60.0) -> ScaleReply:
+        """Bring `service` to exactly `count` processes; new ones are registered on return."""
+        if service not in SCALABLE:
+            raise LaunchError(f"cannot scale {service!r}: scalable services are {', '.join(sorted(SCALABLE))}")
+        if count < 0:
+            raise LaunchError(f"cannot scale {service} to {count}: the count must be >= 0")
+        with self._scale_lock:
+            if self._stopping.is_set():
+                raise LaunchError("launcher is stopping")
+            with self._lock:
+                current = sorted((c for c in self._children.values() if c.service == service), key=lambda c: c.seq)
+                started = [self._spawn(service).worker_id for _ in range(count - len(current))]
+                leaving = current[count:]  # the newest go first: the oldest have the warmest caches
+                for child in leaving:
+                    del self._children[child.worker_id]
+            terminate([c.process for c in leaving], grace_s=STOP_TIMEOUT_S / 2)
+            if started:
+                self._wait_registered(service, started, ready_timeout)
+            log.info("%s scaled to %d (started %s, stopped %s)", service, count, started, [c.worker_id for c in leaving])
+            return ScaleReply(service=service, count=count, started=started, stopped=[c.worker_id for c in leaving])
+
+    def _wait_registered(self, service: str, worker_ids: list[str], timeout: float) -> None:
+        since = time.monotonic()
+        while True:
+            if self._stopping.is_set():
+                raise LaunchError("launcher is stopping")
+            self._raise_on_exit_since(since, worker_ids)
+            missing = set(worker_ids) - set(live_workers(self.session, service).get(service, []))
+            if not missing:
+                return
+            if time.monotonic() - since > timeout:
+                raise LaunchError(f"{service} workers {sorted(missing)} not registered after {timeout:.0f} s")
+            time.sleep(_POLL_S)
+
+    # ------------------------------------------------------------------ processes
+    def _command(self, service: str, worker_id: str) -> list[str]:
+        cmd = [sys.executable, "-m", "deploy.child_guard", str(os.getpid()), f"services.{service}",
+               "--mode", "client", "--connect", self.endpoint, "--worker-id", worker_id]
+        if service == "recorder":
+            cmd += ["--record-dir", str(self.record_dir)]
+        return cmd
+
+    def _environment(self) -> dict[str, str]:
+        env = dict(os.environ)
+        env.setdefault("OMP_NUM_THREADS", "1")  # several busy processes share the cores (DESIGN §6)
+        env["PYTHONUNBUFFERED"] = "1"  # a crash's last words reach the log before it dies
+        # The children import the project the same way this process did, installed or not.
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_PROJECT_ROOT), env.get("PYTHONPATH")) if p)
+        return env
+
+    def _popen(self, service: str, worker_id: str, log_path: Path) -> subprocess.Popen:
+        with open(log_path, "ab") as out:
+            return self._spawner.submit(
+                subprocess.Popen, self._command(service, worker_id), stdin=subprocess.DEVNULL,
+                stdout=out, stderr=subprocess.STDOUT, env=self._environment(), cwd=str(_PROJECT_ROOT),
+                start_new_session=True,  # Ctrl-C reaches only the launcher, which stops the rest in order
+            ).result()
+
+    def _spawn(self, service: str) -> Child:
+        seq = next(self._numbers[service])
+        worker_id = f"{service}-{seq}"
+        log_path = self.log_dir / f"{worker_id}.log"
+        child = Child(service, worker_id, seq, log_path, self._popen(service, worker_id, log_path))
+        self._children[worker_id] = child
+        log.debug("started %s as pid %d", worker_id, child.pid)
+        return child
+
+    def _raise_on_exit_since(self, since: float, worker_ids: list[str] | None = None) -> None:
+        for exit_ in list(self.exits):
+            if exit_.at >= since and (worker_ids is None or exit_.worker_id in worker_ids):
+                raise LaunchError(f"{exit_.describe()}\n(full log: {self.log_dir / (exit_.worker_id + '.log')})")
+
+    # ------------------------------------------------------------------ supervision
+    def _supervise(self) -> None:
+        while not self._stopping.wait(_POLL_S):
+            with self._lock:
+                for child in list(self._children.values()):
+                    if self._stopping.is_set():
+                        return
+                    self._check(child)
+
+    def _check(self, child: Child) -> None:
+        now = time.monotonic()
+        if child.restart_at is not None:
+            if now >= child.restart_at:
+                child.process = self._popen(child.service, child.worker_id, child.log_path)
+                child.started_at, child.restart_at = now, None
+                child.restarts += 1
+                log.warning("restarted %s as pid %d (restart #%d)", child.worker_id, child.pid, child.restarts)
+            return
+        code = child.process.poll()
+        if code is None:
+            return
+        exit_ = ChildExit(child.service, child.worker_id, code, log_tail(child.log_path))
+        self.exits.append(exit_)
+        log.error("%s", exit_.describe())
+        if not self.restart:
+            del self._children[child.worker_id]
+            return
+        child.crash_streak = 1 if now - child.started_at > _STABLE_AFTER_S else child.crash_streak + 1
+        delay = min(_BACKOFF_MAX_S, _BACKOFF_START_S * 2 ** (child.crash_streak - 1))
+        child.restart_at = now + delay
+        log.warning("restarting %s in %.0f s", child.worker_id, delay)
+
+    # ------------------------------------------------------------------ control key
+    def _serve_control(self) -> None:
+        assert self._control is not None
+        for query in self._control:
+            try:
+                reply = self._handle_control(query)
+                payload, encoding = encode(reply)
+                query.reply(CONTROL_KEY, payload, encoding=encoding)
+            except zenoh.ZError as exc:  # the caller went away
+                log.debug("control reply not delivered: %s", exc)
+            finally:
+                query.drop()
+
+    def _handle_control(self, query: zenoh.Query) -> Message:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        encoding = str(query.encoding) if query.encoding is not None else None
+        try:
+            request = decode(payload, encoding, expected=ScaleRequest)
+        except CodecError as exc:
+            return ErrorReply(code="bad_request", message=str(exc), service="launcher")
+        if not isinstance(request, ScaleRequest):
+            return ErrorReply(code="bad_request", message=f"the launcher accepts ScaleRequest; got {type(request).__name__}",
+                              service="launcher", id=request.id)
+        try:
+            return self.scale(request.service, request.count).model_copy(update={"id": request.id})
+        except LaunchError as exc:
+            code = "bad_request" if request.service not in SCALABLE else "internal"
+            return ErrorReply(code=code, message=str(exc), service="launcher", id=request.id,
+                              request_type="ScaleRequest")
+
+    def _start_thread(self, target, name: str) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+
+def request_scale(session: zenoh.Session, service: str, count: int, timeout: float = 120.0) -> ScaleReply:
+    """Ask a running launcher (over the bus) to bring `service` to exactly `count` workers.
+
+    Raises RemoteError if the launcher refuses, LaunchError if no launcher answers.
+    """
+    payload, encoding = encode(ScaleRequest(service=service, count=count))
+    for reply in session.get(CONTROL_KEY, payload=payload, encoding=encoding, timeout=timeout):
+        if reply.ok is None:
+            continue
+        answer = decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding), expected=ScaleReply)
+        if isinstance(answer, ErrorReply):
+            raise RemoteError(answer)
+        return answer
+    raise LaunchError(f"no launcher answered on {CONTROL_KEY} within {timeout:.0f} s: is `gd2p up` running?")

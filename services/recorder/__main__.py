@@ -1,0 +1,51 @@
+"""`python -m services.recorder`: record the bus to MCAP until SIGTERM / Ctrl-C."""
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from services.recorder.recorder import DEFAULT_MAX_FILE_MB, MIB, RecorderError, RotatingRecorder
+from services.recorder.service import RecorderService
+from shared.bus import BusConfig, BusError, open_session
+
+
+def _positive_mb(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number of megabytes, got {text}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m services.recorder", description="Record every gd2p/** sample to rotating MCAP files.")
+    BusConfig.add_cli_args(parser)
+    parser.add_argument("--record-dir", required=True, help="directory for gd2p-<UTC time>-<seq>.mcap files")
+    parser.add_argument("--max-file-mb", type=_positive_mb, default=DEFAULT_MAX_FILE_MB, help="start a new file past this size (default %(default)s)")
+    parser.add_argument("--worker-id", default=None, help="worker id of the liveliness token (default host-pid-random)")
+    parser.add_argument("--key-expr", default="gd2p/**", help="what to record (default %(default)s)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        recorder = RotatingRecorder(args.record_dir, int(args.max_file_mb * MIB))
+        cfg = BusConfig.from_args(args)
+        with open_session(cfg) as session:
+            # From here on a SIGTERM must end in a drained, closed file, not a killed process.
+            stop = threading.Event()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, lambda signum, frame: stop.set())
+            RecorderService(recorder, args.key_expr).run(session, worker_id=args.worker_id, stop=stop)
+    except (RecorderError, BusError) as exc:
+        print(f"recorder: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

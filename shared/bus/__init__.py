@@ -1,0 +1,27 @@
+"""The Zenoh bus: session config, key expressions, worker runtime, discovery and dispatcher.
+
+    from shared.bus import BusConfig, open_session, run_worker, Dispatcher, live_workers
+"""
+from shared.bus.config import DEFAULT_ROUTER_ENDPOINT, MODES, BusConfig, open_session
+from shared.bus.errors import BusError, DispatchError, RemoteError, RouterUnreachable, ServiceError
+from shared.bus.keys import (
+    ALL_KEYS,
+    alive_key,
+    alive_pattern,
+    job_key,
+    parse_alive_key,
+    status_key,
+    status_pattern,
+)
+from shared.bus.worker import Worker, default_worker_id, run_worker
+from shared.bus.discovery import health, live_workers, worker_counts
+from shared.bus.dispatcher import Dispatcher
+
+__all__ = [
+    "ALL_KEYS", "DEFAULT_ROUTER_ENDPOINT", "MODES",
+    "BusConfig", "open_session",
+    "BusError", "DispatchError", "RemoteError", "RouterUnreachable", "ServiceError",
+    "alive_key", "alive_pattern", "job_key", "parse_alive_key", "status_key", "status_pattern",
+    "Worker", "default_worker_id", "run_worker",
+    "health", "live_workers", "worker_counts", "Dispatcher",
+]

@@ -1,0 +1,78 @@
+"""Messages and a worker entry point for the bus tests (imported by tests and by spawned workers).
+
+A spawned worker runs `python -c "...; bus_test_workers.serve(endpoint, worker_id)"`, so it is a real
+separate process with its own Zenoh session, as in production.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+from shared.bus import BusConfig, ServiceError, run_worker
+from shared.messages import Message
+
+SERVICE = "bustest"
+TESTS_DIR = os.path.dirname(os.path.abspath(__file__))
+REPO_DIR = os.path.dirname(TESTS_DIR)
+
+
+class BusTestJob(Message):
+    """Echo `text` after `sleep_s`; `fail` makes the handler raise (value picks how)."""
+
+    text: str = ""
+    sleep_s: float = 0.0
+    fail: str | None = None  # None | "service" | "crash"
+
+
+class BusTestResult(Message):
+    text: str
+    worker_id: str
+    pid: int
+    concurrent: int  # jobs running in this worker when this one started (itself included)
+    max_concurrent: int  # the most this worker has run at once so far
+
+
+class _Counter:
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.now = 0
+        self.max = 0
+
+
+def make_handler(worker_id: str):
+    counter = _Counter()
+
+    def handle(job: BusTestJob) -> BusTestResult:
+        with counter.lock:
+            counter.now += 1
+            counter.max = max(counter.max, counter.now)
+            concurrent = counter.now
+        try:
+            if job.fail == "service":
+                raise ServiceError("infeasible", f"asked to fail: {job.text}")
+            if job.fail == "crash":
+                raise ZeroDivisionError("asked to crash")
+            time.sleep(job.sleep_s)
+            return BusTestResult(text=job.text, worker_id=worker_id, pid=os.getpid(),
+                                 concurrent=concurrent, max_concurrent=counter.max)
+        finally:
+            with counter.lock:
+                counter.now -= 1
+
+    return handle
+
+
+def serve(endpoint: str, worker_id: str, concurrency: int = 1, service: str = SERVICE) -> None:
+    """Entry point of a spawned worker process."""
+    cfg = BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=-1)
+    run_worker(service, {BusTestJob: make_handler(worker_id)}, cfg, worker_id=worker_id, concurrency=concurrency)
+
+
+def worker_command(endpoint: str, worker_id: str, concurrency: int = 1, service: str = SERVICE) -> list[str]:
+    code = (
+        f"import sys; sys.path[:0] = [{REPO_DIR!r}, {TESTS_DIR!r}]; import bus_test_workers as w; "
+        f"w.serve({endpoint!r}, {worker_id!r}, {concurrency}, {service!r})"
+    )
+    return [sys.executable, "-c", code]

@@ -1,0 +1,194 @@
+"""The local launcher end to end: real service processes on an embedded router on a free port.
+
+One launcher is shared by the module (process start-up dominates the cost); the test that stops it
+runs last. Every check goes through the bus, as a user's `gd2p status` / `scale_validators.py` would.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import cli.system
+from deploy import scale_validators
+from deploy.launcher import SERVICES, LaunchError, Launcher, free_loopback_endpoint, request_scale
+from shared.bus import BusConfig, RemoteError, ServiceError, open_session
+from shared.bus.discovery import live_workers
+from shared.bus.dispatcher import Dispatcher
+from shared.messages import GenerationJob, ObjectRef
+
+pytestmark = pytest.mark.timeout(120)
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def eventually(condition, timeout: float = 10.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"{what} not reached within {timeout} s")
+
+
+def gd2p_system(*argv: str) -> int:
+    """Run a `cli.system` sub-command (status, health, ...) in-process; returns its exit code."""
+    parser = argparse.ArgumentParser(prog="gd2p")
+    cli.system.register(parser.add_subparsers())
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def launcher(tmp_path_factory):
+    root = tmp_path_factory.mktemp("launcher")
+    system = Launcher(validators=1, listen=free_loopback_endpoint(), record_dir=root / "rec", log_dir=root / "logs")
+    system.start()
+    try:
+        system.wait_ready(60)
+        yield system
+    finally:
+        system.stop()
+
+
+@pytest.fixture(scope="module")
+def client(launcher):
+    with open_session(BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=5000)) as session:
+        yield session
+
+
+def test_every_service_registers_and_status_counts_them(launcher, capsys):
+    assert gd2p_system("status", "--json", "--connect", launcher.endpoint) == 0
+    import json
+
+    counts = json.loads(capsys.readouterr().out)
+    assert counts == {svc: 1 for svc in SERVICES}
+
+
+def test_status_without_router_fails_clearly(capsys):
+    started = time.monotonic()
+    assert gd2p_system("status", "--connect", free_loopback_endpoint()) != 0
+    assert "no Zenoh router reachable" in capsys.readouterr().err
+    assert time.monotonic() - started < 15
+
+
+def test_health_command_asks_the_worker_itself(launcher, capsys):
+    worker = launcher.expected_workers()["planner"][0]
+    assert gd2p_system("health", "--service", "planner", "--worker-id", worker, "--connect", launcher.endpoint) == 0
+    assert worker in capsys.readouterr().out
+    assert gd2p_system("health", "--service", "planner", "--worker-id", "nobody", "--timeout", "1",
+                       "--connect", launcher.endpoint) == 1
+
+
+def test_generation_job_gets_a_not_implemented_error_reply(client):
+    job = GenerationJob(object=ObjectRef(library_id="box"), hand="allegro", batch_size=4)
+    with Dispatcher(client, "generator", timeout_s=10.0) as dispatcher:
+        with pytest.raises(RemoteError) as caught:
+            dispatcher.call(job, timeout=30.0)
+    assert caught.value.code == "not_implemented"
+    assert "GenerationJob is not implemented yet" in caught.value.message
+
+
+@pytest.mark.parametrize("service", ["generator", "validator", "sampler", "planner", "robot_bridge"])
+def test_algorithm_requests_are_refused_not_faked(service):
+    """Each stub service serves exactly its request type and refuses it with not_implemented."""
+    module = __import__(f"services.{service}.service", fromlist=["handlers"])
+    (request_type, handler), = module.handlers().items()
+    with pytest.raises(ServiceError) as caught:
+        handler(request_type.model_construct())
+    assert caught.value.code == "not_implemented"
+    assert caught.value.message.startswith(f"{service}: {request_type.__name__} is not implemented yet (issue ")
+
+
+def test_scale_validators_up_and_down_through_the_control_key(launcher, client, capsys):
+    reply = request_scale(client, "validator", 2)
+    assert (reply.count, len(reply.started), reply.stopped) == (2, 1, [])
+    assert len(live_workers(client, "validator")["validator"]) == 2
+
+    assert scale_validators.main(["1", "--connect", launcher.endpoint]) == 0
+    assert "validators: 1" in capsys.readouterr().out
+    eventually(lambda: len(live_workers(client, "validator").get("validator", [])) == 1, what="1 validator")
+    assert len(launcher.expected_workers()["validator"]) == 1
+
+
+def test_singletons_cannot_be_scaled(client):
+    with pytest.raises(RemoteError) as caught:
+        request_scale(client, "robot_bridge", 2)
+    assert caught.value.code == "bad_request"
+
+
+def test_crashed_service_is_restarted_and_reregisters(launcher, client):
+    child = next(c for c in launcher.children() if c.service == "sampler")
+    old_pid = child.pid
+    os.kill(old_pid, signal.SIGKILL)
+    eventually(lambda: child.restarts == 1 and child.pid != old_pid, what="sampler restart")
+    eventually(lambda: child.worker_id in live_workers(client, "sampler").get("sampler", []), what="re-registration")
+    assert any(e.worker_id == child.worker_id and e.returncode == -signal.SIGKILL for e in launcher.exits)
+
+
+def test_stop_ends_every_process_within_10_s(launcher):
+    pids = [c.pid for c in launcher.children()]
+    assert pids and all(alive(pid) for pid in pids)
+    started = time.monotonic()
+    launcher.stop()
+    assert time.monotonic() - started < 10.0
+    assert not any(alive(pid) for pid in pids)
+
+
+def test_a_service_dying_on_start_is_reported_with_its_output(tmp_path):
+    class BrokenPlanner(Launcher):
+        def _command(self, service: str, worker_id: str) -> list[str]:
+            if service == "planner":
+                return [sys.executable, "-c", "import sys; sys.exit('planner: cannot load the checkpoint')"]
+            return super()._command(service, worker_id)
+
+    system = BrokenPlanner(validators=0, listen=free_loopback_endpoint(), record_dir=tmp_path / "rec",
+                           log_dir=tmp_path / "logs", restart=False)
+    system.start()
+    try:
+        with pytest.raises(LaunchError, match=r"(?s)planner \(planner-1\) exited with code 1.*cannot load the checkpoint"):
+            system.wait_ready(60)
+    finally:
+        system.stop()
+
+
+def test_gd2p_up_stops_everything_on_sigterm(tmp_path):
+    endpoint = free_loopback_endpoint()
+    up = subprocess.Popen(
+        [sys.executable, "-m", "cli.main", "up", "--validators", "1", "--listen", endpoint,
+         "--record-dir", str(tmp_path / "rec"), "--log-dir", str(tmp_path / "logs")],
+        cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        output = []
+        for line in up.stdout:  # the launcher prints the table, then this line, once all registered
+            output.append(line)
+            if line.startswith("Ctrl-C"):
+                break
+        assert any(line.startswith("Ctrl-C") for line in output), "".join(output)
+        table = "".join(output)
+        pids = [int(row.split()[2]) for row in table.splitlines() if row.split()[:1] and row.split()[0] in SERVICES]
+        assert len(pids) == len(SERVICES)
+        started = time.monotonic()
+        up.send_signal(signal.SIGTERM)
+        assert up.wait(timeout=15) == 0
+        assert time.monotonic() - started < 10.0
+        assert not any(alive(pid) for pid in pids)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
