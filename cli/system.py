@@ -68,30 +68,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ---------------------------------------------------------------------------------------------
 
 
-def query_health(session, service: str, worker_id: str | None = None, timeout: float = 5.0) -> list:
-    """WorkerStatus of every worker of `service` (or of `worker_id` only) that answers in time."""
-    import zenoh
+def worker_statuses(session, service: str | None = None, worker_id: str | None = None, timeout: float = 5.0) -> list:
+    """WorkerStatus of every worker of `service` (of `worker_id` only, if given) that answers in time."""
+    from shared.bus import health
+    from shared.messages import WorkerStatus
 
-    from shared.bus import job_key
-    from shared.bus.keys import PREFIX, check_chunk
-    from shared.codec import CodecError, decode, encode
-    from shared.messages import HealthQuery, WorkerStatus
-
-    # Every worker of the service answers health queries on its own job key (shared.bus.keys).
-    key = job_key(service, worker_id) if worker_id else f"{PREFIX}/{check_chunk(service, 'service')}/worker/*/job"
-    payload, encoding = encode(HealthQuery())
-    statuses = []
-    # ALL: each worker has its own queryable; every one of them must get the query.
-    for reply in session.get(key, payload=payload, encoding=encoding, timeout=timeout, target=zenoh.QueryTarget.ALL):
-        if reply.ok is None:
-            continue
-        try:
-            status = decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding), expected=WorkerStatus)
-        except CodecError:
-            continue
-        if isinstance(status, WorkerStatus):
-            statuses.append(status)
-    return sorted(statuses, key=lambda s: s.worker_id)
+    statuses = [s for s in health(session, service, timeout=timeout) if isinstance(s, WorkerStatus)]
+    return [s for s in statuses if worker_id is None or s.worker_id == worker_id]
 
 
 def _cli_bus_config(args: argparse.Namespace):
@@ -122,7 +105,7 @@ def _print_table(rows: list[tuple[str, ...]], indent: str = "") -> None:
 def service_counts(session, timeout: float = 2.0) -> dict[str, int]:
     """Live worker count of every known service (0 when absent), then any other service seen."""
     from deploy.launcher import SERVICES
-    from shared.bus.discovery import live_workers
+    from shared.bus import live_workers
 
     live = live_workers(session, timeout=timeout)
     counts = {svc: len(live.get(svc, [])) for svc in SERVICES}
@@ -152,7 +135,7 @@ def run_health(args: argparse.Namespace) -> int:
 
     try:
         with open_session(_cli_bus_config(args)) as session:
-            statuses = query_health(session, args.service, args.worker_id, timeout=args.timeout)
+            statuses = worker_statuses(session, args.service, args.worker_id, timeout=args.timeout)
     except BusError as exc:
         print(f"gd2p health: {exc}", file=sys.stderr)
         return 1
@@ -197,7 +180,8 @@ def run_up(args: argparse.Namespace) -> int:
         print(f"all {len(launcher.children())} workers registered in {time.monotonic() - t0:.1f} s\n")
         print(launcher.table())
         print(f"\nrouter: {launcher.listen}   recordings: {launcher.record_dir}   logs: {launcher.log_dir}")
-        print(f"status: gd2p status --connect {launcher.endpoint}   scale: python deploy/scale_validators.py N")
+        print(f"status: gd2p status --connect {launcher.endpoint}   "
+              f"scale: python deploy/scale_validators.py N --connect {launcher.endpoint}")
         print("Ctrl-C (or SIGTERM) stops everything.", flush=True)
         while True:
             time.sleep(3600)  # the launcher's threads supervise; a signal ends the wait
@@ -255,12 +239,11 @@ def _demo_client(launcher):
 
 def _demo_health(launcher) -> bool:
     from deploy.launcher import SERVICES
-    from shared.bus.discovery import live_workers
 
     print("2. every worker's own answer to a HealthQuery, asked over the bus from a client session:")
     with _demo_client(launcher) as session:
-        live = live_workers(session)
-        statuses = [s for svc in SERVICES if svc in live for s in query_health(session, svc)]
+        statuses = worker_statuses(session)
+    statuses.sort(key=lambda s: (SERVICES.index(s.service) if s.service in SERVICES else len(SERVICES), s.worker_id))
     _print_table(_status_rows(statuses), indent="   ")
     expected = {w for ids in launcher.expected_workers().values() for w in ids}
     silent = sorted(expected - {s.worker_id for s in statuses})
@@ -271,8 +254,7 @@ def _demo_health(launcher) -> bool:
 
 
 def _demo_generation_job(launcher) -> bool:
-    from shared.bus import DispatchError, RemoteError
-    from shared.bus.dispatcher import Dispatcher
+    from shared.bus import Dispatcher, DispatchError, RemoteError
     from shared.messages import GenerationJob, ObjectRef
 
     job = GenerationJob(object=ObjectRef(library_id="random_urdfs/000"), hand="allegro", batch_size=8, seed=0)

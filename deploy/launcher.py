@@ -31,8 +31,7 @@ from pathlib import Path
 
 import zenoh
 
-from shared.bus import DEFAULT_ROUTER_ENDPOINT, BusConfig, BusError, RemoteError, open_session
-from shared.bus.discovery import live_workers
+from shared.bus import DEFAULT_ROUTER_ENDPOINT, BusConfig, BusError, RemoteError, live_workers, open_session
 from shared.codec import CodecError, decode, encode
 from shared.messages import ErrorReply, Message, ScaleReply, ScaleRequest
 
@@ -220,9 +219,9 @@ class Launcher:
             self._children.clear()
         workers = [c.process for c in children if c.service != "recorder"]
         recorders = [c.process for c in children if c.service == "recorder"]
-        budget = max(1.0, timeout - 1.0)  # keep a second for SIGKILL, reaping and the router
-        killed = terminate(workers, grace_s=budget * 0.5)
-        killed += terminate(recorders, grace_s=max(0.5, budget - (time.monotonic() - t0)))
+        deadline = t0 + max(1.0, timeout - 1.0)  # keep a second for SIGKILL, reaping and the router
+        killed = terminate(workers, grace_s=max(0.2, (deadline - time.monotonic()) / 2))
+        killed += terminate(recorders, grace_s=max(0.2, deadline - time.monotonic()))
         if killed:
             log.warning("killed %d process(es) that ignored SIGTERM: pids %s", len(killed), [p.pid for p in killed])
         self._spawner.shutdown(wait=True)
@@ -330,7 +329,7 @@ class Launcher:
         with open(log_path, "ab") as out:
             return self._spawner.submit(
                 subprocess.Popen, self._command(service, worker_id), stdin=subprocess.DEVNULL,
-                stdout=out, stderr=subprocess.STDOUT, env=self._environment(), cwd=str(_PROJECT_ROOT),
+                stdout=out, stderr=subprocess.STDOUT, env=self._environment(),
                 start_new_session=True,  # Ctrl-C reaches only the launcher, which stops the rest in order
             ).result()
 
@@ -403,12 +402,19 @@ class Launcher:
         if not isinstance(request, ScaleRequest):
             return ErrorReply(code="bad_request", message=f"the launcher accepts ScaleRequest; got {type(request).__name__}",
                               service="launcher", id=request.id)
+        def refuse(code: str, message: str) -> ErrorReply:
+            return ErrorReply(code=code, message=message, service="launcher", id=request.id, request_type="ScaleRequest")
+
+        if request.service not in SCALABLE:
+            return refuse("bad_request", f"cannot scale {request.service!r}: scalable services are "
+                                         f"{', '.join(sorted(SCALABLE))}")
+        if self._stopping.is_set():
+            return refuse("unavailable", "the launcher is stopping")
         try:
             return self.scale(request.service, request.count).model_copy(update={"id": request.id})
-        except LaunchError as exc:
-            code = "bad_request" if request.service not in SCALABLE else "internal"
-            return ErrorReply(code=code, message=str(exc), service="launcher", id=request.id,
-                              request_type="ScaleRequest")
+        except Exception as exc:  # the control loop must outlive any one failed request
+            log.exception("scale request %s failed", request.id)
+            return refuse("internal", str(exc) if isinstance(exc, LaunchError) else repr(exc))
 
     def _start_thread(self, target, name: str) -> None:
         thread = threading.Thread(target=target, name=name, daemon=True)

@@ -5,6 +5,7 @@ separate process with its own Zenoh session, as in production.
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import threading
@@ -65,7 +66,8 @@ def make_handler(worker_id: str):
 
 
 def serve(endpoint: str, worker_id: str, concurrency: int = 1, service: str = SERVICE) -> None:
-    """Entry point of a spawned worker process."""
+    """Entry point of a spawned worker process (logs to stderr)."""
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     cfg = BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=-1)
     run_worker(service, {BusTestJob: make_handler(worker_id)}, cfg, worker_id=worker_id, concurrency=concurrency)
 

@@ -129,6 +129,24 @@ def test_client_without_router_fails_clearly_with_finite_timeout():
         open_session(BusConfig(connect=[endpoint], connect_timeout_ms=300))
 
 
+def test_invalid_endpoint_is_a_clear_error():
+    with pytest.raises(BusError, match="Endpoints must be of the form"):
+        BusConfig(connect=["bogus"]).to_zenoh()
+
+
+def test_worker_waiting_for_a_router_stops_on_sigterm():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = subprocess.Popen(tw.worker_command(endpoint, "never-connected"), stderr=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stderr:  # wait until it is inside the connect wait
+            if f"no Zenoh router reachable at {endpoint}" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(5) == 0
+    finally:
+        stop_process(proc)
+
+
 def test_key_expressions():
     assert alive_key("validator", "w1") == "gd2p/alive/validator/w1"
     assert job_key("validator", "w1") == "gd2p/validator/worker/w1/job"
@@ -212,6 +230,25 @@ def test_in_process_worker_stops_on_event(router, client):
     thread.join(10)
     assert not thread.is_alive()
     wait_until(lambda: "inproc" not in live_workers(client, tw.SERVICE).get(tw.SERVICE, []), 10, "token removal")
+
+
+def test_stopping_worker_abandons_jobs_that_outlast_the_drain_timeout(client):
+    stop = threading.Event()
+    worker = Worker(tw.SERVICE, {tw.BusTestJob: tw.make_handler("slowpoke")}, worker_id="slowpoke", stop=stop,
+                    session=client, drain_timeout_s=0.2)
+    thread = threading.Thread(target=worker.run)
+    thread.start()
+    wait_until(lambda: "slowpoke" in live_workers(client, tw.SERVICE).get(tw.SERVICE, []), 10, "the worker")
+    replies = client.get(job_key(tw.SERVICE, "slowpoke"), payload=encode(tw.BusTestJob(sleep_s=5))[0],
+                         encoding="application/msgpack;BusTestJob", timeout=10)
+    wait_until(lambda: worker.status().in_flight == 1, 5, "the job to start")
+    stop.set()
+    thread.join(5)
+    assert not thread.is_alive()
+    [reply] = list(replies)
+    answer = decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+    assert isinstance(answer, ErrorReply) and answer.code == "unavailable"
+    assert "stopped before finishing" in answer.message
 
 
 # ---------------------------------------------------------------------------------------- lifecycle

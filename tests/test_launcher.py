@@ -6,6 +6,8 @@ runs last. Every check goes through the bus, as a user's `gd2p status` / `scale_
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
 import os
 import signal
 import subprocess
@@ -18,9 +20,7 @@ import pytest
 import cli.system
 from deploy import scale_validators
 from deploy.launcher import SERVICES, LaunchError, Launcher, free_loopback_endpoint, request_scale
-from shared.bus import BusConfig, RemoteError, ServiceError, open_session
-from shared.bus.discovery import live_workers
-from shared.bus.dispatcher import Dispatcher
+from shared.bus import BusConfig, Dispatcher, RemoteError, ServiceError, live_workers, open_session
 from shared.messages import GenerationJob, ObjectRef
 
 pytestmark = pytest.mark.timeout(120)
@@ -73,8 +73,6 @@ def client(launcher):
 
 def test_every_service_registers_and_status_counts_them(launcher, capsys):
     assert gd2p_system("status", "--json", "--connect", launcher.endpoint) == 0
-    import json
-
     counts = json.loads(capsys.readouterr().out)
     assert counts == {svc: 1 for svc in SERVICES}
 
@@ -106,7 +104,7 @@ def test_generation_job_gets_a_not_implemented_error_reply(client):
 @pytest.mark.parametrize("service", ["generator", "validator", "sampler", "planner", "robot_bridge"])
 def test_algorithm_requests_are_refused_not_faked(service):
     """Each stub service serves exactly its request type and refuses it with not_implemented."""
-    module = __import__(f"services.{service}.service", fromlist=["handlers"])
+    module = importlib.import_module(f"services.{service}.service")
     (request_type, handler), = module.handlers().items()
     with pytest.raises(ServiceError) as caught:
         handler(request_type.model_construct())

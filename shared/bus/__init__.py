@@ -3,7 +3,7 @@
     from shared.bus import BusConfig, open_session, run_worker, Dispatcher, live_workers
 """
 from shared.bus.config import DEFAULT_ROUTER_ENDPOINT, MODES, BusConfig, open_session
-from shared.bus.errors import BusError, DispatchError, RemoteError, RouterUnreachable, ServiceError
+from shared.bus.errors import BusError, DispatchError, OpenCancelled, RemoteError, RouterUnreachable, ServiceError
 from shared.bus.keys import (
     ALL_KEYS,
     alive_key,
@@ -20,7 +20,7 @@ from shared.bus.dispatcher import Dispatcher
 __all__ = [
     "ALL_KEYS", "DEFAULT_ROUTER_ENDPOINT", "MODES",
     "BusConfig", "open_session",
-    "BusError", "DispatchError", "RemoteError", "RouterUnreachable", "ServiceError",
+    "BusError", "DispatchError", "OpenCancelled", "RemoteError", "RouterUnreachable", "ServiceError",
     "alive_key", "alive_pattern", "job_key", "parse_alive_key", "status_key", "status_pattern",
     "Worker", "default_worker_id", "run_worker",
     "health", "live_workers", "worker_counts", "Dispatcher",

@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
-from dataclasses import dataclass, field
+import threading
+from dataclasses import dataclass, replace
 
 import zenoh
 
-from shared.bus.errors import BusError, RouterUnreachable
+from shared.bus.errors import BusError, OpenCancelled, RouterUnreachable
+
+log = logging.getLogger("gd2p.bus")
 
 MODES = ("client", "peer", "router")
 DEFAULT_ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -24,6 +28,8 @@ ENV_MODE = "GD2P_ZENOH_MODE"
 ENV_CONNECT = "GD2P_ZENOH_CONNECT"
 ENV_LISTEN = "GD2P_ZENOH_LISTEN"
 ENV_CONFIG = "GD2P_ZENOH_CONFIG"
+# A client that waits "forever" for its router retries in slices this long, so signals get through.
+_RETRY_SLICE_MS = 1000
 
 
 def _split_endpoints(text: str | None) -> list[str] | None:
@@ -104,14 +110,17 @@ class BusConfig:
     # ----------------------------------------------------------------- conversion
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config: the file (if any) first, then this object's settings on top."""
-        cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
-        cfg.insert_json5("mode", json.dumps(self.mode))
-        if self.connect is not None:
-            cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        if self.listen is not None:
-            cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        cfg.insert_json5("connect/timeout_ms", json.dumps(int(self.connect_timeout_ms)))
-        cfg.insert_json5("scouting/multicast/enabled", "false")
+        try:
+            cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+            cfg.insert_json5("mode", json.dumps(self.mode))
+            if self.connect is not None:
+                cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+            if self.listen is not None:
+                cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+            cfg.insert_json5("connect/timeout_ms", json.dumps(int(self.connect_timeout_ms)))
+            cfg.insert_json5("scouting/multicast/enabled", "false")
+        except zenoh.ZError as exc:
+            raise BusError(f"invalid Zenoh configuration ({self.describe()}): {_short(exc)}") from None
         return cfg
 
     def describe(self) -> str:
@@ -120,20 +129,44 @@ class BusConfig:
         return f"{self.mode} -> {where}"
 
 
-def open_session(cfg: BusConfig | None = None) -> zenoh.Session:
+def _short(exc: Exception) -> str:
+    """A Zenoh error message without the Rust source locations."""
+    return str(exc).split(" at /")[0].rstrip(".")
+
+
+def open_session(cfg: BusConfig | None = None, stop: threading.Event | None = None) -> zenoh.Session:
     """Open a Zenoh session; close it (or use `with`) when done — an unclosed session can hang exit.
 
-    Raises `RouterUnreachable` when a finite `connect_timeout_ms` expires without a router.
+    A client with `connect_timeout_ms=-1` waits for a router indefinitely, but in slices of
+    `_RETRY_SLICE_MS` so the wait stays interruptible: Ctrl-C raises KeyboardInterrupt between
+    slices, and setting `stop` (e.g. from a SIGTERM handler) raises `OpenCancelled`.
+    With a finite timeout, raises `RouterUnreachable` naming the endpoints.
     """
     cfg = cfg or BusConfig.from_env()
+    if cfg.mode != "client" or cfg.connect_timeout_ms >= 0:
+        return _open_once(cfg)
+    attempt = replace(cfg, connect_timeout_ms=_RETRY_SLICE_MS)
+    waited_ms = 0
+    while True:
+        try:
+            return _open_once(attempt)
+        except RouterUnreachable as exc:
+            if waited_ms == 0 or waited_ms % 10_000 < _RETRY_SLICE_MS:
+                log.info("%s; still waiting", exc)
+        waited_ms += _RETRY_SLICE_MS
+        if stop is not None and stop.is_set():
+            raise OpenCancelled(f"stopped while waiting for a Zenoh router at {', '.join(cfg.connect or [])}")
+
+
+def _open_once(cfg: BusConfig) -> zenoh.Session:
     try:
         return zenoh.open(cfg.to_zenoh())
     except zenoh.ZError as exc:
-        if cfg.mode == "client" or cfg.connect:
-            endpoints = ", ".join(cfg.connect or []) or "the endpoints of " + str(cfg.config_file)
-            reason = str(exc).split(" at /")[0]  # drop the Rust source location
+        reason = _short(exc)
+        if cfg.mode == "client" and "connect" in reason.lower():
+            endpoints = ", ".join(cfg.connect or []) or f"the endpoints of {cfg.config_file}"
             raise RouterUnreachable(
                 f"no Zenoh router reachable at {endpoints} (waited {cfg.connect_timeout_ms} ms): {reason}. "
                 f"Start one with `gd2p up`, or point {ENV_CONNECT} / --connect at a running router."
             ) from None
-        raise BusError(f"cannot open a Zenoh {cfg.mode} session: {exc}") from None
+        raise BusError(f"cannot open a Zenoh {cfg.mode} session ({cfg.describe()}): {reason}") from None

@@ -12,6 +12,10 @@ class RouterUnreachable(BusError):
     """A client with a finite connect timeout found no router."""
 
 
+class OpenCancelled(BusError):
+    """The stop event was set while `open_session` was still waiting for a router."""
+
+
 class ServiceError(Exception):
     """Raised by a service handler to answer with a specific `ErrorReply` code.
 

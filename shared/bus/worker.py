@@ -15,13 +15,16 @@ Results are stamped with the job's id (so callers correlate them) and cached by 
 sent again — e.g. re-dispatched after a timeout — gets the cached reply without recomputation, and
 a duplicate that arrives while the original still runs is answered when it finishes.
 
-SIGTERM / SIGINT (or the `stop` event): stop accepting (new queries get ErrorReply "unavailable",
-which a dispatcher re-dispatches elsewhere), finish in-flight jobs, undeclare, close the session.
+SIGTERM / SIGINT (or the `stop` event): stop accepting (the liveliness token goes first; a query
+that still arrives gets ErrorReply "unavailable", which a dispatcher re-dispatches elsewhere), finish
+in-flight jobs for up to `drain_timeout_s` (jobs still running then are answered "unavailable" too),
+undeclare, close the session. A worker still waiting for its router stops as well.
 """
 from __future__ import annotations
 
 import logging
 import os
+import queue
 import signal
 import socket
 import threading
@@ -29,12 +32,11 @@ import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 
 import zenoh
 
 from shared.bus.config import BusConfig, open_session
-from shared.bus.errors import ServiceError
+from shared.bus.errors import OpenCancelled, ServiceError
 from shared.bus.keys import alive_key, check_chunk, job_key, status_key
 from shared.codec import CodecError, decode, encode
 from shared.messages import ErrorReply, HealthQuery, Message, WorkerStatus
@@ -46,6 +48,48 @@ Handler = Callable[[Message], Message]
 _CACHEABLE_ERRORS = frozenset({"bad_request", "not_implemented", "infeasible"})
 
 
+class _JobPool:
+    """`concurrency` daemon threads running jobs from a queue.
+
+    Daemon threads, unlike _JobPool's, do not hold the process at exit: a worker that
+    gives up waiting for a long job on shutdown (see `drain_timeout_s`) can still exit promptly.
+    """
+
+    def __init__(self, size: int, name: str):
+        self._jobs: queue.Queue = queue.Queue()
+        self._idle = threading.Condition()
+        self._busy = 0
+        self._threads = [threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True) for i in range(size)]
+        for thread in self._threads:
+            thread.start()
+
+    def submit(self, fn: Callable, *args) -> None:
+        with self._idle:
+            self._busy += 1
+        self._jobs.put((fn, args))
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until every submitted job has finished; False if `timeout` expired first."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._busy == 0, timeout)
+
+    def close(self) -> None:
+        for _ in self._threads:
+            self._jobs.put(None)
+
+    def _loop(self) -> None:
+        while (item := self._jobs.get()) is not None:
+            fn, args = item
+            try:
+                fn(*args)
+            except Exception:  # fn reports its own errors; this only keeps the thread alive
+                log.exception("job thread error")
+            finally:
+                with self._idle:
+                    self._busy -= 1
+                    self._idle.notify_all()
+
+
 def default_worker_id() -> str:
     """host-pid-random: unique across hosts, processes and restarts of the same pid."""
     host = "".join(c if c.isalnum() or c in "-_." else "_" for c in socket.gethostname()) or "host"
@@ -53,7 +97,13 @@ def default_worker_id() -> str:
 
 
 class Worker:
-    """One worker process (or thread) of `service`. Use `run()` (blocks) or `run_worker(...)`."""
+    """One worker process (or thread) of `service`. Use `run()` (blocks) or `run_worker(...)`.
+
+    `handlers` maps each accepted message type to a function returning the reply message; it may
+    raise `ServiceError(code, message)`. Up to `concurrency` jobs run at once (in threads: handlers
+    that release the GIL — torch, numpy, pybullet — overlap; others should scale with processes).
+    `session` lets a worker share an already open session (it is then not closed by the worker).
+    """
 
     def __init__(
         self,
@@ -68,6 +118,7 @@ class Worker:
         session: zenoh.Session | None = None,
         status_period_s: float = 2.0,
         result_cache_size: int = 1024,
+        drain_timeout_s: float = 8.0,
     ):
         if concurrency < 1:
             raise ValueError(f"concurrency must be >= 1, got {concurrency}")
@@ -82,6 +133,7 @@ class Worker:
         self.capabilities = list(capabilities or [])
         self.stop_event = stop or threading.Event()
         self.status_period_s = status_period_s
+        self.drain_timeout_s = drain_timeout_s
         self._session = session
         self._lock = threading.Lock()
         self._cache: OrderedDict[str, tuple[bytes, str]] = OrderedDict()
@@ -112,19 +164,24 @@ class Worker:
     def run(self) -> None:
         """Serve until SIGTERM/SIGINT or `stop`; then drain in-flight jobs and close cleanly."""
         restore = self._install_signal_handlers()
-        session = self._session or open_session(self.cfg or BusConfig.from_env())
-        pool = ThreadPoolExecutor(self.concurrency, thread_name_prefix=f"{self.service}-job")
+        try:
+            session = self._session or open_session(self.cfg or BusConfig.from_env(), stop=self.stop_event)
+        except OpenCancelled:
+            restore()
+            log.info("%s worker %s stopped before a router was reachable", self.service, self.worker_id)
+            return
+        pool = _JobPool(self.concurrency, name=f"{self.service}-job")
         try:
             self._serve(session, pool)
         finally:
-            pool.shutdown(wait=True)
+            pool.close()
             if self._session is None:
                 session.close()
             restore()
             log.info("%s worker %s stopped", self.service, self.worker_id)
 
     # ------------------------------------------------------------------ serving
-    def _serve(self, session: zenoh.Session, pool: ThreadPoolExecutor) -> None:
+    def _serve(self, session: zenoh.Session, pool: _JobPool) -> None:
         token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
         queryable = session.declare_queryable(self._reply_key, complete=True)
         publisher = session.declare_publisher(status_key(self.service, self.worker_id))
@@ -142,9 +199,22 @@ class Worker:
             token.undeclare()  # dispatchers stop choosing this worker
             queryable.undeclare()  # ends the receiver loop
             receiver.join(timeout=5.0)
-            pool.shutdown(wait=True)  # in-flight jobs still reply: replies outlive the queryable
+            # In-flight jobs still reply after the queryable is gone; give them drain_timeout_s.
+            if not pool.drain(self.drain_timeout_s):
+                self._abandon_running()
             self._publish_status(publisher)
             publisher.undeclare()
+
+    def _abandon_running(self) -> None:
+        """Answer the jobs still running with "unavailable", so dispatchers re-dispatch them now."""
+        with self._lock:
+            running, self._running = self._running, {}
+        log.warning("%s worker %s abandons %d job(s) still running after %.1f s",
+                    self.service, self.worker_id, len(running), self.drain_timeout_s)
+        for job_id, queries in running.items():
+            for query in queries:
+                self._reply_error(query, "unavailable", f"{self.service} worker {self.worker_id} stopped before "
+                                  f"finishing job {job_id}")
 
     def _publish_status(self, publisher: zenoh.Publisher) -> None:
         payload, encoding = encode(self.status())
@@ -153,7 +223,7 @@ class Worker:
         except zenoh.ZError as exc:  # no router right now: the heartbeat is best effort
             log.debug("status heartbeat not sent: %s", exc)
 
-    def _receive(self, queryable: zenoh.Queryable, pool: ThreadPoolExecutor) -> None:
+    def _receive(self, queryable: zenoh.Queryable, pool: _JobPool) -> None:
         for query in queryable:
             try:
                 self._accept(query, pool)
@@ -161,7 +231,7 @@ class Worker:
                 log.exception("failed to accept a query")
                 self._reply_error(query, "internal", f"worker failed to accept the query: {exc!r}")
 
-    def _accept(self, query: zenoh.Query, pool: ThreadPoolExecutor) -> None:
+    def _accept(self, query: zenoh.Query, pool: _JobPool) -> None:
         if self._stopping:
             self._reply_error(query, "unavailable", f"{self.service} worker {self.worker_id} is stopping")
             return
@@ -267,6 +337,10 @@ def run_worker(
     concurrency: int = 1,
     capabilities: list[str] | None = None,
     stop: threading.Event | None = None,
+    **options,
 ) -> None:
-    """Serve `service` with `handlers` until SIGTERM/SIGINT or `stop` is set (see `Worker`)."""
-    Worker(service, handlers, cfg, worker_id, concurrency, capabilities, stop).run()
+    """Serve `service` with `handlers` until SIGTERM/SIGINT or `stop` is set (see `Worker`).
+
+    `options` go to `Worker` (status_period_s, result_cache_size, drain_timeout_s).
+    """
+    Worker(service, handlers, cfg, worker_id, concurrency, capabilities, stop, **options).run()

@@ -1,0 +1,59 @@
+"""On-disk cache of per-object artefacts, keyed by content hash.
+
+Layout: `$GD2P_CACHE_DIR/objects/<key>/...` (default `~/.cache/gd2p`). Every write is atomic
+(temporary file in the same directory + `os.replace`), so concurrent workers computing the same
+object never see a half-written file: the last identical writer wins.
+"""
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+CACHE_ENV = "GD2P_CACHE_DIR"
+
+
+def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
+    """The objects cache directory (argument > $GD2P_CACHE_DIR > ~/.cache/gd2p)."""
+    base = Path(cache_dir) if cache_dir is not None else Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "gd2p"))
+    return base.expanduser() / "objects"
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> Path:
+    """Write `data` to `path` atomically (temp file + rename); creates parent directories."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def atomic_write_text(path: Path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def save_npz(path: Path, **arrays: np.ndarray) -> Path:
+    """Atomically save arrays as an uncompressed .npz (fast to load, mmap-free)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_npz(path: Path) -> dict[str, np.ndarray] | None:
+    """Load a cached .npz fully into memory; None when missing or unreadable (treated as a miss)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
+        return None
