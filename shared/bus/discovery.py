@@ -13,6 +13,9 @@ def live_workers(session: zenoh.Session, service: str | None = None, timeout: fl
     """{service: sorted worker ids} of every live worker (of `service` only, if given).
 
     Returns as soon as the router has answered (`timeout` bounds the wait, in seconds).
+    Use a session without a liveliness subscriber (e.g. a CLI's own): with eclipse-zenoh 1.10.2 a
+    client that also holds a liveliness subscriber was seen to get an empty answer for a while
+    after declaring it. Where a `Dispatcher` runs, ask `Dispatcher.live()` instead.
     """
     workers: dict[str, set[str]] = {}
     for reply in session.liveliness().get(alive_pattern(service), timeout=timeout):

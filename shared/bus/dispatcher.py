@@ -174,8 +174,10 @@ class Dispatcher:
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._lock:
             while len(self._live_ids) < n:
+                if self._closed:
+                    raise DispatchError("unavailable", f"the {self.service} dispatcher is closed")
                 remaining = None if deadline is None else deadline - time.monotonic()
-                if (remaining is not None and remaining <= 0) or self._closed:
+                if remaining is not None and remaining <= 0:
                     raise TimeoutError(
                         f"only {len(self._live_ids)} of {n} {self.service} worker(s) live after {timeout} s "
                         f"(is the service running and connected to the same router?)"

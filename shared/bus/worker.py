@@ -51,7 +51,7 @@ _CACHEABLE_ERRORS = frozenset({"bad_request", "not_implemented", "infeasible"})
 class _JobPool:
     """`concurrency` daemon threads running jobs from a queue.
 
-    Daemon threads, unlike _JobPool's, do not hold the process at exit: a worker that
+    Daemon threads, unlike ThreadPoolExecutor's, do not hold the process at exit: a worker that
     gives up waiting for a long job on shutdown (see `drain_timeout_s`) can still exit promptly.
     """
 
@@ -182,9 +182,10 @@ class Worker:
 
     # ------------------------------------------------------------------ serving
     def _serve(self, session: zenoh.Session, pool: _JobPool) -> None:
-        token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
+        # Queryable before token: whoever sees the token may query at once (zenoh issue #588).
         queryable = session.declare_queryable(self._reply_key, complete=True)
         publisher = session.declare_publisher(status_key(self.service, self.worker_id))
+        token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
         receiver = threading.Thread(
             target=self._receive, args=(queryable, pool), name=f"{self.service}-receiver", daemon=True
         )

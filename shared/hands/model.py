@@ -34,6 +34,9 @@ POSE_DIM = 25
 _CANDIDATE_SEED = 20240531  # fixed: candidates are part of the model and must not change between runs
 _DENSE_SAMPLES_PER_CANDIDATE = 60
 _EXPOSED_TOLERANCE_M = 1e-5
+_PAIR_PRUNING_SEED = 7
+_PAIR_PRUNING_SAMPLES = 4096
+_PAIR_MARGIN_M = 0.01
 
 
 class HandModelError(ValueError):
@@ -94,8 +97,8 @@ class HandModel:
         self.mount_point_base = torch.tensor(spec.mount_point_base, dtype=torch.float32)
         self.pybullet_base_com_offset = self.robot.inertial_origins.get(self.robot.root_link, np.eye(4))
         self.primitives = PrimitiveSet(primitives_from_urdf(self.robot, self.link_names))
-        self.keypoints: PenetrationKeypoints = build_keypoints(
-            self.primitives.prims, self.link_names, self.robot, spec.self_collision_exclusions)
+        self.keypoints: PenetrationKeypoints = self._prune_far_pairs(build_keypoints(
+            self.primitives.prims, self.link_names, self.robot, spec.self_collision_exclusions))
         self.contact_candidates = self._sample_contact_candidates()
 
     # ------------------------------------------------------------------------------------------ kinematics
@@ -175,6 +178,22 @@ class HandModel:
         if sorted(chain_joints) != sorted(self.joint_names):
             raise RobotAssetError(f"{self.name}: URDF joints {chain_joints} differ from the spec {self.joint_names}")
         return torch.tensor([self.joint_names.index(name) for name in chain_joints], dtype=torch.long)
+
+    def _prune_far_pairs(self, keypoints: PenetrationKeypoints) -> PenetrationKeypoints:
+        """Drop keypoint pairs that stay > _PAIR_MARGIN_M apart over random joint configurations.
+
+        The same sampling test MoveIt's setup assistant uses for its "never in collision" matrix; the
+        margin keeps pairs that come close without touching in the samples. It cuts the pairs ~4x.
+        """
+        generator = torch.Generator().manual_seed(_PAIR_PRUNING_SEED)
+        closest = torch.full((keypoints.pairs.shape[0],), float("inf"))
+        with torch.no_grad():
+            for _ in range(_PAIR_PRUNING_SAMPLES // 512):
+                pose = self.open_pose(512)
+                pose[:, 9:] = self.joint_lower + (self.joint_upper - self.joint_lower) * torch.rand(
+                    512, self.dof, generator=generator)
+                closest = torch.minimum(closest, keypoints.closest_separation(self.forward(pose).links))
+        return keypoints.keep_pairs(closest < _PAIR_MARGIN_M)
 
     def _sample_contact_candidates(self) -> ContactCandidates:
         open_state = self.forward(self.open_pose())

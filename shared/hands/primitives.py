@@ -100,8 +100,8 @@ class PrimitiveSet:
             distances.append(_box_sdf(local, self._box_half).amin(-1))
         if len(self._sphere_radius):
             centers = (link_transforms[:, self._sphere_link] @ self._sphere_center.unsqueeze(-1))[..., :3, 0]
-            gap = torch.linalg.vector_norm(points.unsqueeze(2) - centers.unsqueeze(1), dim=-1)
-            distances.append((gap - self._sphere_radius).amin(-1))
+            squared = sum((p.unsqueeze(2) - c.unsqueeze(1)).square() for p, c in zip(points.unbind(-1), centers.unbind(-1)))
+            distances.append((squared.sqrt() - self._sphere_radius).amin(-1))
         if len(self._cyl_radius):
             local = _to_primitive_frames(points, link_transforms[:, self._cyl_link] @ self._cyl_origin)
             distances.append(_cylinder_sdf(local, self._cyl_radius, self._cyl_half_length).amin(-1))
@@ -117,28 +117,50 @@ def _stack_frames(prims: list[Primitive]) -> tuple[torch.Tensor, torch.Tensor]:
     return links, origins
 
 
-def _to_primitive_frames(points: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-    """points [B,N,3], frames [B,P,4,4] (primitive -> common frame) -> local coordinates [B,N,P,3].
+def _to_primitive_frames(points: torch.Tensor, frames: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """points [B,N,3], frames [B,P,4,4] (primitive -> common frame) -> local x, y, z planes, each [B,N,P].
 
-    local = R^T (x - t); written as x^T R - t^T R so all P rotations are one [B,N,3] @ [B,3,3P] matmul.
+    local = R^T (x - t) for all P primitives is one [B,N,4] @ [B,4,3P] matmul on homogeneous points.
+    Returning one contiguous-in-P plane per axis keeps the SDF arithmetic elementwise: reductions over a
+    trailing axis of size 3 are several times slower on CPU.
     """
     batch, count = frames.shape[:2]
-    rotations = frames[..., :3, :3]
-    rotated = points @ rotations.permute(0, 2, 1, 3).reshape(batch, 3, 3 * count)
-    offsets = (frames[..., :3, 3].unsqueeze(-2) @ rotations).squeeze(-2)  # [B,P,3]
-    return rotated.view(batch, points.shape[1], count, 3) - offsets.unsqueeze(1)
+    rotations = frames[..., :3, :3]  # [B,P,3,3]
+    offsets = -(frames[..., :3, 3].unsqueeze(-2) @ rotations)  # [B,P,1,3]
+    operator = torch.cat((rotations, offsets), dim=2)  # [B,P,4,3]: rows = input coords (x, y, z, 1)
+    operator = operator.permute(0, 2, 3, 1).reshape(batch, 4, 3 * count)  # column k * P + p
+    homogeneous = torch.cat((points, torch.ones_like(points[..., :1])), dim=-1)
+    local = (homogeneous @ operator).view(batch, points.shape[1], 3, count)
+    return local.unbind(2)
 
 
-def _box_sdf(local: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
-    q = local.abs() - half
-    return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+def _box_sdf(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> torch.Tensor:
+    if not _needs_grad(*local):
+        return _box_sdf_inplace(local, half)
+    qx, qy, qz = (c.abs() - h for c, h in zip(local, half.unbind(-1)))
+    outside = (qx.clamp_min(0.0).square() + qy.clamp_min(0.0).square() + qz.clamp_min(0.0).square()).sqrt()
+    return outside + torch.maximum(qx, torch.maximum(qy, qz)).clamp_max(0.0)
 
 
-def _cylinder_sdf(local: torch.Tensor, radius: torch.Tensor, half_length: torch.Tensor) -> torch.Tensor:
-    radial = torch.linalg.vector_norm(local[..., :2], dim=-1) - radius
-    axial = local[..., 2].abs() - half_length
-    q = torch.stack((radial, axial), dim=-1)
-    return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+def _box_sdf_inplace(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> torch.Tensor:
+    """Same values as _box_sdf without autograd: in-place arithmetic skips ~10 fresh [B,N,P] buffers (1.7x)."""
+    qx, qy, qz = (c.abs().sub_(h) for c, h in zip(local, half.unbind(-1)))
+    inside = torch.maximum(qx, qy)
+    torch.maximum(inside, qz, out=inside).clamp_max_(0.0)
+    outside = qx.clamp_min_(0.0).square_().add_(qy.clamp_min_(0.0).square_()).add_(qz.clamp_min_(0.0).square_())
+    return outside.sqrt_().add_(inside)
+
+
+def _cylinder_sdf(local: tuple[torch.Tensor, ...], radius: torch.Tensor, half_length: torch.Tensor) -> torch.Tensor:
+    x, y, z = local
+    radial = (x.square() + y.square()).sqrt() - radius
+    axial = z.abs() - half_length
+    outside = (radial.clamp_min(0.0).square() + axial.clamp_min(0.0).square()).sqrt()
+    return outside + torch.maximum(radial, axial).clamp_max(0.0)
+
+
+def _needs_grad(*tensors: torch.Tensor) -> bool:
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
 
 
 # --------------------------------------------------------------------------------------- surface sampling
@@ -217,9 +239,19 @@ class PenetrationKeypoints:
         gap = torch.linalg.vector_norm(centers[:, first] - centers[:, second], dim=-1)
         return torch.relu(self.radius[first] + self.radius[second] - gap).sum(-1)
 
+    def keep_pairs(self, mask: torch.Tensor) -> "PenetrationKeypoints":
+        return PenetrationKeypoints(self.link_index, self.centers, self.radius, self.pairs[mask])
+
+    def closest_separation(self, link_transforms: torch.Tensor) -> torch.Tensor:
+        """Per pair, the smallest |c_i - c_j| - r_i - r_j over the batch [M] (for pruning pairs)."""
+        centers = (link_transforms[:, self.link_index] @ self.centers.unsqueeze(-1))[..., :3, 0]
+        first, second = self.pairs[:, 0], self.pairs[:, 1]
+        gap = torch.linalg.vector_norm(centers[:, first] - centers[:, second], dim=-1)
+        return (gap - self.radius[first] - self.radius[second]).amin(0)
+
 
 def build_keypoints(prims: tuple[Primitive, ...], link_names: tuple[str, ...], robot: UrdfRobot,
-                    exclusions: tuple[tuple[str, str], ...] = (), spacing: float = 1.25) -> PenetrationKeypoints:
+                    exclusions: tuple[tuple[str, str], ...] = (), spacing: float = 1.5) -> PenetrationKeypoints:
     """Fill every primitive with spheres (radius = its smallest half extent, centres <= spacing * radius apart)."""
     links, centers, radii = [], [], []
     for prim in prims:
@@ -251,8 +283,9 @@ def _filling_spheres(prim: Primitive, spacing: float) -> tuple[np.ndarray, float
     axes = []
     for h in half:
         reach = h - radius
-        n = 1 if reach < 1e-9 else int(math.ceil(2 * reach / (spacing * radius))) + 1
-        axes.append(np.linspace(-reach, reach, n))
+        # A second row would only cover a sliver (< radius / 2) next to the faces: keep one row there.
+        n = 1 if reach < 0.5 * radius else int(math.ceil(2 * reach / (spacing * radius) - 1e-9)) + 1
+        axes.append(np.linspace(-reach, reach, n) if n > 1 else np.zeros(1))
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     if prim.kind == "cylinder":  # keep spheres inside the round cross-section
         grid = grid[np.linalg.norm(grid[:, :2], axis=1) <= prim.radius - radius + 1e-9]

@@ -1,0 +1,171 @@
+"""The push episode: a floating hand at a pose in D translates along +x; did the object follow?
+
+Scene (world = the direction frame D): table plane z = 0, the object at its resting pose with its
+centroid over the origin, the hand's base link at the pose, joints held by position control at the
+pose's angles, the base driven kinematically through a fixed constraint whose target moves
+`push_distance_m` along +x at `PhysicsParams.push_speed_mps`, then holds for `settle_s` while the
+object comes to rest.
+
+Success (paper, "Hand Pose Validation in Simulation"): the object's centre (centre of mass) ends
+within `SUCCESS_POSITION_TOLERANCE_M` of start + push_distance_m * x and its orientation changed by at
+most `SUCCESS_MAX_ROTATION_DEG`. The other metrics are reported, not judged.
+
+One `PushSimulator` per (object, hand, physics): the scene is built once and its settled state
+saved; every episode restores that snapshot (bit-identical outcomes whatever ran before).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.frames import pose25_to_matrix
+from shared.hands import HandModel
+from shared.sim import PhysicsParams, SimScene
+
+SUCCESS_POSITION_TOLERANCE_M = 0.03
+SUCCESS_MAX_ROTATION_DEG = 45.0
+DEFAULT_PUSH_DISTANCE_M = 0.20
+CONTACT_KEPT_MIN_FRACTION = 0.8
+PENETRATION_PROBE_M = 0.05  # getClosestPoints search radius at t = 0
+INITIAL_SETTLE_S = 0.2  # object alone on the table before the snapshot
+
+
+class PushInputError(ValueError):
+    """A pose or object that cannot be simulated (wrong shape, non-finite values)."""
+
+
+@dataclass(frozen=True)
+class TableObject:
+    """An object ready for the push scene: its URDF and where its URDF base frame sits in D."""
+
+    object_id: str
+    urdf_path: Path
+    transform_d: np.ndarray  # 4x4: URDF base frame in D, resting pose, centroid above the origin
+    vertices_d: np.ndarray  # [V, 3] mesh vertices in D at that pose (for fixed poses and extents)
+
+    @property
+    def height(self) -> float:
+        return float(self.vertices_d[:, 2].max())
+
+
+@dataclass(frozen=True)
+class PushOutcome:
+    """Metrics of one push episode."""
+
+    success: bool
+    position_error_m: float
+    rotation_deg: float
+    max_tilt_deg: float
+    contact_fraction: float
+    contact_kept: bool
+    hand_table_contact: bool
+    initial_penetration_m: float
+
+
+def judge(position_error_m: float, rotation_deg: float) -> bool:
+    """The paper's success criterion."""
+    return position_error_m <= SUCCESS_POSITION_TOLERANCE_M and rotation_deg <= SUCCESS_MAX_ROTATION_DEG
+
+
+def rotation_angle_deg(r_start: np.ndarray, r_end: np.ndarray) -> float:
+    """Geodesic angle between two rotations (degrees)."""
+    cos = (np.trace(r_end @ r_start.T) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
+
+class PushSimulator:
+    """Runs push episodes of one hand against one object in one PyBullet client."""
+
+    def __init__(self, hand: HandModel, obj: TableObject, params: PhysicsParams | None = None):
+        self.hand_model = hand
+        self.object = obj
+        self.params = params or PhysicsParams()
+        self.scene = SimScene(self.params)
+        try:
+            self.body = self.scene.add_object(obj.urdf_path, obj.transform_d)
+            self.hand = self.scene.add_floating_hand(hand.urdf_path, hand.joint_names)
+            for _ in range(round(INITIAL_SETTLE_S / self.params.time_step_s)):
+                self.scene.step()
+            self._rest_pose = self.body.pose()
+            self._state = self.scene.save()
+        except BaseException:
+            self.scene.close()
+            raise
+
+    def close(self) -> None:
+        self.scene.close()
+
+    def __enter__(self) -> "PushSimulator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def run(self, pose: np.ndarray, push_distance_m: float = DEFAULT_PUSH_DISTANCE_M,
+            object_offset: np.ndarray | None = None) -> PushOutcome:
+        """Push once. `object_offset` (4x4, in D) moves the resting object first (placement noise)."""
+        base, joints = _parse_pose(pose)
+        self.scene.restore(self._state)
+        if object_offset is not None:
+            self.body.reset_pose(object_offset @ self._rest_pose)
+        self.hand.place(base, joints)
+        penetration = max(0.0, -self.scene.closest_distance(self.hand, self.body, PENETRATION_PROBE_M))
+        return self._simulate(base, push_distance_m, penetration)
+
+    def _simulate(self, base: np.ndarray, distance: float, penetration: float) -> PushOutcome:
+        p, scene, hand, body, table = self.params, self.scene, self.hand, self.body, self.scene.table
+        start_pos, start_quat = body.com_pose()
+        r_start = _quat_matrix(start_quat)
+        up_in_object = r_start[2]  # world z expressed in the object's starting frame
+        push_steps = max(1, round(distance / (p.push_speed_mps * p.time_step_s)))
+        settle_steps = round(p.settle_s / p.time_step_s)
+        target = base.copy()
+        contact_steps, table_contact, min_up = 0, False, 1.0
+        for k in range(push_steps + settle_steps):
+            if k < push_steps:
+                target[0, 3] = base[0, 3] + distance * (k + 1) / push_steps
+                hand.drive(target)
+            scene.step()
+            if k < push_steps and scene.in_contact(hand, body):
+                contact_steps += 1
+            table_contact = table_contact or scene.in_contact(hand, table)
+            min_up = min(min_up, _up_z(body.com_pose()[1], up_in_object))
+        end_pos, end_quat = body.com_pose()
+        goal = np.asarray(start_pos) + np.array([distance, 0.0, 0.0])
+        error = float(np.linalg.norm(np.asarray(end_pos) - goal))
+        rotation = rotation_angle_deg(r_start, _quat_matrix(end_quat))
+        fraction = contact_steps / push_steps
+        return PushOutcome(
+            success=judge(error, rotation), position_error_m=error, rotation_deg=rotation,
+            max_tilt_deg=math.degrees(math.acos(min(1.0, max(-1.0, min_up)))), contact_fraction=fraction,
+            contact_kept=fraction >= CONTACT_KEPT_MIN_FRACTION, hand_table_contact=table_contact,
+            initial_penetration_m=penetration)
+
+
+def _parse_pose(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (25,):
+        raise PushInputError(f"a hand pose must have 25 values [p(3), r6(6), q(16)], got shape {pose.shape}")
+    if not np.all(np.isfinite(pose)):
+        raise PushInputError("a hand pose contains NaN or infinity")
+    base, joints = pose25_to_matrix(pose)
+    return base, joints
+
+
+def _quat_matrix(quat) -> np.ndarray:
+    x, y, z, w = quat
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _up_z(quat, up_in_object: np.ndarray) -> float:
+    """z component of the object's initial up direction after rotating by `quat` (cos of the tilt)."""
+    x, y, z, w = quat
+    row = (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y))
+    return row[0] * up_in_object[0] + row[1] * up_in_object[1] + row[2] * up_in_object[2]

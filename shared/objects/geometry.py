@@ -1,0 +1,165 @@
+"""Physical geometry of an object: mass properties, its body frame O, resting poses, shape class.
+
+Object frame O: origin at the centre of mass; axes along the principal axes of inertia (kept
+equal to the source's axes when those already are principal, e.g. procedural shapes). With this
+choice the URDF inertial frame *is* the link frame, so PyBullet's base pose (which is the
+centre-of-mass frame) equals O's pose, and the inertia tensor PyBullet keeps (only its diagonal)
+is the full tensor.
+
+Resting pose: a rotation R (O -> table frame, up to yaw) and the height h of the centre of mass
+when the lowest point touches z = 0. Placing O at T_D_O = [Rz(yaw) R | (0, 0, h)] puts the object
+on the table with its centre of mass above D's origin, as DESIGN.md §2 requires.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from .errors import ObjectLoadError
+from .sdf import inside_mask, node_axes
+
+SHAPE_CLASSES = ("flat", "volumetric", "tall")
+# Shape class from height H over footprint width w = sqrt(a·b) (a, b: sides of the smallest
+# rectangle around the footprint): flat if H < 0.4 w (books, plates, jenga block), tall if
+# H > 1.5 w (bottles, cans, cereal boxes), volumetric otherwise (mugs, boxes, toys).
+FLAT_MAX_RATIO = 0.4
+TALL_MIN_RATIO = 1.5
+MIN_POSE_PROBABILITY = 0.01  # quasi-static drop probability below which a pose is ignored
+MAX_RESTING_POSES = 8
+NATIVE_MATCH_DEG = 2.0
+VOXEL_MASS_RESOLUTION = 64
+
+
+@dataclass(frozen=True)
+class RestingPose:
+    """A stable way for the object to lie on the table."""
+
+    rotation: np.ndarray  # 3x3, O -> table-aligned frame (yaw 0)
+    height: float  # centre-of-mass height above the table (m)
+    probability: float  # quasi-static probability of landing in this pose (trimesh)
+    native: bool = False  # the source's own upright orientation (as modelled / as designed)
+
+    def transform(self, yaw_rad: float = 0.0) -> np.ndarray:
+        """T_D_O: the object resting in this pose, rotated by `yaw_rad` about D's z axis."""
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        out = np.eye(4)
+        out[:3, :3] = yaw @ self.rotation
+        out[2, 3] = self.height
+        return out
+
+
+@dataclass(frozen=True)
+class MassProperties:
+    """Volume, centre of mass and inertia at unit density, in the frame they were computed in."""
+
+    volume: float
+    center_of_mass: np.ndarray
+    unit_inertia: np.ndarray  # 3x3 about the centre of mass, for density 1 kg/m^3
+    from_voxels: bool
+
+
+def mass_properties(mesh: trimesh.Trimesh, source: str) -> MassProperties:
+    """Exact (divergence theorem) for closed meshes; from the ray-vote voxel fill for open ones."""
+    if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0:
+        props = mesh.mass_properties  # density defaults to 1
+        return MassProperties(float(props["volume"]), np.asarray(props["center_mass"]), np.asarray(props["inertia"]), False)
+    return _voxel_mass_properties(mesh, source)
+
+
+def _voxel_mass_properties(mesh: trimesh.Trimesh, source: str, resolution: int = VOXEL_MASS_RESOLUTION) -> MassProperties:
+    lower, upper = mesh.bounds
+    cell = (upper - lower) / (resolution - 2)
+    lower, upper = lower - 0.5 * cell, upper + 0.5 * cell  # node-centred voxels covering the mesh
+    axes = node_axes(lower, upper, resolution)
+    filled = inside_mask(mesh, axes)
+    if not filled.any():
+        raise ObjectLoadError(f"{source}: the surface encloses no volume (an open sheet, or holes on most sides)")
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)[filled]
+    cell = (upper - lower) / (resolution - 1)
+    voxel_volume = float(np.prod(cell))
+    com = centres.mean(axis=0)
+    r = centres - com
+    inertia = (np.eye(3) * (r * r).sum() - r.T @ r) * voxel_volume
+    inertia += np.diag([cell[1] ** 2 + cell[2] ** 2, cell[0] ** 2 + cell[2] ** 2, cell[0] ** 2 + cell[1] ** 2]) * voxel_volume * len(r) / 12.0
+    return MassProperties(voxel_volume * len(r), com, inertia, True)
+
+
+def principal_frame(props: MassProperties) -> np.ndarray:
+    """T_source_O: centre of mass + principal axes (source axes kept when already principal)."""
+    inertia = props.unit_inertia
+    off_diagonal = np.abs(inertia - np.diag(np.diag(inertia))).max()
+    if off_diagonal <= 1e-6 * np.abs(np.diag(inertia)).max():
+        rotation = np.eye(3)
+    else:
+        _, vectors = np.linalg.eigh(inertia)  # ascending moments
+        # one deterministic sign per axis: its largest component positive; then right-handed
+        signs = np.sign(vectors[np.abs(vectors).argmax(axis=0), np.arange(3)])
+        rotation = vectors * signs
+        if np.linalg.det(rotation) < 0:
+            rotation[:, 2] *= -1
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = props.center_of_mass
+    return transform
+
+
+def resting_poses(mesh_o: trimesh.Trimesh, native_rotation: np.ndarray | None) -> tuple[list[RestingPose], int]:
+    """Stable poses of a mesh given in O (centre of mass at the origin), most probable first.
+
+    Returns the poses and the index of the default one: the native orientation when it is given
+    and stable (then it replaces its matching pose), otherwise the most probable pose.
+    """
+    transforms, probabilities = trimesh.poses.compute_stable_poses(mesh_o, center_mass=np.zeros(3), sigma=0.0, n_samples=1)
+    order = np.argsort(-np.asarray(probabilities), kind="stable")
+    transforms, probabilities = np.asarray(transforms)[order], np.asarray(probabilities)[order]
+    poses = [
+        RestingPose(t[:3, :3].copy(), _rest_height(mesh_o, t[:3, :3]), float(p))
+        for t, p in zip(transforms, probabilities)
+        if p >= MIN_POSE_PROBABILITY
+    ][:MAX_RESTING_POSES]
+    if not poses:  # every pose improbable (near-spherical): keep the best one anyway
+        best = int(np.argmax(probabilities))
+        poses = [RestingPose(transforms[best][:3, :3].copy(), _rest_height(mesh_o, transforms[best][:3, :3]), float(probabilities[best]))]
+    if native_rotation is not None:
+        match = _matching_pose(poses, native_rotation)
+        if match is not None:
+            poses[match] = RestingPose(native_rotation.copy(), _rest_height(mesh_o, native_rotation), poses[match].probability, native=True)
+            return poses, match
+    return poses, 0
+
+
+def _rest_height(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:
+    return float(-(mesh_o.vertices @ rotation[2]).min())
+
+
+def _matching_pose(poses: list[RestingPose], rotation: np.ndarray) -> int | None:
+    """The pose with the same up direction (in O) as `rotation`, if any."""
+    up = rotation[2]  # world z expressed in O
+    cos_limit = math.cos(math.radians(NATIVE_MATCH_DEG))
+    for index, pose in enumerate(poses):
+        if float(np.dot(pose.rotation[2], up)) >= cos_limit:
+            return index
+    return None
+
+
+def footprint_and_height(mesh_o: trimesh.Trimesh, pose: RestingPose) -> tuple[float, float, float]:
+    """(a, b, H): sides of the smallest footprint rectangle (a >= b) and the height, in metres."""
+    hull = mesh_o.convex_hull.vertices @ pose.rotation.T
+    _, extents = trimesh.bounds.oriented_bounds_2D(hull[:, :2])
+    a, b = sorted((float(extents[0]), float(extents[1])), reverse=True)
+    height = float(hull[:, 2].max() - hull[:, 2].min())
+    return a, b, height
+
+
+def shape_class(a: float, b: float, height: float) -> str:
+    """flat / volumetric / tall from the footprint sides and the height (see the thresholds)."""
+    ratio = height / math.sqrt(a * b)
+    if ratio < FLAT_MAX_RATIO:
+        return "flat"
+    if ratio > TALL_MIN_RATIO:
+        return "tall"
+    return "volumetric"
