@@ -28,6 +28,8 @@ class BusTestJob(Message):
 
 
 class BusTestResult(Message):
+    """What the test worker answers: the echoed text and who served it."""
+
     text: str
     worker_id: str
     pid: int

@@ -101,7 +101,7 @@ class PrimitiveSet:
         if len(self._sphere_radius):
             centers = (link_transforms[:, self._sphere_link] @ self._sphere_center.unsqueeze(-1))[..., :3, 0]
             squared = sum((p.unsqueeze(2) - c.unsqueeze(1)).square() for p, c in zip(points.unbind(-1), centers.unbind(-1)))
-            distances.append((squared.sqrt() - self._sphere_radius).amin(-1))
+            distances.append((_safe_sqrt(squared) - self._sphere_radius).amin(-1))
         if len(self._cyl_radius):
             local = _to_primitive_frames(points, link_transforms[:, self._cyl_link] @ self._cyl_origin)
             distances.append(_cylinder_sdf(local, self._cyl_radius, self._cyl_half_length).amin(-1))
@@ -138,7 +138,7 @@ def _box_sdf(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> torch.Tenso
     if not _needs_grad(*local):
         return _box_sdf_inplace(local, half)
     qx, qy, qz = (c.abs() - h for c, h in zip(local, half.unbind(-1)))
-    outside = (qx.clamp_min(0.0).square() + qy.clamp_min(0.0).square() + qz.clamp_min(0.0).square()).sqrt()
+    outside = _safe_sqrt(qx.clamp_min(0.0).square() + qy.clamp_min(0.0).square() + qz.clamp_min(0.0).square())
     return outside + torch.maximum(qx, torch.maximum(qy, qz)).clamp_max(0.0)
 
 
@@ -148,15 +148,23 @@ def _box_sdf_inplace(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> tor
     inside = torch.maximum(qx, qy)
     torch.maximum(inside, qz, out=inside).clamp_max_(0.0)
     outside = qx.clamp_min_(0.0).square_().add_(qy.clamp_min_(0.0).square_()).add_(qz.clamp_min_(0.0).square_())
-    return outside.sqrt_().add_(inside)
+    return outside.clamp_min_(_TINY_SQUARE).sqrt_().add_(inside)
 
 
 def _cylinder_sdf(local: tuple[torch.Tensor, ...], radius: torch.Tensor, half_length: torch.Tensor) -> torch.Tensor:
     x, y, z = local
-    radial = (x.square() + y.square()).sqrt() - radius
+    radial = _safe_sqrt(x.square() + y.square()) - radius
     axial = z.abs() - half_length
-    outside = (radial.clamp_min(0.0).square() + axial.clamp_min(0.0).square()).sqrt()
+    outside = _safe_sqrt(radial.clamp_min(0.0).square() + axial.clamp_min(0.0).square())
     return outside + torch.maximum(radial, axial).clamp_max(0.0)
+
+
+_TINY_SQUARE = 1e-20  # (1e-10 m)^2
+
+
+def _safe_sqrt(squared: torch.Tensor) -> torch.Tensor:
+    """sqrt with a zero (not NaN) gradient at 0, e.g. for points inside a box or at a sphere's centre."""
+    return squared.clamp_min(_TINY_SQUARE).sqrt()
 
 
 def _needs_grad(*tensors: torch.Tensor) -> bool:

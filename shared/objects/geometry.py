@@ -33,7 +33,7 @@ NATIVE_MATCH_DEG = 2.0
 VOXEL_MASS_RESOLUTION = 64
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RestingPose:
     """A stable way for the object to lie on the table."""
 
@@ -52,7 +52,7 @@ class RestingPose:
         return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MassProperties:
     """Volume, centre of mass and inertia at unit density, in the frame they were computed in."""
 
@@ -110,26 +110,27 @@ def principal_frame(props: MassProperties) -> np.ndarray:
 def resting_poses(mesh_o: trimesh.Trimesh, native_rotation: np.ndarray | None) -> tuple[list[RestingPose], int]:
     """Stable poses of a mesh given in O (centre of mass at the origin), most probable first.
 
-    Returns the poses and the index of the default one: the native orientation when it is given
-    and stable (then it replaces its matching pose), otherwise the most probable pose.
+    Poses less probable than MIN_POSE_PROBABILITY are dropped, except the native orientation:
+    when it is given and statically stable it is kept whatever its drop probability (a capsule
+    lying on its small flat base is still a way people put it down) and it is the default.
+    Returns the poses and the index of the default (the native pose, else the most probable).
     """
     transforms, probabilities = trimesh.poses.compute_stable_poses(mesh_o, center_mass=np.zeros(3), sigma=0.0, n_samples=1)
     order = np.argsort(-np.asarray(probabilities), kind="stable")
-    transforms, probabilities = np.asarray(transforms)[order], np.asarray(probabilities)[order]
-    poses = [
-        RestingPose(t[:3, :3].copy(), _rest_height(mesh_o, t[:3, :3]), float(p))
-        for t, p in zip(transforms, probabilities)
-        if p >= MIN_POSE_PROBABILITY
-    ][:MAX_RESTING_POSES]
-    if not poses:  # every pose improbable (near-spherical): keep the best one anyway
-        best = int(np.argmax(probabilities))
-        poses = [RestingPose(transforms[best][:3, :3].copy(), _rest_height(mesh_o, transforms[best][:3, :3]), float(probabilities[best]))]
-    if native_rotation is not None:
-        match = _matching_pose(poses, native_rotation)
-        if match is not None:
-            poses[match] = RestingPose(native_rotation.copy(), _rest_height(mesh_o, native_rotation), poses[match].probability, native=True)
-            return poses, match
-    return poses, 0
+    candidates = [
+        RestingPose(transforms[i][:3, :3].copy(), _rest_height(mesh_o, transforms[i][:3, :3]), float(probabilities[i])) for i in order
+    ]
+    poses = [pose for pose in candidates if pose.probability >= MIN_POSE_PROBABILITY][:MAX_RESTING_POSES] or candidates[:1]
+    if native_rotation is None:
+        return poses, 0
+    match = _matching_pose(candidates, native_rotation)
+    if match is None:
+        return poses, 0
+    native = RestingPose(native_rotation.copy(), _rest_height(mesh_o, native_rotation), candidates[match].probability, native=True)
+    poses = [pose for pose in poses if pose is not candidates[match]]
+    poses.append(native)
+    poses.sort(key=lambda pose: -pose.probability)
+    return poses, poses.index(native)
 
 
 def _rest_height(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:
