@@ -23,6 +23,7 @@ import numpy as np
 
 from shared.frames import pose25_to_matrix
 from shared.hands import HandModel
+from shared.objects import ObjectModel, write_object_urdf
 from shared.sim import PhysicsParams, SimScene
 
 SUCCESS_POSITION_TOLERANCE_M = 0.03
@@ -49,6 +50,13 @@ class TableObject:
     @property
     def height(self) -> float:
         return float(self.vertices_d[:, 2].max())
+
+
+def table_object(obj: ObjectModel, pose_index: int | None = None, yaw_rad: float = 0.0) -> TableObject:
+    """The library object resting in `pose_index` (its default pose if None), yawed by `yaw_rad` in D."""
+    transform = obj.T_D_O(pose_index, yaw_rad)
+    vertices = obj.mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
+    return TableObject(obj.id, write_object_urdf(obj), transform, vertices)
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,7 @@ class PushSimulator:
         self.hand_model = hand
         self.object = obj
         self.params = params or PhysicsParams()
+        self._joint_limits = (hand.joint_lower.double().numpy(), hand.joint_upper.double().numpy())
         self.scene = SimScene(self.params)
         try:
             self.body = self.scene.add_object(obj.urdf_path, obj.transform_d)
@@ -106,8 +115,12 @@ class PushSimulator:
 
     def run(self, pose: np.ndarray, push_distance_m: float = DEFAULT_PUSH_DISTANCE_M,
             object_offset: np.ndarray | None = None) -> PushOutcome:
-        """Push once. `object_offset` (4x4, in D) moves the resting object first (placement noise)."""
+        """Push once. `object_offset` (4x4, in D) moves the resting object first (placement noise).
+
+        Joint angles outside the hand's limits are clipped to them, as the real hand would.
+        """
         base, joints = _parse_pose(pose)
+        joints = np.clip(joints, *self._joint_limits)
         self.scene.restore(self._state)
         if object_offset is not None:
             self.body.reset_pose(object_offset @ self._rest_pose)

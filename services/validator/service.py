@@ -1,22 +1,120 @@
-"""Bus adapter of the validator service: PyBullet push validation (issue 5).
+"""Bus adapter of the validator service: a ValidationJob in, a ValidationResult out.
 
-The algorithm arrives with issue 5. Until then a ValidationJob gets a clear `not_implemented`
-error reply — never a fake result — while the worker itself is real: it registers on the bus
-and answers health queries. `handlers()` is the one place where the algorithm plugs in.
+Each worker process runs one PyBullet client per job thread (the simulators are thread-local, so a
+worker started with concurrency > 1 stays correct; one process per core is what scales, DESIGN.md
+§6). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
+job seed fixes the augmentation copies, so a job gives the same result on any worker.
+
+Arm rollouts (`with_arm=True`, issue 6) are answered with a clear `not_implemented` error.
 """
 from __future__ import annotations
 
+import dataclasses
+import sys
+import threading
+import time
 from collections.abc import Callable
+from pathlib import Path
 
+import numpy as np
+
+from services.validator.push import PushInputError, PushOutcome, table_object
+from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
-from shared.messages import ValidationJob, ValidationResult, Message
+from shared.hands import load_hand
+from shared.messages import AugmentedOutcomes, Message, ObjectRef, PhysicsSettings, ValidationJob, ValidationResult
+from shared.objects import ObjectLoadError, ObjectModel, load_object
+from shared.objects.cache import atomic_write_bytes, cache_root
+from shared.sim import PhysicsParams, SimError
 
 SERVICE = "validator"
+DEFAULT_PARAMS = PhysicsParams()
+
+_local = threading.local()
+
+
+def _limit_torch_threads() -> None:
+    """Busy worker processes share the cores: one torch thread each (DESIGN.md §6)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
+def _validator() -> Validator:
+    validator = getattr(_local, "validator", None)
+    if validator is None:
+        _limit_torch_threads()
+        validator = _local.validator = Validator(DEFAULT_PARAMS)
+    return validator
+
+
+def params_for(settings: PhysicsSettings | None) -> PhysicsParams:
+    """The service defaults, overridden by a job's solver settings and push speed."""
+    if settings is None:
+        return DEFAULT_PARAMS
+    return dataclasses.replace(DEFAULT_PARAMS, solver_iterations=settings.solver_iterations,
+                               time_step_s=settings.time_step_s, push_speed_mps=settings.push_speed_mps)
+
+
+def resolve_object(ref: ObjectRef) -> ObjectModel:
+    """The library object or user mesh of a job (a mesh is written once to the cache by its hash)."""
+    if ref.point_cloud is not None:
+        raise ServiceError("bad_request", "the validator needs an object mesh or library id; a point cloud cannot be simulated")
+    try:
+        if ref.library_id is not None:
+            obj = load_object(ref.library_id)
+        else:
+            assert ref.mesh is not None
+            path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
+            if not path.is_file():
+                atomic_write_bytes(path, ref.mesh.data)
+            obj = load_object(path)
+    except ObjectLoadError as exc:
+        raise ServiceError("bad_request", f"object {ref.object_id}: {exc}") from exc
+    if ref.scale is not None and ref.scale != 1.0:
+        raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported by the validator")
+    return obj
 
 
 def validate(job: ValidationJob) -> ValidationResult:
     """Push `job.object` with the hand at each pose of `job.poses` and judge the outcome."""
-    raise ServiceError("not_implemented", "validator: ValidationJob is not implemented yet (issue 5)")
+    if job.with_arm:
+        raise ServiceError("not_implemented", "validator: arm rollouts (with_arm=True) arrive with the planner (issue 6)")
+    started = time.perf_counter()
+    obj = resolve_object(job.object)
+    hand = load_hand(job.hand)
+    try:
+        run = _validator().validate(
+            table_object(obj), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
+            push_distance_m=job.push_distance_m, augment=job.augment, seed=job.seed)
+    except (PushInputError, SimError) as exc:
+        raise ServiceError("bad_request", f"validator: {exc}") from exc
+    return to_result(job, obj.id, run, time.perf_counter() - started)
+
+
+def outcome_arrays(outcomes: list[PushOutcome]) -> dict[str, np.ndarray]:
+    """PushOutcome list -> the column arrays of PushOutcomes."""
+    def column(name: str, dtype) -> np.ndarray:
+        return np.array([getattr(o, name) for o in outcomes], dtype=dtype)
+
+    return {
+        "success": column("success", bool),
+        "position_error_m": column("position_error_m", np.float64),
+        "rotation_deg": column("rotation_deg", np.float64),
+        "max_tilt_deg": column("max_tilt_deg", np.float64),
+        "contact_kept": column("contact_kept", bool),
+        "hand_table_contact": column("hand_table_contact", bool),
+        "initial_penetration_m": column("initial_penetration_m", np.float64),
+    }
+
+
+def to_result(job: ValidationJob, object_id: str, run: ValidationRun, elapsed_s: float) -> ValidationResult:
+    augmented = None
+    if run.augmented is not None:
+        augmented = AugmentedOutcomes(poses=run.augmented.poses, parent_index=run.augmented.parent_index,
+                                      **outcome_arrays(run.augmented.outcomes))
+    return ValidationResult(job_id=job.id, hand=job.hand, object_id=object_id, augmented=augmented,
+                            elapsed_s=elapsed_s, **outcome_arrays(run.outcomes))
 
 
 def handlers() -> dict[type[Message], Callable[[Message], Message]]:

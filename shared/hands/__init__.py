@@ -14,7 +14,6 @@ from shared.hands.model import (
     HandModelError,
     HandState,
     load_hand,
-    pose_to_matrix,
 )
 from shared.hands.urdf import RobotAssetError
 
@@ -29,5 +28,4 @@ __all__ = [
     "HandState",
     "RobotAssetError",
     "load_hand",
-    "pose_to_matrix",
 ]

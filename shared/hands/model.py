@@ -19,6 +19,7 @@ import pytorch_kinematics as pk
 import torch
 from scipy.spatial.transform import Rotation
 
+from shared.frames import POSE_DIM, matrix_to_r6, pose25_to_matrix
 from shared.hands.config import HAND_SPECS, ContactRegion, HandSpec
 from shared.hands.primitives import (
     PenetrationKeypoints,
@@ -30,10 +31,10 @@ from shared.hands.primitives import (
 )
 from shared.hands.urdf import RobotAssetError, read_urdf
 
-POSE_DIM = 25
 _CANDIDATE_SEED = 20240531  # fixed: candidates are part of the model and must not change between runs
 _DENSE_SAMPLES_PER_CANDIDATE = 60
 _EXPOSED_TOLERANCE_M = 1e-5
+_EXPOSURE_STEP_M = 1e-3
 _PAIR_PRUNING_SEED = 7
 _PAIR_PRUNING_SAMPLES = 4096
 _PAIR_MARGIN_M = 0.01
@@ -64,13 +65,23 @@ class ContactCandidates:
     points: torch.Tensor  # [C,3]
     normals: torch.Tensor  # [C,3]
     region_names: tuple[str, ...]  # one per region, e.g. "tip:link_3.0_tip"
+    region_links: tuple[str, ...]  # the link each region lies on
     region_index: torch.Tensor  # [C] long, index into region_names
 
     def __len__(self) -> int:
         return int(self.link_index.shape[0])
 
     def indices_by_region(self) -> dict[str, torch.Tensor]:
+        """Candidate indices of each region ("tip:...", "finger:...", "palm:...")."""
         return {name: torch.nonzero(self.region_index == i).flatten() for i, name in enumerate(self.region_names)}
+
+    def indices_by_link(self) -> dict[str, torch.Tensor]:
+        """Candidate indices on each link that carries candidates."""
+        grouped: dict[str, list[int]] = {}
+        for i, link in enumerate(self.region_links):
+            grouped.setdefault(link, []).append(i)
+        return {link: torch.nonzero(torch.isin(self.region_index, torch.tensor(ids))).flatten()
+                for link, ids in grouped.items()}
 
 
 class HandModel:
@@ -82,7 +93,8 @@ class HandModel:
         self.urdf_path = spec.urdf_path()
         self.robot = read_urdf(self.urdf_path)
         self._chain = pk.build_chain_from_urdf(self.urdf_path.read_text()).to(dtype=torch.float32)
-        self.link_names: tuple[str, ...] = tuple(self._chain.idx_to_frame[i] for i in range(len(self._chain.idx_to_frame)))
+        frames = self._chain.idx_to_frame
+        self.link_names: tuple[str, ...] = tuple(frames[i] for i in range(len(frames)))  # pytorch_kinematics' order
         self._link_index = {name: i for i, name in enumerate(self.link_names)}
         self.joint_names = spec.joint_names
         self.dof = len(self.joint_names)
@@ -107,8 +119,8 @@ class HandModel:
         """Link frames for a batch of pose vectors [B,25] (differentiable)."""
         if pose.ndim != 2 or pose.shape[1] != POSE_DIM:
             raise HandModelError(f"{self.name}: pose must have shape [B, {POSE_DIM}], got {tuple(pose.shape)}")
-        base = pose_to_matrix(pose[:, :9])
-        in_base = self._chain.forward_kinematics_tensor(pose[:, 9:][:, self._chain_order])  # [L,B,4,4]
+        base, joints = pose25_to_matrix(pose)
+        in_base = self._chain.forward_kinematics_tensor(joints[:, self._chain_order])  # [L,B,4,4]
         links = base.unsqueeze(1) @ in_base.transpose(0, 1)
         return HandState(pose, base, links)
 
@@ -158,8 +170,7 @@ class HandModel:
     def open_pose(self, batch_size: int = 1) -> torch.Tensor:
         """Pose vectors [B,25]: base at the origin with identity rotation, joints at the open configuration."""
         pose = torch.zeros(batch_size, POSE_DIM)
-        pose[:, 3] = 1.0  # r6 column 1 = x axis
-        pose[:, 7] = 1.0  # r6 column 2 = y axis
+        pose[:, 3:9] = matrix_to_r6(torch.eye(3))
         pose[:, 9:] = self.open_joint_positions
         return pose
 
@@ -209,6 +220,7 @@ class HandModel:
             torch.tensor(np.concatenate(points), dtype=torch.float32),
             torch.tensor(np.concatenate(normals), dtype=torch.float32),
             tuple(r.name for r in self.spec.contact_regions),
+            tuple(r.link for r in self.spec.contact_regions),
             torch.tensor(regions, dtype=torch.long),
         )
 
@@ -226,19 +238,27 @@ class HandModel:
         normals = np.concatenate([s[1] for s in samples])
         facing = normals @ np.asarray(region.facing) > region.min_cos
         points, normals = points[facing], normals[facing]
-        exposed = self._exposed(points, link, open_state)
+        exposed = self._exposed(points, normals, link, open_state)
         points, normals = points[exposed], normals[exposed]
         if len(points) < region.count:
-            raise RobotAssetError(f"{self.name}: region {region.name} has too little exposed surface for {region.count} candidates")
+            raise RobotAssetError(
+                f"{self.name}: region {region.name} has too little exposed surface for {region.count} candidates")
         keep = farthest_point_indices(points, region.count)
         return points[keep], normals[keep]
 
-    def _exposed(self, local_points: np.ndarray, link: int, open_state: HandState) -> np.ndarray:
-        """Points (link frame) not inside any collision primitive of the hand at the open pose."""
+    def _exposed(self, local_points: np.ndarray, local_normals: np.ndarray, link: int,
+                 open_state: HandState) -> np.ndarray:
+        """Surface points (link frame) with free space in front of them at the open pose.
+
+        A point must lie outside every primitive and stepping _EXPOSURE_STEP_M along its normal must leave the
+        hand by at least half that step: this drops faces covered by, or flush against, another shape.
+        """
         frame = open_state.links[0, link].double().numpy()
         world = local_points @ frame[:3, :3].T + frame[:3, 3]
-        sdf = self.signed_distance(torch.tensor(world, dtype=torch.float32).unsqueeze(0), open_state)[0]
-        return (sdf > -_EXPOSED_TOLERANCE_M).numpy()
+        ahead = world + _EXPOSURE_STEP_M * (local_normals @ frame[:3, :3].T)
+        queries = torch.tensor(np.stack((world, ahead)), dtype=torch.float32).reshape(1, -1, 3)
+        sdf = self.signed_distance(queries, open_state)[0].reshape(2, -1)
+        return ((sdf[0] > -_EXPOSED_TOLERANCE_M) & (sdf[1] > 0.5 * _EXPOSURE_STEP_M)).numpy()
 
 
 @functools.lru_cache(maxsize=None)
@@ -252,18 +272,6 @@ def load_hand(name: str) -> HandModel:
 
 
 # ------------------------------------------------------------------------------------------------- helpers
-
-
-def pose_to_matrix(pose9: torch.Tensor) -> torch.Tensor:
-    """[B,9] = [p, r6] -> [B,4,4] homogeneous transform (r6 columns Gram-Schmidt-orthonormalised)."""
-    # TODO(frames): switch to shared.frames once helper F's module lands; same convention (DESIGN.md §2).
-    first = torch.nn.functional.normalize(pose9[:, 3:6], dim=-1)
-    second = pose9[:, 6:9] - (first * pose9[:, 6:9]).sum(-1, keepdim=True) * first
-    second = torch.nn.functional.normalize(second, dim=-1)
-    third = torch.cross(first, second, dim=-1)
-    top = torch.cat((torch.stack((first, second, third), dim=-1), pose9[:, :3].unsqueeze(-1)), dim=-1)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose9.dtype).expand(pose9.shape[0], 1, 4)
-    return torch.cat((top, bottom), dim=1)
 
 
 def _apply(frames: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -93,14 +93,20 @@ class PrimitiveSet:
         return len(self.prims)
 
     def signed_distance(self, points: torch.Tensor, link_transforms: torch.Tensor) -> torch.Tensor:
-        """SDF of the union of primitives. points [B,N,3] and link_transforms [B,L,4,4] in one frame -> [B,N]."""
+        """SDF of the union of primitives. points [B,N,3] and link_transforms [B,L,4,4] in one frame -> [B,N].
+
+        Exact outside (the distance to the nearest primitive); inside, minus the depth in the primitive that
+        is penetrated most. Memory-bound on CPU (~20 elementwise passes over [B,N,P]); a long-lived worker can
+        fuse them with `torch.compile(prims.signed_distance, dynamic=True)` (measured 4x, 17 s first call).
+        """
         distances = []
         if len(self._box_half):
             local = _to_primitive_frames(points, link_transforms[:, self._box_link] @ self._box_origin)
             distances.append(_box_sdf(local, self._box_half).amin(-1))
         if len(self._sphere_radius):
             centers = (link_transforms[:, self._sphere_link] @ self._sphere_center.unsqueeze(-1))[..., :3, 0]
-            squared = sum((p.unsqueeze(2) - c.unsqueeze(1)).square() for p, c in zip(points.unbind(-1), centers.unbind(-1)))
+            squared = sum((p.unsqueeze(2) - c.unsqueeze(1)).square()  # [B,N,S] per axis, no size-3 reduction
+                          for p, c in zip(points.unbind(-1), centers.unbind(-1)))
             distances.append((_safe_sqrt(squared) - self._sphere_radius).amin(-1))
         if len(self._cyl_radius):
             local = _to_primitive_frames(points, link_transforms[:, self._cyl_link] @ self._cyl_origin)

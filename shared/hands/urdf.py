@@ -16,6 +16,7 @@ import hashlib
 import importlib.metadata
 import os
 import tempfile
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,7 +76,7 @@ def resolved_urdf(source: Path, name: str, prune_below_link: str | None = None) 
     `prune_below_link`: drop every joint and link below this link (it is kept), e.g. an arm's gripper.
     """
     text = Path(source).read_text()
-    key = _hash_key(text, name, prune_below_link or "")
+    key = content_key(text, name, prune_below_link or "")
     target = cache_dir() / f"{name}-{key}.urdf"
     if target.is_file():
         return target
@@ -130,7 +131,8 @@ def atomic_write_text(path: Path, text: str) -> None:
         raise
 
 
-def _hash_key(*parts: str) -> str:
+def content_key(*parts: str) -> str:
+    """Short stable hash naming a cached file after everything it was generated from."""
     digest = hashlib.sha256(_RESOLVER_VERSION.encode())
     for part in parts:
         digest.update(b"\0" + part.encode())
@@ -332,8 +334,13 @@ def xyz_rpy_to_matrix(xyz, rpy) -> np.ndarray:
 
 
 def matrix_to_xyz_rpy(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of xyz_rpy_to_matrix. At pitch = +-90 deg the angles are not unique; scipy then returns one
+    valid decomposition (yaw folded into roll) that reproduces the rotation exactly, so its warning is noise."""
     matrix = np.asarray(matrix, dtype=np.float64)
-    return matrix[:3, 3].copy(), Rotation.from_matrix(matrix[:3, :3]).as_euler("xyz")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Gimbal lock detected")
+        rpy = Rotation.from_matrix(matrix[:3, :3]).as_euler("xyz")
+    return matrix[:3, 3].copy(), rpy
 
 
 def _fmt(values) -> str:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial import ConvexHull, QhullError
 
 from .errors import ObjectLoadError
 from .sdf import inside_mask, node_axes
@@ -30,6 +31,7 @@ TALL_MIN_RATIO = 1.5
 MIN_POSE_PROBABILITY = 0.01  # quasi-static drop probability below which a pose is ignored
 MAX_RESTING_POSES = 8
 NATIVE_MATCH_DEG = 2.0
+SUPPORT_TOLERANCE_M = 2e-4
 VOXEL_MASS_RESOLUTION = 64
 
 
@@ -115,7 +117,8 @@ def resting_poses(mesh_o: trimesh.Trimesh, native_rotation: np.ndarray | None) -
     lying on its small flat base is still a way people put it down) and it is the default.
     Returns the poses and the index of the default (the native pose, else the most probable).
     """
-    transforms, probabilities = trimesh.poses.compute_stable_poses(mesh_o, center_mass=np.zeros(3), sigma=0.0, n_samples=1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh's spherical areas of sliver triangles
+        transforms, probabilities = trimesh.poses.compute_stable_poses(mesh_o, center_mass=np.zeros(3), sigma=0.0, n_samples=1)
     order = np.argsort(-np.asarray(probabilities), kind="stable")
     candidates = [
         RestingPose(transforms[i][:3, :3].copy(), _rest_height(mesh_o, transforms[i][:3, :3]), float(probabilities[i])) for i in order
@@ -123,14 +126,34 @@ def resting_poses(mesh_o: trimesh.Trimesh, native_rotation: np.ndarray | None) -
     poses = [pose for pose in candidates if pose.probability >= MIN_POSE_PROBABILITY][:MAX_RESTING_POSES] or candidates[:1]
     if native_rotation is None:
         return poses, 0
+    # trimesh can miss a facet whose sliver triangles give NaN areas: then the static check decides
     match = _matching_pose(candidates, native_rotation)
-    if match is None:
+    if match is None and not is_statically_stable(mesh_o, native_rotation):
         return poses, 0
-    native = RestingPose(native_rotation.copy(), _rest_height(mesh_o, native_rotation), candidates[match].probability, native=True)
-    poses = [pose for pose in poses if pose is not candidates[match]]
+    probability = candidates[match].probability if match is not None else 0.0
+    native = RestingPose(native_rotation.copy(), _rest_height(mesh_o, native_rotation), probability, native=True)
+    poses = [pose for pose in poses if match is None or pose is not candidates[match]]
     poses.append(native)
     poses.sort(key=lambda pose: -pose.probability)
     return poses, poses.index(native)
+
+
+def is_statically_stable(mesh_o: trimesh.Trimesh, rotation: np.ndarray, margin: float = 1e-4) -> bool:
+    """True if, resting in `rotation`, the centre of mass (O's origin) is over the support polygon.
+
+    The support polygon is made of the hull vertices within SUPPORT_TOLERANCE_M of the lowest
+    one: modelled flat bottoms are flat only to tenths of a millimetre.
+    """
+    vertices = mesh_o.convex_hull.vertices @ rotation.T
+    lowest = vertices[:, 2].min()
+    support = vertices[vertices[:, 2] < lowest + SUPPORT_TOLERANCE_M][:, :2]
+    if len(support) < 3:
+        return False
+    try:
+        polygon = ConvexHull(support)
+    except QhullError:  # collinear contact: an edge, not a face
+        return False
+    return bool(np.all(polygon.equations[:, 2] <= -margin))  # offsets at the origin: inside by `margin`
 
 
 def _rest_height(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:

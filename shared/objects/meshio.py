@@ -36,9 +36,7 @@ def read_mesh_file(path: Path) -> trimesh.Trimesh:
     Raises ObjectLoadError naming the file for an unsupported type, a parse failure, a file with
     no triangles (e.g. a point cloud) or non-finite coordinates.
     """
-    suffix = path.suffix.lower()
-    if suffix not in SUPPORTED_SUFFIXES:
-        raise ObjectLoadError(f"{path}: unsupported mesh type {suffix or '(no extension)'!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    suffix = check_suffix(path)
     if not path.is_file():
         raise ObjectLoadError(f"{path}: no such file")
     if path.stat().st_size == 0:
@@ -51,6 +49,14 @@ def read_mesh_file(path: Path) -> trimesh.Trimesh:
     if suffix == ".glb":
         mesh.apply_transform(_GLTF_Y_UP_TO_Z_UP)
     return mesh
+
+
+def check_suffix(path: Path) -> str:
+    """The lower-case suffix of a supported mesh file; ObjectLoadError naming the file otherwise."""
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES:
+        raise ObjectLoadError(f"{path}: unsupported mesh type {suffix or '(no extension)'!r}; supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    return suffix
 
 
 def _as_triangle_mesh(loaded, source: Path | str) -> trimesh.Trimesh:

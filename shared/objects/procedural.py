@@ -48,6 +48,7 @@ class ProceduralSpec:
     index: int
     shape_class: str
     params: dict[str, float]
+    dims: tuple[float, float, float]  # designed footprint a >= b and height H (metres), upright
 
 
 def procedural_ids() -> list[str]:
@@ -74,7 +75,7 @@ def procedural_spec(object_id: str) -> ProceduralSpec:
     for _ in range(100_000):
         params, (a, b, height) = sampler(rng)
         if _clearly_in_class(a, b, height, target):
-            return ProceduralSpec(object_id, family, index, target, params)
+            return ProceduralSpec(object_id, family, index, target, params, (a, b, height))
     raise RuntimeError(f"{object_id}: no {target} dimensions found for family {family}")  # cannot happen with these ranges
 
 
@@ -173,8 +174,9 @@ def _build_cone(p) -> trimesh.Trimesh:
 def _cut_base(mesh: trimesh.Trimesh, height: float) -> trimesh.Trimesh:
     """Remove the bottom `_BASE_CUT` of the mesh's height (exact boolean, manifold3d)."""
     lower, upper = mesh.bounds
-    keep = trimesh.creation.box(bounds=[lower - 1.0, upper + 1.0])
-    keep.apply_translation([0.0, 0.0, _BASE_CUT * height])
+    keep_lower = lower - 1.0
+    keep_lower[2] = lower[2] + _BASE_CUT * height
+    keep = trimesh.creation.box(bounds=[keep_lower, upper + 1.0])
     return trimesh.boolean.intersection([mesh, keep], engine="manifold")
 
 

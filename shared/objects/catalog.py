@@ -1,0 +1,204 @@
+"""The object library: stable ids, where each object's mesh comes from, and the fixed splits.
+
+Ids
+- `rnd-000` .. `rnd-999`: pybullet_data's `random_urdfs` (their OBJ with the URDF's mesh scale;
+  rnd-168 is excluded, see EXCLUDED_RANDOM_URDFS).
+- `pb-<name>`: pybullet_data's named objects that a robot hand can push (see PYBULLET_OBJECTS).
+- `proc-<family>-<NNN>`: procedural shapes with exact meshes (procedural.py).
+- `mesh-<sha256[:12]>`: a user mesh file, named by its content.
+
+Splits are fixed by id: the named pybullet objects and the first HELD_OUT_PER_FAMILY objects of
+each procedural family are always test (the everyday-like and 3D-printed-like evaluation sets of
+the paper's protocol); every other id falls in train / val / test 80 / 10 / 10 by a hash of the id.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import pybullet_data
+import trimesh
+
+from . import meshio
+from .errors import ObjectLoadError, SplitError, UnknownObjectError
+from .procedural import PER_FAMILY, PROCEDURAL_VERSION, is_procedural_id, procedural_ids, procedural_mesh, procedural_spec
+
+SPLITS = ("train", "val", "test")
+SPLIT_FRACTIONS = {"train": 0.8, "val": 0.1, "test": 0.1}
+HELD_OUT_PER_FAMILY = 3  # proc-<family>-000..002: one of each shape class the family has
+RANDOM_URDF_COUNT = 1000
+
+# Named pybullet_data objects of pushable size: (URDF or mesh path in pybullet_data, rotation
+# (roll, pitch, yaw in rad) that stands the model upright in our z-up world).
+# Left out: lego (3.2 cm, under a hand's 4 cm floor), domino (6 mm thin), sphere_small and
+# soccerball (they roll; the ball is 1 m), tray / table / shape_sorter / teddy_large (0.4–3 m),
+# bunny, torus, samurai, stone (no object scale given).
+PYBULLET_OBJECTS: dict[str, tuple[str, tuple[float, float, float]]] = {
+    "duck": ("duck_vhacd.urdf", (math.pi / 2, 0.0, 0.0)),  # the Collada duck is modelled +Y up
+    "teddy": ("teddy_vhacd.urdf", (0.0, 0.0, 0.0)),
+    "mug": ("objects/mug.urdf", (0.0, 0.0, 0.0)),  # an open surface: exercises the scan path
+    "jenga": ("jenga/jenga.urdf", (0.0, 0.0, 0.0)),
+    "cube-small": ("cube_small.urdf", (0.0, 0.0, 0.0)),
+    "toy-cube": ("toys/cube.obj", (0.0, 0.0, 0.0)),
+    "toy-cylinder": ("toys/cylinder.obj", (0.0, 0.0, 0.0)),
+    "toy-prism": ("toys/prism.obj", (0.0, 0.0, 0.0)),
+}
+
+# random_urdfs entries that cannot be objects (checked by loading all 1000); their ids stay unused.
+EXCLUDED_RANDOM_URDFS = {"rnd-168": "pybullet_data's random_urdfs/168/168.obj has only NaN vertices"}
+
+_RND_PATTERN = re.compile(r"^rnd-(\d{3})$")
+_MESH_ID_PATTERN = re.compile(r"^mesh-[0-9a-f]{12}$")
+
+
+@dataclass(frozen=True)
+class ObjectSource:
+    """Where an object's mesh comes from and how to read it (no geometry loaded yet)."""
+
+    object_id: str
+    source: str  # "random_urdfs" | "pybullet_data" | "procedural" | "mesh"
+    family: str  # "random", the pybullet name, the procedural family, or "user"
+    native_upright: bool  # the mesh's own +z is "up" as the object is normally placed
+    path: Path | None = None
+
+    @property
+    def label(self) -> str:
+        """How error messages name the object."""
+        return str(self.path) if self.source == "mesh" and self.path else self.object_id
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """What `gd2p objects list` shows for one object."""
+
+    id: str
+    shape_class: str  # flat | volumetric | tall, in the default resting pose
+    source: str
+    family: str
+    size_m: tuple[float, float, float]  # footprint a >= b, height H in the default resting pose
+    split: str
+
+    def to_dict(self) -> dict:
+        out = asdict(self)
+        out["size_m"] = [round(v, 4) for v in self.size_m]
+        return out
+
+
+# ----------------------------------------------------------------------------- ids and sources
+def pybullet_data_dir() -> Path:
+    return Path(pybullet_data.getDataPath())
+
+
+def library_ids() -> list[str]:
+    """Every library id (user meshes are not in the library)."""
+    random_ids = [f"rnd-{i:03d}" for i in range(RANDOM_URDF_COUNT)]
+    return [i for i in random_ids if i not in EXCLUDED_RANDOM_URDFS] + [f"pb-{name}" for name in PYBULLET_OBJECTS] + procedural_ids()
+
+
+def user_mesh_id(path: Path) -> str:
+    return "mesh-" + hashlib.sha256(path.read_bytes()).hexdigest()[:12]
+
+
+def resolve_source(id_or_path: str | Path) -> ObjectSource:
+    """Map a library id or a mesh file path to its ObjectSource (UnknownObjectError otherwise)."""
+    text = str(id_or_path)
+    if isinstance(id_or_path, Path) or "/" in text or "\\" in text or Path(text).suffix or Path(text).is_file():
+        path = Path(text).expanduser()
+        meshio.check_suffix(path)
+        if not path.is_file():
+            raise ObjectLoadError(f"{path}: no such file")
+        return ObjectSource(user_mesh_id(path), "mesh", "user", True, path)
+    match = _RND_PATTERN.match(text)
+    if text in EXCLUDED_RANDOM_URDFS:
+        raise ObjectLoadError(f"{text}: excluded from the library: {EXCLUDED_RANDOM_URDFS[text]}")
+    if match:
+        return ObjectSource(text, "random_urdfs", "random", False, pybullet_data_dir() / "random_urdfs" / match.group(1) / f"{match.group(1)}.urdf")
+    if text.startswith("pb-") and text[3:] in PYBULLET_OBJECTS:
+        return ObjectSource(text, "pybullet_data", text[3:], True, pybullet_data_dir() / PYBULLET_OBJECTS[text[3:]][0])
+    if is_procedural_id(text):
+        return ObjectSource(text, "procedural", procedural_spec(text).family, True)
+    raise UnknownObjectError(
+        f"{text!r}: unknown object; expected rnd-000..rnd-{RANDOM_URDF_COUNT - 1}, pb-<{'|'.join(PYBULLET_OBJECTS)}>, "
+        f"proc-<family>-000..{PER_FAMILY - 1:03d}, or a path to an OBJ/STL/PLY/GLB file"
+    )
+
+
+def read_source_mesh(source: ObjectSource) -> trimesh.Trimesh:
+    """The raw mesh in metres, in the source's own frame (upright rotation applied)."""
+    if source.source == "procedural":
+        return procedural_mesh(procedural_spec(source.object_id))
+    if source.source == "mesh":
+        return meshio.read_mesh_file(source.path)
+    assert source.path is not None
+    if not source.path.is_file():
+        raise ObjectLoadError(f"{source.object_id}: asset file {source.path} is missing (is pybullet installed completely?)")
+    if source.path.suffix == ".urdf":
+        visual = meshio.read_urdf_visual(source.path)
+        mesh = meshio.read_asset_mesh(visual.mesh_path, visual.scale, visual.origin)
+    else:
+        mesh = meshio.read_asset_mesh(source.path)
+    if source.source == "pybullet_data":
+        mesh.apply_transform(trimesh.transformations.euler_matrix(*PYBULLET_OBJECTS[source.family][1], axes="sxyz"))
+    return mesh
+
+
+def source_fingerprint(source: ObjectSource) -> bytes:
+    """Bytes that change iff the source geometry changes (file contents, scale, generator)."""
+    if source.source == "procedural":
+        spec = procedural_spec(source.object_id)
+        return json.dumps({"procedural": PROCEDURAL_VERSION, "family": spec.family, "params": spec.params}, sort_keys=True).encode()
+    assert source.path is not None
+    parts = [source.path.read_bytes()]
+    if source.path.suffix == ".urdf":
+        parts.append(meshio.read_urdf_visual(source.path).mesh_path.read_bytes())
+    if source.source == "pybullet_data":
+        parts.append(json.dumps(PYBULLET_OBJECTS[source.family][1]).encode())
+    if source.source == "mesh":
+        parts.append(source.path.suffix.lower().encode())  # the same bytes as GLB are read Y-up
+    return b"\0".join(parts)
+
+
+# ----------------------------------------------------------------------------- splits
+def split_of(object_id: str) -> str:
+    """The fixed split of an id: train / val / test (see the module docstring)."""
+    if object_id.startswith("pb-"):
+        return "test"
+    if is_procedural_id(object_id):
+        if procedural_spec(object_id).index < HELD_OUT_PER_FAMILY:
+            return "test"
+    digest = hashlib.sha256(f"gd2p-split-v1:{object_id}".encode()).digest()
+    u = int.from_bytes(digest[:8], "little") / 2.0**64
+    if u < SPLIT_FRACTIONS["train"]:
+        return "train"
+    if u < SPLIT_FRACTIONS["train"] + SPLIT_FRACTIONS["val"]:
+        return "val"
+    return "test"
+
+
+def assert_split(object_id: str, split: str) -> None:
+    """Raise SplitError unless `object_id` belongs to `split` (guards training against test data)."""
+    check_split_name(split)
+    actual = split_of(object_id)
+    if actual != split:
+        raise SplitError(f"{object_id} belongs to the {actual} split, not {split}" + ("; test objects are never used for training" if actual == "test" else ""))
+
+
+def check_split_name(split: str | None) -> None:
+    if split is not None and split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
+
+
+def list_object_ids(split: str | None = None) -> list[str]:
+    """Library ids, optionally of one split (cheap: no geometry is loaded)."""
+    check_split_name(split)
+    return [i for i in library_ids() if split is None or split_of(i) == split]
+
+
+def procedural_info(object_id: str) -> ObjectInfo:
+    """Info of a procedural object straight from its designed dimensions (no mesh needed)."""
+    spec = procedural_spec(object_id)
+    return ObjectInfo(object_id, spec.shape_class, "procedural", spec.family, spec.dims, split_of(object_id))
