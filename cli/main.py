@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 COMMAND_MODULES: list[str] = [
@@ -16,6 +17,8 @@ COMMAND_MODULES: list[str] = [
     "cli.recording",  # replay
     "cli.hands",  # hands info
     "cli.objects",  # objects list
+    "cli.validate",  # validate (push validation in PyBullet)
+    "cli.generate",  # generate (energy-based push-pose synthesis)
 ]
 
 
@@ -38,6 +41,10 @@ def main(argv: list[str] | None = None) -> int:
         code = args.func(args)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # `gd2p ... --json | head`: the reader went away; exit quietly like other Unix tools.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     return int(code or 0)
 
 

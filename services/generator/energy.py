@@ -35,6 +35,7 @@ class ObjectField(Protocol):
 
     surface_points: torch.Tensor  # [N,3] on the object surface
     centroid: torch.Tensor  # [3] reference point for contact torques
+    distance_error_m: float  # how much `distance` may over-estimate the true distance (grid interpolation)
 
     def distance(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance [...] (negative inside, differentiable) and unit outward normal [..., 3]."""
@@ -66,19 +67,20 @@ def contact_distance(distance: torch.Tensor, offset_m: float) -> torch.Tensor:
     return (distance - offset_m).abs().sum(-1)
 
 
-def object_penetration(geometry: "HandGeometry", state: HandState, object_points: torch.Tensor,
+def object_penetration(geometry: "HandGeometry", state: HandState, scene: ObjectField,
                        margin_m: float = 0.0) -> torch.Tensor:
     """E_pen = sum_j max(0, m - sd_hand(o_j)): object surface points inside (or within m of) the hand.
 
     Sparse gradient (DESIGN.md §6): a no-grad pass finds the (pose, point) pairs with sd_hand < m
-    (bounding-sphere cull, then exact primitive distances on the survivors); only those pairs are
-    evaluated again with gradients. Every other pair contributes exactly 0, so energy and gradient
-    equal the dense sum's. object_points [N,3] -> [B].
+    (`HandGeometry.signed_distance_upper_bound`); only those pairs are evaluated again with
+    gradients. Every other pair contributes exactly 0, so energy and gradient equal the dense sum's.
+    Uses the scene's `surface_points` o_j [N,3]. -> [B].
     """
+    points = scene.surface_points
     with torch.no_grad():
-        bound = geometry.signed_distance_upper_bound(state, object_points, margin_m)
+        bound = geometry.signed_distance_upper_bound(state, points, margin_m, scene)
         batch, point = torch.nonzero(bound < margin_m, as_tuple=True)
-    depth = torch.relu(margin_m - geometry.signed_distance_pairs(state, batch, object_points[point]))
+    depth = torch.relu(margin_m - geometry.signed_distance_pairs(state, batch, points[point]))
     return state.pose.new_zeros(state.batch_size).index_add(0, batch, depth)
 
 
@@ -152,7 +154,7 @@ def evaluate_energy(hand: HandModel, geometry: "HandGeometry", scene: ObjectFiel
     terms = {
         "fc": force_closure(points, normals, scene.centroid),
         "dis": contact_distance(distance, config.contact_offset_m),
-        "pen": object_penetration(geometry, state, scene.surface_points, config.penetration_margin_m),
+        "pen": object_penetration(geometry, state, scene, config.penetration_margin_m),
         "spen": self_penetration(hand, state),
         "joints": joint_limits(pose[:, 9:], hand.joint_lower, hand.joint_upper),
         "ff": contact_spread(points, config.ff_min_distance_m),
@@ -177,7 +179,7 @@ def max_penetration(hand: HandModel, geometry: "HandGeometry", scene: ObjectFiel
         state = hand.forward(pose)
         object_in_hand = torch.zeros(state.batch_size)
         for chunk in object_points.split(1024):
-            depth = -geometry.signed_distance_upper_bound(state, chunk, 0.0)
+            depth = -geometry.signed_distance_upper_bound(state, chunk, 0.0, scene)
             object_in_hand = torch.maximum(object_in_hand, depth.amax(1))
         hand_points = geometry.surface_points(state)
         hand_in_object = (-scene.distance(hand_points)[0]).amax(1)
@@ -215,29 +217,35 @@ class HandGeometry:
         """Every primitive's frame in the pose's frame [B,P,4,4]."""
         return state.links[:, self.link_index] @ self.origin
 
-    def signed_distance_upper_bound(self, state: HandState, points: torch.Tensor, margin_m: float) -> torch.Tensor:
-        """[B,N]: the hand's exact signed distance where it is < margin, else a value >= margin (no grad).
+    def signed_distance_upper_bound(self, state: HandState, points: torch.Tensor, margin_m: float,
+                                    scene: ObjectField) -> torch.Tensor:
+        """[B,N]: the hand's exact signed distance to object points where it is < margin, else >= margin (no grad).
 
-        Bounding-sphere cull in one matmul (|o - c|^2 - (R + m)^2 < 0 as [o, |o|^2, 1] . [-2c, 1, |c|^2 - (R+m)^2]),
-        then the primitive distance only on the (pose, point, primitive) triples that survive.
+        Three culls, each exact: (1) a primitive whose centre c is farther from the object than its
+        bounding radius R + m (object SDF at c, minus the grid's error bound) holds no surface point;
+        (2) for the remaining (pose, primitive) pairs, |o - c|^2 < (R + m)^2 for all points in one
+        matmul ([o, |o|^2, 1] . [-2c, 1, |c|^2 - (R + m)^2] < 0); (3) the primitive's own distance
+        on the (pose, point, primitive) triples that survive.
         """
         frames = self.primitive_frames(state)  # [B,P,4,4]
         centers = frames[..., :3, 3]
-        lifted = torch.cat((points, points.square().sum(-1, keepdim=True), torch.ones_like(points[:, :1])), dim=1)
-        reach = (self.bound_radius + margin_m).square()
-        planes = torch.cat((-2.0 * centers, torch.ones_like(centers[..., :1]),
-                            (centers.square().sum(-1) - reach).unsqueeze(-1)), dim=-1)  # [B,P,5]
-        batch, point, prim = torch.nonzero(lifted @ planes.transpose(1, 2) < 0.0, as_tuple=True)
+        reach = self.bound_radius + margin_m
+        clearance = scene.distance(centers)[0] - scene.distance_error_m
+        pose_index, prim_index = torch.nonzero(clearance < reach, as_tuple=True)
         best = points.new_full((state.batch_size * points.shape[0],), _FAR_AWAY_M)
+        if pose_index.numel() == 0:
+            return best.view(state.batch_size, -1)
+        active = centers[pose_index, prim_index]  # [A,3]
+        lifted = torch.cat((points, points.square().sum(-1, keepdim=True), torch.ones_like(points[:, :1])), dim=1)
+        planes = torch.cat((-2.0 * active, torch.ones_like(active[:, :1]),
+                            (active.square().sum(-1) - reach[prim_index].square()).unsqueeze(-1)), dim=1)  # [A,5]
+        pair, point = torch.nonzero(planes @ lifted.T < 0.0, as_tuple=True)
+        batch, prim = pose_index[pair], prim_index[pair]
         if batch.numel():
             rotation = frames[batch, prim, :3, :3]
             local = ((points[point] - centers[batch, prim]).unsqueeze(-2) @ rotation).squeeze(-2)
             best.scatter_reduce_(0, batch * points.shape[0] + point, self._primitive_distance(local, prim), "amin")
         return best.view(state.batch_size, points.shape[0])
-
-    def points_within(self, state: HandState, points: torch.Tensor, margin_m: float) -> torch.Tensor:
-        """[B,N] True where point n is inside the hand or within `margin_m` of it (no grad)."""
-        return self.signed_distance_upper_bound(state, points, margin_m) < margin_m
 
     def signed_distance_pairs(self, state: HandState, batch: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Signed distance [T] of points [T,3] to the hand of pose `batch` [T] (differentiable, exact)."""

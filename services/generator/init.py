@@ -138,11 +138,27 @@ def initial_poses(hand: HandModel, hull_vertices_d: np.ndarray, count: int, sett
 
 def sample_contacts(num_candidates: int, count: int, per_pose: int, generator: torch.Generator,
                     exclude: torch.Tensor | None = None) -> torch.Tensor:
-    """[count, per_pose] distinct candidate indices per row, uniform; never one of `exclude`'s row."""
+    """[count, per_pose] distinct candidate indices per row, uniform; never one of `exclude`'s row.
+
+    Rejection sampling: draw uniformly, redraw the entries that repeat an earlier entry of their row
+    or an excluded index. With K << C collisions are rare, so this is ~10x cheaper per step than
+    `torch.multinomial` without replacement over all C candidates (which sorts C exponentials per row).
+    """
     available = num_candidates - (0 if exclude is None else exclude.shape[1])
     if per_pose > available:
         raise ValueError(f"cannot pick {per_pose} distinct contacts from {available} candidates")
-    weights = torch.ones(count, num_candidates)
-    if exclude is not None:
-        weights.scatter_(1, exclude, 0.0)
-    return torch.multinomial(weights, per_pose, replacement=False, generator=generator)
+    chosen = torch.randint(num_candidates, (count, per_pose), generator=generator)
+    while True:
+        clash = _repeats_earlier(chosen)
+        if exclude is not None:
+            clash |= (chosen.unsqueeze(-1) == exclude.unsqueeze(1)).any(-1)
+        redraw = int(clash.sum())
+        if redraw == 0:
+            return chosen
+        chosen[clash] = torch.randint(num_candidates, (redraw,), generator=generator)
+
+
+def _repeats_earlier(indices: torch.Tensor) -> torch.Tensor:
+    """[B,K] True where an entry equals an entry to its left in the same row."""
+    same = indices.unsqueeze(-1) == indices.unsqueeze(1)  # [B,K,K]: same[b,i,j] = (x_i == x_j)
+    return torch.tril(same, diagonal=-1).any(-1)

@@ -1,9 +1,8 @@
 """The object as the optimiser sees it: resting on the table in the direction frame D.
 
-The object library gives the mesh and a voxel SDF in the object frame O (centre of mass, principal
-axes) and its resting poses; a resting pose and a yaw give T_D_O (the object on the table, centre
-of mass above D's origin - the same placement the validator uses). Queries arrive in D and are
-mapped to O for the SDF lookup; normals are rotated back.
+The object library (`shared.objects`) gives the mesh and a voxel SDF in the object frame O and the
+resting poses; a resting pose and a yaw give T_D_O - the object on the table with its centre of
+mass above D's origin, the placement the validator uses too. Everything here is in D.
 """
 from __future__ import annotations
 
@@ -11,52 +10,60 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import trimesh
 
-from shared.objects.sdf import SdfGrid
+from shared.objects import ObjectModel
 
 SURFACE_SAMPLE_SEED = 0
 
 
 @dataclass(frozen=True, eq=False)
 class PushScene:
-    """Object geometry in D: SDF queries, surface samples, convex hull and the torque reference point."""
+    """One object at one placement: SDF queries, surface samples, convex hull and torque reference, in D."""
 
-    object_id: str
+    object: ObjectModel
+    pose_index: int  # which of the object's resting poses
+    yaw_rad: float
     transform_d: np.ndarray  # 4x4 T_D_O
-    sdf: SdfGrid  # in O
-    surface_points: torch.Tensor  # [N,3] in D, for E_pen
-    check_points: torch.Tensor  # [M,3] in D, denser, for the reported max penetration
-    hull_vertices: np.ndarray  # [V,3] convex hull vertices in D, for the initialisation
-    centroid: torch.Tensor  # [3] centre of mass in D (= O's origin), for E_fc torques
-    rotation: torch.Tensor  # [3,3] R_D_O
+    surface_points: torch.Tensor  # [N,3] for E_pen
+    check_points: torch.Tensor  # [M,3] denser, for the reported max penetration
+    hull_vertices: np.ndarray  # [V,3] convex hull vertices, for the initialisation
+    centroid: torch.Tensor  # [3] centre of mass (O's origin), the reference point of E_fc's torques
 
     @classmethod
-    def build(cls, object_id: str, mesh_o: trimesh.Trimesh, sdf: SdfGrid, transform_d: np.ndarray,
-              surface_points: int, check_points: int) -> "PushScene":
-        """Place an object (mesh and SDF in O) at T_D_O and sample its surface (fixed seed)."""
-        transform_d = np.asarray(transform_d, dtype=np.float64)
-        mesh_d = mesh_o.copy()
-        mesh_d.apply_transform(transform_d)
-        samples, _ = trimesh.sample.sample_surface(mesh_d, max(surface_points, check_points), seed=SURFACE_SAMPLE_SEED)
+    def from_object(cls, obj: ObjectModel, pose_index: int | None = None, yaw_rad: float = 0.0,
+                    surface_points: int = 1024, check_points: int = 4096) -> "PushScene":
+        """Place `obj` resting in pose `pose_index` (its default pose if None), turned by `yaw_rad` about z."""
+        index = obj.default_pose_index if pose_index is None else pose_index
+        if not 0 <= index < len(obj.resting_poses):
+            raise ValueError(f"{obj.id} has {len(obj.resting_poses)} resting poses; pose index {index} does not exist")
+        transform = obj.T_D_O(index, yaw_rad)
+        # One sample set: its first `surface_points` are themselves area-uniform (trimesh draws i.i.d.).
+        samples, _ = obj.surface_points(max(surface_points, check_points), seed=SURFACE_SAMPLE_SEED, T_D_O=transform)
         samples = torch.tensor(samples, dtype=torch.float32)
+        hull = obj.mesh.convex_hull.vertices @ transform[:3, :3].T + transform[:3, 3]
         return cls(
-            object_id=object_id,
-            transform_d=transform_d,
-            sdf=sdf,
-            surface_points=samples[:surface_points].contiguous(),
-            check_points=samples[:check_points].contiguous(),
-            hull_vertices=np.asarray(mesh_d.convex_hull.vertices),
-            centroid=torch.tensor(transform_d[:3, 3], dtype=torch.float32),
-            rotation=torch.tensor(transform_d[:3, :3], dtype=torch.float32),
+            object=obj, pose_index=index, yaw_rad=float(yaw_rad), transform_d=transform,
+            surface_points=samples[:surface_points].contiguous(), check_points=samples[:check_points].contiguous(),
+            hull_vertices=np.asarray(hull), centroid=torch.tensor(transform[:3, 3], dtype=torch.float32),
         )
+
+    @property
+    def object_id(self) -> str:
+        return self.object.id
+
+    @property
+    def distance_error_m(self) -> float:
+        """Bound on how far `distance` can exceed the true distance: one grid cell diagonal.
+
+        Trilinear interpolation of a 1-Lipschitz field mixes node values each within a cell diagonal
+        of the true value at the query point; outside the grid the lookup never over-estimates.
+        """
+        return float(np.linalg.norm(self.object.sdf.spacing))
 
     def distance(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance [...] (negative inside; differentiable) and unit outward normal [..., 3] at points in D."""
-        local = (points - self.centroid) @ self.rotation  # R^T (p - t), row-vector form
-        distance, gradient = self.sdf.query(local)
-        return distance, gradient @ self.rotation.T
+        return self.object.signed_distance(points, self._transform_t)
 
-    def height(self) -> float:
-        """Top of the object above the table (m)."""
-        return float(self.hull_vertices[:, 2].max())
+    @property
+    def _transform_t(self) -> torch.Tensor:
+        return torch.as_tensor(self.transform_d, dtype=torch.float32)

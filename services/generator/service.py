@@ -1,24 +1,106 @@
-"""Bus adapter of the generator service: energy-based synthesis of push poses (issue 4).
+"""Bus adapter of the generator service: a GenerationJob in, a GenerationResult out.
 
-The algorithm arrives with issue 4. Until then a GenerationJob gets a clear `not_implemented`
-error reply — never a fake result — while the worker itself is real: it registers on the bus
-and answers health queries. `handlers()` is the one place where the algorithm plugs in.
+Placement convention on the bus: the object rests in its default resting pose with yaw 0 in D -
+the placement the validator's jobs use as well, so poses generated here validate as generated.
+Each job is deterministic for its seed (torch.Generator everywhere; one torch thread per worker
+process, DESIGN.md §6), so a re-dispatched job gives the same poses on any worker.
 """
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
+import numpy as np
+
+from services.generator.config import GenerationConfig, GenerationConfigError
+from services.generator.init import InitialisationError
+from services.generator.scene import PushScene
+from services.generator.synthesis import GenerationError, GenerationOutput, generate
 from shared.bus import ServiceError
-from shared.messages import GenerationJob, GenerationResult, Message
+from shared.hands import load_hand
+from shared.messages import GenerationJob, GenerationResult, Message, ObjectRef
+from shared.objects import ObjectLoadError, ObjectModel, load_object
+from shared.objects.cache import atomic_write_bytes, cache_root
 
 SERVICE = "generator"
+_SCENES: dict[str, PushScene] = {}  # per object id: SDF and samples are reused by later jobs
+_MAX_CACHED_SCENES = 16
 
 
-def generate(job: GenerationJob) -> GenerationResult:
+def _limit_torch_threads() -> None:
+    """Busy worker processes share the cores: one torch thread each (DESIGN.md §6)."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
+# TODO(lead): the validator service has the same ObjectRef -> ObjectModel resolution; move it to shared/objects.
+def resolve_object(ref: ObjectRef) -> ObjectModel:
+    """The library object or user mesh of a job (a mesh is written once to the cache by its hash)."""
+    if ref.point_cloud is not None:
+        raise ServiceError("bad_request", "the generator needs an object mesh or library id; a point cloud has no SDF")
+    if ref.scale is not None and ref.scale != 1.0:
+        raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported")
+    try:
+        if ref.library_id is not None:
+            return load_object(ref.library_id)
+        assert ref.mesh is not None
+        path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
+        if not path.is_file():
+            atomic_write_bytes(path, ref.mesh.data)
+        return load_object(path)
+    except ObjectLoadError as exc:
+        raise ServiceError("bad_request", f"object {ref.object_id}: {exc}") from exc
+
+
+def scene_for(ref: ObjectRef, config: GenerationConfig) -> PushScene:
+    """The object at the bus placement (default resting pose, yaw 0), cached per object id."""
+    key = ref.object_id
+    if key not in _SCENES:
+        obj = resolve_object(ref)
+        if len(_SCENES) >= _MAX_CACHED_SCENES:
+            _SCENES.pop(next(iter(_SCENES)))
+        _SCENES[key] = PushScene.from_object(obj, surface_points=config.object_points,
+                                             check_points=config.penetration_check_points)
+    return _SCENES[key]
+
+
+def job_config(job: GenerationJob, base: GenerationConfig | None = None) -> GenerationConfig:
+    """The default configuration with the job's iteration count, contacts per pose and mode."""
+    base = base or GenerationConfig()
+    try:
+        return base.replace(iterations=job.iterations, contacts_per_pose=job.contacts_per_pose,
+                            grasp_only=job.grasp_only)
+    except GenerationConfigError as exc:
+        raise ServiceError("bad_request", f"generator: {exc}") from exc
+
+
+def run_job(job: GenerationJob) -> GenerationResult:
     """Optimise `job.batch_size` pre-contact push poses for `job.object` (paper Eq. 1)."""
-    raise ServiceError("not_implemented", "generator: GenerationJob is not implemented yet (issue 4)")
+    _limit_torch_threads()
+    config = job_config(job)
+    scene = scene_for(job.object, config)
+    try:
+        output = generate(scene, load_hand(job.hand), job.batch_size, job.seed, config)
+    except (GenerationError, InitialisationError, ValueError) as exc:
+        raise ServiceError("bad_request", f"generator: {exc}") from exc
+    return to_result(job, output)
+
+
+def to_result(job: GenerationJob, output: GenerationOutput) -> GenerationResult:
+    return GenerationResult(
+        job_id=job.id,
+        hand=job.hand,
+        object_id=output.object_id,
+        poses=output.poses.astype(np.float32),
+        energies={name: values.astype(np.float32) for name, values in output.energies.items()},
+        palm_normals=output.palm_normals.astype(np.float32),
+        max_penetration_m=output.max_penetration_m.astype(np.float32),
+        elapsed_s=output.elapsed_s,
+        energy_history={name: values.astype(np.float32) for name, values in output.history.items()},
+    )
 
 
 def handlers() -> dict[type[Message], Callable[[Message], Message]]:
     """Message type -> handler, served by every generator worker."""
-    return {GenerationJob: generate}
+    return {GenerationJob: run_job}

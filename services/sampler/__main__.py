@@ -1,21 +1,41 @@
-"""`python -m services.sampler [bus flags] [--worker-id ID]`: run one sampler worker until SIGTERM."""
+"""`python -m services.sampler [bus flags] [--worker-id ID] [--checkpoint HAND=PATH ...]`: one sampler worker until SIGTERM.
+
+Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped services/sampler/checkpoints/<hand>.pt.
+"""
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
 
+import torch
+
 from services.sampler.service import SERVICE, handlers
 from shared.bus import BusConfig, run_worker
+
+# Requests handled at once: they wait together in the sampler's batching thread and share network passes.
+CONCURRENT_REQUESTS = 8
+
+
+def _checkpoint_arg(text: str) -> tuple[str, str]:
+    hand, sep, path = text.partition("=")
+    if not sep or not hand or not path:
+        raise argparse.ArgumentTypeError(f"expected HAND=PATH, got {text!r}")
+    return hand, path
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.sampler", description=__doc__)
     BusConfig.add_cli_args(parser)
     parser.add_argument("--worker-id", default=None, help="unique id on the bus (default: host-pid-random)")
+    parser.add_argument("--checkpoint", action="append", type=_checkpoint_arg, default=[], metavar="HAND=PATH",
+                        help="checkpoint of a hand (repeatable), e.g. allegro=ckpt/allegro.pt")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: cores are shared, DESIGN.md §6)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    run_worker(SERVICE, handlers(), BusConfig.from_args(args), worker_id=args.worker_id)
+    torch.set_num_threads(max(1, args.threads))
+    run_worker(SERVICE, handlers(dict(args.checkpoint)), BusConfig.from_args(args), worker_id=args.worker_id,
+               concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim"])
     return 0
 
 

@@ -1,24 +1,90 @@
-"""Bus adapter of the sampler service: diffusion sampling of push poses (issue 9).
+"""Bus adapter of the sampler service: a SampleRequest in, a SampleResponse (K poses in D and world) out.
 
-The algorithm arrives with issue 9. Until then a SampleRequest gets a clear `not_implemented`
-error reply — never a fake result — while the worker itself is real: it registers on the bus
-and answers health queries. `handlers()` is the one place where the algorithm plugs in.
+One `PoseSampler` per hand, loaded on the first request for that hand from its checkpoint
+(`checkpoint.default_checkpoint_path`, or the paths given to `handlers`). Run the worker with a
+concurrency above one (see `__main__`): concurrent requests then wait together in the sampler's
+batching thread and share network passes.
+
+Objects: a library id, a mesh (written once to the object cache by its hash, as the validator
+does) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
+sampled for a scaled object could not be validated or executed on the same geometry.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Mapping
+from pathlib import Path
 
+import numpy as np
+
+from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
+from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
-from shared.messages import SampleRequest, SampleResponse, Message
+from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
+from shared.objects.cache import atomic_write_bytes, cache_root
 
 SERVICE = "sampler"
 
 
-def sample(request: SampleRequest) -> SampleResponse:
-    """Sample `request.k` push poses for `request.object` in its direction frame."""
-    raise ServiceError("not_implemented", "sampler: SampleRequest is not implemented yet (issue 9)")
+class SamplerService:
+    """Serves SampleRequests for every hand it has (or can find) a checkpoint for."""
+
+    def __init__(self, checkpoints: Mapping[str, str | Path] | None = None, device: str = "cpu"):
+        self._paths = {hand: Path(path) for hand, path in (checkpoints or {}).items()}
+        self._device = device
+        self._samplers: dict[str, PoseSampler] = {}
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        with self._lock:
+            samplers, self._samplers = list(self._samplers.values()), {}
+        for sampler in samplers:
+            sampler.close()
+
+    def sampler(self, hand: str) -> PoseSampler:
+        """The loaded sampler for `hand` (ServiceError 'unavailable' when there is no usable checkpoint)."""
+        with self._lock:
+            if hand not in self._samplers:
+                path = self._paths.get(hand) or default_checkpoint_path(hand)
+                try:
+                    sampler = PoseSampler(path, device=self._device)
+                except CheckpointError as exc:
+                    raise ServiceError("unavailable", f"sampler: no usable {hand} checkpoint: {exc} "
+                                       f"(train one with `gd2p train --hand {hand} --out {path}`)") from exc
+                if sampler.hand != hand:
+                    raise ServiceError("unavailable", f"sampler: {path} is a {sampler.hand} checkpoint, not {hand}")
+                self._samplers[hand] = sampler
+            return self._samplers[hand]
+
+    def handle(self, request: SampleRequest) -> SampleResponse:
+        """Sample `request.k` poses for `request.object` in `request.frame`."""
+        sampler = self.sampler(request.hand)
+        try:
+            result = sampler.sample(object_input(request.object), request.frame, k=request.k, sampler=request.sampler,
+                                    steps=request.steps, seed=request.seed)
+        except SamplerInputError as exc:
+            raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
+        return SampleResponse(
+            request_id=request.id, hand=request.hand, poses_d=result.poses_d,
+            poses_world=result.poses_world, latency_s=result.latency_s,
+            checkpoint_id=sampler.checkpoint_id, sampler=request.sampler)
 
 
-def handlers() -> dict[type[Message], Callable[[Message], Message]]:
+def object_input(ref: ObjectRef) -> ObjectInput:
+    """What PoseSampler.sample takes for an ObjectRef: an id, a cached mesh file, or a world point cloud."""
+    if ref.scale is not None and ref.scale != 1.0:
+        raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported by the sampler")
+    if ref.library_id is not None:
+        return ref.library_id
+    if ref.mesh is not None:
+        path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
+        if not path.is_file():
+            atomic_write_bytes(path, ref.mesh.data)
+        return path
+    assert ref.point_cloud is not None
+    return ref.point_cloud.to_numpy().astype(np.float64)
+
+
+def handlers(checkpoints: Mapping[str, str | Path] | None = None) -> dict[type[Message], Callable[[Message], Message]]:
     """Message type -> handler, served by every sampler worker."""
-    return {SampleRequest: sample}
+    return {SampleRequest: SamplerService(checkpoints).handle}

@@ -7,7 +7,8 @@ palm plane — is high up, away from the object's lower part (a protruding part 
 topples nothing; high up it would).
 
 Placement:
-- x: the hand's front-most point `SPATULA_GAP_M` behind the object's rear-most point. The gap
+- x: the front-most point of the part of the hand facing the object (within the object's width and
+  height) `SPATULA_GAP_M` behind the object's rear-most point. The gap
   costs its own size of the 3 cm success budget (the hand travels 0.20 m, the object 0.20 m minus
   the gap), and keeps PyBullet's ~1 mm convex-hull contact margin from registering as penetration.
 - z: the middle of the hand's vertical extent at half the object's height, raised when needed so
@@ -72,12 +73,15 @@ def spatula_pose(hand: HandModel, object_vertices_d: np.ndarray) -> np.ndarray:
     joints = spatula_joints(hand)
     surface = _hand_surface_base(hand, tuple(joints)) @ rotation.T  # hand surface, rotated, base at origin
     height = float(vertices[:, 2].max())
-    centre_z = max(height / 2.0, SPATULA_TABLE_CLEARANCE_M + (surface[:, 2].max() - surface[:, 2].min()) / 2.0)
-    position = np.array([
-        vertices[:, 0].min() - SPATULA_GAP_M - surface[:, 0].max(),
-        -(surface[:, 1].max() + surface[:, 1].min()) / 2.0,
-        centre_z - (surface[:, 2].max() + surface[:, 2].min()) / 2.0,
-    ])
+    lowest, highest = surface[:, 2].min(), surface[:, 2].max()
+    centre_z = max(height / 2.0, SPATULA_TABLE_CLEARANCE_M + (highest - lowest) / 2.0)
+    position = np.array([0.0, -(surface[:, 1].max() + surface[:, 1].min()) / 2.0, centre_z - (highest + lowest) / 2.0])
+    # The gap is to the part of the hand that faces the object (the thumb may stick out above it).
+    placed = surface + position
+    facing = ((placed[:, 1] >= vertices[:, 1].min()) & (placed[:, 1] <= vertices[:, 1].max())
+              & (placed[:, 2] <= height))
+    front = placed[facing, 0].max() if facing.any() else placed[:, 0].max()
+    position[0] = vertices[:, 0].min() - SPATULA_GAP_M - front
     return matrix_to_pose25(make_transform(rotation, position), joints)
 
 

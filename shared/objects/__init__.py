@@ -21,7 +21,7 @@ from .catalog import (
 from .errors import ObjectLoadError, SplitError, UnknownObjectError
 from .geometry import SHAPE_CLASSES, RestingPose, shape_class
 from .model import DEFAULT_DENSITY, MASS_LIMITS_KG, ObjectModel, list_objects, load_object
-from .physics import convex_decomposition, write_object_urdf
+from .physics import convex_decomposition, load_in_pybullet, write_object_urdf
 from .procedural import FAMILIES, PER_FAMILY
 from .sdf import DEFAULT_RESOLUTION, SdfGrid, compute_sdf_grid
 
@@ -47,6 +47,7 @@ __all__ = [
     "convex_decomposition",
     "list_object_ids",
     "list_objects",
+    "load_in_pybullet",
     "load_object",
     "shape_class",
     "split_of",

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,9 +44,7 @@ from .geometry import (
 from .procedural import is_procedural_id
 from .sdf import DEFAULT_RESOLUTION, SdfGrid, compute_sdf_grid
 
-log = logging.getLogger(__name__)
-
-PIPELINE_VERSION = 1  # bump when any cached artefact would change
+PIPELINE_VERSION = 2  # bump when any cached artefact would change
 DEFAULT_DENSITY = 500.0  # kg/m^3: wood / plastic-like household objects
 MASS_LIMITS_KG = (0.05, 1.5)  # what a hand can push; hollow or huge meshes would say otherwise
 

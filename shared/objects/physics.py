@@ -2,7 +2,8 @@
 
 The URDF's link frame is the object frame O (centre of mass, principal axes), so its inertial
 origin is the identity and the diagonal inertia PyBullet keeps is the full tensor; PyBullet's
-base pose of the loaded body is then exactly T_world_O. No contact parameters are written:
+base pose of the loaded body is then exactly T_world_O (load with URDF_USE_INERTIA_FROM_FILE, as
+`load_in_pybullet` does, or PyBullet recomputes the inertia from a bounding box). No contact parameters are written:
 friction, restitution and damping are set by the simulation (`changeDynamics`), which chooses
 them by measurement.
 """
@@ -15,8 +16,10 @@ import tempfile
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+import numpy as np
 import pybullet
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from .cache import atomic_write_bytes, atomic_write_text
 from .model import ObjectModel
@@ -82,6 +85,23 @@ def write_object_urdf(obj: ObjectModel) -> Path:
         atomic_write_text(collision, trimesh.exchange.obj.export_obj(scene, include_normals=False, include_texture=False))
     atomic_write_text(path, _urdf_text(obj))
     return path
+
+
+def load_in_pybullet(obj: ObjectModel, T_world_O: np.ndarray, physics_client_id: int = 0) -> int:
+    """Load `obj` into a PyBullet world at pose T_world_O; returns the body id.
+
+    Uses URDF_USE_INERTIA_FROM_FILE: without it PyBullet replaces the inertia with that of the
+    collision shape's bounding box.
+    """
+    T_world_O = np.asarray(T_world_O, dtype=np.float64)
+    quat = Rotation.from_matrix(T_world_O[:3, :3]).as_quat()  # xyzw, PyBullet's order
+    return pybullet.loadURDF(
+        str(write_object_urdf(obj)),
+        T_world_O[:3, 3].tolist(),
+        quat.tolist(),
+        flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
+        physicsClientId=physics_client_id,
+    )
 
 
 def _urdf_text(obj: ObjectModel) -> str:

@@ -127,7 +127,7 @@ def _sample_ellipsoid(rng):
 
 
 def _sample_capsule(rng):
-    radius = _log_uniform(rng, 0.008, 0.04)
+    radius = _log_uniform(rng, 0.01, 0.04)
     length = _log_uniform(rng, max(0.05, 5.0 * radius), 0.25)  # overall, caps included
     return {"radius": radius, "length": length}, (length, 2 * radius, 2 * radius * (1.0 - _BASE_CUT))
 

@@ -80,6 +80,8 @@ def _axis_votes(mesh: trimesh.Trimesh, axes, axis: int, use_winding: bool) -> np
     directions = np.zeros((n_rays, 3))
     directions[:, axis] = 1.0
     locations, ray_index, face_index = mesh.ray.intersects_location(origins, directions, multiple_hits=True)
+    locations = np.asarray(locations, dtype=np.float64).reshape(-1, 3)  # no hits comes back 1-d
+    ray_index, face_index = np.asarray(ray_index, dtype=np.int64), np.asarray(face_index, dtype=np.int64)
 
     # Sort all crossings by (ray, distance) in one key; a node's crossings "before" and "after"
     # it on its own ray are then differences of one cumulative sum.
@@ -251,6 +253,7 @@ class SdfGrid:
         return distance.numpy().astype(np.float64), gradient.numpy().astype(np.float64)
 
     def _evaluate(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        # Post-processing runs on [3, N] rows: reductions over a trailing size-3 axis are slow in torch.
         with torch.no_grad():
             p = points.to(torch.float32)
             clamped = torch.maximum(torch.minimum(p, self._upper_t), self._lower_t)
@@ -258,18 +261,19 @@ class SdfGrid:
             sampled = F.grid_sample(
                 self._volume_tensor(), normalized.view(1, 1, 1, -1, 3), mode="bilinear", padding_mode="border", align_corners=True
             ).view(4, -1)
-            distance, gradient = sampled[0], sampled[1:].T
-            offset = p - clamped
-            outside_sq = (offset * offset).sum(-1)
+            distance, gradient = sampled[0], sampled[1:]
+            offset = (p - clamped).T
+            outside_sq = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
             outside = outside_sq > 0
             if bool(outside.any()):
                 at_box = distance.clamp_min(0.0)
                 outside_distance = torch.sqrt(outside_sq + at_box * at_box)
                 tangential = gradient * (offset == 0)  # only unclamped coordinates follow the box face
-                outside_gradient = (offset + at_box[:, None] * tangential) / outside_distance.clamp_min(1e-12)[:, None]
+                outside_gradient = (offset + at_box * tangential) / outside_distance.clamp_min(1e-12)
                 distance = torch.where(outside, outside_distance, distance)
-                gradient = torch.where(outside[:, None], outside_gradient, gradient)
-            gradient = gradient / gradient.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+                gradient = torch.where(outside, outside_gradient, gradient)
+            norm = torch.sqrt(gradient[0] * gradient[0] + gradient[1] * gradient[1] + gradient[2] * gradient[2])
+            gradient = (gradient / norm.clamp_min(1e-12)).T
         return distance, gradient
 
     def _volume_tensor(self) -> torch.Tensor:

@@ -174,7 +174,7 @@ class SimScene:
         pb.resetSimulation(physicsClientId=client)
         pb.setPhysicsEngineParameter(
             fixedTimeStep=self.params.time_step_s, numSolverIterations=self.params.solver_iterations,
-            deterministicOverlappingPairs=1, physicsClientId=client)
+            erp=self.params.constraint_erp, deterministicOverlappingPairs=1, physicsClientId=client)
         pb.setGravity(0.0, 0.0, -self.params.gravity_mps2, physicsClientId=client)
         plane = pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=client)
         table_id = pb.createMultiBody(0.0, plane, physicsClientId=client)
@@ -216,7 +216,8 @@ class SimScene:
 
     def add_floating_hand(self, urdf_path: str | Path, joint_names: Sequence[str]) -> FloatingHand:
         """Load a hand URDF as a free body driven by a base constraint; joints in pose-vector order."""
-        body_id = self._load_urdf(urdf_path, flags=0, base_position=(0.0, 0.0, 10.0))
+        # Implicit cylinders: exact shapes, not PyBullet's default faceted hulls with a 1 mm margin.
+        body_id = self._load_urdf(urdf_path, flags=pb.URDF_USE_IMPLICIT_CYLINDER, base_position=(0.0, 0.0, 10.0))
         for link in range(-1, pb.getNumJoints(body_id, physicsClientId=self.client)):
             pb.changeDynamics(body_id, link, lateralFriction=self.params.hand_friction,
                               jointDamping=self.params.hand_joint_damping, physicsClientId=self.client)

@@ -1,0 +1,129 @@
+"""`gd2p generate`: optimise pre-contact push poses for one object and hand, in this process.
+
+    gd2p generate --object proc-box-003 --hand allegro --n 256 --seed 0 --out poses.json --plot energy.png
+
+Writes {"poses": [{"pose": [25 floats in D], "energy": {term: value}, "palm_normal": [3],
+"max_penetration_m": float}, ...]} plus where the object was (`object_pose_d`, resting pose index
+and yaw) and the settings used. Energies are the unweighted terms and the weighted "total".
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+HANDS = ("allegro", "leap")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("generate", help="energy-based synthesis of push poses (no bus needed)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--object", required=True, metavar="ID_OR_MESH", help="library id or mesh file (metres)")
+    parser.add_argument("--hand", required=True, choices=HANDS)
+    parser.add_argument("--n", type=int, required=True, help="number of poses")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True, metavar="FILE.json")
+    parser.add_argument("--iterations", type=int, default=None, help="optimiser iterations (default: config)")
+    parser.add_argument("--contacts", type=int, default=None, help="contacts per pose (default: config)")
+    parser.add_argument("--batch-size", type=int, default=None, help="poses optimised together (default: config)")
+    parser.add_argument("--grasp-only", action="store_true", help="drop E_dir and E_arm (grasp-pose baseline)")
+    parser.add_argument("--resting-pose", type=int, default=None, metavar="INDEX",
+                        help="which resting pose of the object (default: its default pose)")
+    parser.add_argument("--yaw-deg", type=float, default=0.0, help="object yaw about z in D (default 0)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: reproducible, and fastest "
+                                                               "when other processes share the cores)")
+    parser.add_argument("--plot", metavar="FILE.png", default=None, help="save energy-per-iteration curves")
+    parser.set_defaults(func=run_generate)
+
+
+def run_generate(args: argparse.Namespace) -> int:
+    if args.n < 1:
+        return _fail(f"--n must be >= 1, got {args.n}")
+    if args.threads < 1:
+        return _fail(f"--threads must be >= 1, got {args.threads}")
+    import torch
+    from tqdm import tqdm
+
+    from services.generator.config import GenerationConfig, GenerationConfigError
+    from services.generator.init import InitialisationError
+    from services.generator.plots import plot_energy_history
+    from services.generator.scene import PushScene
+    from services.generator.synthesis import GenerationError, generate
+    from shared.objects import ObjectLoadError, load_object
+
+    torch.set_num_threads(args.threads)
+    try:
+        config = GenerationConfig().replace(iterations=args.iterations, contacts_per_pose=args.contacts,
+                                            batch_size=args.batch_size, grasp_only=args.grasp_only or None)
+        obj = load_object(args.object)
+        scene = PushScene.from_object(obj, args.resting_pose, math.radians(args.yaw_deg),
+                                      surface_points=config.object_points, check_points=config.penetration_check_points)
+    except (GenerationConfigError, ObjectLoadError, ValueError) as exc:
+        return _fail(str(exc))
+    batches = math.ceil(args.n / config.batch_size)
+    with tqdm(total=batches * config.iterations, unit="it", desc=f"{obj.id} x{args.n}", file=sys.stderr) as bar:
+        try:
+            output = generate(scene, args.hand, args.n, args.seed, config, progress=bar.update)
+        except (GenerationError, InitialisationError) as exc:
+            return _fail(str(exc))
+    _write_json(Path(args.out), output_document(output, scene, args.seed, config))
+    print(f"{len(output)} poses for {obj.id} in {output.elapsed_s:.1f} s -> {args.out}; "
+          f"{output.good(contact_offset_m=config.contact_offset_m).mean():.0%} pass the pre-physics check "
+          f"(palm x >= 0.7, penetration <= 5 mm, contacts within 5 mm)", file=sys.stderr)
+    if args.plot:
+        plot_energy_history(output.history, args.plot, config.effective_weights(),
+                            title=f"{obj.id}, {args.hand}, n={args.n}, seed={args.seed}")
+        print(f"energy curves -> {args.plot}", file=sys.stderr)
+    return 0
+
+
+def output_document(output, scene, seed: int, config) -> dict:
+    """The JSON document of a run (see the module docstring)."""
+    from shared.frames import matrix_to_pos_quat
+
+    position, quaternion = matrix_to_pos_quat(scene.transform_d)
+    poses = [
+        {
+            "pose": output.poses[i].tolist(),
+            "energy": {name: float(values[i]) for name, values in output.energies.items()},
+            "palm_normal": output.palm_normals[i].tolist(),
+            "max_penetration_m": float(output.max_penetration_m[i]),
+        }
+        for i in range(len(output))
+    ]
+    return {
+        "object_id": output.object_id,
+        "hand": output.hand,
+        "seed": seed,
+        "resting_pose_index": scene.pose_index,
+        "yaw_deg": math.degrees(scene.yaw_rad),
+        "object_pose_d": {"position": position.tolist(), "quaternion_xyzw": quaternion.tolist()},
+        "iterations": config.iterations,
+        "contacts_per_pose": config.contacts_per_pose,
+        "grasp_only": config.grasp_only,
+        "weights": config.effective_weights(),
+        "elapsed_s": output.elapsed_s,
+        "poses": poses,
+    }
+
+
+def _write_json(path: Path, document: dict) -> None:
+    """Write atomically (temp file + rename): a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(document, handle)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _fail(message: str) -> int:
+    print(f"gd2p generate: {message}", file=sys.stderr)
+    return 2

@@ -1,0 +1,166 @@
+"""DDPM training objective, DDPM / DDIM sampling loops, EMA and pose normalisation.
+
+The noise schedule is the paper's (appendix, "Training Details"): DDPM with 100 training steps,
+`squaredcos_cap_v2` betas, `clip_sample=True` and epsilon prediction, from diffusers. Sampling
+offers the paper's DDPM-100 and a DDIM fast path over the same trained model (DDIM with eta 0
+reuses the DDPM's training schedule; only the reverse process differs).
+
+`clip_sample` clips the predicted clean sample to [-1, 1], so poses are normalised per dimension
+to [-1, 1] by the training set's min / max (`PoseNormalizer`, as diffusion_policy's
+LinearNormalizer) — any other normalisation would make the clip cut valid poses.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from diffusers import DDIMScheduler, DDPMScheduler
+from diffusers.training_utils import EMAModel
+from torch.nn import functional as F
+
+from services.sampler.model import PoseDenoiser
+
+SamplerKind = Literal["ddpm", "ddim"]
+SAMPLERS: tuple[str, ...] = ("ddpm", "ddim")
+
+TRAIN_TIMESTEPS = 100
+BETA_SCHEDULE = "squaredcos_cap_v2"
+DEFAULT_DDIM_STEPS = 10
+EMA_POWER = 0.75
+EMA_MAX_DECAY = 0.9999  # diffusion_policy's EMAModel max_value
+
+
+class DiffusionConfigError(ValueError):
+    """A sampler name or step count that cannot be used."""
+
+
+def make_noise_scheduler() -> DDPMScheduler:
+    """The paper's training (and DDPM sampling) schedule."""
+    return DDPMScheduler(
+        num_train_timesteps=TRAIN_TIMESTEPS, beta_schedule=BETA_SCHEDULE, clip_sample=True, prediction_type="epsilon")
+
+
+def resolve_steps(kind: str, steps: int | None = None) -> int:
+    """The number of denoising steps a sampler runs (DDPM: all 100; DDIM: `steps`, default 10)."""
+    if kind not in SAMPLERS:
+        raise DiffusionConfigError(f"unknown sampler {kind!r}; expected one of {', '.join(SAMPLERS)}")
+    if kind == "ddpm":
+        if steps not in (None, TRAIN_TIMESTEPS):
+            raise DiffusionConfigError(f"the DDPM sampler runs all {TRAIN_TIMESTEPS} steps; use sampler='ddim' for {steps} steps")
+        return TRAIN_TIMESTEPS
+    steps = DEFAULT_DDIM_STEPS if steps is None else int(steps)
+    if not 1 <= steps <= TRAIN_TIMESTEPS:
+        raise DiffusionConfigError(f"DDIM steps must be in 1..{TRAIN_TIMESTEPS}, got {steps}")
+    return steps
+
+
+def make_sampling_scheduler(kind: str, steps: int | None = None) -> DDPMScheduler | DDIMScheduler:
+    """A scheduler ready to sample: DDPM over all 100 steps, or DDIM over `steps` (default 10)."""
+    count = resolve_steps(kind, steps)
+    ddpm = make_noise_scheduler()
+    scheduler = ddpm if kind == "ddpm" else DDIMScheduler.from_config(ddpm.config)
+    scheduler.set_timesteps(count)
+    return scheduler
+
+
+def make_ema(model: PoseDenoiser) -> EMAModel:
+    """diffusers' EMA with diffusion_policy's warm-up: decay = 1 - (1 + step)^-0.75, capped at 0.9999."""
+    return EMAModel(model.parameters(), decay=EMA_MAX_DECAY, min_decay=0.0, update_after_step=0,
+                    use_ema_warmup=True, inv_gamma=1.0, power=EMA_POWER, foreach=True)
+
+
+# ----------------------------------------------------------------------------- normalisation
+@dataclass
+class PoseNormalizer:
+    """Per-dimension affine map of poses onto [-1, 1] (the training set's min -> -1, max -> +1)."""
+
+    low: torch.Tensor  # [25]
+    high: torch.Tensor  # [25]
+
+    MIN_RANGE = 1e-4  # a constant dimension (e.g. a joint never moved) maps to 0 instead of dividing by 0
+
+    @classmethod
+    def fit(cls, poses: torch.Tensor) -> "PoseNormalizer":
+        if poses.ndim != 2 or poses.shape[0] == 0:
+            raise ValueError(f"need a non-empty [N, D] pose tensor to fit the normaliser, got {tuple(poses.shape)}")
+        return cls(poses.min(dim=0).values.float(), poses.max(dim=0).values.float())
+
+    @property
+    def _centre_and_half_range(self) -> tuple[torch.Tensor, torch.Tensor]:
+        centre = (self.high + self.low) / 2
+        half = ((self.high - self.low) / 2).clamp_min(self.MIN_RANGE / 2)
+        return centre, half
+
+    def normalize(self, poses: torch.Tensor) -> torch.Tensor:
+        centre, half = self._centre_and_half_range
+        return (poses - centre.to(poses)) / half.to(poses)
+
+    def unnormalize(self, normalized: torch.Tensor) -> torch.Tensor:
+        centre, half = self._centre_and_half_range
+        return normalized * half.to(normalized) + centre.to(normalized)
+
+    def to_dict(self) -> dict[str, torch.Tensor]:
+        return {"low": self.low.clone(), "high": self.high.clone()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PoseNormalizer":
+        return cls(torch.as_tensor(data["low"], dtype=torch.float32), torch.as_tensor(data["high"], dtype=torch.float32))
+
+
+# ----------------------------------------------------------------------------- training objective
+def denoising_loss(model: PoseDenoiser, scheduler: DDPMScheduler, poses: torch.Tensor, bps: torch.Tensor,
+                   generator: torch.Generator | None = None) -> torch.Tensor:
+    """DDPM epsilon loss: noise normalised poses at random steps, predict the noise, mean squared error."""
+    noise = torch.randn(poses.shape, generator=generator, device=poses.device, dtype=poses.dtype)
+    timesteps = torch.randint(0, scheduler.config.num_train_timesteps, (poses.shape[0],), generator=generator, device=poses.device)
+    noisy = scheduler.add_noise(poses, noise, timesteps)
+    return F.mse_loss(model(noisy, timesteps, bps), noise)
+
+
+# ----------------------------------------------------------------------------- sampling
+@torch.inference_mode()
+def sample_normalized(
+    model: PoseDenoiser,
+    bps: torch.Tensor,
+    counts: Sequence[int],
+    generators: Sequence[torch.Generator],
+    kind: str = "ddpm",
+    steps: int | None = None,
+) -> list[torch.Tensor]:
+    """Reverse diffusion for R requests at once: R BPS rows, `counts[r]` poses each, one generator each.
+
+    The object embedding is computed once per request and the FiLM parameters once per step per
+    request; the network runs on all rows together. Each request draws its initial noise and its
+    DDPM step noise from its own generator, so its samples do not depend on what it was batched with.
+    Returns R tensors [counts[r], 25] of normalised poses.
+    """
+    if len(counts) != bps.shape[0] or len(generators) != bps.shape[0]:
+        raise ValueError(f"{bps.shape[0]} BPS rows need as many counts and generators, got {len(counts)} and {len(generators)}")
+    scheduler = make_sampling_scheduler(kind, steps)
+    device = bps.device
+    pose_dim = model.config.pose_dim
+    samples = [torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators)]
+    x = torch.cat(samples)
+    bounds = _row_bounds(counts)
+    group = None if len(counts) == 1 else torch.repeat_interleave(torch.arange(len(counts), device=device), torch.as_tensor(counts, device=device))
+    object_embedding = model.encode_object(bps)
+    for t in scheduler.timesteps:
+        epsilon = model.denoise(x, model.film(object_embedding, t.to(device)), group)
+        x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g) for (a, b), g in zip(bounds, generators)])
+    return [x[a:b] for a, b in bounds]
+
+
+def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    return scheduler.step(epsilon, t, x, generator=generator).prev_sample
+
+
+def _row_bounds(counts: Iterable[int]) -> list[tuple[int, int]]:
+    bounds, start = [], 0
+    for n in counts:
+        if n < 1:
+            raise ValueError(f"every request needs at least one sample, got {n}")
+        bounds.append((start, start + n))
+        start += n
+    return bounds

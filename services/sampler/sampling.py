@@ -1,0 +1,296 @@
+"""Sampling push poses from a trained checkpoint: `PoseSampler(checkpoint).sample(object, frame, k)`.
+
+An object is a library id, a mesh file path, an `ObjectModel`, or a point cloud ([N, 3] metres).
+The frame is a `DirectionFrame` (the object's pose in the world and the push direction), which
+fixes the direction frame D (shared.frames.direction_frame: origin under the object's centre of
+mass, +x along the push). The object's surface points are expressed in D, encoded with the
+checkpoint's BPS basis, and the model samples K poses in D; they are also returned in the world.
+
+- A mesh / library object with no frame rests in its default pose at the world origin with
+  yaw 0 and is pushed along world +x (then D = world).
+- A point cloud is in the world frame, with the frame's object position its centre of mass; with
+  no frame it is taken to be already in D.
+
+Concurrent `sample` calls (e.g. a service's job threads) are batched: the BPS is computed in the
+caller's thread, then one batching thread runs every request queued at that moment through the
+network together (same sampler and step count), so the batch costs about one request's network
+time. Each request draws its noise from its own seeded generator, so its poses do not depend on
+what it was batched with.
+
+Outputs are cleaned for the robot: the r6 block is Gram–Schmidt-orthonormalised (an exact
+rotation) and joints are clamped to the hand's limits stored in the checkpoint.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import threading
+import time
+from collections import OrderedDict
+from concurrent.futures import Future
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+import torch
+
+from services.sampler.checkpoint import SamplerCheckpoint, checkpoint_id, load_checkpoint
+from services.sampler.diffusion import DiffusionConfigError, resolve_steps, sample_normalized
+from shared.bps import BPSError
+from shared.frames import (
+    JOINTS,
+    ROTATION_6D,
+    direction_frame,
+    invert_transform,
+    matrix_to_pos_quat,
+    matrix_to_r6,
+    points_world_to_d,
+    pos_quat_to_matrix,
+    poses_d_to_world,
+    r6_to_matrix,
+    transform_points,
+)
+from shared.messages import DirectionFrame, ObjectPose
+from shared.objects import ObjectLoadError, ObjectModel, load_object
+
+ObjectInput = Union[str, Path, ObjectModel, np.ndarray]
+MAX_POSES_PER_REQUEST = 1000
+MAX_BATCH_POSES = 8192  # rows per network batch; larger queues run as several batches
+_OBJECT_CACHE_SIZE = 64
+
+
+class SamplerInputError(ValueError):
+    """A request the sampler cannot serve: unknown / broken object, empty cloud, outside the BPS ball, bad k."""
+
+
+@dataclass
+class SampleResult:
+    """K poses in D and in the world, and how they were obtained."""
+
+    poses_d: np.ndarray  # [K, 25] float64
+    poses_world: np.ndarray  # [K, 25] float64
+    T_world_D: np.ndarray  # [4, 4]
+    latency_s: float  # object points + BPS + denoising (+ queueing behind other requests)
+    sampler: str
+    steps: int
+    object_label: str
+
+
+@dataclass
+class _Job:
+    bps: torch.Tensor  # [n_basis]
+    k: int
+    seed: int
+    sampler: str
+    steps: int
+    future: Future
+
+
+# ----------------------------------------------------------------------------- object placement
+def default_frame(obj: ObjectModel, direction_deg: float = 0.0) -> DirectionFrame:
+    """`obj` resting in its default pose at the world origin with yaw 0, pushed along `direction_deg`."""
+    position, quaternion = matrix_to_pos_quat(obj.T_D_O())
+    return DirectionFrame(object_pose=ObjectPose(position=tuple(position), quaternion_xyzw=tuple(quaternion)),
+                          yaw_deg=float(direction_deg))
+
+
+def frame_transform(frame: DirectionFrame) -> np.ndarray:
+    """T_world_D of a DirectionFrame."""
+    direction = frame.yaw_deg if frame.yaw_deg is not None else np.asarray(frame.direction_xy)
+    return direction_frame(np.asarray(frame.object_pose.position), direction)
+
+
+def object_yaw_in_d(frame: DirectionFrame) -> float:
+    """The object's yaw about D's z axis (radians) for an upright placement — what the validator needs."""
+    T_D_O = invert_transform(frame_transform(frame)) @ _object_transform(frame)
+    return math.atan2(T_D_O[1, 0], T_D_O[0, 0])
+
+
+def _object_transform(frame: DirectionFrame) -> np.ndarray:
+    return pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
+
+
+class _ObjectPoints:
+    """Surface samples (in O) of recently used objects, so repeated requests skip mesh loading."""
+
+    def __init__(self, n_points: int, seed: int):
+        self.n_points, self.seed = n_points, seed
+        self._cache: OrderedDict[str, tuple[ObjectModel, np.ndarray]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, obj: str | Path | ObjectModel) -> tuple[ObjectModel, np.ndarray]:
+        key = obj.key if isinstance(obj, ObjectModel) else str(obj)
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        model = obj if isinstance(obj, ObjectModel) else _load(obj)
+        points, _ = model.surface_points(self.n_points, seed=self.seed)
+        with self._lock:
+            self._cache[key] = (model, points)
+            while len(self._cache) > _OBJECT_CACHE_SIZE:
+                self._cache.popitem(last=False)
+        return model, points
+
+
+def _load(id_or_path: str | Path) -> ObjectModel:
+    try:
+        return load_object(id_or_path)
+    except ObjectLoadError as exc:
+        raise SamplerInputError(str(exc)) from exc
+
+
+# ----------------------------------------------------------------------------- the sampler
+class PoseSampler:
+    """A loaded checkpoint serving `sample` calls, batching concurrent ones. Thread-safe."""
+
+    def __init__(self, checkpoint: str | Path | SamplerCheckpoint, device: str | torch.device = "cpu",
+                 max_batch_poses: int = MAX_BATCH_POSES):
+        if isinstance(checkpoint, SamplerCheckpoint):
+            self.checkpoint, self.checkpoint_id = checkpoint, "in-memory"
+        else:
+            self.checkpoint, self.checkpoint_id = load_checkpoint(checkpoint), checkpoint_id(checkpoint)
+        self.hand = self.checkpoint.hand
+        self.device = torch.device(device)
+        self.model = self.checkpoint.build_model().to(self.device)
+        self.normalizer = self.checkpoint.normalizer
+        self.bps = self.checkpoint.bps
+        self.max_batch_poses = max_batch_poses
+        self._objects = _ObjectPoints(self.checkpoint.surface_points, self.checkpoint.surface_seed)
+        self._queue: queue.Queue[_Job | None] = queue.Queue()
+        self._thread: threading.Thread | None = None
+        self._start_lock = threading.Lock()
+        self._closed = False
+
+    def __enter__(self) -> "PoseSampler":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the batching thread (pending requests are finished first)."""
+        with self._start_lock:
+            self._closed = True
+            thread, self._thread = self._thread, None
+        if thread is not None:
+            self._queue.put(None)
+            thread.join()
+
+    # ------------------------------------------------------------------ public API
+    def points_in_d(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(object surface points in D [N, 3], T_world_D, a label naming the object)."""
+        if isinstance(obj, np.ndarray):
+            cloud = np.asarray(obj, dtype=np.float64)
+            if cloud.ndim != 2 or cloud.shape[-1] != 3:
+                raise SamplerInputError(f"a point cloud must be [N, 3], got shape {cloud.shape}")
+            if frame is None:
+                return cloud, np.eye(4), "point cloud (in D)"
+            T_world_D = frame_transform(frame)
+            return points_world_to_d(cloud, T_world_D), T_world_D, "point cloud"
+        model, points_o = self._objects.get(obj)
+        frame = frame or default_frame(model)
+        T_world_D = frame_transform(frame)
+        T_D_O = invert_transform(T_world_D) @ _object_transform(frame)
+        return transform_points(T_D_O, points_o), T_world_D, model.id
+
+    def encode(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(BPS [n_basis] float32 of the object in D, T_world_D, label); SamplerInputError if it cannot be encoded."""
+        points_d, T_world_D, label = self.points_in_d(obj, frame)
+        try:
+            return self.bps.encode(points_d), T_world_D, label
+        except BPSError as exc:
+            raise SamplerInputError(f"{label}: {exc}") from exc
+
+    def sample(self, obj: ObjectInput, frame: DirectionFrame | None = None, k: int = 200, sampler: str = "ddpm",
+               steps: int | None = None, seed: int = 0) -> SampleResult:
+        """K push poses for `obj` placed by `frame` (see the module docstring for defaults)."""
+        started = time.perf_counter()
+        step_count = _check_request(k, sampler, steps, seed)
+        bps, T_world_D, label = self.encode(obj, frame)
+        poses_d = self.sample_from_bps(bps, k, sampler, steps, seed)
+        return SampleResult(poses_d, poses_d_to_world(poses_d, T_world_D), T_world_D, time.perf_counter() - started,
+                            sampler, step_count, label)
+
+    def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0) -> np.ndarray:
+        """[k, 25] poses in D for an already encoded object; joins the current batch."""
+        step_count = _check_request(k, sampler, steps, seed)
+        bps_tensor = torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(-1)
+        if bps_tensor.numel() != self.bps.n:
+            raise SamplerInputError(f"BPS must have {self.bps.n} values (this checkpoint's basis), got {bps_tensor.numel()}")
+        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, Future())
+        self._ensure_thread()
+        self._queue.put(job)
+        return job.future.result()
+
+    # ------------------------------------------------------------------ batching
+    def _ensure_thread(self) -> None:
+        with self._start_lock:
+            if self._closed:
+                raise RuntimeError("this PoseSampler is closed")
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._serve, name=f"sampler-{self.hand}", daemon=True)
+                self._thread.start()
+
+    def _serve(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                return
+            jobs, stop = [first], False
+            while True:  # everything queued right now joins this batch
+                try:
+                    job = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if job is None:
+                    stop = True
+                    break
+                jobs.append(job)
+            for batch in self._batches(jobs):
+                self._run(batch)
+            if stop:
+                return
+
+    def _batches(self, jobs: list[_Job]) -> list[list[_Job]]:
+        """Jobs grouped by (sampler, steps), each group cut to at most max_batch_poses rows."""
+        groups: dict[tuple[str, int], list[list[_Job]]] = {}
+        for job in jobs:
+            chunks = groups.setdefault((job.sampler, job.steps), [[]])
+            if chunks[-1] and sum(j.k for j in chunks[-1]) + job.k > self.max_batch_poses:
+                chunks.append([])
+            chunks[-1].append(job)
+        return [chunk for chunks in groups.values() for chunk in chunks]
+
+    def _run(self, jobs: list[_Job]) -> None:
+        try:
+            bps = torch.stack([job.bps for job in jobs]).to(self.device)
+            generators = [torch.Generator(device=self.device).manual_seed(job.seed) for job in jobs]
+            outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps)
+            for job, output in zip(jobs, outputs):
+                job.future.set_result(self._to_poses(output))
+        except Exception as exc:  # deliver the failure to every waiting caller, keep serving
+            for job in jobs:
+                if not job.future.done():
+                    job.future.set_exception(exc)
+
+    def _to_poses(self, normalized: torch.Tensor) -> np.ndarray:
+        poses = self.normalizer.unnormalize(normalized.float().cpu()).double()
+        rotation = r6_to_matrix(poses[:, ROTATION_6D])
+        poses[:, ROTATION_6D] = matrix_to_r6(rotation)
+        lower, upper = self.checkpoint.joint_lower.double(), self.checkpoint.joint_upper.double()
+        poses[:, JOINTS] = torch.minimum(torch.maximum(poses[:, JOINTS], lower), upper)
+        return poses.numpy()
+
+
+def _check_request(k: int, sampler: str, steps: int | None, seed: int) -> int:
+    """Validate a request's settings; returns the number of denoising steps it will run."""
+    if not 1 <= int(k) <= MAX_POSES_PER_REQUEST:
+        raise SamplerInputError(f"k must be in 1..{MAX_POSES_PER_REQUEST}, got {k}")
+    if int(seed) < 0:
+        raise SamplerInputError(f"seed must be >= 0, got {seed}")
+    try:
+        return resolve_steps(sampler, steps)
+    except DiffusionConfigError as exc:
+        raise SamplerInputError(str(exc)) from exc

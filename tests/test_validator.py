@@ -1,0 +1,169 @@
+"""Push validation in PyBullet: outcomes a user relies on, augmentation bounds, service and CLI contracts."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from services.validator.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRANSLATION_M, halton_perturbations
+from services.validator.fixed_poses import SPATULA_GAP_M, spatula_pose
+from services.validator.push import PushSimulator, table_object
+from services.validator.service import validate
+from shared.bus import ServiceError
+from shared.frames import pose25_to_matrix
+from shared.hands import load_hand
+from shared.messages import ObjectRef, ValidationJob
+from shared.objects import load_object
+
+BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm, 0.86 kg, volumetric
+
+
+@pytest.fixture(scope="module")
+def box():
+    return table_object(load_object(BOX_ID))
+
+
+@pytest.fixture(scope="module")
+def tall_thin(tmp_path_factory):
+    """A 4 x 8 x 25 cm slab standing on its 4 x 8 cm end (thin along the push direction)."""
+    path = tmp_path_factory.mktemp("meshes") / "slab.stl"
+    trimesh.creation.box((0.04, 0.08, 0.25)).export(path)
+    obj = table_object(load_object(path))
+    extent = obj.vertices_d.max(0) - obj.vertices_d.min(0)
+    assert extent[0] == pytest.approx(0.04, abs=1e-6) and extent[2] == pytest.approx(0.25, abs=1e-6)
+    return obj
+
+
+@pytest.mark.parametrize("hand_name", ["allegro", "leap"])
+def test_spatula_push_moves_box_to_goal(box, hand_name):
+    hand = load_hand(hand_name)
+    with PushSimulator(hand, box) as sim:
+        outcome = sim.run(spatula_pose(hand, box.vertices_d))
+    assert outcome.success, outcome
+    assert outcome.position_error_m < 0.03 and outcome.rotation_deg < 45
+    assert outcome.contact_kept and not outcome.hand_table_contact
+    assert outcome.initial_penetration_m < 1e-3
+
+
+@pytest.mark.parametrize("hand_name", ["allegro", "leap"])
+def test_spatula_pose_faces_push_direction_behind_object(box, hand_name):
+    hand = load_hand(hand_name)
+    pose = spatula_pose(hand, box.vertices_d)
+    base, _ = pose25_to_matrix(pose)
+    palm_normal = base[:3, :3] @ hand.palm_normal_base.double().numpy()
+    np.testing.assert_allclose(palm_normal, [1.0, 0.0, 0.0], atol=1e-9)
+    with PushSimulator(hand, box) as sim:  # the gap as PyBullet sees it, before anything moves
+        sim.hand.place(base, pose[9:])
+        gap = sim.scene.closest_distance(sim.hand, sim.body, 0.05)
+    assert 0.0 < gap <= SPATULA_GAP_M  # PyBullet's ~1 mm convex-hull margin on the object eats into it
+
+
+def test_hand_on_far_side_pushing_away_fails(box):
+    hand = load_hand("allegro")
+    pose = spatula_pose(hand, box.vertices_d)
+    depth = np.ptp(box.vertices_d[:, 0])
+    pose[0] += depth + 0.10  # beyond the object's +x face, palm facing +x: moves away from it
+    with PushSimulator(hand, box) as sim:
+        outcome = sim.run(pose)
+    assert not outcome.success
+    assert outcome.position_error_m == pytest.approx(0.20, abs=0.01)  # the object stayed where it was
+    assert outcome.contact_fraction == 0.0 and not outcome.contact_kept
+
+
+def test_tall_thin_object_pushed_high_topples(tall_thin):
+    hand = load_hand("allegro")
+    pose = spatula_pose(hand, tall_thin.vertices_d)
+    pose[2] += 0.20  # lowest palm contact 20 cm up a 25 cm slab, far above half-width / mu
+    with PushSimulator(hand, tall_thin) as sim:
+        outcome = sim.run(pose)
+    assert not outcome.success
+    assert outcome.max_tilt_deg > 45 and outcome.rotation_deg > 45
+
+
+def test_service_results_are_deterministic_for_a_seed(box):
+    hand = load_hand("allegro")
+    spatula = spatula_pose(hand, box.vertices_d)
+    poses = np.stack([spatula, spatula + np.r_[0.0, 0.01, 0.0, np.zeros(22)]])
+
+    def job(seed: int) -> ValidationJob:
+        return ValidationJob(object=ObjectRef(library_id=BOX_ID), hand="allegro", poses=poses, augment=True, seed=seed)
+
+    first, second = validate(job(7)), validate(job(7))
+    assert first.success.to_numpy().any(), "the spatula push should succeed, so augmentation runs"
+    for name in ("success", "position_error_m", "rotation_deg", "max_tilt_deg", "contact_kept"):
+        np.testing.assert_array_equal(getattr(first, name).to_numpy(), getattr(second, name).to_numpy())
+    assert first.augmented is not None and second.augmented is not None
+    np.testing.assert_array_equal(first.augmented.poses.to_numpy(), second.augmented.poses.to_numpy())
+    np.testing.assert_array_equal(first.augmented.position_error_m.to_numpy(), second.augmented.position_error_m.to_numpy())
+    assert len(first.augmented.poses.to_numpy()) == 10 * int(first.success.to_numpy().sum())
+    other_seed = validate(job(8)).augmented
+    assert not np.array_equal(other_seed.poses.to_numpy(), first.augmented.poses.to_numpy())
+
+
+def test_augmentation_stays_within_paper_bounds_and_is_deterministic():
+    hand = load_hand("allegro")
+    lower, upper = hand.joint_lower.double().numpy(), hand.joint_upper.double().numpy()
+    rng = np.random.default_rng(0)
+    pose = spatula_pose(hand, rng.uniform(-0.05, 0.05, (50, 3)) + [0, 0, 0.05])
+    pose[9:] = np.clip(rng.uniform(lower, upper), lower + 0.06, upper - 0.06)  # interior: no clipping
+    copies = halton_perturbations(pose, 200, seed=3, joint_lower=lower, joint_upper=upper)
+    assert copies.shape == (200, 25)
+    base, joints = pose25_to_matrix(pose)
+    copy_bases, copy_joints = pose25_to_matrix(copies)
+    shift = np.linalg.norm(copy_bases[:, :3, 3] - base[:3, 3], axis=1)
+    relative = np.einsum("ji,njk->nik", base[:3, :3], copy_bases[:, :3, :3])
+    angle = np.degrees(np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    joint_change = np.abs(copy_joints - joints)
+    assert shift.max() <= MAX_TRANSLATION_M + 1e-12 and shift.max() > 0.8 * MAX_TRANSLATION_M
+    assert angle.max() <= MAX_ROTATION_DEG + 1e-9 and angle.max() > 0.8 * MAX_ROTATION_DEG
+    assert joint_change.max() <= MAX_JOINT_RAD + 1e-12 and joint_change.max() > 0.9 * MAX_JOINT_RAD
+    np.testing.assert_array_equal(copies, halton_perturbations(pose, 200, seed=3, joint_lower=lower, joint_upper=upper))
+    assert not np.array_equal(copies, halton_perturbations(pose, 200, seed=4, joint_lower=lower, joint_upper=upper))
+
+
+def test_augmentation_clips_joints_to_limits():
+    hand = load_hand("leap")
+    lower, upper = hand.joint_lower.double().numpy(), hand.joint_upper.double().numpy()
+    pose = spatula_pose(hand, np.array([[0.0, 0.0, 0.0], [0.05, 0.05, 0.1]]))
+    pose[9:] = upper  # at the upper limit: half the noise would leave the range
+    copies = halton_perturbations(pose, 10, seed=0, joint_lower=lower, joint_upper=upper)
+    assert np.all(copies[:, 9:] <= upper) and np.all(copies[:, 9:] >= lower)
+
+
+def test_service_rejects_what_it_cannot_simulate():
+    poses = np.zeros((1, 25))
+    poses[0, 3], poses[0, 7] = 1.0, 1.0
+    cloud = ValidationJob(object=ObjectRef(point_cloud=np.zeros((10, 3))), hand="allegro", poses=poses)
+    with pytest.raises(ServiceError) as info:
+        validate(cloud)
+    assert info.value.code == "bad_request" and "point cloud" in str(info.value)
+    unknown = ValidationJob(object=ObjectRef(library_id="proc-nothing-000"), hand="allegro", poses=poses)
+    with pytest.raises(ServiceError) as info:
+        validate(unknown)
+    assert info.value.code == "bad_request" and "proc-nothing-000" in str(info.value)
+
+
+def test_cli_validate_prints_results_json(capsys):
+    from cli.main import main
+
+    code = main(["validate", "--object", BOX_ID, "--hand", "allegro", "--fixed-pose", "spatula", "--json"])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    (result,) = report["results"]
+    assert result["success"] is True
+    for key in ("position_error_m", "rotation_deg", "max_tilt_deg", "contact_kept", "hand_table_contact",
+                "initial_penetration_m"):
+        assert key in result
+
+
+def test_cli_validate_reports_bad_poses_file(tmp_path, capsys):
+    from cli.main import main
+
+    bad = tmp_path / "poses.json"
+    bad.write_text(json.dumps({"poses": [{"pose": [0.0] * 24}]}))
+    code = main(["validate", "--object", BOX_ID, "--hand", "allegro", "--poses", str(bad), "--json"])
+    assert code == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and 'poses[0]["pose"] must be 25' in captured.err
