@@ -18,6 +18,7 @@ COMMAND_MODULES: list[str] = [
     "cli.hands",  # hands info
     "cli.objects",  # objects list
     "cli.validate",  # validate (push validation in PyBullet)
+    "cli.sampler",  # train, sample (pose diffusion model)
     "cli.generate",  # generate (energy-based push-pose synthesis)
 ]
 

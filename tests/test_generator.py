@@ -115,10 +115,18 @@ def test_sparse_penetration_equals_the_dense_sum_with_the_same_gradient(hand, ge
 
 
 def test_hand_below_the_table_raises_e_tpen(hand, geometry):
-    below = make_pose(hand, (0.0, 0.0, -0.05))
-    above = make_pose(hand, (0.0, 0.0, 0.5))
-    assert float(E.table_penetration(geometry, hand.forward(below))[0]) > 0.1
-    assert float(E.table_penetration(geometry, hand.forward(above))[0]) == 0.0
+    below = geometry.surface_points(hand.forward(make_pose(hand, (0.0, 0.0, -0.05))))
+    above = geometry.surface_points(hand.forward(make_pose(hand, (0.0, 0.0, 0.5))))
+    assert float(E.table_penetration(below)[0]) > 0.1
+    assert float(E.table_penetration(above)[0]) == 0.0
+    assert float(E.table_penetration(above, clearance_m=1.0)[0]) > 0.0
+
+
+def test_fingertip_inside_the_object_raises_e_pen_hand_side(hand, geometry, box):
+    inside = geometry.surface_points(hand.forward(palm_at(hand, box.centroid.tolist())))
+    far = geometry.surface_points(hand.forward(palm_at(hand, (box.centroid + torch.tensor([1.0, 0, 0])).tolist())))
+    assert float(E.hand_in_object(inside, box)[0]) > 0.01
+    assert float(E.hand_in_object(far, box)[0]) == 0.0
 
 
 def test_palm_facing_plus_x_minimises_e_dir_and_palm_up_raises_e_arm(hand):

@@ -5,8 +5,9 @@
 
 Everything is expressed in the direction frame D (DESIGN.md §2): table z = 0, push along +x.
 Notation: B poses, K selected contacts per pose with points x_i and the object's outward surface
-normal n_i at x_i (the unit gradient of the object SDF d), object surface points o_j, the hand's
-signed distance sd_hand (negative inside), palm normal v (unit, in D), joints q within [l, u].
+normal n_i at x_i (the unit gradient of the object SDF d), object surface points o_j, hand surface
+samples h_s, the hand's signed distance sd_hand (negative inside), palm normal v (unit, in D),
+joints q within [l, u]. E_pen = E_pen,obj + E_pen,hand counts penetration both ways.
 
 Each term is its own function returning a [B] tensor; `evaluate_energy` computes them all for one
 state. Term functions take plain tensors (plus the hand model where the hand's geometry is needed),
@@ -69,7 +70,9 @@ def contact_distance(distance: torch.Tensor, offset_m: float) -> torch.Tensor:
 
 def object_penetration(geometry: "HandGeometry", state: HandState, scene: ObjectField,
                        margin_m: float = 0.0) -> torch.Tensor:
-    """E_pen = sum_j max(0, m - sd_hand(o_j)): object surface points inside (or within m of) the hand.
+    """E_pen,obj = sum_j max(0, m - sd_hand(o_j)): object surface points inside (or within m of) the hand.
+
+    DexGraspNet's penetration term, the first half of E_pen (see `hand_in_object`).
 
     Sparse gradient (DESIGN.md §6): a no-grad pass finds the (pose, point) pairs with sd_hand < m
     (`HandGeometry.signed_distance_upper_bound`); only those pairs are evaluated again with
@@ -82,6 +85,17 @@ def object_penetration(geometry: "HandGeometry", state: HandState, scene: Object
         batch, point = torch.nonzero(bound < margin_m, as_tuple=True)
     depth = torch.relu(margin_m - geometry.signed_distance_pairs(state, batch, points[point]))
     return state.pose.new_zeros(state.batch_size).index_add(0, batch, depth)
+
+
+def hand_in_object(hand_points: torch.Tensor, scene: ObjectField, margin_m: float = 0.0) -> torch.Tensor:
+    """E_pen,hand = sum_s max(0, m - d(h_s)): hand surface samples inside (or within m of) the object.
+
+    The second half of E_pen. Object points inside a thin finger link push it towards the link's
+    nearest face, which can lie deeper in the object; the object SDF gradient at the hand's own
+    points always points out of the object, so fingertips poking into a face between object samples
+    get pulled out. hand_points [B,S,3] -> [B].
+    """
+    return torch.relu(margin_m - scene.distance(hand_points)[0]).sum(-1)
 
 
 def self_penetration(hand: HandModel, state: HandState) -> torch.Tensor:
@@ -112,15 +126,14 @@ def finger_palm(points: torch.Tensor, base_position: torch.Tensor) -> torch.Tens
     return -torch.linalg.vector_norm(points - base_position.unsqueeze(1), dim=-1).sum(-1)
 
 
-def table_penetration(geometry: "HandGeometry", state: HandState, clearance_m: float = 0.0) -> torch.Tensor:
+def table_penetration(hand_points: torch.Tensor, clearance_m: float = 0.0) -> torch.Tensor:
     """E_tpen = sum_s max(0, h - z_s): hand surface samples h_s below the table (z = 0) plus a clearance h.
 
-    get_a_grip's table term: the samples are area-uniform on the hand's collision primitives
-    (`HandGeometry.table_samples` of them), so the cost grows with how much of the hand is under the
-    table, not only how deep its lowest point is - strong enough to beat E_dis pulling contacts
-    down a low object. [B].
+    get_a_grip's table term: the samples are area-uniform on the hand's collision primitives, so the
+    cost grows with how much of the hand is under the table, not only with how deep its lowest point
+    is - strong enough to beat E_dis pulling contacts down a low object. hand_points [B,S,3] -> [B].
     """
-    return torch.relu(clearance_m - geometry.sample_heights(state)).sum(-1)
+    return torch.relu(clearance_m - hand_points[..., 2]).sum(-1)
 
 
 def palm_direction(palm_normal: torch.Tensor) -> torch.Tensor:
@@ -151,15 +164,17 @@ def evaluate_energy(hand: HandModel, geometry: "HandGeometry", scene: ObjectFiel
     points, _ = hand.contact_points(state, contact_indices)
     distance, normals = scene.distance(points)
     palm = hand.palm_normal(state)
+    hand_points = geometry.surface_points(state, geometry.penalty_samples)
     terms = {
         "fc": force_closure(points, normals, scene.centroid),
         "dis": contact_distance(distance, config.contact_offset_m),
-        "pen": object_penetration(geometry, state, scene, config.penetration_margin_m),
+        "pen": (object_penetration(geometry, state, scene, config.penetration_margin_m)
+                + hand_in_object(hand_points, scene, config.penetration_margin_m)),
         "spen": self_penetration(hand, state),
         "joints": joint_limits(pose[:, 9:], hand.joint_lower, hand.joint_upper),
         "ff": contact_spread(points, config.ff_min_distance_m),
         "fp": finger_palm(points, pose[:, :3]),
-        "tpen": table_penetration(geometry, state, config.table_clearance_m),
+        "tpen": table_penetration(hand_points, config.table_clearance_m),
         "dir": palm_direction(palm),
         "arm": arm_feasibility(palm),
     }
@@ -194,11 +209,11 @@ class HandGeometry:
 
     Built once per hand from the public primitive list: bounding spheres and per-primitive
     parameters (for the sparse penetration pass) and area-uniform surface samples in shuffled
-    order, so any prefix is area-uniform too (the first `table_samples` for the table term, all of
-    them for the reported penetration depth).
+    order, so any prefix is area-uniform too (the first `penalty_samples` for E_tpen and the
+    hand-side half of E_pen, all of them for the reported penetration depth).
     """
 
-    def __init__(self, hand: HandModel, surface_samples_total: int = 2048, table_samples: int = 512):
+    def __init__(self, hand: HandModel, surface_samples_total: int = 2048, penalty_samples: int = 512):
         prims = hand.primitives.prims
         self.link_index = torch.tensor([p.link_index for p in prims], dtype=torch.long)
         self.kind = torch.tensor([_KINDS.index(p.kind) for p in prims], dtype=torch.long)
@@ -211,7 +226,7 @@ class HandGeometry:
         self.cylinder_half_length = torch.tensor([p.length / 2 if p.kind == "cylinder" else 0.0 for p in prims])
         self._sample_link, self._sample_points = _hand_surface_samples(prims, surface_samples_total)
         self._sample_points_h = torch.cat((self._sample_points, torch.ones(len(self._sample_points), 1)), dim=1)
-        self.table_samples = min(table_samples, len(self._sample_points))
+        self.penalty_samples = min(penalty_samples, len(self._sample_points))
 
     def primitive_frames(self, state: HandState) -> torch.Tensor:
         """Every primitive's frame in the pose's frame [B,P,4,4]."""
@@ -277,15 +292,11 @@ class HandGeometry:
         q = torch.stack((radial, axial), dim=-1)
         return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
 
-    def sample_heights(self, state: HandState) -> torch.Tensor:
-        """z of the first `table_samples` hand surface samples [B,S] (only the z row of each link frame is needed)."""
-        z_rows = state.links[:, self._sample_link[: self.table_samples], 2, :]  # [B,S,4]
-        return (z_rows * self._sample_points_h[: self.table_samples]).sum(-1)
-
-    def surface_points(self, state: HandState) -> torch.Tensor:
-        """Area-uniform samples on the hand's collision surface [B,S,3] in the pose's frame."""
-        frames = state.links[:, self._sample_link]  # [B,S,4,4]
-        return (frames[..., :3, :3] @ self._sample_points.unsqueeze(-1)).squeeze(-1) + frames[..., :3, 3]
+    def surface_points(self, state: HandState, count: int | None = None) -> torch.Tensor:
+        """The first `count` (default all) area-uniform samples on the hand's surface [B,S,3], pose's frame."""
+        count = len(self._sample_link) if count is None else count
+        rows = state.links[:, self._sample_link[:count], :3, :]  # [B,S,3,4]
+        return (rows * self._sample_points_h[:count, None, :]).sum(-1)
 
 
 def _bounding_radius(prim) -> float:

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
@@ -145,11 +146,11 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     directory = Path(directory)
     tables = [_read_shard(path) for path in shard_paths(directory)]
     table = pa.concat_tables(tables, promote_options="default") if len(tables) > 1 else tables[0]
-    hands = table.column("hand").to_pylist()
-    rows = np.array([h == hand for h in hands], dtype=bool)
-    if not rows.any():
-        raise DatasetError(f"{directory}: no poses for hand {hand!r} (hands present: {sorted(set(hands))})")
-    table = table.filter(pa.array(rows))
+    rows = pc.fill_null(pc.equal(table.column("hand"), hand), False)
+    if not pc.any(rows).as_py():
+        present = sorted(h for h in pc.unique(table.column("hand")).to_pylist() if h is not None)
+        raise DatasetError(f"{directory}: no poses for hand {hand!r} (hands present: {present})")
+    table = table.filter(rows)
     object_ids = table.column("object_id").to_pylist()
     _refuse_test_objects(object_ids, directory)
     poses = _pose_matrix(table, directory)

@@ -101,10 +101,15 @@ def frame_transform(frame: DirectionFrame) -> np.ndarray:
     return direction_frame(np.asarray(frame.object_pose.position), direction)
 
 
-def object_yaw_in_d(frame: DirectionFrame) -> float:
-    """The object's yaw about D's z axis (radians) for an upright placement — what the validator needs."""
-    T_D_O = invert_transform(frame_transform(frame)) @ _object_transform(frame)
-    return math.atan2(T_D_O[1, 0], T_D_O[0, 0])
+def object_yaw_in_d(frame: DirectionFrame, rest_rotation: np.ndarray) -> float:
+    """The yaw (radians, about D's z) that turns the resting pose `rest_rotation` into the frame's object.
+
+    `ObjectModel.T_D_O(pose, yaw)` is Rz(yaw) @ rest_rotation, so Rz(yaw) = R_D_O @ rest_rotation^T;
+    this is what the validator's `table_object(obj, pose_index, yaw)` needs to place the object the same way.
+    """
+    R_D_O = (invert_transform(frame_transform(frame)) @ _object_transform(frame))[:3, :3]
+    turn = R_D_O @ np.asarray(rest_rotation, dtype=np.float64).T
+    return math.atan2(turn[1, 0], turn[0, 0])
 
 
 def _object_transform(frame: DirectionFrame) -> np.ndarray:
@@ -120,7 +125,7 @@ class _ObjectPoints:
         self._lock = threading.Lock()
 
     def get(self, obj: str | Path | ObjectModel) -> tuple[ObjectModel, np.ndarray]:
-        key = obj.key if isinstance(obj, ObjectModel) else str(obj)
+        key = obj.key if isinstance(obj, ObjectModel) else _source_key(obj)
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
@@ -132,6 +137,15 @@ class _ObjectPoints:
             while len(self._cache) > _OBJECT_CACHE_SIZE:
                 self._cache.popitem(last=False)
         return model, points
+
+
+def _source_key(id_or_path: str | Path) -> str:
+    """Cache key of an id or mesh file; a file's key changes when the file does."""
+    path = Path(id_or_path)
+    if path.is_file():
+        stat = path.stat()
+        return f"{path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
+    return str(id_or_path)
 
 
 def _load(id_or_path: str | Path) -> ObjectModel:

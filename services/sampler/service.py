@@ -42,17 +42,20 @@ class SamplerService:
             sampler.close()
 
     def sampler(self, hand: str) -> PoseSampler:
-        """The loaded sampler for `hand` (ServiceError 'unavailable' when there is no usable checkpoint)."""
+        """The loaded sampler for `hand`; ServiceError 'not_implemented' when this worker has no usable checkpoint.
+
+        Not 'unavailable': the dispatcher reads that as "worker shutting down" and re-dispatches forever.
+        """
         with self._lock:
             if hand not in self._samplers:
                 path = self._paths.get(hand) or default_checkpoint_path(hand)
                 try:
                     sampler = PoseSampler(path, device=self._device)
                 except CheckpointError as exc:
-                    raise ServiceError("unavailable", f"sampler: no usable {hand} checkpoint: {exc} "
+                    raise ServiceError("not_implemented", f"sampler: no usable {hand} checkpoint: {exc} "
                                        f"(train one with `gd2p train --hand {hand} --out {path}`)") from exc
                 if sampler.hand != hand:
-                    raise ServiceError("unavailable", f"sampler: {path} is a {sampler.hand} checkpoint, not {hand}")
+                    raise ServiceError("not_implemented", f"sampler: {path} is a {sampler.hand} checkpoint, not {hand}")
                 self._samplers[hand] = sampler
             return self._samplers[hand]
 

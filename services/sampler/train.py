@@ -174,9 +174,7 @@ def train(dataset_dir: str | Path, hand: str, out: str | Path, config: TrainConf
     dataset = load_pose_dataset(dataset_dir, hand)
     train_set, val_set = _split(dataset, config)
     resumed = _load_resume_state(paths["state"], config, dataset, train_set, val_set) if options.resume else None
-    run = _Run(config, options, dataset, train_set, val_set, device, resumed)
-    result = run.fit(paths, out, Path(dataset_dir))
-    return result
+    return _Run(config, options, dataset, train_set, val_set, device, resumed).fit(paths, out, Path(dataset_dir))
 
 
 def _split(dataset: PoseDataset, config: TrainConfig) -> tuple[PoseDataset, PoseDataset]:
@@ -210,13 +208,15 @@ class _Run:
         self.dataset, self.train_set, self.val_set = dataset, train_set, val_set
         self.total_steps = config.total_steps(len(train_set))
         self.bps = BasisPointSet()
-        bps_table = torch.from_numpy(frame_bps(dataset.frames, self.bps, progress=options.progress))
+        train_bps = torch.from_numpy(frame_bps(train_set.frames, self.bps, progress=options.progress))
+        val_bps = torch.from_numpy(frame_bps(val_set.frames, self.bps, progress=options.progress))
         self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.poses))
-        self.train_data = self._device_data(train_set, bps_table)
-        self.val_data = self._device_data(val_set, bps_table) if len(val_set) else None
-        self.model = PoseDenoiser(config.model).to(device)
-        train_frames = _frames_of(dataset, train_set)
-        self.model.set_bps_statistics(bps_table[train_frames].mean(0), bps_table[train_frames].std(0, unbiased=False))
+        self.train_data = self._device_data(train_set, train_bps)
+        self.val_data = self._device_data(val_set, val_bps) if len(val_set) else None
+        with torch.random.fork_rng(devices=[]):  # seeded initial weights, global RNG untouched
+            torch.manual_seed(config.seed)
+            self.model = PoseDenoiser(config.model).to(device)
+        self.model.set_bps_statistics(train_bps.mean(0), train_bps.std(0, unbiased=False))
         self.scheduler = make_noise_scheduler()
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, betas=(config.beta1, config.beta2),
                                           eps=config.adam_eps, weight_decay=config.weight_decay, amsgrad=False, fused=True)
@@ -231,10 +231,9 @@ class _Run:
             self._restore(resumed)
         self.start_step = self.step
 
-    def _device_data(self, subset: PoseDataset, bps_table: torch.Tensor) -> _Data:
-        rows = _frames_of(self.dataset, subset)
+    def _device_data(self, subset: PoseDataset, frame_features: torch.Tensor) -> _Data:
         poses = self.normalizer.normalize(torch.from_numpy(subset.poses))
-        return _Data(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device), bps_table[rows].to(self.device))
+        return _Data(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device), frame_features.to(self.device))
 
     # ------------------------------------------------------------------ loop
     def fit(self, paths: dict[str, Path], out: Path, dataset_dir: Path) -> TrainResult:
@@ -344,16 +343,14 @@ class _Run:
         log.info("resuming at step %d of %d", self.step, self.total_steps)
 
     def _shipped(self, dataset_dir: Path, samples_per_s: float) -> SamplerCheckpoint:
-        from shared.hands import load_hand  # heavy (URDF + kinematics): only when a run finishes
-
-        hand = load_hand(self.dataset.hand)
+        joint_lower, joint_upper = hand_joint_limits(self.dataset.hand)
         ema_model = PoseDenoiser(self.config.model)
         ema_model.load_state_dict(self.model.state_dict())
         self.ema.copy_to(ema_model.parameters())
         return SamplerCheckpoint(
             hand=self.dataset.hand, model_config=self.config.model,
             state_dict={k: v.detach().cpu() for k, v in ema_model.state_dict().items()},
-            normalizer=self.normalizer, joint_lower=hand.joint_lower.clone(), joint_upper=hand.joint_upper.clone(),
+            normalizer=self.normalizer, joint_lower=joint_lower, joint_upper=joint_upper,
             bps=self.bps, surface_points=SURFACE_POINTS, surface_seed=SURFACE_SEED,
             manifest=self._manifest(dataset_dir, samples_per_s))
 
@@ -383,10 +380,18 @@ class _Run:
                 f"val {len(self.val_set.objects())} held-out objects")
 
 
-def _frames_of(dataset: PoseDataset, subset: PoseDataset) -> torch.Tensor:
-    """Rows of `dataset.frames` that are `subset.frames`, in the subset's order."""
-    position = {frame: i for i, frame in enumerate(dataset.frames)}
-    return torch.tensor([position[f] for f in subset.frames], dtype=torch.long)
+def hand_joint_limits(hand: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """[16] lower and upper joint limits of `hand` from its URDF, in the pose vector's joint order."""
+    from shared.hands import HAND_SPECS
+    from shared.hands.urdf import read_urdf
+
+    if hand not in HAND_SPECS:
+        raise TrainingError(f"unknown hand {hand!r}; known hands: {sorted(HAND_SPECS)}")
+    spec = HAND_SPECS[hand]
+    robot = read_urdf(spec.urdf_path())
+    joints = [robot.joint(name) for name in spec.joint_names]
+    return (torch.tensor([j.lower for j in joints], dtype=torch.float32),
+            torch.tensor([j.upper for j in joints], dtype=torch.float32))
 
 
 def _last(points: list[list[float]]) -> float | None:

@@ -22,7 +22,7 @@ class PhysicsParams:
     hand_joint_force_scale: float = 1.0
     hand_position_gain: float = 1.0
     base_constraint_force_n: float = 500.0
-    constraint_erp: float = 0.2
+    constraint_erp: float = 0.8
 
     def with_solver(self, solver_iterations: int, time_step_s: float) -> "PhysicsParams":
         return replace(self, solver_iterations=solver_iterations, time_step_s=time_step_s)

@@ -1,0 +1,246 @@
+"""`gd2p train` and `gd2p sample`: train the pose diffusion model, and sample push poses from it.
+
+    gd2p train --dataset data/allegro --hand allegro --out ckpt/allegro.pt [--fraction 0.2] [--seed 1] [--steps 20000]
+    gd2p sample --object proc-box-001 --hand allegro --n 200 [--sampler ddim] [--checkpoint PATH] [--validate] --json
+
+`train` resumes from `<out>.train.pt` when it exists (same command), `--restart` starts over.
+Ctrl-C saves the training state first, so the same command continues later.
+
+`sample` places the object resting in its default pose at the world origin and pushes it along
+`--direction-deg` (default 0 = world +x). Its JSON is `{"n", "latency_s", "poses": [{"pose": [25 in
+D], "pose_world": [25]}, ...], ...}` — the same "poses" layout `gd2p validate --poses` reads.
+`--validate` pushes every pose in the validator's PyBullet simulation (runs locally; needs
+services.validator) and adds `"validated_success"` (how many succeeded) and per-pose `"success"`.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import shlex
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+
+class SamplerCliError(ValueError):
+    """A bad command-line input for train / sample."""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    _register_train(subparsers)
+    _register_sample(subparsers)
+
+
+# ----------------------------------------------------------------------------- train
+def _register_train(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("train", help="train the pose diffusion model on a dataset store (resumable)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--dataset", required=True, type=Path, help="dataset store directory (Parquet shards + manifest)")
+    parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
+    parser.add_argument("--out", required=True, type=Path, help="checkpoint file to write (e.g. ckpt/allegro.pt)")
+    parser.add_argument("--fraction", type=float, default=1.0, help="train on this fraction of the training objects (default 1)")
+    parser.add_argument("--seed", type=int, default=0)
+    budget = parser.add_mutually_exclusive_group()
+    budget.add_argument("--steps", type=int, default=None, help="optimiser steps in all (default 20000)")
+    budget.add_argument("--epochs", type=float, default=None, help="passes over the training poses instead of --steps")
+    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--warmup-steps", type=int, default=500)
+    parser.add_argument("--val-fraction", type=float, default=0.1, help="objects held out for the validation loss")
+    parser.add_argument("--hidden-dim", type=int, default=256, help="width of the residual FiLM blocks")
+    parser.add_argument("--num-blocks", type=int, default=4)
+    parser.add_argument("--object-dim", type=int, default=128, help="the BPS is compressed to this before FiLM")
+    parser.add_argument("--val-every", type=int, default=500, help="steps between validation losses")
+    parser.add_argument("--checkpoint-every", type=int, default=1000, help="steps between saved training states")
+    parser.add_argument("--half", action="store_true", help="ship fp16 weights (half the file size)")
+    parser.add_argument("--device", default="auto", help="auto (GPU if present), cpu, cuda, cuda:N")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: extra threads stall on a shared machine, DESIGN.md §6)")
+    parser.add_argument("--restart", action="store_true", help="ignore a saved training state and start over")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    parser.set_defaults(func=run_train)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from services.sampler.checkpoint import CheckpointError
+    from services.sampler.dataset import DatasetError
+    from services.sampler.model import DenoiserConfig
+    from services.sampler.train import RunOptions, TrainConfig, TrainingError, train
+
+    torch.set_num_threads(max(1, args.threads))
+    interrupted = _StopFlag()
+    try:
+        config = TrainConfig(steps=args.steps, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                             warmup_steps=args.warmup_steps, val_fraction=args.val_fraction, fraction=args.fraction,
+                             seed=args.seed, model=DenoiserConfig(hidden_dim=args.hidden_dim, num_blocks=args.num_blocks,
+                                                                  object_dim=args.object_dim))
+        options = RunOptions(device=args.device, val_every=max(1, args.val_every), checkpoint_every=max(1, args.checkpoint_every),
+                             half=args.half, progress=not args.no_progress, resume=not args.restart,
+                             command=shlex.join(["gd2p", *sys.argv[1:]]), should_stop=interrupted)
+        with interrupted.on_sigint():
+            result = train(args.dataset, args.hand, args.out, config, options)
+    except (TrainingError, DatasetError, CheckpointError, ValueError) as exc:
+        print(f"gd2p train: error: {exc}", file=sys.stderr)
+        return 2
+    summary = {
+        "checkpoint": str(result.checkpoint_path) if result.checkpoint_path else None,
+        "state": str(result.state_path), "loss_plot": str(result.plot_path) if result.plot_path else None,
+        "start_step": result.start_step, "step": result.step, "total_steps": result.total_steps, "stopped": result.stopped,
+        "final_train_loss": result.final_train_loss, "final_val_loss": result.final_val_loss,
+        "samples_per_s": round(result.samples_per_s, 1), "parameters": result.parameters,
+    }
+    if args.json:
+        print(json.dumps(summary))
+    elif result.stopped:
+        print(f"stopped at step {result.step}/{result.total_steps}; state saved to {result.state_path}; run the same command to resume")
+    else:
+        print(f"wrote {result.checkpoint_path} (train loss {result.final_train_loss}, val loss {result.final_val_loss}), "
+              f"curves {result.plot_path}")
+    return 130 if result.stopped else 0
+
+
+class _StopFlag:
+    """Ctrl-C during training: finish the current step, save the state, then exit (resumable)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def __call__(self, step: int) -> bool:
+        return self.requested
+
+    @contextlib.contextmanager
+    def on_sigint(self) -> Iterator[None]:
+        def request(signum, frame) -> None:
+            if self.requested:  # a second Ctrl-C aborts at once
+                raise KeyboardInterrupt
+            self.requested = True
+            print("\nstopping after this step (Ctrl-C again to abort without saving)...", file=sys.stderr)
+
+        if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+            yield
+            return
+        previous = signal.signal(signal.SIGINT, request)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+
+# ----------------------------------------------------------------------------- sample
+def _register_sample(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("sample", help="sample push poses for an object from a trained checkpoint",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--object", required=True, help="library id (e.g. proc-box-001) or a mesh file in metres")
+    parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
+    parser.add_argument("--n", type=int, default=200, help="number of poses (1..1000, default 200)")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm", help="DDPM-100 (paper) or DDIM fast path")
+    parser.add_argument("--steps", type=int, default=None, help="DDIM steps (default 10)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="checkpoint file (default: $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped one)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--direction-deg", type=float, default=0.0, help="push direction in the world (default 0 = +x)")
+    parser.add_argument("--validate", action="store_true", help="push every pose in simulation and count successes")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--json", action="store_true", help="print the JSON result on stdout")
+    parser.set_defaults(func=run_sample)
+
+
+def run_sample(args: argparse.Namespace) -> int:
+    try:
+        report = _sample(args)
+    except SamplerCliError as exc:
+        print(f"gd2p sample: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(report))
+    else:
+        _print_summary(report)
+    return 0
+
+
+def _sample(args: argparse.Namespace) -> dict:
+    import torch
+
+    from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
+    from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
+    from shared.objects import ObjectLoadError, load_object
+
+    torch.set_num_threads(max(1, args.threads))
+    validator = _validator_modules() if args.validate else None  # fail before any work if it cannot run
+    path = args.checkpoint or default_checkpoint_path(args.hand)
+    if not path.is_file():
+        raise SamplerCliError(f"no {args.hand} checkpoint at {path}; train one with `gd2p train --dataset DIR --hand {args.hand} "
+                              f"--out {path}` or pass --checkpoint")
+    try:
+        obj = load_object(args.object)
+        sampler = PoseSampler(path)
+    except (ObjectLoadError, CheckpointError) as exc:
+        raise SamplerCliError(str(exc)) from exc
+    if sampler.hand != args.hand:
+        raise SamplerCliError(f"{path} is a {sampler.hand} checkpoint, not {args.hand}")
+    frame = default_frame(obj, args.direction_deg)
+    with sampler:
+        try:
+            result = sampler.sample(obj, frame, k=args.n, sampler=args.sampler, steps=args.steps, seed=args.seed)
+        except SamplerInputError as exc:
+            raise SamplerCliError(str(exc)) from exc
+    poses = [{"pose": d.tolist(), "pose_world": w.tolist()} for d, w in zip(result.poses_d, result.poses_world)]
+    report = {"n": len(poses), "latency_s": round(result.latency_s, 6), "poses": poses, "object": obj.id, "hand": args.hand,
+              "sampler": result.sampler, "steps": result.steps, "seed": args.seed, "direction_deg": args.direction_deg,
+              "checkpoint": str(path), "checkpoint_id": sampler.checkpoint_id}
+    if validator is not None:
+        successes = validate_sampled_poses(obj, args.hand, result.poses_d, frame, progress=True)
+        for entry, success in zip(poses, successes):
+            entry["success"] = success
+        report["validated_success"] = int(sum(successes))
+    return report
+
+
+def _validator_modules():
+    try:
+        from services.validator.push import table_object  # noqa: F401
+        from services.validator.validator import Validator  # noqa: F401
+    except ImportError as exc:
+        raise SamplerCliError(f"--validate needs the validator's push simulation (services.validator), which cannot be imported: {exc}") from exc
+    return True
+
+
+def validate_sampled_poses(obj, hand_name: str, poses_d: np.ndarray, frame, progress: bool = False) -> list[bool]:
+    """Push each pose (in D) in the validator's floating-hand simulation; success per pose.
+
+    The object rests in its default pose (as `default_frame` places it); its yaw in D follows from `frame`.
+    """
+    from tqdm import tqdm
+
+    from services.sampler.sampling import object_yaw_in_d
+    from services.validator.push import table_object
+    from services.validator.validator import Validator
+    from shared.hands import load_hand
+    from shared.sim import c_stdout_to_stderr
+
+    hand = load_hand(hand_name)
+    with c_stdout_to_stderr():  # PyBullet prints on file descriptor 1
+        placed = table_object(obj, None, yaw_rad=object_yaw_in_d(frame, obj.default_pose.rotation))
+        with Validator() as validator, tqdm(total=len(poses_d), desc="validating", unit="push", file=sys.stderr,
+                                            disable=not progress) as bar:
+            run = validator.validate(placed, hand, np.asarray(poses_d, dtype=np.float64), progress=bar.update)
+    return [bool(outcome.success) for outcome in run.outcomes]
+
+
+def _print_summary(report: dict) -> None:
+    print(f"{report['n']} {report['hand']} poses for {report['object']} in {report['latency_s'] * 1000:.1f} ms "
+          f"({report['sampler']}, {report['steps']} steps, checkpoint {report['checkpoint_id']})")
+    if "validated_success" in report:
+        print(f"{report['validated_success']}/{report['n']} validated in simulation")
+    for index, entry in enumerate(report["poses"][:5]):
+        print(f"  pose {index}: position {np.round(entry['pose'][:3], 3).tolist()}")
+    if report["n"] > 5:
+        print(f"  ... ({report['n'] - 5} more; use --json for all)")

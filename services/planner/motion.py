@@ -1,0 +1,361 @@
+"""Arm-hand motion for one push: IK, OMPL RRTConnect approach, Cartesian push, retreat, timing.
+
+The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from pieces:
+
+1. shape the hand: at the start configuration the fingers move to the pose's joint angles;
+2. approach: OMPL RRTConnect in arm joint space from the start (home) to the configuration that
+   puts the hand `standoff_m` behind (against the push direction) and `approach_lift_m` above the
+   pre-contact pose, with the PyBullet scene (`shared.sim.robot_scene`) as the state validity
+   checker, then OMPL's path simplification; then two straight Cartesian lines: down, and in along
+   the push direction to the pre-contact pose. Free-space motion keeps `clearance_m` from
+   everything; the last few centimetres near the table and the object cannot, so they are straight
+   lines (where the hand goes is known), checked with a small contact tolerance instead;
+3. push: the hand base moves in a straight line along +x of the direction frame D for the push
+   distance, IK solved along the line from the previous solution, joint continuity checked;
+4. retreat: straight back against the push direction (away from the pushed object), up by
+   `approach_lift_m`, then RRTConnect back to the start configuration around the object where the push should leave it.
+
+Joint-space motions are timed rest-to-rest per simplified-path edge with a quintic profile whose
+peak joint speed is `velocity_scale` × the URDF limit; Cartesian segments move the hand at
+`push_speed_mps` (slowed wherever a joint would exceed its scaled limit). Every infeasible request
+raises `PlanningError` with a short `reason` ("no IK solution", "no collision-free path", ...).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from ompl import base as ob
+from ompl import geometric as og
+from ompl import util as ou
+
+from shared.ik import ArmIK
+from shared.messages import Plan, PlanSegment
+from shared.sim.robot_scene import RobotScene
+
+ou.setLogLevel(ou.LogLevel.LOG_ERROR)
+ou.RNG.setSeed(1)  # once per process, before any planner samples: OMPL ignores later seeds
+
+
+class PlanningError(RuntimeError):
+    """No plan exists (or none was found) for a request; `reason` is a short, stable phrase."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    standoff_m: float = 0.05  # the hand comes down this far behind the pre-contact pose ...
+    approach_lift_m: float = 0.05  # ... from this high above it, then moves straight in along the push
+    retreat_m: float = 0.05  # back off against the push direction, lift, then RRTConnect back to the start
+    cartesian_step_m: float = 0.01  # IK waypoint spacing along straight-line segments
+    push_speed_mps: float = 0.10  # the validator's push speed (DESIGN.md §6)
+    velocity_scale: float = 0.5  # joint-space motion at this fraction of the velocity limits
+    hand_shaping_s: float = 1.0  # time to move the fingers to the pose's joint angles
+    max_joint_step_rad: float = 0.1  # larger jumps between Cartesian waypoints = an IK branch switch
+    clearance_m: float = 0.005  # free-space motion keeps this distance from table, object, obstacles
+    contact_tolerance_m: float = 0.003  # Cartesian segments: the hand may graze the table by this much
+    planning_time_s: float = 5.0  # RRTConnect time limit
+    check_resolution_rad: float = 0.01  # joint-space collision-check step (max joint change)
+    sample_dt_s: float = 0.02  # waypoint spacing of timed joint-space motions
+
+
+@dataclass
+class PlanStats:
+    """What planning cost, for the planner's timings and benchmarks."""
+
+    ik_s: float = 0.0
+    rrt_s: float = 0.0
+    cartesian_s: float = 0.0
+    rrt_states: int = 0
+    extra: dict = field(default_factory=dict)
+
+
+class MotionPlanner:
+    """Plans pushes for one arm + hand in one scene (table, object, obstacles already added)."""
+
+    def __init__(self, scene: RobotScene, ik: ArmIK | None = None, settings: MotionSettings | None = None):
+        self.scene = scene
+        self.arm = scene.arm
+        self.ik = ik or ArmIK(scene.arm, scene.hand, T_world_base=scene.T_world_base)
+        self.settings = settings or MotionSettings()
+        self.lower = self.arm.joint_lower.double().numpy()
+        self.upper = self.arm.joint_upper.double().numpy()
+        self.velocity_limits = self.arm.velocity_limits.double().numpy()
+        self.stats = PlanStats()
+
+    # ------------------------------------------------------------------------------------- push
+
+    def plan_push(
+        self,
+        T_world_hand: np.ndarray,
+        q_hand: np.ndarray,
+        push_direction: np.ndarray,
+        distance_m: float,
+        q_start: np.ndarray | None = None,
+        q_hand_start: np.ndarray | None = None,
+        q_pre_contact: np.ndarray | None = None,
+    ) -> Plan:
+        """A timed approach / push / retreat plan for the hand base pre-contact pose `T_world_hand`.
+
+        `push_direction` is a horizontal world vector (+x of D); `q_start` the arm's current joints
+        (default: home), `q_hand_start` the hand's (default: `q_hand`); `q_pre_contact` an IK solution
+        already found for `T_world_hand` (the planner's batched IK), else one is solved here.
+        """
+        self.stats = PlanStats()
+        s = self.settings
+        q_hand = np.asarray(q_hand, dtype=np.float64)
+        q_start = self.arm.home.double().numpy() if q_start is None else np.asarray(q_start, dtype=np.float64)
+        q_hand_start = q_hand if q_hand_start is None else np.asarray(q_hand_start, dtype=np.float64)
+        direction = _horizontal_unit(push_direction)
+        if distance_m <= 0:
+            raise PlanningError("bad request", f"push distance must be positive, got {distance_m}")
+        q_pre = self._pre_contact_configuration(T_world_hand, q_pre_contact)
+        # Final approach in reverse: from the pre-contact pose back against the push, then up.
+        forward = self._cartesian(q_pre, T_world_hand, -s.standoff_m * direction, q_hand, "approach")[::-1]
+        T_standoff = _translated(T_world_hand, -s.standoff_m * direction)
+        down = self._cartesian(forward[0], T_standoff, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "approach")[::-1]
+        approach_line = np.concatenate([down, forward[1:]])
+        q_above = approach_line[0]
+        self._require_free(q_above, q_hand, "approach configuration in collision",
+                           f"the hand {s.standoff_m:.2f} m behind and {s.approach_lift_m:.2f} m above the pre-contact pose")
+        self._require_free(q_start, q_hand_start, "start configuration in collision", "the arm's start configuration")
+        if not self.scene.is_collision_free(q_start, q_hand, clearance_m=s.clearance_m):
+            raise PlanningError("start configuration in collision",
+                                "the fingers, shaped for the pose at the start configuration, collide")
+        free_path = self.plan_joint_path(q_start, q_above, q_hand)
+        push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push")
+        T_push_end = _translated(T_world_hand, distance_m * direction)
+        back = self._cartesian(push_line[-1], T_push_end, -s.retreat_m * direction, q_hand, "retreat")
+        T_back = _translated(T_push_end, -s.retreat_m * direction)
+        up = self._cartesian(back[-1], T_back, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "retreat")
+        back = np.concatenate([back, up[1:]])
+        # Return to the start around the object where the push should have left it.
+        with self._object_moved(distance_m * direction):
+            try:
+                home_path = self.plan_joint_path(back[-1], q_start, q_hand)
+            except PlanningError as exc:
+                raise PlanningError(exc.reason, f"retreat: {exc.detail}") from None
+        return self._assemble(q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back, home_path)
+
+    @contextlib.contextmanager
+    def _object_moved(self, offset: np.ndarray):
+        """Temporarily shift the scene's object by `offset` (world), e.g. to where a push leaves it."""
+        body = self.scene.object
+        if body is None:
+            yield
+            return
+        original = body.pose()
+        moved = original.copy()
+        moved[:3, 3] += offset
+        body.reset_pose(moved)
+        try:
+            yield
+        finally:
+            body.reset_pose(original)
+
+    def _pre_contact_configuration(self, T_world_hand: np.ndarray, q_pre_contact: np.ndarray | None) -> np.ndarray:
+        if q_pre_contact is not None:
+            return np.asarray(q_pre_contact, dtype=np.float64)
+        started = time.perf_counter()
+        result = self.ik.solve_hand_poses(T_world_hand[None])
+        self.stats.ik_s += time.perf_counter() - started
+        if not result.success[0]:
+            raise PlanningError("no IK solution", f"the arm cannot reach the pre-contact hand pose (best attempt "
+                                f"{result.position_error_m[0] * 1000:.0f} mm, "
+                                f"{math.degrees(result.rotation_error_rad[0]):.0f} deg off)")
+        return result.q[0]
+
+    def _require_free(self, q: np.ndarray, q_hand: np.ndarray, reason: str, what: str) -> None:
+        hits = self.scene.collisions(q, q_hand, clearance_m=self.settings.clearance_m)
+        if hits:
+            raise PlanningError(reason, f"{what}: " + ", ".join(str(h) for h in hits[:3]))
+
+    # ------------------------------------------------------------------------------ joint space
+
+    def plan_joint_path(self, q_start: np.ndarray, q_goal: np.ndarray, q_hand: np.ndarray | None) -> np.ndarray:
+        """A collision-free, simplified joint path [n, dof] from `q_start` to `q_goal` (RRTConnect).
+
+        The path's straight edges are collision-checked at `check_resolution_rad`; interpolate them
+        no coarser than that before executing (`time_parameterise` does).
+        """
+        s = self.settings
+        dof = self.arm.dof
+        space = ob.RealVectorStateSpace(dof)
+        bounds = ob.RealVectorBounds(dof)
+        for i in range(dof):
+            bounds.setLow(i, float(self.lower[i]))
+            bounds.setHigh(i, float(self.upper[i]))
+        space.setBounds(bounds)
+        # OMPL checks an edge every `fraction × maximum extent` in joint-space Euclidean distance.
+        space.setLongestValidSegmentFraction(s.check_resolution_rad / space.getMaximumExtent())
+        setup = og.SimpleSetup(space)
+        scene, clearance = self.scene, s.clearance_m
+        if q_hand is not None:
+            scene.set_configuration(q_start, q_hand)
+
+        def valid(state) -> bool:
+            return scene.is_collision_free([state[i] for i in range(dof)], clearance_m=clearance)
+
+        setup.setStateValidityChecker(valid)
+        start, goal = space.allocState(), space.allocState()
+        for i in range(dof):
+            start[i], goal[i] = float(q_start[i]), float(q_goal[i])
+        setup.setStartAndGoalStates(start, goal)
+        setup.setPlanner(og.RRTConnect(setup.getSpaceInformation()))
+        for name, q in (("start", q_start), ("goal", q_goal)):
+            hits = scene.collisions(q, clearance_m=clearance)
+            if hits:
+                raise PlanningError(f"{name} configuration in collision", ", ".join(str(h) for h in hits[:3]))
+        started = time.perf_counter()
+        solved = setup.solve(s.planning_time_s)
+        self.stats.extra["rrt_solve_s"] = time.perf_counter() - started
+        if not (solved and setup.haveExactSolutionPath()):
+            self.stats.rrt_s += time.perf_counter() - started
+            raise PlanningError("no collision-free path",
+                                f"RRTConnect found no collision-free arm path to the approach configuration "
+                                f"within {s.planning_time_s:.1f} s")
+        path = setup.getSolutionPath()
+        self.stats.extra["rrt_raw_states"] = path.getStateCount()
+        simplify_started = time.perf_counter()
+        # Shortcutting only: SimpleSetup.simplifySolution also B-spline-smooths, which costs seconds of
+        # collision checks here and is unnecessary (edges are timed rest-to-rest anyway).
+        simplifier = og.PathSimplifier(setup.getSpaceInformation())
+        simplifier.reduceVertices(path)
+        simplifier.partialShortcutPath(path)
+        simplifier.reduceVertices(path)
+        self.stats.extra["simplify_s"] = time.perf_counter() - simplify_started
+        waypoints = np.array([[st[i] for i in range(dof)] for st in path.getStates()])
+        self.stats.rrt_s += time.perf_counter() - started
+        self.stats.rrt_states = len(waypoints)
+        return waypoints
+
+    # --------------------------------------------------------------------------------- Cartesian
+
+    def _cartesian(self, q_start: np.ndarray, T_start: np.ndarray, displacement: np.ndarray, q_hand: np.ndarray,
+                   label: str) -> np.ndarray:
+        """Joint waypoints [n, dof] moving the hand base in a straight line by `displacement` (world).
+
+        The first row is `q_start`. Hand-object contact is allowed (that is the push); table contact
+        up to `contact_tolerance_m`; obstacles, arm-object and arm-hand contacts are not.
+        """
+        s = self.settings
+        started = time.perf_counter()
+        steps = max(1, math.ceil(np.linalg.norm(displacement) / s.cartesian_step_m))
+        fractions = np.arange(1, steps + 1) / steps
+        targets = np.repeat(np.asarray(T_start, dtype=np.float64)[None], steps, axis=0)
+        targets[:, :3, 3] += fractions[:, None] * displacement
+        result = self.ik.track(targets, q_start)
+        self.stats.cartesian_s += time.perf_counter() - started
+        if not result.success.all():
+            bad = int(np.argmin(result.success))
+            raise PlanningError("no IK solution", f"{label} segment: the arm cannot follow the straight line past "
+                                f"{fractions[bad] * np.linalg.norm(displacement) * 100:.1f} cm "
+                                f"({result.position_error_m[bad] * 1000:.1f} mm, "
+                                f"{math.degrees(result.rotation_error_rad[bad]):.1f} deg off"
+                                f"{self._limit_note(result.q[bad])})")
+        q = np.concatenate([np.asarray(q_start, dtype=np.float64)[None], result.q])
+        jumps = np.abs(np.diff(q, axis=0)).max(axis=1)
+        if jumps.max() > s.max_joint_step_rad:
+            bad = int(jumps.argmax())
+            raise PlanningError("discontinuous joint motion", f"{label} segment: a joint jumps "
+                                f"{jumps[bad]:.2f} rad between Cartesian waypoints {bad} and {bad + 1}")
+        for row in q:
+            hits = self.scene.collisions(row, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
+            if hits:
+                raise PlanningError(f"{label} segment in collision", ", ".join(str(h) for h in hits[:3]))
+        return q
+
+    def _limit_note(self, q: np.ndarray) -> str:
+        """', joint N at its limit' for joints within 0.01 rad of a limit (the usual cause of IK failure)."""
+        near = np.flatnonzero((q - self.lower < 0.01) | (self.upper - q < 0.01))
+        return "".join(f", {self.arm.joint_names[j]} at its limit" for j in near)
+
+    # ----------------------------------------------------------------------------------- timing
+
+    def _assemble(self, q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back, home_path) -> Plan:
+        s = self.settings
+        limits = self.velocity_limits * s.velocity_scale
+        hand_steps = max(2, math.ceil(s.hand_shaping_s / s.sample_dt_s) + 1)
+        shaping_times = np.linspace(0.0, s.hand_shaping_s, hand_steps)
+        arm_pieces = [  # (arm joints, relative times), each piece starting where the previous one ended
+            (np.repeat(q_start[None], hand_steps, axis=0), shaping_times),
+            time_parameterise(free_path, limits, s.sample_dt_s),
+            self._cartesian_timing(approach_line),
+            self._cartesian_timing(push_line),
+            self._cartesian_timing(back),
+            time_parameterise(home_path, limits, s.sample_dt_s),
+        ]
+        arm_q, times, counts, offset = [], [], [], 0.0
+        for i, (q, t) in enumerate(arm_pieces):
+            skip = 0 if i == 0 else 1  # the first waypoint of a piece is the last of the previous one
+            arm_q.append(q[skip:])
+            times.append(offset + t[skip:])
+            counts.append(len(q) - skip)
+            offset = times[-1][-1]
+        arm_q = np.concatenate(arm_q)
+        hand_q = np.repeat(q_hand[None], len(arm_q), axis=0)
+        hand_q[:hand_steps] = np.linspace(q_hand_start, q_hand, hand_steps)
+        n_approach, n_push = sum(counts[:3]), counts[3]
+        return Plan(
+            arm=self.arm.name, hand=self.scene.hand.name, joint_names=list(self.scene.joint_names),
+            positions=np.concatenate([arm_q, hand_q], axis=1), times_s=np.concatenate(times),
+            segments=[PlanSegment(label="approach", start=0, stop=n_approach),
+                      PlanSegment(label="push", start=n_approach, stop=n_approach + n_push),
+                      PlanSegment(label="retreat", start=n_approach + n_push, stop=len(arm_q))])
+
+    def _cartesian_timing(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Times for Cartesian waypoints: hand speed `push_speed_mps`, slowed where a joint would be too fast."""
+        s = self.settings
+        nominal = s.cartesian_step_m / s.push_speed_mps
+        joint_bound = (np.abs(np.diff(q, axis=0)) / (self.velocity_limits * s.velocity_scale)).max(axis=1)
+        return q, np.concatenate([[0.0], np.cumsum(np.maximum(nominal, joint_bound))])
+
+
+# --------------------------------------------------------------------------------------- helpers
+
+
+def time_parameterise(path: np.ndarray, velocity_limits: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rest-to-rest quintic timing of each edge of a joint path; samples every `dt` (and every vertex).
+
+    A quintic blend s(τ) = 10τ³ − 15τ⁴ + 6τ⁵ peaks at 1.875 × the mean speed, so an edge of joint
+    change Δ takes T = 1.875 max_j |Δ_j| / v_j: no joint exceeds its limit v_j, and velocity and
+    acceleration are zero at every vertex (the robot never has to turn a corner at speed).
+    Returns (positions [n, dof], times [n]) starting at t = 0.
+    """
+    path = np.asarray(path, dtype=np.float64)
+    positions, times, offset = [path[0]], [0.0], 0.0
+    for a, b in zip(path[:-1], path[1:]):
+        duration = 1.875 * float((np.abs(b - a) / velocity_limits).max())
+        if duration <= 0.0:
+            continue
+        steps = max(1, math.ceil(duration / dt))
+        tau = np.arange(1, steps + 1) / steps
+        blend = 10 * tau**3 - 15 * tau**4 + 6 * tau**5
+        positions.extend(a + blend[:, None] * (b - a))
+        times.extend(offset + tau * duration)
+        offset += duration
+    return np.array(positions), np.array(times)
+
+
+def _horizontal_unit(direction: np.ndarray) -> np.ndarray:
+    direction = np.asarray(direction, dtype=np.float64).reshape(-1)
+    if direction.size == 2:
+        direction = np.append(direction, 0.0)
+    horizontal = np.array([direction[0], direction[1], 0.0])
+    norm = np.linalg.norm(horizontal)
+    if direction.size != 3 or norm < 1e-9:
+        raise PlanningError("bad request", f"push direction must be a horizontal 2- or 3-vector, got {direction}")
+    return horizontal / norm
+
+
+def _translated(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    out = np.array(T, dtype=np.float64, copy=True)
+    out[:3, 3] += offset
+    return out

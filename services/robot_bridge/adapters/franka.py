@@ -1,0 +1,164 @@
+"""Franka Research 3 over franky-control (libfranka protocol; franky-sim serves it on loopback).
+
+Connect: franky.Robot(host) -> recover if the robot reports errors -> collision thresholds (the
+external-torque reflex that halts the arm, per joint, from the effort cap) -> dynamics factor.
+Motion: one JointWaypointMotion through every waypoint; each waypoint carries the plan's
+finite-difference velocity (so the arm passes through instead of stopping) and the plan's segment
+duration as its minimum time (Ruckig never runs ahead of the plan's timing; it may lag it when the
+dynamics factor is small). It runs asynchronously so stop(), an e-stop or a lost lease interrupt it.
+State: current joint positions/velocities and measured joint torques (tau_J, Nm).
+Stop: robot.stop() (libfranka halts the motion generator). Recover: robot.recover_from_errors().
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from services.robot_bridge.backend import (
+    Backend,
+    DeviceRefused,
+    DeviceUnavailable,
+    ExecutionReport,
+    JointState,
+    JointTrajectory,
+    MotionStopped,
+)
+
+# Plans name the arm's joints like the Panda model in shared/arms.py (same kinematic structure as the FR3).
+FR3_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
+
+
+def _franky():
+    try:
+        import franky
+    except ImportError:
+        raise DeviceUnavailable("Franka: franky-control is not installed (pip install 'gd2p-zenoh[franka]')") from None
+    return franky
+
+
+class FrankaBackend(Backend):
+    """The FR3 at `host` (its FCI address, or 127.0.0.1 for franky-sim)."""
+
+    name = "fr3"
+    reports_effort = True
+
+    def __init__(self, host: str, joint_names: Sequence[str] = FR3_JOINTS, relative_dynamics_factor: float = 0.2,
+                 collision_torque_nm: Sequence[float] = (20.0,) * 7, realtime: bool = True,
+                 settle_tolerance_rad: float = 0.01, poll_period_s: float = 0.01):
+        super().__init__(joint_names)
+        if len(self.joint_names) != 7:
+            raise ValueError(f"FR3: 7 joints expected, got {len(self.joint_names)}")
+        self.host = host
+        self.relative_dynamics_factor = relative_dynamics_factor
+        self.effort_cap = np.asarray(collision_torque_nm, dtype=np.float64)  # reflex threshold per joint
+        self.realtime = realtime  # False only for simulators / non-RT kernels (libfranka's RealtimeConfig.Ignore)
+        self.settle_tolerance_rad = settle_tolerance_rad
+        self.poll_period_s = poll_period_s
+        self._robot = None
+        self._lock = threading.Lock()
+
+    @property
+    def connected(self) -> bool:
+        return self._robot is not None
+
+    def connect(self) -> None:
+        if self.connected:
+            return
+        franky = _franky()
+        config = franky.RealtimeConfig.Enforce if self.realtime else franky.RealtimeConfig.Ignore
+        try:
+            robot = franky.Robot(self.host, realtime_config=config)
+        except Exception as exc:  # franky raises NetworkException / IncompatibleVersionException / RealtimeException
+            raise DeviceUnavailable(f"Franka at {self.host}: cannot connect: {exc}") from None
+        try:
+            if robot.has_errors and not robot.recover_from_errors():
+                raise DeviceRefused(f"Franka at {self.host}: reports errors that automatic recovery cannot clear")
+            robot.set_collision_behavior(list(self.effort_cap), [30.0] * 6)
+            robot.relative_dynamics_factor = self.relative_dynamics_factor
+        except franky.Exception as exc:
+            raise DeviceRefused(f"Franka at {self.host}: configuration refused: {exc}") from None
+        self._robot = robot
+
+    def disconnect(self) -> None:
+        if self._robot is None:
+            return
+        try:
+            self._robot.stop()
+        except Exception:
+            pass  # the link may already be gone; dropping the Robot closes it
+        self._robot = None
+
+    def state(self) -> JointState:
+        self.require_connected()
+        try:
+            joint_state = self._robot.current_joint_state
+            torques = np.asarray(self._robot.state.tau_J, dtype=np.float64)
+        except Exception as exc:
+            raise DeviceUnavailable(f"Franka at {self.host}: state read failed: {exc}") from None
+        return JointState(time.time(), self.joint_names, np.asarray(joint_state.position, dtype=np.float64),
+                          np.asarray(joint_state.velocity, dtype=np.float64), torques)
+
+    def _motion(self, trajectory: JointTrajectory):
+        franky = _franky()
+        q, t = trajectory.positions, trajectory.times_s
+        velocity = np.gradient(q, t, axis=0) if len(q) > 2 else np.zeros_like(q)
+        velocity[-1] = 0.0  # come to rest on the final waypoint
+        waypoints = []
+        for k in range(1, len(q)):
+            duration_ms = max(1, int(round((t[k] - t[k - 1]) * 1000)))
+            waypoints.append(franky.JointWaypoint(franky.JointState(q[k], velocity[k]),
+                                                  minimum_time=franky.Duration(duration_ms)))
+        return franky.JointWaypointMotion(waypoints)
+
+    def execute(self, trajectory: JointTrajectory, stop: threading.Event | None = None) -> ExecutionReport:
+        self.require_connected()
+        if self._stop_requested.is_set():
+            raise DeviceRefused(f"{self.name}: stopped; call recover() before executing again")
+        own = self._own(trajectory)
+        franky = _franky()
+        start = time.monotonic()
+        try:
+            self._robot.move(self._motion(own), asynchronous=True)
+            while not self._robot.join_motion(timeout=self.poll_period_s):
+                if self._stop_requested.is_set() or (stop is not None and stop.is_set()):
+                    self._halt()
+                    raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
+                                        f"{own.duration_s:.2f} s trajectory")
+        except franky.Exception as exc:  # reflexes (collision, limits) abort the motion on the robot side
+            raise DeviceRefused(f"Franka at {self.host}: motion aborted: {exc}; call recover()") from None
+        final = self._settled_positions()
+        error = float(np.max(np.abs(final - own.final)))
+        ok = error <= self.settle_tolerance_rad
+        return ExecutionReport(self.name, ok, final, own.final, time.monotonic() - start,
+                               "" if ok else f"final joint error {error:.4f} rad")
+
+    def _settled_positions(self, timeout_s: float = 0.5, still_rad_s: float = 0.01) -> np.ndarray:
+        """Positions once the arm has come to rest (the motion generator ends before the joints settle)."""
+        deadline = time.monotonic() + timeout_s
+        state = self.state()
+        while np.max(np.abs(state.velocities)) > still_rad_s and time.monotonic() < deadline:
+            time.sleep(self.poll_period_s)
+            state = self.state()
+        return state.positions
+
+    def _halt(self) -> None:
+        franky = _franky()
+        try:
+            self._robot.stop()
+            self._robot.join_motion(timeout=2.0)
+        except franky.Exception:
+            pass  # a stopped motion surfaces as a ControlException: that is the expected outcome here
+
+    def stop(self) -> None:
+        super().stop()
+        if self._robot is not None:
+            self._halt()
+
+    def recover(self) -> None:
+        super().recover()
+        self.require_connected()
+        if self._robot.has_errors and not self._robot.recover_from_errors():
+            raise DeviceRefused(f"Franka at {self.host}: automatic error recovery failed")

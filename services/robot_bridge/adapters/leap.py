@@ -1,0 +1,190 @@
+"""LEAP hand over dynamixel-sdk (Protocol 2.0): 16 X-series motors in current-based position mode.
+
+Connect sequence (per motor, ids 0..15 = LEAP joints '0'..'15'):
+  ping (model number) -> torque off -> Operating Mode (addr 11) = 5, current-based position control
+  -> Current Limit (addr 38, EEPROM) = the effort cap -> torque on -> Goal Current (addr 102) = effort cap.
+Motion: GroupSyncWrite of Goal Position (addr 116, 4 bytes) for all 16 motors each command period.
+State: GroupSyncRead of Present Current + Velocity + Position (addr 126, 10 bytes) in one transaction.
+
+Angle convention (LEAP hand API): joint angle 0 is the motors' 180 deg, so motor = joint + pi, in
+ticks of 2*pi/4096 rad. Present Velocity counts are 0.229 rev/min; Present Current counts are mA.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from services.robot_bridge.backend import (
+    BackendError,
+    DeviceRefused,
+    DeviceUnavailable,
+    JointState,
+    StreamingBackend,
+)
+
+ADDR_OPERATING_MODE, ADDR_CURRENT_LIMIT, ADDR_TORQUE_ENABLE, ADDR_HARDWARE_ERROR = 11, 38, 64, 70
+ADDR_GOAL_CURRENT, ADDR_GOAL_POSITION, ADDR_PRESENT_CURRENT = 102, 116, 126
+LEN_GOAL_POSITION, LEN_PRESENT_STATE = 4, 10  # present current(2) + velocity(4) + position(4)
+CURRENT_BASED_POSITION_MODE = 5
+TICKS_PER_RAD = 4096 / (2 * math.pi)
+VELOCITY_UNIT_RAD_S = 0.229 * 2 * math.pi / 60
+LEAP_JOINTS: tuple[str, ...] = tuple(str(i) for i in range(16))
+LEAP_ZERO_OFFSET_RAD = math.pi
+
+
+def _sdk():
+    try:
+        import dynamixel_sdk
+    except ImportError:
+        raise DeviceUnavailable("LEAP hand: dynamixel-sdk is not installed (pip install 'gd2p-zenoh[leap]')") from None
+    return dynamixel_sdk
+
+
+class LeapBackend(StreamingBackend):
+    """The LEAP hand on a serial port (e.g. /dev/ttyUSB0), motors ids = `motor_ids` in joint order."""
+
+    name = "leap"
+    reports_effort = True  # Present Current, mA
+
+    def __init__(self, port: str, baudrate: int = 4_000_000, motor_ids: Sequence[int] = tuple(range(16)),
+                 joint_names: Sequence[str] = LEAP_JOINTS, current_limit_ma: float = 550.0,
+                 command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02, settle_timeout_s: float = 1.0):
+        super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
+        if len(motor_ids) != len(self.joint_names):
+            raise ValueError(f"LEAP: {len(motor_ids)} motor ids for {len(self.joint_names)} joints")
+        self.port, self.baudrate = port, baudrate
+        self.motor_ids = [int(i) for i in motor_ids]
+        self.effort_cap = np.full(len(self.motor_ids), float(current_limit_ma))
+        self._io = threading.Lock()  # one transaction on the half-duplex bus at a time
+        self._port = self._packets = self._writer = self._reader = None
+
+    @property
+    def connected(self) -> bool:
+        return self._port is not None
+
+    def connect(self) -> None:
+        if self.connected:
+            return
+        sdk = _sdk()
+        port = sdk.PortHandler(self.port)
+        try:
+            opened = port.openPort() and port.setBaudRate(self.baudrate)
+        except Exception as exc:  # pyserial raises SerialException (an OSError) for a missing device
+            raise DeviceUnavailable(f"LEAP hand: cannot open serial port {self.port}: {exc}") from None
+        if not opened:
+            raise DeviceUnavailable(f"LEAP hand: cannot open {self.port} at {self.baudrate} baud")
+        self._port, self._packets = port, sdk.PacketHandler(2.0)
+        try:
+            self._configure(sdk)
+        except BackendError:
+            self._close_port()
+            raise
+
+    def _configure(self, sdk) -> None:
+        missing = [i for i in self.motor_ids if self._packets.ping(self._port, i)[1] != sdk.COMM_SUCCESS]
+        if missing:
+            raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
+                                    f"(power, cabling, ids or baud rate {self.baudrate})")
+        cap = int(round(self.effort_cap[0]))
+        for motor in self.motor_ids:
+            self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)  # EEPROM items below are writable only with torque off
+            self._write(motor, ADDR_OPERATING_MODE, 1, CURRENT_BASED_POSITION_MODE)
+            self._write(motor, ADDR_CURRENT_LIMIT, 2, cap)
+        self._hold_here(sdk)
+        for motor in self.motor_ids:
+            self._write(motor, ADDR_TORQUE_ENABLE, 1, 1)
+            self._write(motor, ADDR_GOAL_CURRENT, 2, cap)
+        self._writer = sdk.GroupSyncWrite(self._port, self._packets, ADDR_GOAL_POSITION, LEN_GOAL_POSITION)
+        self._reader = sdk.GroupSyncRead(self._port, self._packets, ADDR_PRESENT_CURRENT, LEN_PRESENT_STATE)
+        for motor in self.motor_ids:
+            self._reader.addParam(motor)
+
+    def _hold_here(self, sdk) -> None:
+        """Goal Position := present position before torque goes on, so enabling torque does not jump."""
+        for motor in self.motor_ids:
+            ticks, result, error = self._packets.read4ByteTxRx(self._port, motor, ADDR_PRESENT_CURRENT + 6)
+            self._check(result, error, motor, "read present position")
+            self._write(motor, ADDR_GOAL_POSITION, 4, ticks)
+
+    def _write(self, motor: int, address: int, size: int, value: int) -> None:
+        write = {1: self._packets.write1ByteTxRx, 2: self._packets.write2ByteTxRx, 4: self._packets.write4ByteTxRx}[size]
+        with self._io:
+            result, error = write(self._port, motor, address, int(value) & ((1 << (8 * size)) - 1))
+        self._check(result, error, motor, f"write {value} to address {address}")
+
+    def _check(self, result: int, error: int, motor: int, what: str) -> None:
+        if result != 0:  # COMM_SUCCESS
+            raise DeviceUnavailable(f"LEAP motor {motor}: {what}: {self._packets.getTxRxResult(result)}")
+        if error:
+            raise DeviceRefused(f"LEAP motor {motor}: {what}: {self._packets.getRxPacketError(error)}"
+                                f"{' (hardware error: call recover())' if error & 0x80 else ''}")
+
+    def disconnect(self) -> None:
+        if not self.connected:
+            return
+        try:
+            for motor in self.motor_ids:
+                self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)
+        except BackendError:
+            pass  # leaving anyway; the port closes below
+        finally:
+            self._close_port()
+
+    def _close_port(self) -> None:
+        try:
+            self._port.closePort()
+        finally:
+            self._port = self._packets = self._writer = self._reader = None
+
+    def _send_positions(self, q: np.ndarray) -> None:
+        self.require_connected()
+        ticks = np.round((np.asarray(q) + LEAP_ZERO_OFFSET_RAD) * TICKS_PER_RAD).astype(np.int64)
+        with self._io:
+            self._writer.clearParam()
+            for motor, value in zip(self.motor_ids, ticks):
+                self._writer.addParam(motor, int(value).to_bytes(4, "little", signed=True))
+            result = self._writer.txPacket()
+        if result != 0:
+            raise DeviceUnavailable(f"LEAP hand: goal-position sync write failed: {self._packets.getTxRxResult(result)}")
+
+    def state(self) -> JointState:
+        self.require_connected()
+        with self._io:
+            result = self._reader.txRxPacket()
+            if result != 0:
+                raise DeviceUnavailable(f"LEAP hand: state sync read failed: {self._packets.getTxRxResult(result)}")
+            raw = [(self._reader.getData(m, ADDR_PRESENT_CURRENT, 2), self._reader.getData(m, ADDR_PRESENT_CURRENT + 2, 4),
+                    self._reader.getData(m, ADDR_PRESENT_CURRENT + 6, 4)) for m in self.motor_ids]
+        current, velocity, position = (np.array([_signed(v[k], (2, 4, 4)[k]) for v in raw], dtype=np.float64)
+                                       for k in range(3))
+        return JointState(time.time(), self.joint_names, position / TICKS_PER_RAD - LEAP_ZERO_OFFSET_RAD,
+                          velocity * VELOCITY_UNIT_RAD_S, current)
+
+    def recover(self) -> None:
+        """Reboot motors reporting a hardware error (overload, overheating...), then re-enable torque in place."""
+        super().recover()
+        self.require_connected()
+        sdk = _sdk()
+        faulty = []
+        for motor in self.motor_ids:
+            with self._io:
+                value, result, error = self._packets.read1ByteTxRx(self._port, motor, ADDR_HARDWARE_ERROR)
+            if result == 0 and (value or error & 0x80):
+                faulty.append(motor)
+        for motor in faulty:
+            with self._io:
+                result, error = self._packets.reboot(self._port, motor)
+            if result != 0:
+                raise DeviceUnavailable(f"LEAP motor {motor}: reboot failed: {self._packets.getTxRxResult(result)}")
+        if faulty:
+            time.sleep(0.05)
+            self._configure(sdk)
+
+
+def _signed(value: int, size: int) -> int:
+    bits = 8 * size
+    return value - (1 << bits) if value >= 1 << (bits - 1) else value

@@ -1,0 +1,126 @@
+"""UFactory xArm7 over xarm-python-sdk, streaming joint targets in servo mode (mode 1, `set_servo_angle_j`).
+
+Connect: XArmAPI(ip, is_radian=True) -> connect -> refuse if the controller reports an error code ->
+clean warnings -> motion enable -> mode 1 (servo) -> state 0 (ready).
+Motion: `set_servo_angle_j` of the interpolated trajectory each command period (the controller's own
+servo loop follows). State: `get_joint_states(num=3)` -> positions (rad), velocities (rad/s),
+efforts (Nm), monitored against the effort limits. Stop: state 4 (the controller decelerates and
+holds). Recover: clean error and warning, motion enable, mode 1, state 0.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from services.robot_bridge.backend import DeviceRefused, DeviceUnavailable, JointState, StreamingBackend
+
+XARM7_JOINTS: tuple[str, ...] = tuple(f"joint{i}" for i in range(1, 8))
+SERVO_MODE, STATE_READY, STATE_STOP = 1, 0, 4
+
+
+def _default_api(ip: str):
+    try:
+        from xarm.wrapper import XArmAPI
+    except ImportError:
+        raise DeviceUnavailable("xArm: xarm-python-sdk is not installed (pip install 'gd2p-zenoh[xarm]')") from None
+    return XArmAPI(ip, is_radian=True, do_not_open=True)
+
+
+class XArmBackend(StreamingBackend):
+    """The xArm7 controller at `ip`. `api_factory(ip)` returns an unopened XArmAPI (tests pass a fake)."""
+
+    name = "xarm7"
+    reports_effort = True
+
+    def __init__(self, ip: str, joint_names: Sequence[str] = XARM7_JOINTS,
+                 api_factory: Callable[[str], object] = _default_api, command_rate_hz: float = 100.0,
+                 settle_tolerance_rad: float = 0.01, settle_timeout_s: float = 2.0):
+        super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
+        if len(self.joint_names) != 7:
+            raise ValueError(f"xArm7: 7 joints expected, got {len(self.joint_names)}")
+        self.ip = ip
+        self._api_factory = api_factory
+        self._api = None
+        self._io = threading.Lock()
+        self.effort_cap = None  # the controller enforces its own torque limits; measured torques are monitored
+
+    @property
+    def connected(self) -> bool:
+        return self._api is not None and bool(self._api.connected)
+
+    def connect(self) -> None:
+        if self.connected:
+            return
+        api = self._api_factory(self.ip)
+        try:
+            api.connect()
+        except Exception as exc:  # the SDK raises bare Exception('connect socket failed')
+            raise DeviceUnavailable(f"xArm at {self.ip}: cannot connect: {exc}") from None
+        if not api.connected:
+            raise DeviceUnavailable(f"xArm at {self.ip}: not reachable")
+        self._api = api
+        try:
+            self._check_no_error()
+            self._enable()
+        except Exception:
+            self._api.disconnect()
+            self._api = None
+            raise
+
+    def _call(self, what: str, fn, *args, **kwargs):
+        with self._io:
+            result = fn(*args, **kwargs)
+        code = result[0] if isinstance(result, (tuple, list)) else result
+        if code != 0:
+            if code < 0 or code == 2 or code == 3:  # SDK-side: not connected / not ready / timeout
+                raise DeviceUnavailable(f"xArm at {self.ip}: {what} failed with code {code}")
+            raise DeviceRefused(f"xArm at {self.ip}: {what} refused with code {code}; "
+                                f"controller error/warn {self._api.error_code}/{self._api.warn_code}")
+        return result
+
+    def _check_no_error(self) -> None:
+        _, (error, warn) = self._call("get_err_warn_code", self._api.get_err_warn_code)
+        if error:
+            raise DeviceRefused(f"xArm at {self.ip}: controller error {error} (see the xArm error table); "
+                                f"clear the cause, then recover()")
+
+    def _enable(self) -> None:
+        self._call("clean_warn", self._api.clean_warn)
+        self._call("motion_enable", self._api.motion_enable, enable=True)
+        self._call("set_mode", self._api.set_mode, SERVO_MODE)
+        self._call("set_state", self._api.set_state, STATE_READY)
+
+    def disconnect(self) -> None:
+        if self._api is None:
+            return
+        try:
+            with self._io:
+                self._api.set_state(STATE_STOP)
+        finally:
+            with self._io:
+                self._api.disconnect()
+            self._api = None
+
+    def _send_positions(self, q: np.ndarray) -> None:
+        self.require_connected()
+        self._call("set_servo_angle_j", self._api.set_servo_angle_j, [float(v) for v in q], is_radian=True)
+
+    def _halt(self) -> None:
+        with self._io:
+            self._api.set_state(STATE_STOP)
+
+    def state(self) -> JointState:
+        self.require_connected()
+        _, (positions, velocities, efforts) = self._call("get_joint_states", self._api.get_joint_states,
+                                                         is_radian=True, num=3)
+        return JointState(time.time(), self.joint_names, np.asarray(positions[:7], dtype=np.float64),
+                          np.asarray(velocities[:7], dtype=np.float64), np.asarray(efforts[:7], dtype=np.float64))
+
+    def recover(self) -> None:
+        super().recover()
+        self.require_connected()
+        self._call("clean_error", self._api.clean_error)
+        self._enable()

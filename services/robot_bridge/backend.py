@@ -1,0 +1,274 @@
+"""The robot-backend contract shared by the simulated robot and every hardware adapter.
+
+A backend drives one device (an arm or a hand) through the same five calls:
+
+    backend.connect()                               open the link, configure the device (limits, modes)
+    report = backend.execute(trajectory, stop)      follow a timed joint trajectory; blocks until it ends
+    backend.state()                                 JointState now; `state_stream(rate_hz)` at a fixed rate
+    backend.stop()                                  halt motion now (from any thread); execute() returns
+    backend.recover()                               clear device errors after a stop / fault
+    backend.disconnect()
+
+Errors form one hierarchy so the bridge can tell the user what happened:
+
+    BackendError
+      DeviceUnavailable   the device is absent / unreachable / not connected (check cabling, IP, power)
+      DeviceRefused       the device answered but refused (fault state, out of range, bad config)
+      MotionStopped       execute() ended early because of stop(), an e-stop or a lost lease
+
+Joint order: a backend has its own `joint_names`; a `JointTrajectory` is re-ordered onto them with
+`trajectory.select(backend.joint_names)`, so a plan of arm + hand joints feeds both devices.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class BackendError(RuntimeError):
+    """Base of every robot-backend error."""
+
+
+class DeviceUnavailable(BackendError):
+    """The device cannot be reached: not connected, absent, powered off, wrong address or port."""
+
+
+class DeviceRefused(BackendError):
+    """The device is reachable but refused a request (fault/protective stop, out of range, bad configuration)."""
+
+
+class MotionStopped(BackendError):
+    """execute() was interrupted by stop(), an e-stop or a lost lease before the trajectory ended."""
+
+
+class TrajectoryError(ValueError):
+    """A joint trajectory is malformed (shapes, times, unknown joints)."""
+
+
+@dataclass(frozen=True)
+class JointTrajectory:
+    """Joint positions [T, dof] (rad) at strictly increasing times [T] (s, from the start of motion)."""
+
+    joint_names: tuple[str, ...]
+    positions: np.ndarray
+    times_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        positions = np.asarray(self.positions, dtype=np.float64)
+        times = np.asarray(self.times_s, dtype=np.float64)
+        object.__setattr__(self, "positions", positions)
+        object.__setattr__(self, "times_s", times)
+        object.__setattr__(self, "joint_names", tuple(self.joint_names))
+        if positions.ndim != 2 or positions.shape[1] != len(self.joint_names) or positions.shape[0] < 1:
+            raise TrajectoryError(f"positions must be [T>=1, {len(self.joint_names)}], got {positions.shape}")
+        if times.shape != (positions.shape[0],):
+            raise TrajectoryError(f"times_s must have {positions.shape[0]} values, got shape {times.shape}")
+        if not (np.isfinite(positions).all() and np.isfinite(times).all()):
+            raise TrajectoryError("trajectory contains NaN or infinite values")
+        if times[0] < 0 or np.any(np.diff(times) <= 0):
+            raise TrajectoryError("times_s must start at >= 0 and increase strictly")
+
+    @classmethod
+    def from_plan(cls, plan, realtime_factor: float = 1.0) -> "JointTrajectory":
+        """All joints of a `shared.messages.Plan`; time is divided by `realtime_factor` (2 = twice as fast)."""
+        if realtime_factor <= 0:
+            raise TrajectoryError(f"realtime_factor must be > 0, got {realtime_factor}")
+        return cls(tuple(plan.joint_names), plan.positions.to_numpy(), plan.times_s.to_numpy() / realtime_factor)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times_s[-1])
+
+    @property
+    def final(self) -> np.ndarray:
+        return self.positions[-1]
+
+    def select(self, joint_names: Sequence[str]) -> "JointTrajectory":
+        """The columns of `joint_names`, in that order (TrajectoryError naming the missing ones)."""
+        index = {name: i for i, name in enumerate(self.joint_names)}
+        missing = [name for name in joint_names if name not in index]
+        if missing:
+            raise TrajectoryError(f"trajectory has no joints {missing}; it has {list(self.joint_names)}")
+        columns = [index[name] for name in joint_names]
+        return JointTrajectory(tuple(joint_names), self.positions[:, columns], self.times_s)
+
+    def sample(self, t: float) -> np.ndarray:
+        """Positions at time t (linear interpolation; held at the ends)."""
+        times = self.times_s
+        if t <= times[0]:
+            return self.positions[0].copy()
+        if t >= times[-1]:
+            return self.positions[-1].copy()
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        alpha = (t - times[k]) / (times[k + 1] - times[k])
+        return (1.0 - alpha) * self.positions[k] + alpha * self.positions[k + 1]
+
+    def velocities(self) -> np.ndarray:
+        """Finite-difference joint velocities [T-1, dof] between consecutive waypoints (rad/s)."""
+        return np.diff(self.positions, axis=0) / np.diff(self.times_s)[:, None]
+
+
+@dataclass(frozen=True)
+class JointState:
+    """What a device reports: positions (rad), velocities (rad/s) and, if measured, efforts (Nm or A)."""
+
+    stamp: float  # seconds since the Unix epoch
+    joint_names: tuple[str, ...]
+    positions: np.ndarray
+    velocities: np.ndarray
+    efforts: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ExecutionReport:
+    """How an execute() call ended."""
+
+    device: str
+    completed: bool
+    final_positions: np.ndarray
+    target_positions: np.ndarray
+    duration_s: float
+    message: str = ""
+    samples: int = 0  # commands streamed to the device (0 for devices that interpolate themselves)
+
+    @property
+    def final_joint_error(self) -> float:
+        """Largest absolute joint error at the end (rad)."""
+        return float(np.max(np.abs(self.final_positions - self.target_positions)))
+
+
+class Backend(ABC):
+    """One device behind the execute/state contract (see the module docstring)."""
+
+    name: str = "backend"
+    state_rate_hz: float = 100.0
+
+    def __init__(self, joint_names: Sequence[str]):
+        self.joint_names: tuple[str, ...] = tuple(joint_names)
+        self._stop_requested = threading.Event()
+
+    @property
+    @abstractmethod
+    def connected(self) -> bool:
+        """True between a successful connect() and disconnect()."""
+
+    @abstractmethod
+    def connect(self) -> None:
+        """Open the link and configure the device; DeviceUnavailable if it cannot be reached."""
+
+    @abstractmethod
+    def disconnect(self) -> None:
+        """Leave the device safe (holding, torque as configured) and close the link. Idempotent."""
+
+    @abstractmethod
+    def execute(self, trajectory: JointTrajectory, stop: threading.Event | None = None) -> ExecutionReport:
+        """Follow `trajectory` (this backend's joints, any order/superset); raise MotionStopped if stopped."""
+
+    @abstractmethod
+    def state(self) -> JointState:
+        """The device's joint state now."""
+
+    def stop(self) -> None:
+        """Halt motion as fast as the device safely can; safe to call from any thread, any time."""
+        self._stop_requested.set()
+
+    def recover(self) -> None:
+        """Clear a stop or a device fault so the next execute() may run."""
+        self._stop_requested.clear()
+
+    def state_stream(self, rate_hz: float | None = None, stop: threading.Event | None = None) -> Iterator[JointState]:
+        """JointState at a fixed rate (default `state_rate_hz`) until `stop` is set; ticks never drift."""
+        period = 1.0 / (rate_hz or self.state_rate_hz)
+        next_tick = time.monotonic()
+        while stop is None or not stop.is_set():
+            yield self.state()
+            next_tick += period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                next_tick = time.monotonic()  # fell behind: restart the schedule instead of bursting
+
+    def require_connected(self) -> None:
+        if not self.connected:
+            raise DeviceUnavailable(f"{self.name}: not connected (call connect() first)")
+
+    def _own(self, trajectory: JointTrajectory) -> JointTrajectory:
+        return trajectory.select(self.joint_names)
+
+
+class StreamingBackend(Backend):
+    """A backend that streams interpolated position targets at `command_rate_hz` (LEAP, Allegro, xArm servo mode).
+
+    Subclasses implement `_send_positions(q)` and `state()`; `execute` owns the timing loop, so stop,
+    e-stop and lease loss are honoured within one command period.
+    """
+
+    def __init__(self, joint_names: Sequence[str], command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02,
+                 settle_timeout_s: float = 1.0):
+        super().__init__(joint_names)
+        self.command_rate_hz = command_rate_hz
+        self.settle_tolerance_rad = settle_tolerance_rad
+        self.settle_timeout_s = settle_timeout_s
+
+    @abstractmethod
+    def _send_positions(self, q: np.ndarray) -> None:
+        """Command joint positions q (this backend's joint order, rad)."""
+
+    def _halt(self) -> None:
+        """Device-specific action on stop (default: hold the current measured position)."""
+        self._send_positions(self.state().positions)
+
+    def stop(self) -> None:
+        super().stop()
+        if self.connected:
+            try:
+                self._halt()
+            except BackendError:
+                pass  # the execute loop also stops streaming; a dead link cannot be commanded anyway
+
+    def execute(self, trajectory: JointTrajectory, stop: threading.Event | None = None) -> ExecutionReport:
+        self.require_connected()
+        if self._stop_requested.is_set():
+            raise DeviceRefused(f"{self.name}: stopped; call recover() before executing again")
+        own = self._own(trajectory)
+        period = 1.0 / self.command_rate_hz
+        start = time.monotonic()
+        samples = 0
+        while True:
+            if self._stopped(stop):
+                self._halt()
+                raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
+                                    f"{own.duration_s:.2f} s trajectory")
+            t = time.monotonic() - start
+            self._send_positions(own.sample(t))
+            samples += 1
+            if t >= own.duration_s:
+                break
+            time.sleep(max(0.0, start + samples * period - time.monotonic()))
+        final = self._settle(own.final, stop)
+        error = float(np.max(np.abs(final - own.final)))
+        return ExecutionReport(self.name, error <= self.settle_tolerance_rad, final, own.final,
+                               time.monotonic() - start,
+                               "" if error <= self.settle_tolerance_rad else f"final joint error {error:.4f} rad",
+                               samples)
+
+    def _stopped(self, stop: threading.Event | None) -> bool:
+        return self._stop_requested.is_set() or (stop is not None and stop.is_set())
+
+    def _settle(self, target: np.ndarray, stop: threading.Event | None) -> np.ndarray:
+        """Wait (up to settle_timeout_s) for the device to reach the final target; return where it ended."""
+        deadline = time.monotonic() + self.settle_timeout_s
+        positions = self.state().positions
+        while np.max(np.abs(positions - target)) > self.settle_tolerance_rad and time.monotonic() < deadline:
+            if self._stopped(stop):
+                self._halt()
+                raise MotionStopped(f"{self.name}: stopped while settling on the final waypoint")
+            time.sleep(1.0 / self.state_rate_hz)
+            positions = self.state().positions
+        return positions

@@ -1,0 +1,180 @@
+"""Batched arm inverse kinematics for hand poses (pytorch_kinematics' damped least squares).
+
+A hand pose is reachable when the arm can put its flange at `T_world_hand · mount⁻¹` (the hand base
+pose in the world composed with the inverse flange -> hand mount, `shared.arms.mount`). All K targets
+are solved at once: pytorch_kinematics' `PseudoInverseIK` runs every target from `num_seeds` start
+configurations in one batch (the arm's home plus uniform samples inside the joint limits, the same
+for every target so results are reproducible for a seed), with joint limits enforced. Among the
+converged seeds of a target the one closest to `prefer` (default: home) and away from the joint
+stops is returned, so the motion planner gets a configuration that needs little travel and leaves
+room for the Cartesian push that follows.
+
+    solver = ArmIK(load_arm("panda"), hand="allegro")
+    result = solver.solve_hand_poses(T_world_hand)      # [K,4,4] hand base poses in the world
+    result.q[result.success]                            # [k,7] joint solutions
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytorch_kinematics as pk
+import torch
+
+from shared.arms import ArmModel, load_arm, mount
+from shared.hands import HandModel
+
+POSITION_TOLERANCE_M = 0.002
+ROTATION_TOLERANCE_RAD = np.deg2rad(1.0)
+LIMIT_MARGIN = 0.1  # fraction of a joint's range counted as "near the stop"
+LIMIT_PENALTY_RAD = 3.0  # a joint at its stop costs as much as 3 rad of extra travel
+
+
+class IKError(ValueError):
+    """Bad input to the IK solver (wrong target shape, non-finite targets, bad seed count)."""
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Per-target IK outcome. `q` rows of failed targets hold the best (non-converged) attempt."""
+
+    q: np.ndarray  # [K, dof] joint angles
+    success: np.ndarray  # [K] bool: converged within tolerance and inside the joint limits
+    position_error_m: np.ndarray  # [K] flange position error of `q`
+    rotation_error_rad: np.ndarray  # [K] flange rotation error of `q` (axis-angle magnitude)
+
+    def __len__(self) -> int:
+        return len(self.success)
+
+
+class ArmIK:
+    """IK for one arm (+ mounted hand). Build once and reuse: the seed set is fixed at construction."""
+
+    def __init__(
+        self,
+        arm: ArmModel | str,
+        hand: HandModel | str | None = None,
+        *,
+        T_world_base: np.ndarray | None = None,
+        num_seeds: int = 16,
+        max_iterations: int = 60,
+        position_tolerance_m: float = POSITION_TOLERANCE_M,
+        rotation_tolerance_rad: float = ROTATION_TOLERANCE_RAD,
+        seed: int = 0,
+    ):
+        if num_seeds < 1:
+            raise IKError(f"num_seeds must be >= 1, got {num_seeds}")
+        self.arm = load_arm(arm) if isinstance(arm, str) else arm
+        self.T_flange_hand = mount(self.arm, hand) if hand is not None else np.eye(4)
+        self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, dtype=np.float64)
+        self.position_tolerance_m = position_tolerance_m
+        self.rotation_tolerance_rad = rotation_tolerance_rad
+        limits = torch.stack((self.arm.joint_lower, self.arm.joint_upper), dim=1)
+        self.seeds = self._seed_configs(num_seeds, seed)
+        self._solver = pk.PseudoInverseIK(
+            self.arm.serial_chain(), pos_tolerance=position_tolerance_m, rot_tolerance=rotation_tolerance_rad,
+            retry_configs=self.seeds, joint_limits=limits, max_iterations=max_iterations,
+            early_stopping_any_converged=False, early_stopping_no_improvement=None,
+            enforce_joint_limits=True, lr=0.5)
+        # One seed, replaced before every solve: `track` starts each waypoint from the previous solution.
+        self._tracker = pk.PseudoInverseIK(
+            self.arm.serial_chain(), pos_tolerance=position_tolerance_m / 2, rot_tolerance=rotation_tolerance_rad / 2,
+            retry_configs=self.arm.home[None].clone(), joint_limits=limits, max_iterations=max_iterations,
+            early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=True, lr=1.0)
+
+    def _seed_configs(self, num_seeds: int, seed: int) -> torch.Tensor:
+        generator = torch.Generator().manual_seed(seed)
+        lower, upper = self.arm.joint_lower, self.arm.joint_upper
+        # Random seeds stay 5% inside the limits: DLS steps from a seed on a stop are mostly clipped away.
+        margin = 0.05 * (upper - lower)
+        random = lower + margin + torch.rand(num_seeds - 1, self.arm.dof, generator=generator) * (upper - lower - 2 * margin)
+        return torch.cat((self.arm.home[None], random), dim=0)
+
+    # ------------------------------------------------------------------------------------ solving
+
+    def flange_targets(self, T_world_hand: np.ndarray) -> np.ndarray:
+        """Hand base poses [K,4,4] in the world -> flange poses [K,4,4] in the arm's base frame."""
+        T_world_hand = _check_transforms(T_world_hand)
+        T_base_world = np.linalg.inv(self.T_world_base)
+        return T_base_world @ T_world_hand @ np.linalg.inv(self.T_flange_hand)
+
+    def solve_hand_poses(self, T_world_hand: np.ndarray, prefer: np.ndarray | None = None) -> IKResult:
+        """Arm joints that put the hand base at each of `T_world_hand` [K,4,4] (or one [4,4])."""
+        return self.solve_flange_poses(self.flange_targets(T_world_hand), prefer)
+
+    def solve_flange_poses(self, T_base_flange: np.ndarray, prefer: np.ndarray | None = None) -> IKResult:
+        """Arm joints for flange poses [K,4,4] in the arm's base frame."""
+        targets = _check_transforms(T_base_flange)
+        solution = self._solver.solve(pk.Transform3d(matrix=torch.as_tensor(targets, dtype=torch.float32)))
+        q_all = solution.solutions  # [K, seeds, dof]
+        # pytorch_kinematics reports the error of the iterate *before* its last step; measure the returned q.
+        pos_err, rot_err = self._errors(q_all.reshape(-1, self.arm.dof), np.repeat(targets, q_all.shape[1], axis=0))
+        pos_err = pos_err.reshape(q_all.shape[:2])
+        rot_err = rot_err.reshape(q_all.shape[:2])
+        inside = self.arm.within_limits(q_all.reshape(-1, self.arm.dof)).reshape(q_all.shape[:2]).numpy()
+        converged = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
+        reference = self.arm.home.numpy() if prefer is None else np.asarray(prefer, dtype=np.float64)
+        q_np = q_all.numpy().astype(np.float64)
+        travel = np.abs(q_np - reference).max(axis=-1)
+        # A joint near its stop leaves no room for the Cartesian push that follows: rank converged seeds
+        # by travel from the reference plus a penalty growing inside the outer LIMIT_MARGIN of each range.
+        lower, upper = self.arm.joint_lower.numpy(), self.arm.joint_upper.numpy()
+        margin = (np.minimum(q_np - lower, upper - q_np) / (upper - lower)).min(axis=-1)
+        crowding = np.maximum(0.0, LIMIT_MARGIN - margin) / LIMIT_MARGIN
+        score = np.where(converged, travel + LIMIT_PENALTY_RAD * crowding,
+                         1e6 + pos_err / self.position_tolerance_m + rot_err / self.rotation_tolerance_rad)
+        best = score.argmin(axis=1)
+        rows = np.arange(len(targets))
+        return IKResult(q=q_all.numpy()[rows, best].astype(np.float64), success=converged[rows, best],
+                        position_error_m=pos_err[rows, best], rotation_error_rad=rot_err[rows, best])
+
+    def track(self, T_world_hand: np.ndarray, q_start: np.ndarray) -> IKResult:
+        """IK along a path of nearby hand poses [N,4,4], each solved from the previous solution (from `q_start`).
+
+        Meant for Cartesian segments: staying on one IK branch keeps the joint motion continuous. The
+        caller checks the joint steps (a branch switch shows up as a jump).
+        """
+        targets = self.flange_targets(T_world_hand)
+        q = torch.as_tensor(np.asarray(q_start, dtype=np.float64), dtype=torch.float32).reshape(1, self.arm.dof)
+        solutions = []
+        for target in targets:
+            self._tracker.initial_config = q
+            solution = self._tracker.solve(pk.Transform3d(matrix=torch.as_tensor(target[None], dtype=torch.float32)))
+            q = solution.solutions[:, 0].clone()
+            solutions.append(q[0])
+        q_all = torch.stack(solutions)
+        pos_err, rot_err = self._errors(q_all, targets)
+        inside = self.arm.within_limits(q_all).numpy()
+        success = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
+        return IKResult(q=q_all.double().numpy(), success=success, position_error_m=pos_err,
+                        rotation_error_rad=rot_err)
+
+    def _errors(self, q: torch.Tensor, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        reached = self.arm.flange_pose(q.to(torch.float32)).double().numpy()
+        return pose_errors(reached, targets)
+
+    def hand_pose(self, q: np.ndarray) -> np.ndarray:
+        """Forward kinematics: hand base pose(s) in the world for arm joints q [dof] or [B,dof]."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        flange = self.arm.flange_pose(torch.as_tensor(q, dtype=torch.float32)).double().numpy()
+        out = self.T_world_base @ flange @ self.T_flange_hand
+        return out[0] if out.shape[0] == 1 else out
+
+
+def pose_errors(reached: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position error [K] (m) and rotation error [K] (rad, angle of R_reachedᵀ R_target) between transforms."""
+    position = np.linalg.norm(reached[..., :3, 3] - targets[..., :3, 3], axis=-1)
+    relative = np.swapaxes(reached[..., :3, :3], -1, -2) @ targets[..., :3, :3]
+    cos = (np.trace(relative, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return position, np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def _check_transforms(transforms: np.ndarray) -> np.ndarray:
+    out = np.asarray(transforms, dtype=np.float64)
+    if out.shape == (4, 4):
+        out = out[None]
+    if out.ndim != 3 or out.shape[1:] != (4, 4) or len(out) == 0:
+        raise IKError(f"targets must be [K,4,4] (K >= 1) or [4,4], got shape {out.shape}")
+    if not np.isfinite(out).all():
+        raise IKError("targets contain NaN or infinity")
+    return out

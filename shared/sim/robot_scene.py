@@ -1,0 +1,227 @@
+"""An arm with its hand on the table, next to an object and obstacles: collision checks and physics.
+
+Used by the planner (state validity for OMPL, Cartesian segments) and by the simulated robot bridge
+(executing plans with physics). One `RobotScene` wraps one `SimScene` (a PyBullet DIRECT world with
+the table plane at z = 0) and the arm + hand loaded from `shared.arms.combined_urdf`, fixed at
+`T_world_base` (default: the world origin, on the table).
+
+Collision rules (what counts as a collision of a configuration):
+- any robot link within `clearance_m` of the table, except the arm's base link, which stands on it;
+- any robot link within `clearance_m` of an obstacle;
+- any robot link within `clearance_m` of the object, unless the caller allows hand-object contact
+  (a pre-contact pose touches the object on purpose; the push segment pushes it);
+- an arm link within `clearance_m` of a hand link (the arm folding into its own hand), except the
+  arm links rigidly attached to the hand (after the last moving arm joint), which touch it by design.
+Hand-vs-hand and arm-vs-arm checks are left out: finger self-collision is the pose generator's job,
+and the arm's joint limits keep its own links apart.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+
+from shared.arms import ArmModel, combined_urdf, load_arm, mount_joint_name
+from shared.hands import HandModel, load_hand
+from shared.sim.params import PhysicsParams
+from shared.sim.scene import Body, SimError, SimScene, transform_to_pos_quat
+
+OBSTACLE_HEIGHT_M = 0.3
+
+
+@dataclass(frozen=True)
+class Collision:
+    """One offending pair: a robot link and what it touches (distance < 0 is penetration)."""
+
+    robot_link: str
+    other: str  # "table", "object", "obstacle N" or a robot link name
+    distance_m: float
+
+    def __str__(self) -> str:
+        return f"{self.robot_link} vs {self.other} ({self.distance_m * 1000:.1f} mm)"
+
+
+class RobotScene:
+    """PyBullet world: table, arm + hand (fixed base), optional object and cylinder obstacles."""
+
+    def __init__(
+        self,
+        arm: ArmModel | str,
+        hand: HandModel | str,
+        *,
+        T_world_base: np.ndarray | None = None,
+        params: PhysicsParams | None = None,
+    ):
+        self.arm = load_arm(arm) if isinstance(arm, str) else arm
+        self.hand = load_hand(hand) if isinstance(hand, str) else hand
+        self.T_world_base = np.eye(4) if T_world_base is None else np.asarray(T_world_base, dtype=np.float64)
+        self.sim = SimScene(params)
+        self.client = self.sim.client
+        self.robot_id = self._load_robot(combined_urdf(self.arm, self.hand))
+        self._index_links()
+        self.object: Body | None = None
+        self.obstacles: list[Body] = []
+
+    # ------------------------------------------------------------------------------------- building
+
+    def _load_robot(self, urdf: Path) -> int:
+        pos, quat = transform_to_pos_quat(self.T_world_base)
+        # Implicit cylinders: exact finger shapes, not faceted hulls with a 1 mm margin (as the validator).
+        robot = pb.loadURDF(str(urdf), pos, quat, useFixedBase=True, flags=pb.URDF_USE_IMPLICIT_CYLINDER,
+                            physicsClientId=self.client)
+        for link in range(-1, pb.getNumJoints(robot, physicsClientId=self.client)):
+            pb.changeDynamics(robot, link, lateralFriction=self.sim.params.hand_friction, physicsClientId=self.client)
+        return robot
+
+    def _index_links(self) -> None:
+        client = self.client
+        by_joint: dict[str, int] = {}
+        self.link_names: dict[int, str] = {-1: self.arm.base_link}
+        parent: dict[int, int] = {}
+        for j in range(pb.getNumJoints(self.robot_id, physicsClientId=client)):
+            info = pb.getJointInfo(self.robot_id, j, physicsClientId=client)
+            by_joint[info[1].decode()] = j
+            self.link_names[j] = info[12].decode()
+            parent[j] = info[16]
+        missing = [n for n in (*self.arm.joint_names, *self.hand.joint_names) if n not in by_joint]
+        if missing:
+            raise SimError(f"combined {self.arm.name}+{self.hand.name} URDF lacks joints {missing}")
+        self.arm_joints = [by_joint[n] for n in self.arm.joint_names]
+        self.hand_joints = [by_joint[n] for n in self.hand.joint_names]
+        self.joint_names: tuple[str, ...] = (*self.arm.joint_names, *self.hand.joint_names)
+        mount_joint = mount_joint_name(self.arm.name, self.hand.name)
+        if mount_joint not in by_joint:
+            raise SimError(f"combined URDF lacks the mount joint {mount_joint!r}")
+        hand_root = by_joint[mount_joint]  # PyBullet: a joint's index is its child link's index
+        # Hand links: the palm (child of the mount joint) and everything below it.
+        self.hand_links = {j for j in self.link_names if j >= 0 and _descends_from(j, hand_root, parent)}
+        self.arm_links = set(self.link_names) - self.hand_links
+        last_moving = self.arm_joints[-1]
+        rigid_with_hand = {j for j in self.arm_links if j >= 0 and _descends_from(j, last_moving, parent)}
+        self.self_check_arm_links = sorted(self.arm_links - rigid_with_hand - {-1})
+
+    def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> Body:
+        """Load the object (URDF from `shared.objects.write_object_urdf`) with its frame O at `T_world_O`."""
+        if self.object is not None:
+            raise SimError("the scene already has an object")
+        self.object = self.sim.add_object(urdf_path, T_world_O)
+        return self.object
+
+    def add_obstacles(self, circles: Iterable[tuple[float, float, float]]) -> list[Body]:
+        """Static vertical cylinders (x, y, radius) standing on the table."""
+        for x, y, radius in circles:
+            self.obstacles.append(self.sim.add_cylinder_obstacle(x, y, radius, OBSTACLE_HEIGHT_M))
+        return self.obstacles
+
+    def close(self) -> None:
+        self.sim.close()
+
+    def __enter__(self) -> "RobotScene":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------------- state
+
+    def set_configuration(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None) -> None:
+        """Teleport the joints (zero velocity); hand joints unchanged when `q_hand` is None."""
+        if len(q_arm) != len(self.arm_joints):
+            raise SimError(f"{self.arm.name} has {len(self.arm_joints)} joints, got {len(q_arm)} angles")
+        for index, angle in zip(self.arm_joints, q_arm):
+            pb.resetJointState(self.robot_id, index, float(angle), 0.0, physicsClientId=self.client)
+        if q_hand is not None:
+            if len(q_hand) != len(self.hand_joints):
+                raise SimError(f"{self.hand.name} has {len(self.hand_joints)} joints, got {len(q_hand)} angles")
+            for index, angle in zip(self.hand_joints, q_hand):
+                pb.resetJointState(self.robot_id, index, float(angle), 0.0, physicsClientId=self.client)
+
+    def joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and velocities of every joint (arm then hand, `joint_names` order)."""
+        states = pb.getJointStates(self.robot_id, self.arm_joints + self.hand_joints, physicsClientId=self.client)
+        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+
+    def link_pose(self, link_name: str) -> np.ndarray:
+        """World pose (4x4) of a robot link's URDF frame."""
+        index = next((j for j, n in self.link_names.items() if n == link_name), None)
+        if index is None:
+            raise SimError(f"robot has no link {link_name!r}")
+        if index == -1:
+            return self.T_world_base.copy()
+        state = pb.getLinkState(self.robot_id, index, computeForwardKinematics=True, physicsClientId=self.client)
+        out = np.eye(4)
+        out[:3, :3] = np.asarray(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
+        out[:3, 3] = state[4]
+        return out
+
+    # --------------------------------------------------------------------------------- collisions
+
+    def collisions(
+        self,
+        q_arm: Sequence[float] | None = None,
+        q_hand: Sequence[float] | None = None,
+        *,
+        clearance_m: float = 0.0,
+        allow_hand_object: bool = False,
+        first_only: bool = False,
+    ) -> list[Collision]:
+        """Collisions of the robot at (q_arm, q_hand) — or as it stands — under the module's rules.
+
+        A pair collides when its distance is below `clearance_m`; a negative value tolerates that much
+        penetration (e.g. fingertips grazing the table during a push).
+        """
+        if q_arm is not None:
+            self.set_configuration(q_arm, q_hand)
+        found: list[Collision] = []
+        for body, name, skip_links in self._environment(allow_hand_object):
+            found += self._robot_vs(body, name, clearance_m, skip_links)
+            if first_only and found:
+                return found[:1]
+        found += self._arm_vs_hand(clearance_m, first_only)
+        return found[:1] if first_only else found
+
+    def is_collision_free(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None, *,
+                          clearance_m: float = 0.0, allow_hand_object: bool = False) -> bool:
+        return not self.collisions(q_arm, q_hand, clearance_m=clearance_m, allow_hand_object=allow_hand_object,
+                                   first_only=True)
+
+    def _environment(self, allow_hand_object: bool) -> list[tuple[int, str, set[int]]]:
+        env = [(self.sim.table.id, "table", {-1})]
+        if self.object is not None:
+            env.append((self.object.id, "object", self.hand_links if allow_hand_object else set()))
+        env += [(body.id, f"obstacle {i}", set()) for i, body in enumerate(self.obstacles)]
+        return env
+
+    def _robot_vs(self, body: int, name: str, clearance_m: float, skip_links: set[int]) -> list[Collision]:
+        points = pb.getClosestPoints(self.robot_id, body, max(clearance_m, 0.0), physicsClientId=self.client)
+        worst: dict[int, float] = {}
+        for point in points:
+            link, distance = point[3], point[8]
+            if link not in skip_links and distance < clearance_m:
+                worst[link] = min(distance, worst.get(link, np.inf))
+        return [Collision(self.link_names[link], name, d) for link, d in sorted(worst.items())]
+
+    def _arm_vs_hand(self, clearance_m: float, first_only: bool) -> list[Collision]:
+        found = []
+        for arm_link in self.self_check_arm_links:
+            for hand_link in sorted(self.hand_links):
+                points = pb.getClosestPoints(self.robot_id, self.robot_id, max(clearance_m, 0.0), arm_link, hand_link,
+                                             physicsClientId=self.client)
+                distance = min((p[8] for p in points), default=np.inf)
+                if distance < clearance_m:
+                    found.append(Collision(self.link_names[arm_link], self.link_names[hand_link], distance))
+                    if first_only:
+                        return found
+        return found
+
+
+def _descends_from(link: int, ancestor: int, parent: dict[int, int]) -> bool:
+    """True if `link` is `ancestor` or below it in the kinematic tree."""
+    while link >= 0:
+        if link == ancestor:
+            return True
+        link = parent[link]
+    return False
