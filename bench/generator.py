@@ -57,7 +57,7 @@ def run_batch(object_id: str, hand: str, batch: int, iterations: int | None, see
     result = {
         "object": object_id, "poses": len(output), "iterations": config.iterations,
         "generate_s": round(done - ready, 2), "startup_s": round(ready - started, 2),
-        "good_fraction": round(float(output.good(contact_offset_m=config.contact_offset_m).mean()), 3),
+        "good_fraction": round(float(output.good().mean()), 3),
         "palm_x_ge_0_7": round(float((output.palm_normals[:, 0] >= 0.7).mean()), 3),
         "penetration_le_5mm": round(float((output.max_penetration_m <= 0.005).mean()), 3),
         "energy_first": round(float(output.history["total"][0]), 2),

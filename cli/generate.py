@@ -72,7 +72,7 @@ def run_generate(args: argparse.Namespace) -> int:
             return _fail(str(exc))
     _write_json(Path(args.out), output_document(output, scene, args.seed, config))
     print(f"{len(output)} poses for {obj.id} in {output.elapsed_s:.1f} s -> {args.out}; "
-          f"{output.good(contact_offset_m=config.contact_offset_m).mean():.0%} pass the pre-physics check "
+          f"{output.good().mean():.0%} pass the pre-physics check "
           f"(palm x >= 0.7, penetration <= 5 mm, contacts within 5 mm)", file=sys.stderr)
     if args.plot:
         plot_energy_history(output.history, args.plot, config.effective_weights(),

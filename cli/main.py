@@ -20,6 +20,8 @@ COMMAND_MODULES: list[str] = [
     "cli.validate",  # validate (push validation in PyBullet)
     "cli.sampler",  # train, sample (pose diffusion model)
     "cli.generate",  # generate (energy-based push-pose synthesis)
+    "cli.bridge",  # bridge selftest, bridge estop (robot bridge hardware adapters)
+    "cli.dataset",  # dataset build, dataset stats (data engine pose store)
 ]
 
 

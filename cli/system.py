@@ -21,6 +21,7 @@ import time
 
 CLI_CONNECT_TIMEOUT_MS = 3000  # a CLI must fail clearly, not wait forever, when no router is up
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+SECURE_LISTEN = "tls/localhost:7447"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,6 +36,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     up.add_argument("--listen", default=DEFAULT_LISTEN, help="router endpoint (default %(default)s)")
     up.add_argument("--log-dir", default=None, help="per-process log files (default: a new temporary directory)")
     up.add_argument("--ready-timeout", type=float, default=120.0, help="seconds to wait for every worker to register")
+    up.add_argument("--secure", action="store_true",
+                    help=f"mutual TLS + access control: only the planner may command the robot bridge "
+                         f"(router on {SECURE_LISTEN} unless --listen names another tls/ endpoint)")
+    up.add_argument("--secure-dir", default="gd2p-secure",
+                    help="keys, certificates and Zenoh configs of the secure profile (created once; default %(default)s)")
     up.set_defaults(func=run_up)
 
     status = subparsers.add_parser("status", help="live worker count per service",
@@ -167,8 +173,10 @@ def run_up(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops like Ctrl-C
     try:
-        launcher = Launcher(validators=args.validators, listen=args.listen, record_dir=args.record_dir,
-                            log_dir=args.log_dir)
+        secure = getattr(args, "secure", False)
+        listen = SECURE_LISTEN if secure and args.listen == DEFAULT_LISTEN else args.listen
+        launcher = Launcher(validators=args.validators, listen=listen, record_dir=args.record_dir,
+                            log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None)
     except LaunchError as exc:
         print(f"gd2p up: {exc}", file=sys.stderr)
         return 2
@@ -180,8 +188,11 @@ def run_up(args: argparse.Namespace) -> int:
         print(f"all {len(launcher.children())} workers registered in {time.monotonic() - t0:.1f} s\n")
         print(launcher.table())
         print(f"\nrouter: {launcher.listen}   recordings: {launcher.record_dir}   logs: {launcher.log_dir}")
-        print(f"status: gd2p status --connect {launcher.endpoint}   "
-              f"scale: python deploy/scale_validators.py N --connect {launcher.endpoint}")
+        tools = f"--connect {launcher.endpoint}"
+        if launcher.secure is not None:
+            tools += f" --zenoh-config {launcher.secure.client_config('cli')}"
+            print(f"secure profile: mTLS + access control from {launcher.secure.directory}")
+        print(f"status: gd2p status {tools}   scale: python deploy/scale_validators.py N {tools}")
         print("Ctrl-C (or SIGTERM) stops everything.", flush=True)
         while True:
             time.sleep(3600)  # the launcher's threads supervise; a signal ends the wait

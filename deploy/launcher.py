@@ -139,6 +139,7 @@ class Launcher:
         record_dir: str | os.PathLike = "recordings",
         log_dir: str | os.PathLike | None = None,
         restart: bool = True,
+        secure_dir: str | os.PathLike | None = None,
     ):
         n_validators = (os.cpu_count() or 1) if validators is None else validators
         if n_validators < 0:
@@ -148,6 +149,15 @@ class Launcher:
         self.record_dir = Path(record_dir).resolve()
         self.log_dir = Path(log_dir) if log_dir else Path(tempfile.mkdtemp(prefix="gd2p-up-logs-"))
         self.restart = restart
+        # Secure profile (deploy/secure): mTLS router with access control; each service joins with its
+        # own certificate, so only the planner may command the robot bridge.
+        self.secure = None
+        if secure_dir is not None:
+            if not listen.startswith("tls/"):
+                raise LaunchError(f"the secure profile listens on a tls/ endpoint, got {listen}")
+            from deploy.secure import prepare
+
+            self.secure = prepare(secure_dir, [listen])
         self.initial_counts = {svc: 1 for svc in SERVICES} | {"validator": n_validators}
         self.exits: list[ChildExit] = []
         self._children: dict[str, Child] = {}  # worker id -> child
@@ -172,7 +182,9 @@ class Launcher:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self._exits_checked_since = time.monotonic()
         try:
-            self._session = open_session(BusConfig(mode="router", listen=[self.listen], connect=[]))
+            router_file = str(self.secure.router_config) if self.secure else None
+            self._session = open_session(BusConfig(mode="router", listen=[self.listen], connect=[],
+                                                   config_file=router_file))
         except BusError as exc:
             raise LaunchError(f"cannot start the router on {self.listen} (is another `gd2p up` running?): {exc}") from None
         self._control = self._session.declare_queryable(CONTROL_KEY, complete=True)
@@ -315,6 +327,8 @@ class Launcher:
                "--mode", "client", "--connect", self.endpoint, "--worker-id", worker_id]
         if service == "recorder":
             cmd += ["--record-dir", str(self.record_dir)]
+        if self.secure is not None:
+            cmd += ["--zenoh-config", str(self.secure.client_config(service))]
         return cmd
 
     def _environment(self) -> dict[str, str]:

@@ -79,7 +79,7 @@ class ArmIK:
         # One seed, replaced before every solve: `track` starts each waypoint from the previous solution.
         self._tracker = pk.PseudoInverseIK(
             self.arm.serial_chain(), pos_tolerance=position_tolerance_m / 2, rot_tolerance=rotation_tolerance_rad / 2,
-            retry_configs=self.arm.home[None].clone(), joint_limits=limits, max_iterations=max_iterations,
+            retry_configs=self.arm.home[None].clone(), joint_limits=limits, max_iterations=2 * max_iterations,
             early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=True, lr=1.0)
 
     def _seed_configs(self, num_seeds: int, seed: int) -> torch.Tensor:
@@ -87,7 +87,8 @@ class ArmIK:
         lower, upper = self.arm.joint_lower, self.arm.joint_upper
         # Random seeds stay 5% inside the limits: DLS steps from a seed on a stop are mostly clipped away.
         margin = 0.05 * (upper - lower)
-        random = lower + margin + torch.rand(num_seeds - 1, self.arm.dof, generator=generator) * (upper - lower - 2 * margin)
+        unit = torch.rand(num_seeds - 1, self.arm.dof, generator=generator)
+        random = lower + margin + unit * (upper - lower - 2 * margin)
         return torch.cat((self.arm.home[None], random), dim=0)
 
     # ------------------------------------------------------------------------------------ solving
@@ -105,28 +106,58 @@ class ArmIK:
     def solve_flange_poses(self, T_base_flange: np.ndarray, prefer: np.ndarray | None = None) -> IKResult:
         """Arm joints for flange poses [K,4,4] in the arm's base frame."""
         targets = _check_transforms(T_base_flange)
-        solution = self._solver.solve(pk.Transform3d(matrix=torch.as_tensor(targets, dtype=torch.float32)))
-        q_all = solution.solutions  # [K, seeds, dof]
-        # pytorch_kinematics reports the error of the iterate *before* its last step; measure the returned q.
-        pos_err, rot_err = self._errors(q_all.reshape(-1, self.arm.dof), np.repeat(targets, q_all.shape[1], axis=0))
-        pos_err = pos_err.reshape(q_all.shape[:2])
-        rot_err = rot_err.reshape(q_all.shape[:2])
-        inside = self.arm.within_limits(q_all.reshape(-1, self.arm.dof)).reshape(q_all.shape[:2]).numpy()
-        converged = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
-        reference = self.arm.home.numpy() if prefer is None else np.asarray(prefer, dtype=np.float64)
-        q_np = q_all.numpy().astype(np.float64)
-        travel = np.abs(q_np - reference).max(axis=-1)
-        # A joint near its stop leaves no room for the Cartesian push that follows: rank converged seeds
-        # by travel from the reference plus a penalty growing inside the outer LIMIT_MARGIN of each range.
-        lower, upper = self.arm.joint_lower.numpy(), self.arm.joint_upper.numpy()
-        margin = (np.minimum(q_np - lower, upper - q_np) / (upper - lower)).min(axis=-1)
-        crowding = np.maximum(0.0, LIMIT_MARGIN - margin) / LIMIT_MARGIN
-        score = np.where(converged, travel + LIMIT_PENALTY_RAD * crowding,
-                         1e6 + pos_err / self.position_tolerance_m + rot_err / self.rotation_tolerance_rad)
-        best = score.argmin(axis=1)
+        q, converged, pos_err, rot_err = self._solve_all_seeds(targets)
+        best = self._scores(q, converged, pos_err, rot_err, prefer).argmin(axis=1)
         rows = np.arange(len(targets))
-        return IKResult(q=q_all.numpy()[rows, best].astype(np.float64), success=converged[rows, best],
+        return IKResult(q=q[rows, best], success=converged[rows, best],
                         position_error_m=pos_err[rows, best], rotation_error_rad=rot_err[rows, best])
+
+    def distinct_solutions(self, T_world_hand: np.ndarray, prefer: np.ndarray | None = None,
+                           min_difference_rad: float = 0.2) -> np.ndarray:
+        """Every converged solution [n, dof] for one hand pose, best first, no two closer than `min_difference_rad`.
+
+        A planner that finds the best solution's Cartesian segment blocked (a joint runs into its stop)
+        tries the next: they differ in elbow / wrist configuration, not only in the last digits.
+        """
+        targets = self.flange_targets(T_world_hand)
+        if len(targets) != 1:
+            raise IKError(f"distinct_solutions takes one hand pose, got {len(targets)}")
+        q, converged, pos_err, rot_err = self._solve_all_seeds(targets)
+        order = np.argsort(self._scores(q, converged, pos_err, rot_err, prefer)[0])
+        kept: list[np.ndarray] = []
+        for candidate in q[0, order][converged[0, order]]:
+            if all(np.abs(candidate - other).max() >= min_difference_rad for other in kept):
+                kept.append(candidate)
+        return np.array(kept).reshape(-1, self.arm.dof)
+
+    def _solve_all_seeds(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Solutions [K, seeds, dof], converged [K, seeds], position and rotation errors [K, seeds]."""
+        solution = self._solver.solve(pk.Transform3d(matrix=torch.as_tensor(targets, dtype=torch.float32)))
+        q_all = solution.solutions
+        shape = q_all.shape[:2]
+        flat = q_all.reshape(-1, self.arm.dof)
+        # pytorch_kinematics reports the error of the iterate *before* its last step; measure the returned q.
+        pos_err, rot_err = self._errors(flat, np.repeat(targets, shape[1], axis=0))
+        pos_err, rot_err = pos_err.reshape(shape), rot_err.reshape(shape)
+        inside = self.arm.within_limits(flat).reshape(shape).numpy()
+        converged = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
+        return q_all.numpy().astype(np.float64), converged, pos_err, rot_err
+
+    def _scores(self, q: np.ndarray, converged: np.ndarray, pos_err: np.ndarray, rot_err: np.ndarray,
+                prefer: np.ndarray | None) -> np.ndarray:
+        """Rank [K, seeds] of solutions q [K, seeds, dof]: lower is better.
+
+        Converged seeds rank by travel (max joint change) from `prefer` (default home) plus a penalty
+        growing inside the outer LIMIT_MARGIN of each joint's range: a joint near its stop leaves no
+        room for the Cartesian push that follows. Non-converged seeds come after, by error.
+        """
+        reference = self.arm.home.numpy() if prefer is None else np.asarray(prefer, dtype=np.float64)
+        travel = np.abs(q - reference).max(axis=-1)
+        lower, upper = self.arm.joint_lower.numpy(), self.arm.joint_upper.numpy()
+        margin = (np.minimum(q - lower, upper - q) / (upper - lower)).min(axis=-1)
+        crowding = np.maximum(0.0, LIMIT_MARGIN - margin) / LIMIT_MARGIN
+        return np.where(converged, travel + LIMIT_PENALTY_RAD * crowding,
+                        1e6 + pos_err / self.position_tolerance_m + rot_err / self.rotation_tolerance_rad)
 
     def track(self, T_world_hand: np.ndarray, q_start: np.ndarray) -> IKResult:
         """IK along a path of nearby hand poses [N,4,4], each solved from the previous solution (from `q_start`).

@@ -115,18 +115,31 @@ def test_sparse_penetration_equals_the_dense_sum_with_the_same_gradient(hand, ge
 
 
 def test_hand_below_the_table_raises_e_tpen(hand, geometry):
-    below = geometry.surface_points(hand.forward(make_pose(hand, (0.0, 0.0, -0.05))))
-    above = geometry.surface_points(hand.forward(make_pose(hand, (0.0, 0.0, 0.5))))
+    below = geometry.sample_heights(hand.forward(make_pose(hand, (0.0, 0.0, -0.05))))
+    above = geometry.sample_heights(hand.forward(make_pose(hand, (0.0, 0.0, 0.5))))
     assert float(E.table_penetration(below)[0]) > 0.1
     assert float(E.table_penetration(above)[0]) == 0.0
     assert float(E.table_penetration(above, clearance_m=1.0)[0]) > 0.0
 
 
-def test_fingertip_inside_the_object_raises_e_pen_hand_side(hand, geometry, box):
-    inside = geometry.surface_points(hand.forward(palm_at(hand, box.centroid.tolist())))
-    far = geometry.surface_points(hand.forward(palm_at(hand, (box.centroid + torch.tensor([1.0, 0, 0])).tolist())))
-    assert float(E.hand_in_object(inside, box)[0]) > 0.01
-    assert float(E.hand_in_object(far, box)[0]) == 0.0
+def test_hand_inside_the_object_raises_the_hand_side_of_e_pen(hand, geometry, box):
+    inside = hand.forward(palm_at(hand, box.centroid.tolist()))
+    far = hand.forward(palm_at(hand, (box.centroid + torch.tensor([1.0, 0, 0])).tolist()))
+    assert float(E.hand_in_object(geometry, inside, box)[0]) > 0.01
+    assert float(E.hand_in_object(geometry, far, box)[0]) == 0.0
+
+
+def test_sparse_hand_side_penetration_equals_the_dense_sum(hand, geometry, box):
+    start = initial_poses(hand, box.hull_vertices, 24, GenerationConfig().init, torch.Generator().manual_seed(8))
+    pose = (start + 0.02 * torch.randn(start.shape, generator=torch.Generator().manual_seed(9))).requires_grad_(True)
+    sparse = E.hand_in_object(geometry, hand.forward(pose), box, 0.01)
+    (sparse_grad,) = torch.autograd.grad(sparse.sum(), pose)
+    samples = geometry.surface_points(hand.forward(pose), geometry.penetration_samples)
+    dense = torch.relu(0.01 - box.distance(samples)[0]).sum(-1)
+    (dense_grad,) = torch.autograd.grad(dense.sum(), pose)
+    assert float(dense.detach().max()) > 0.0
+    torch.testing.assert_close(sparse, dense, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(sparse_grad, dense_grad, rtol=1e-4, atol=1e-5)
 
 
 def test_palm_facing_plus_x_minimises_e_dir_and_palm_up_raises_e_arm(hand):

@@ -14,7 +14,8 @@ from services.validator.service import validate
 from shared.bus import ServiceError
 from shared.frames import pose25_to_matrix
 from shared.hands import load_hand
-from shared.messages import ObjectRef, ValidationJob
+from shared.codec import decode, encode
+from shared.messages import ObjectRef, ValidationJob, ValidationResult
 from shared.objects import load_object
 
 BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm, 0.86 kg, volumetric
@@ -98,6 +99,8 @@ def test_service_results_are_deterministic_for_a_seed(box):
     np.testing.assert_array_equal(first.augmented.poses.to_numpy(), second.augmented.poses.to_numpy())
     np.testing.assert_array_equal(first.augmented.position_error_m.to_numpy(), second.augmented.position_error_m.to_numpy())
     assert len(first.augmented.poses.to_numpy()) == 10 * int(first.success.to_numpy().sum())
+    decoded = decode(*encode(first), ValidationResult)  # what a caller receives over the bus
+    np.testing.assert_array_equal(decoded.augmented.parent_index.to_numpy(), first.augmented.parent_index.to_numpy())
     other_seed = validate(job(8)).augmented
     assert not np.array_equal(other_seed.poses.to_numpy(), first.augmented.poses.to_numpy())
 

@@ -23,9 +23,13 @@ from deploy.secure.certs import ROUTER_IDENTITY, credentials
 COMMAND_KEYS = "gd2p/robot_bridge/command/**"
 COMMANDER_IDENTITY = "planner"
 BRIDGE_IDENTITY = "robot_bridge"
-# Keys every authenticated identity may use for every kind of message.
+# Keys every authenticated identity may use for every kind of message: the shared keys (liveliness,
+# status, leases, the launcher), each service's own namespace, and the bridge's worker/state/e-stop keys
+# (its worker key serves health queries; it executes commands only on COMMAND_KEYS). The default is
+# deny, so a key outside these (a new service's namespace) must be added here.
 BUS_KEYS: tuple[str, ...] = (
     "gd2p/alive/**", "gd2p/status/**", "gd2p/lease/**", "gd2p/launcher/**", "gd2p/*/worker/**",
+    "gd2p/generator/**", "gd2p/validator/**", "gd2p/sampler/**", "gd2p/planner/**", "gd2p/recorder/**",
     "gd2p/robot_bridge/state/**", "gd2p/robot_bridge/estop",
 )
 _ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -63,17 +67,21 @@ def access_control() -> dict[str, Any]:
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def _tls(cert_dir: Path, identity: str, listen: bool) -> dict[str, Any]:
+def _tls(cert_dir: Path, identity: str, listen: bool, mounted_at: str | None) -> dict[str, Any]:
     creds = credentials(cert_dir, identity)
-    tls: dict[str, Any] = {"root_ca_certificate": str(creds.ca_certificate), "enable_mtls": True,
+
+    def where(path: Path) -> str:  # the path the reading process sees (e.g. a container's mount point)
+        return f"{mounted_at.rstrip('/')}/{path.name}" if mounted_at else str(path)
+
+    tls: dict[str, Any] = {"root_ca_certificate": where(creds.ca_certificate), "enable_mtls": True,
                            "verify_name_on_connect": True}
     side = "listen" if listen else "connect"
-    tls[f"{side}_certificate"] = str(creds.certificate)
-    tls[f"{side}_private_key"] = str(creds.private_key)
+    tls[f"{side}_certificate"] = where(creds.certificate)
+    tls[f"{side}_private_key"] = where(creds.private_key)
     return tls
 
 
-def router_config(cert_dir: str | Path, listen: list[str]) -> dict[str, Any]:
+def router_config(cert_dir: str | Path, listen: list[str], mounted_at: str | None = None) -> dict[str, Any]:
     """Router: TLS-only listeners with mandatory client certificates, and the access-control rules."""
     if not listen or any(not e.startswith("tls/") for e in listen):
         raise ValueError(f"a secure router listens on tls/ endpoints only, got {listen}")
@@ -81,20 +89,21 @@ def router_config(cert_dir: str | Path, listen: list[str]) -> dict[str, Any]:
         "mode": "router",
         "listen": {"endpoints": list(listen)},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tls": _tls(Path(cert_dir), ROUTER_IDENTITY, listen=True)}},
+        "transport": {"link": {"tls": _tls(Path(cert_dir), ROUTER_IDENTITY, True, mounted_at)}},
         "access_control": access_control(),
     }
 
 
-def client_config(cert_dir: str | Path, identity: str, connect: list[str]) -> dict[str, Any]:
-    """A client of the secure router, authenticating as `identity`."""
+def client_config(cert_dir: str | Path, identity: str, connect: list[str], mounted_at: str | None = None) -> dict[str, Any]:
+    """A client of the secure router, authenticating as `identity`. `mounted_at`: where the reading
+    process sees `cert_dir` (a container's volume), if not at the same path."""
     if not connect or any(not e.startswith("tls/") for e in connect):
         raise ValueError(f"a secure client connects to tls/ endpoints only, got {connect}")
     return {
         "mode": "client",
         "connect": {"endpoints": list(connect), "timeout_ms": -1},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {"link": {"tls": _tls(Path(cert_dir), identity, listen=False)}},
+        "transport": {"link": {"tls": _tls(Path(cert_dir), identity, False, mounted_at)}},
     }
 
 

@@ -68,8 +68,8 @@ def contact_distance(distance: torch.Tensor, offset_m: float) -> torch.Tensor:
     return (distance - offset_m).abs().sum(-1)
 
 
-def object_penetration(geometry: "HandGeometry", state: HandState, scene: ObjectField,
-                       margin_m: float = 0.0) -> torch.Tensor:
+def object_penetration(geometry: "HandGeometry", state: HandState, scene: ObjectField, margin_m: float = 0.0,
+                       clearance: torch.Tensor | None = None) -> torch.Tensor:
     """E_pen,obj = sum_j max(0, m - sd_hand(o_j)): object surface points inside (or within m of) the hand.
 
     DexGraspNet's penetration term, the first half of E_pen (see `hand_in_object`).
@@ -77,25 +77,37 @@ def object_penetration(geometry: "HandGeometry", state: HandState, scene: Object
     Sparse gradient (DESIGN.md §6): a no-grad pass finds the (pose, point) pairs with sd_hand < m
     (`HandGeometry.signed_distance_upper_bound`); only those pairs are evaluated again with
     gradients. Every other pair contributes exactly 0, so energy and gradient equal the dense sum's.
-    Uses the scene's `surface_points` o_j [N,3]. -> [B].
+    Uses the scene's `surface_points` o_j [N,3]; `clearance` = `HandGeometry.primitive_clearance`
+    when the caller already has it. -> [B].
     """
     points = scene.surface_points
     with torch.no_grad():
-        bound = geometry.signed_distance_upper_bound(state, points, margin_m, scene)
+        bound = geometry.signed_distance_upper_bound(state, points, margin_m, scene, clearance)
         batch, point = torch.nonzero(bound < margin_m, as_tuple=True)
     depth = torch.relu(margin_m - geometry.signed_distance_pairs(state, batch, points[point]))
     return state.pose.new_zeros(state.batch_size).index_add(0, batch, depth)
 
 
-def hand_in_object(hand_points: torch.Tensor, scene: ObjectField, margin_m: float = 0.0) -> torch.Tensor:
+def hand_in_object(geometry: "HandGeometry", state: HandState, scene: ObjectField, margin_m: float = 0.0,
+                   clearance: torch.Tensor | None = None) -> torch.Tensor:
     """E_pen,hand = sum_s max(0, m - d(h_s)): hand surface samples inside (or within m of) the object.
 
     The second half of E_pen. Object points inside a thin finger link push it towards the link's
     nearest face, which can lie deeper in the object; the object SDF gradient at the hand's own
-    points always points out of the object, so fingertips poking into a face between object samples
-    get pulled out. hand_points [B,S,3] -> [B].
+    samples h_s (the first `penetration_samples`) always points out of the object, so a fingertip poking
+    into a face between object samples is pulled out. Sparse like E_pen,obj: a sample on primitive p
+    is within R_p of its centre c_p, so d(h_s) >= d(c_p) - R_p up to the grid's error (counted once
+    in `clearance` and once here, as d is the interpolated grid on both sides); only samples of
+    primitives within reach are looked up - exactly the same energy and gradient. -> [B].
     """
-    return torch.relu(margin_m - scene.distance(hand_points)[0]).sum(-1)
+    with torch.no_grad():
+        if clearance is None:
+            clearance = geometry.primitive_clearance(state, scene)
+        reachable = clearance - scene.distance_error_m < geometry.bound_radius + margin_m  # [B,P]
+        batch, sample = torch.nonzero(reachable[:, geometry.sample_primitive[: geometry.penetration_samples]],
+                                      as_tuple=True)
+    depth = torch.relu(margin_m - scene.distance(geometry.sample_points_at(state, batch, sample))[0])
+    return state.pose.new_zeros(state.batch_size).index_add(0, batch, depth)
 
 
 def self_penetration(hand: HandModel, state: HandState) -> torch.Tensor:
@@ -126,14 +138,15 @@ def finger_palm(points: torch.Tensor, base_position: torch.Tensor) -> torch.Tens
     return -torch.linalg.vector_norm(points - base_position.unsqueeze(1), dim=-1).sum(-1)
 
 
-def table_penetration(hand_points: torch.Tensor, clearance_m: float = 0.0) -> torch.Tensor:
-    """E_tpen = sum_s max(0, h - z_s): hand surface samples h_s below the table (z = 0) plus a clearance h.
+def table_penetration(heights: torch.Tensor, clearance_m: float = 0.0) -> torch.Tensor:
+    """E_tpen = sum_s max(0, h - z_s): hand surface samples below the table (z = 0) plus a clearance h.
 
-    get_a_grip's table term: the samples are area-uniform on the hand's collision primitives, so the
-    cost grows with how much of the hand is under the table, not only with how deep its lowest point
-    is - strong enough to beat E_dis pulling contacts down a low object. hand_points [B,S,3] -> [B].
+    get_a_grip's table term: the samples (`HandGeometry.sample_heights`) are area-uniform on the
+    hand's collision primitives, so the cost grows with how much of the hand is under the table, not
+    only with how deep its lowest point is - strong enough to beat E_dis pulling contacts down a low
+    object. heights z_s [B,S] -> [B].
     """
-    return torch.relu(clearance_m - hand_points[..., 2]).sum(-1)
+    return torch.relu(clearance_m - heights).sum(-1)
 
 
 def palm_direction(palm_normal: torch.Tensor) -> torch.Tensor:
@@ -164,17 +177,19 @@ def evaluate_energy(hand: HandModel, geometry: "HandGeometry", scene: ObjectFiel
     points, _ = hand.contact_points(state, contact_indices)
     distance, normals = scene.distance(points)
     palm = hand.palm_normal(state)
-    hand_points = geometry.surface_points(state, geometry.penalty_samples)
+    with torch.no_grad():
+        clearance = geometry.primitive_clearance(state, scene)  # shared by both halves of E_pen
+    margin = config.penetration_margin_m
     terms = {
         "fc": force_closure(points, normals, scene.centroid),
         "dis": contact_distance(distance, config.contact_offset_m),
-        "pen": (object_penetration(geometry, state, scene, config.penetration_margin_m)
-                + hand_in_object(hand_points, scene, config.penetration_margin_m)),
+        "pen": (object_penetration(geometry, state, scene, margin, clearance)
+                + hand_in_object(geometry, state, scene, margin, clearance)),
         "spen": self_penetration(hand, state),
         "joints": joint_limits(pose[:, 9:], hand.joint_lower, hand.joint_upper),
         "ff": contact_spread(points, config.ff_min_distance_m),
         "fp": finger_palm(points, pose[:, :3]),
-        "tpen": table_penetration(hand_points, config.table_clearance_m),
+        "tpen": table_penetration(geometry.sample_heights(state), config.table_clearance_m),
         "dir": palm_direction(palm),
         "arm": arm_feasibility(palm),
     }
@@ -209,11 +224,13 @@ class HandGeometry:
 
     Built once per hand from the public primitive list: bounding spheres and per-primitive
     parameters (for the sparse penetration pass) and area-uniform surface samples in shuffled
-    order, so any prefix is area-uniform too (the first `penalty_samples` for E_tpen and the
-    hand-side half of E_pen, all of them for the reported penetration depth).
+    order, so any prefix is area-uniform too: the first `penetration_samples` for the hand-side
+    half of E_pen (an object-SDF lookup each, the costly part), the first `table_samples` for E_tpen
+    (a dot product each), all of them for the reported penetration depth.
     """
 
-    def __init__(self, hand: HandModel, surface_samples_total: int = 2048, penalty_samples: int = 512):
+    def __init__(self, hand: HandModel, surface_samples_total: int = 2048, penetration_samples: int = 256,
+                 table_samples: int = 512):
         prims = hand.primitives.prims
         self.link_index = torch.tensor([p.link_index for p in prims], dtype=torch.long)
         self.kind = torch.tensor([_KINDS.index(p.kind) for p in prims], dtype=torch.long)
@@ -224,16 +241,18 @@ class HandGeometry:
         self.sphere_radius = torch.tensor([p.radius if p.kind == "sphere" else 0.0 for p in prims])
         self.cylinder_radius = torch.tensor([p.radius if p.kind == "cylinder" else 0.0 for p in prims])
         self.cylinder_half_length = torch.tensor([p.length / 2 if p.kind == "cylinder" else 0.0 for p in prims])
-        self._sample_link, self._sample_points = _hand_surface_samples(prims, surface_samples_total)
+        self.sample_primitive, self._sample_points = _hand_surface_samples(prims, surface_samples_total)
+        self._sample_link = self.link_index[self.sample_primitive]
         self._sample_points_h = torch.cat((self._sample_points, torch.ones(len(self._sample_points), 1)), dim=1)
-        self.penalty_samples = min(penalty_samples, len(self._sample_points))
+        self.penetration_samples = min(penetration_samples, len(self._sample_points))
+        self.table_samples = min(table_samples, len(self._sample_points))
 
     def primitive_frames(self, state: HandState) -> torch.Tensor:
         """Every primitive's frame in the pose's frame [B,P,4,4]."""
         return state.links[:, self.link_index] @ self.origin
 
     def signed_distance_upper_bound(self, state: HandState, points: torch.Tensor, margin_m: float,
-                                    scene: ObjectField) -> torch.Tensor:
+                                    scene: ObjectField, clearance: torch.Tensor | None = None) -> torch.Tensor:
         """[B,N]: the hand's exact signed distance to object points where it is < margin, else >= margin (no grad).
 
         Three culls, each exact: (1) a primitive whose centre c is farther from the object than its
@@ -245,7 +264,8 @@ class HandGeometry:
         frames = self.primitive_frames(state)  # [B,P,4,4]
         centers = frames[..., :3, 3]
         reach = self.bound_radius + margin_m
-        clearance = scene.distance(centers)[0] - scene.distance_error_m
+        if clearance is None:
+            clearance = self.primitive_clearance(state, scene)
         pose_index, prim_index = torch.nonzero(clearance < reach, as_tuple=True)
         best = points.new_full((state.batch_size * points.shape[0],), _FAR_AWAY_M)
         if pose_index.numel() == 0:
@@ -261,6 +281,11 @@ class HandGeometry:
             local = ((points[point] - centers[batch, prim]).unsqueeze(-2) @ rotation).squeeze(-2)
             best.scatter_reduce_(0, batch * points.shape[0] + point, self._primitive_distance(local, prim), "amin")
         return best.view(state.batch_size, points.shape[0])
+
+    def primitive_clearance(self, state: HandState, scene: ObjectField) -> torch.Tensor:
+        """[B,P] lower bound on the distance from each primitive's centre to the object (no grad)."""
+        centers = self.primitive_frames(state)[..., :3, 3]
+        return scene.distance(centers)[0] - scene.distance_error_m
 
     def signed_distance_pairs(self, state: HandState, batch: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """Signed distance [T] of points [T,3] to the hand of pose `batch` [T] (differentiable, exact)."""
@@ -298,6 +323,16 @@ class HandGeometry:
         rows = state.links[:, self._sample_link[:count], :3, :]  # [B,S,3,4]
         return (rows * self._sample_points_h[:count, None, :]).sum(-1)
 
+    def sample_heights(self, state: HandState) -> torch.Tensor:
+        """z of the first `table_samples` surface samples [B,S] (only the z row of each link frame is needed)."""
+        z_rows = state.links[:, self._sample_link[: self.table_samples], 2, :]  # [B,S,4]
+        return (z_rows * self._sample_points_h[: self.table_samples]).sum(-1)
+
+    def sample_points_at(self, state: HandState, batch: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
+        """Surface sample `sample` [T] of pose `batch` [T] in the pose's frame [T,3] (differentiable)."""
+        rows = state.links[batch, self._sample_link[sample], :3, :]  # [T,3,4]
+        return (rows * self._sample_points_h[sample, None, :]).sum(-1)
+
 
 def _bounding_radius(prim) -> float:
     if prim.kind == "box":
@@ -308,15 +343,18 @@ def _bounding_radius(prim) -> float:
 
 
 def _hand_surface_samples(prims, total: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Samples spread over primitives by area; points in their link frames (fixed seed: part of the model)."""
+    """Samples spread over primitives by area: primitive index [S] and point in its link frame [S,3].
+
+    Fixed seed (the samples are part of the model) and shuffled, so any prefix is area-uniform too.
+    """
     rng = np.random.default_rng(_SURFACE_SAMPLE_SEED)
     areas = np.array([p.area() for p in prims])
     counts = np.maximum(1, np.round(total * areas / areas.sum()).astype(int))
-    links, points = [], []
-    for prim, count in zip(prims, counts):
+    owners, points = [], []
+    for index, (prim, count) in enumerate(zip(prims, counts)):
         local, _ = surface_samples(prim, int(count), rng)
-        links += [prim.link_index] * len(local)
+        owners += [index] * len(local)
         points.append(local)
-    order = rng.permutation(len(links))
-    return (torch.tensor(np.asarray(links)[order], dtype=torch.long),
+    order = rng.permutation(len(owners))
+    return (torch.tensor(np.asarray(owners)[order], dtype=torch.long),
             torch.tensor(np.concatenate(points)[order], dtype=torch.float32))

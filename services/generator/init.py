@@ -5,8 +5,9 @@ Every random draw goes through the caller's `torch.Generator`, so a seed fixes t
 Pose: the palm centre is placed on the object's convex hull inflated by a few centimetres (a point
 drawn area-uniformly), backed off further along the hull's outward normal; the palm normal points
 into the object (the inward hull normal) tilted by a random angle up to `jitter_max_rad`, with a
-uniformly random roll about it. Joints come from a normal around the hand's open pose truncated to
-the joint limits.
+uniformly random roll about it. For pushes only the back of the object is used (inward hull normal
+within `push_side_min_cos` of +x; config.py has the measurement behind it); grasps start all around.
+Joints come from a normal around the hand's open pose truncated to the joint limits.
 
 Contacts: K distinct candidate indices per pose, uniform over all of the hand's candidates (the
 paper's per-region candidate counts set how often each region is picked).

@@ -16,6 +16,7 @@ import torch
 
 from shared.frames import matrix_to_r6, r6_to_matrix
 from shared.hands import HandModel, load_hand
+from shared.objects import ObjectModel
 
 from services.generator.config import TERMS, GenerationConfig
 from services.generator.energy import EnergyTerms, HandGeometry, evaluate_energy, max_penetration
@@ -44,35 +45,43 @@ class GenerationOutput:
     object_transform_d: np.ndarray  # 4x4 T_D_O the poses were optimised against
     contacts: np.ndarray  # [n,K] selected candidate indices at the end
     contact_distances_m: np.ndarray  # [n,K] signed distance of each selected contact to the object
+    contact_offset_m: float  # the pre-contact offset E_dis aimed the contacts at
     history: dict[str, np.ndarray] = field(default_factory=dict)  # [iterations] batch mean per term + "total"
     elapsed_s: float = 0.0
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
 
-    def good(self, min_palm_x: float = 0.7, max_penetration_m: float = 0.005, contact_tolerance_m: float = 0.005,
-             contact_offset_m: float = 0.0) -> np.ndarray:
+    def good(self, min_palm_x: float = 0.7, max_penetration_m: float = 0.005,
+             contact_tolerance_m: float = 0.005) -> np.ndarray:
         """[n] bool: palm faces +x, penetration is small, every contact within tolerance of the offset.
 
         The quick pre-physics filter of DESIGN.md §6 ("face +x, penetrate <= 5 mm, all contacts
         within 5 mm"); the validator decides what really pushes.
         """
-        contacts_close = (np.abs(self.contact_distances_m - contact_offset_m) <= contact_tolerance_m).all(1)
+        gap = np.abs(self.contact_distances_m - self.contact_offset_m)
+        contacts_close = (gap <= contact_tolerance_m).all(1)
         return (self.palm_normals[:, 0] >= min_palm_x) & (self.max_penetration_m <= max_penetration_m) & contacts_close
 
 
-def generate(scene: PushScene, hand: HandModel | str, n: int, seed: int,
+def generate(scene: PushScene | ObjectModel, hand: HandModel | str, n: int, seed: int,
              config: GenerationConfig | None = None, progress: ProgressCallback | None = None) -> GenerationOutput:
-    """Optimise `n` pre-contact push poses (grasp poses if `config.grasp_only`) of `hand` for `scene`."""
+    """Optimise `n` pre-contact push poses (grasp poses if `config.grasp_only`) of `hand` for `scene`.
+
+    An ObjectModel is placed as on the bus: default resting pose, yaw 0 (`PushScene.from_object`).
+    """
     config = config or GenerationConfig()
     if n < 1:
         raise GenerationError(f"n must be >= 1, got {n}")
+    if isinstance(scene, ObjectModel):
+        scene = PushScene.from_object(scene, surface_points=config.object_points,
+                                      check_points=config.penetration_check_points)
     hand_model = load_hand(hand) if isinstance(hand, str) else hand
     geometry = hand_geometry(hand_model)
     started = time.perf_counter()
     batches = [_optimise_batch(hand_model, geometry, scene, size, batch_generator(seed, index), config, progress)
                for index, size in enumerate(_batch_sizes(n, config.batch_size))]
-    output = _concatenate(batches, scene, hand_model)
+    output = _concatenate(batches, scene, hand_model, config)
     output.elapsed_s = time.perf_counter() - started
     return output
 
@@ -167,7 +176,8 @@ def _batch_sizes(n: int, batch_size: int) -> list[int]:
 # ----------------------------------------------------------------------------------- results
 
 
-def _concatenate(batches: list[_BatchResult], scene: PushScene, hand: HandModel) -> GenerationOutput:
+def _concatenate(batches: list[_BatchResult], scene: PushScene, hand: HandModel,
+                 config: GenerationConfig) -> GenerationOutput:
     poses = torch.cat([b.poses for b in batches])
     rotation = r6_to_matrix(poses[:, 3:9])
     energies = {k: torch.cat([b.terms[k] for b in batches]).numpy() for k in TERMS}
@@ -188,6 +198,7 @@ def _concatenate(batches: list[_BatchResult], scene: PushScene, hand: HandModel)
         object_transform_d=scene.transform_d.copy(),
         contacts=contacts.numpy(),
         contact_distances_m=contact_distances.numpy().astype(np.float64),
+        contact_offset_m=config.contact_offset_m,
         history=_merge_history(batches),
     )
 

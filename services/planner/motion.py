@@ -1,6 +1,11 @@
 """Arm-hand motion for one push: IK, OMPL RRTConnect approach, Cartesian push, retreat, timing.
 
-The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from pieces:
+The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from pieces. First,
+`MotionPlanner.screen` discards the sampled poses that can never be executed (batched IK, then a
+collision check of each pre-contact configuration). Then, per pose, `plan_push`:
+
+0. tries up to `max_ik_candidates` distinct IK solutions of the pre-contact pose until the straight
+   lines below work with one of them (a joint at its stop on one IK branch may be free on another);
 
 1. shape the hand: at the start configuration the fingers move to the pose's joint angles;
 2. approach: OMPL RRTConnect in arm joint space from the start (home) to the configuration that
@@ -13,7 +18,8 @@ The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from piec
 3. push: the hand base moves in a straight line along +x of the direction frame D for the push
    distance, IK solved along the line from the previous solution, joint continuity checked;
 4. retreat: straight back against the push direction (away from the pushed object), up by
-   `approach_lift_m`, then RRTConnect back to the start configuration around the object where the push should leave it.
+   `approach_lift_m`, then RRTConnect back to the start configuration, around the object placed
+   where the push should leave it.
 
 Joint-space motions are timed rest-to-rest per simplified-path edge with a quintic profile whose
 peak joint speed is `velocity_scale` × the URDF limit; Cartesian segments move the hand at
@@ -58,7 +64,8 @@ class MotionSettings:
     push_speed_mps: float = 0.10  # the validator's push speed (DESIGN.md §6)
     velocity_scale: float = 0.5  # joint-space motion at this fraction of the velocity limits
     hand_shaping_s: float = 1.0  # time to move the fingers to the pose's joint angles
-    max_joint_step_rad: float = 0.1  # larger jumps between Cartesian waypoints = an IK branch switch
+    max_joint_step_rad: float = 0.25  # larger jumps between 1 cm Cartesian waypoints = an IK branch switch
+    max_ik_candidates: int = 4  # distinct IK solutions of the pre-contact pose tried for the straight lines
     clearance_m: float = 0.005  # free-space motion keeps this distance from table, object, obstacles
     contact_tolerance_m: float = 0.003  # Cartesian segments: the hand may graze the table by this much
     planning_time_s: float = 5.0  # RRTConnect time limit
@@ -68,13 +75,23 @@ class MotionSettings:
 
 @dataclass
 class PlanStats:
-    """What planning cost, for the planner's timings and benchmarks."""
+    """What the last plan cost and the configurations it went through (for timings and benchmarks)."""
 
     ik_s: float = 0.0
-    rrt_s: float = 0.0
+    rrt_s: float = 0.0  # all RRTConnect calls, simplification included
     cartesian_s: float = 0.0
-    rrt_states: int = 0
-    extra: dict = field(default_factory=dict)
+    rrt_calls_s: list[float] = field(default_factory=list)
+    rrt_states: list[int] = field(default_factory=list)  # simplified path vertices per call
+    configurations: dict[str, np.ndarray] = field(default_factory=dict)  # "pre_contact", "approach", ...
+
+
+@dataclass(frozen=True)
+class ScreenResult:
+    """Cheap per-pose feasibility of K pre-contact hand poses (before any path planning)."""
+
+    q: np.ndarray  # [K, dof] IK solutions (rows of infeasible poses are undefined)
+    feasible: np.ndarray  # [K] bool
+    reasons: list[str]  # [K] "" when feasible, else why not ("no IK solution", ...)
 
 
 class MotionPlanner:
@@ -89,6 +106,28 @@ class MotionPlanner:
         self.upper = self.arm.joint_upper.double().numpy()
         self.velocity_limits = self.arm.velocity_limits.double().numpy()
         self.stats = PlanStats()
+
+    # ------------------------------------------------------------------------------------ screen
+
+    def screen(self, T_world_hand: np.ndarray, q_hands: np.ndarray) -> ScreenResult:
+        """Batched IK for K hand poses [K,4,4] (hand joints [K,16]), then a collision check of each solution.
+
+        This discards what can never be executed (unreachable, or arm/hand into the table or an obstacle
+        at the pre-contact pose) in about a second for K = 200, before the per-pose `plan_push`.
+        """
+        started = time.perf_counter()
+        result = self.ik.solve_hand_poses(T_world_hand)
+        self.stats.ik_s += time.perf_counter() - started
+        q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(result), -1)
+        reasons = []
+        for q, q_hand, reached in zip(result.q, q_hands, result.success):
+            if not reached:
+                reasons.append("no IK solution")
+                continue
+            hits = self.scene.collisions(q, q_hand, clearance_m=-self.settings.contact_tolerance_m,
+                                         allow_hand_object=True, first_only=True)
+            reasons.append(f"pre-contact pose in collision: {hits[0]}" if hits else "")
+        return ScreenResult(q=result.q, feasible=np.array([not r for r in reasons]), reasons=reasons)
 
     # ------------------------------------------------------------------------------------- push
 
@@ -106,43 +145,54 @@ class MotionPlanner:
 
         `push_direction` is a horizontal world vector (+x of D); `q_start` the arm's current joints
         (default: home), `q_hand_start` the hand's (default: `q_hand`); `q_pre_contact` an IK solution
-        already found for `T_world_hand` (the planner's batched IK), else one is solved here.
+        already found for `T_world_hand` (e.g. by `screen`), else up to `max_ik_candidates` distinct
+        solutions are tried. Raises PlanningError (with a `reason`) when no plan is found.
         """
         self.stats = PlanStats()
-        s = self.settings
         q_hand = np.asarray(q_hand, dtype=np.float64)
         q_start = self.arm.home.double().numpy() if q_start is None else np.asarray(q_start, dtype=np.float64)
         q_hand_start = q_hand if q_hand_start is None else np.asarray(q_hand_start, dtype=np.float64)
         direction = _horizontal_unit(push_direction)
         if distance_m <= 0:
             raise PlanningError("bad request", f"push distance must be positive, got {distance_m}")
-        q_pre = self._pre_contact_configuration(T_world_hand, q_pre_contact)
-        # Final approach in reverse: from the pre-contact pose back against the push, then up.
-        forward = self._cartesian(q_pre, T_world_hand, -s.standoff_m * direction, q_hand, "approach")[::-1]
-        T_standoff = _translated(T_world_hand, -s.standoff_m * direction)
-        down = self._cartesian(forward[0], T_standoff, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "approach")[::-1]
-        approach_line = np.concatenate([down, forward[1:]])
-        q_above = approach_line[0]
-        self._require_free(q_above, q_hand, "approach configuration in collision",
-                           f"the hand {s.standoff_m:.2f} m behind and {s.approach_lift_m:.2f} m above the pre-contact pose")
+        candidates = self._pre_contact_candidates(T_world_hand, q_pre_contact)
+        q_pre, approach_line, push_line, back_off = self._straight_segments(
+            candidates, T_world_hand, direction, distance_m, q_hand)
         self._require_free(q_start, q_hand_start, "start configuration in collision", "the arm's start configuration")
-        if not self.scene.is_collision_free(q_start, q_hand, clearance_m=s.clearance_m):
-            raise PlanningError("start configuration in collision",
-                                "the fingers, shaped for the pose at the start configuration, collide")
-        free_path = self.plan_joint_path(q_start, q_above, q_hand)
-        push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push")
-        T_push_end = _translated(T_world_hand, distance_m * direction)
-        back = self._cartesian(push_line[-1], T_push_end, -s.retreat_m * direction, q_hand, "retreat")
-        T_back = _translated(T_push_end, -s.retreat_m * direction)
-        up = self._cartesian(back[-1], T_back, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "retreat")
-        back = np.concatenate([back, up[1:]])
+        self._require_free(q_start, q_hand, "start configuration in collision",
+                           "the fingers, shaped for the pose at the start configuration")
+        self.stats.configurations.update(pre_contact=q_pre, approach=approach_line[0], push_end=push_line[-1],
+                                         back_off=back_off[-1])
+        free_path = self.plan_joint_path(q_start, approach_line[0], q_hand)
         # Return to the start around the object where the push should have left it.
         with self._object_moved(distance_m * direction):
             try:
-                home_path = self.plan_joint_path(back[-1], q_start, q_hand)
+                home_path = self.plan_joint_path(back_off[-1], q_start, q_hand)
             except PlanningError as exc:
                 raise PlanningError(exc.reason, f"retreat: {exc.detail}") from None
-        return self._assemble(q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back, home_path)
+        return self._assemble(q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back_off, home_path)
+
+    def _approach_line(self, q_pre: np.ndarray, T_pre: np.ndarray, direction: np.ndarray,
+                       q_hand: np.ndarray) -> np.ndarray:
+        """Joint waypoints down from above the standoff, then in along the push to the pre-contact pose."""
+        s = self.settings
+        # Solved in reverse, from the pre-contact configuration: back against the push, then up.
+        forward = self._cartesian(q_pre, T_pre, -s.standoff_m * direction, q_hand, "approach")[::-1]
+        T_standoff = _translated(T_pre, -s.standoff_m * direction)
+        down = self._cartesian(forward[0], T_standoff, np.array([0.0, 0.0, s.approach_lift_m]), q_hand,
+                               "approach")[::-1]
+        self._require_free(down[0], q_hand, "approach configuration in collision",
+                           f"the hand {s.standoff_m:.2f} m behind and {s.approach_lift_m:.2f} m above "
+                           "the pre-contact pose")
+        return np.concatenate([down, forward[1:]])
+
+    def _back_off(self, q_end: np.ndarray, T_end: np.ndarray, direction: np.ndarray, q_hand: np.ndarray) -> np.ndarray:
+        """Joint waypoints straight back from the pushed object, then up, clear for the joint-space return."""
+        s = self.settings
+        back = self._cartesian(q_end, T_end, -s.retreat_m * direction, q_hand, "retreat")
+        T_back = _translated(T_end, -s.retreat_m * direction)
+        up = self._cartesian(back[-1], T_back, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "retreat")
+        return np.concatenate([back, up[1:]])
 
     @contextlib.contextmanager
     def _object_moved(self, offset: np.ndarray):
@@ -160,17 +210,44 @@ class MotionPlanner:
         finally:
             body.reset_pose(original)
 
-    def _pre_contact_configuration(self, T_world_hand: np.ndarray, q_pre_contact: np.ndarray | None) -> np.ndarray:
+    def _pre_contact_candidates(self, T_world_hand: np.ndarray, q_pre_contact: np.ndarray | None) -> np.ndarray:
+        """Arm configurations [n, dof] for the pre-contact pose to try, best first."""
         if q_pre_contact is not None:
-            return np.asarray(q_pre_contact, dtype=np.float64)
+            return np.asarray(q_pre_contact, dtype=np.float64).reshape(1, -1)
         started = time.perf_counter()
-        result = self.ik.solve_hand_poses(T_world_hand[None])
+        solutions = self.ik.distinct_solutions(T_world_hand)[: self.settings.max_ik_candidates]
         self.stats.ik_s += time.perf_counter() - started
-        if not result.success[0]:
+        if len(solutions) == 0:
+            best = self.ik.solve_hand_poses(T_world_hand)
             raise PlanningError("no IK solution", f"the arm cannot reach the pre-contact hand pose (best attempt "
-                                f"{result.position_error_m[0] * 1000:.0f} mm, "
-                                f"{math.degrees(result.rotation_error_rad[0]):.0f} deg off)")
-        return result.q[0]
+                                f"{best.position_error_m[0] * 1000:.0f} mm, "
+                                f"{math.degrees(best.rotation_error_rad[0]):.0f} deg off)")
+        return solutions
+
+    def _straight_segments(self, candidates: np.ndarray, T_world_hand: np.ndarray, direction: np.ndarray,
+                           distance_m: float, q_hand: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(q_pre, approach, push, back-off) for the first IK candidate whose straight-line pieces all work.
+
+        Straight lines are cheap and reject most infeasible poses before any RRT. A candidate fails when
+        it collides at the pre-contact pose or a joint runs into its stop along a line; the next IK
+        branch may not. The error of the best candidate is reported if none works.
+        """
+        s = self.settings
+        first_error: PlanningError | None = None
+        for q_pre in candidates:
+            try:
+                hits = self.scene.collisions(q_pre, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
+                if hits:
+                    raise PlanningError("pre-contact pose in collision", ", ".join(str(h) for h in hits[:3]))
+                approach_line = self._approach_line(q_pre, T_world_hand, direction, q_hand)
+                push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push")
+                T_push_end = _translated(T_world_hand, distance_m * direction)
+                back_off = self._back_off(push_line[-1], T_push_end, direction, q_hand)
+                return q_pre, approach_line, push_line, back_off
+            except PlanningError as exc:
+                first_error = first_error or exc
+        assert first_error is not None
+        raise first_error
 
     def _require_free(self, q: np.ndarray, q_hand: np.ndarray, reason: str, what: str) -> None:
         hits = self.scene.collisions(q, q_hand, clearance_m=self.settings.clearance_m)
@@ -215,25 +292,23 @@ class MotionPlanner:
                 raise PlanningError(f"{name} configuration in collision", ", ".join(str(h) for h in hits[:3]))
         started = time.perf_counter()
         solved = setup.solve(s.planning_time_s)
-        self.stats.extra["rrt_solve_s"] = time.perf_counter() - started
         if not (solved and setup.haveExactSolutionPath()):
             self.stats.rrt_s += time.perf_counter() - started
             raise PlanningError("no collision-free path",
                                 f"RRTConnect found no collision-free arm path to the approach configuration "
                                 f"within {s.planning_time_s:.1f} s")
         path = setup.getSolutionPath()
-        self.stats.extra["rrt_raw_states"] = path.getStateCount()
-        simplify_started = time.perf_counter()
         # Shortcutting only: SimpleSetup.simplifySolution also B-spline-smooths, which costs seconds of
         # collision checks here and is unnecessary (edges are timed rest-to-rest anyway).
         simplifier = og.PathSimplifier(setup.getSpaceInformation())
         simplifier.reduceVertices(path)
         simplifier.partialShortcutPath(path)
         simplifier.reduceVertices(path)
-        self.stats.extra["simplify_s"] = time.perf_counter() - simplify_started
         waypoints = np.array([[st[i] for i in range(dof)] for st in path.getStates()])
-        self.stats.rrt_s += time.perf_counter() - started
-        self.stats.rrt_states = len(waypoints)
+        elapsed = time.perf_counter() - started
+        self.stats.rrt_s += elapsed
+        self.stats.rrt_calls_s.append(elapsed)
+        self.stats.rrt_states.append(len(waypoints))
         return waypoints
 
     # --------------------------------------------------------------------------------- Cartesian

@@ -5,8 +5,8 @@ import argparse
 import logging
 import sys
 
-from services.robot_bridge.service import SERVICE, handlers
-from shared.bus import BusConfig, run_worker
+from services.robot_bridge.service import run
+from shared.bus import BusConfig
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -15,7 +15,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--worker-id", default=None, help="unique id on the bus (default: host-pid-random)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    run_worker(SERVICE, handlers(), BusConfig.from_args(args), worker_id=args.worker_id)
+    run(BusConfig.from_args(args), worker_id=args.worker_id)
     return 0
 
 

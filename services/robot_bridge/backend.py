@@ -246,7 +246,12 @@ class StreamingBackend(Backend):
                 raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
                                     f"{own.duration_s:.2f} s trajectory")
             t = time.monotonic() - start
-            self._send_positions(own.sample(t))
+            try:
+                self._send_positions(own.sample(t))
+            except BackendError:
+                if self._stopped(stop):  # stop() halted the device between our check and this command
+                    raise MotionStopped(f"{self.name}: stopped {t:.2f} s into a {own.duration_s:.2f} s trajectory") from None
+                raise
             samples += 1
             if t >= own.duration_s:
                 break

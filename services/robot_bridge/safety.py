@@ -1,15 +1,19 @@
 """Safety of the robot bridge: limits checked before anything moves, the commander's lease, the e-stop.
 
-1. Limits (`DeviceLimits`, `WorkspaceBox`, `check_plan`): every waypoint inside each device's joint
-   position limits, every segment's joint speed inside its velocity limits, the arm's flange inside
-   a workspace box (arm forward kinematics from shared/arms.py, checked on a densified path), the
-   plan starting where the robot is, and each device's configured effort cap (current / torque)
-   inside its effort limit. A violation raises `SafetyRefusal` before any command is sent.
+1. Limits: each device's joint position, velocity and effort limits (`DeviceLimits`: the real device's
+   numbers, e.g. the FR3's rather than the Panda model's), merged into limits.py's `RobotLimits` (the
+   checks shared with the simulated robot) by `hardware_limits`: every waypoint inside the position
+   limits, every segment's speed at the command's realtime factor inside the velocity limits, the
+   flange and the hand base inside the workspace box along the densified path (`check_plan`). Here
+   too: the plan must start where the robot is, and each device's configured effort cap (current /
+   torque) must be inside its effort limit. A violation raises `SafetyRefusal` before anything moves.
 2. Lease: a command carries `lease_token`, the key of the commander's Zenoh liveliness token. A
    command whose token is not alive is refused; while it executes the bridge watches the token, and
    its disappearance (the commander crashed, lost the network or closed its session) stops motion.
 3. E-stop: an `EStop` message on `ESTOP_KEY` stops every backend at once and latches: commands are
    refused until `EStopLatch.reset()` (an operator's deliberate action; `recover()` on each backend).
+   A measured effort over its limit during execution (a collision, a jam) is a protective stop that
+   latches the same way.
 
 `SafeExecutor` ties the three together for the hardware backends: `execute(ExecutionCommand)` ->
 `ExecutionState`. It is plain Python given a Zenoh session; the service adapts it to the bus.
@@ -20,7 +24,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import zenoh
@@ -33,14 +37,22 @@ from services.robot_bridge.backend import (
     MotionStopped,
     TrajectoryError,
 )
+from services.robot_bridge.limits import (
+    DEFAULT_WORKSPACE,
+    WORKSPACE_STEP_RAD,
+    LimitViolation,
+    RobotLimits,
+    WorkspaceBox,
+    densify,
+)
 from shared.codec import CodecError, decode
-from shared.messages import EStop, ExecutionCommand, ExecutionState
+from shared.messages import EStop, ExecutionCommand, ExecutionState, Plan
 
 log = logging.getLogger("gd2p.robot_bridge.safety")
 
 ESTOP_KEY = "gd2p/robot_bridge/estop"
 COMMAND_KEY = "gd2p/robot_bridge/command/execute"
-LEASE_PREFIX = "gd2p/lease"
+LEASE_PREFIX = "gd2p/lease"  # commanders' liveliness tokens: gd2p/lease/<commander id>
 
 
 class SafetyRefusal(BackendError):
@@ -74,25 +86,6 @@ class DeviceLimits:
         object.__setattr__(self, "joint_names", tuple(self.joint_names))
         if np.any(self.lower >= self.upper) or np.any(self.velocity <= 0) or np.any(self.effort <= 0):
             raise ValueError(f"{self.device}: limits must satisfy lower < upper and velocity, effort > 0")
-
-    def check_trajectory(self, trajectory: JointTrajectory, velocity_scale: float = 1.0) -> None:
-        """SafetyRefusal if any waypoint leaves the position limits or any segment exceeds the velocity limits."""
-        own = trajectory.select(self.joint_names)
-        q = own.positions
-        below, above = q < self.lower, q > self.upper
-        if below.any() or above.any():
-            step, joint = np.argwhere(below | above)[0]
-            raise SafetyRefusal("joint_limits", f"{self.device} joint {self.joint_names[joint]} = {q[step, joint]:.4f} rad "
-                                f"at waypoint {step} is outside [{self.lower[joint]:.4f}, {self.upper[joint]:.4f}]")
-        if len(q) < 2:
-            return
-        speed = np.abs(own.velocities())
-        allowed = self.velocity * velocity_scale
-        if (speed > allowed).any():
-            step, joint = np.argwhere(speed > allowed)[0]
-            raise SafetyRefusal("velocity_limits", f"{self.device} joint {self.joint_names[joint]} moves at "
-                                f"{speed[step, joint]:.3f} rad/s between waypoints {step} and {step + 1}; "
-                                f"limit {allowed[joint]:.3f} rad/s")
 
     def check_effort_cap(self, cap: np.ndarray | None) -> None:
         """SafetyRefusal if the device is configured to allow more effort than its limit."""
@@ -160,41 +153,45 @@ ALLEGRO_LIMITS = DeviceLimits(
 DEVICE_LIMITS: dict[str, DeviceLimits] = {l.device: l for l in (FR3_LIMITS, XARM7_LIMITS, LEAP_LIMITS, ALLEGRO_LIMITS)}
 
 
-@dataclass(frozen=True)
-class WorkspaceBox:
-    """Axis-aligned box (m) in the arm's base frame that the flange must stay inside."""
+def hardware_limits(arm: str, hand: str, devices: Sequence[DeviceLimits], workspace: WorkspaceBox | None = DEFAULT_WORKSPACE,
+                    T_world_base: np.ndarray | None = None) -> RobotLimits:
+    """Plan-level limits of a hardware arm + hand: limits.RobotLimits from the URDFs (joint positions,
+    velocities, the workspace box for the flange and the hand base) narrowed by each device's own
+    limits where the real device is stricter (e.g. the FR3's joints 4 and 6 against the Panda model)."""
+    limits = RobotLimits.for_robot(arm, hand, workspace=workspace, T_world_base=T_world_base)
+    lower, upper, velocity = limits.lower.copy(), limits.upper.copy(), limits.velocity.copy()
+    index = {name: i for i, name in enumerate(limits.joint_names)}
+    for device in devices:
+        for k, name in enumerate(device.joint_names):
+            if name not in index:
+                raise ValueError(f"{device.device} joint {name!r} is not a joint of {arm} + {hand}")
+            i = index[name]
+            lower[i] = max(lower[i], device.lower[k])
+            upper[i] = min(upper[i], device.upper[k])
+            velocity[i] = min(velocity[i], device.velocity[k])
+    return replace(limits, lower=lower, upper=upper, velocity=velocity)
 
-    lower: tuple[float, float, float] = (0.15, -0.60, 0.05)
-    upper: tuple[float, float, float] = (0.85, 0.60, 0.90)
-    max_joint_step_rad: float = 0.05  # densify the path so no segment crosses a face unseen
 
-    def check(self, arm: str, arm_joint_names: Sequence[str], trajectory: JointTrajectory) -> None:
-        """SafetyRefusal if the arm's flange (FK of shared/arms.py) leaves the box anywhere along the path."""
-        import torch
-
-        from shared.arms import load_arm
-
-        model = load_arm(arm)
-        q = self._densify(trajectory.select(arm_joint_names).positions)
-        with torch.no_grad():
-            flange = model.flange_pose(torch.as_tensor(q, dtype=torch.float32))[:, :3, 3].double().numpy()
-        lower, upper = np.asarray(self.lower), np.asarray(self.upper)
-        outside = ((flange < lower) | (flange > upper)).any(axis=1)
-        if outside.any():
-            point = flange[int(np.argmax(outside))]
-            raise SafetyRefusal("workspace", f"{arm} flange reaches ({point[0]:.3f}, {point[1]:.3f}, {point[2]:.3f}) m, "
-                                f"outside the workspace box {self.lower} .. {self.upper}")
-
-    def _densify(self, q: np.ndarray) -> np.ndarray:
-        pieces = [q[:1]]
-        for a, b in zip(q[:-1], q[1:]):
-            steps = max(1, int(np.ceil(np.max(np.abs(b - a)) / self.max_joint_step_rad)))
-            alphas = np.linspace(0.0, 1.0, steps + 1)[1:, None]
-            pieces.append(a + alphas * (b - a))
-        return np.concatenate(pieces)
+def check_plan(limits: RobotLimits, plan: Plan, realtime_factor: float = 1.0) -> None:
+    """SafetyRefusal unless every waypoint, every segment's speed at `realtime_factor` (the timing the
+    hardware will run) and the densified tool path are inside `limits`."""
+    try:
+        positions = limits.reorder(plan)
+        times = plan.times_s.to_numpy().astype(np.float64) / realtime_factor
+        limits.check_positions(positions, times)
+        limits.check_velocities(positions, times)
+        if limits.workspace is not None:
+            limits.check_workspace(*densify(positions, times, WORKSPACE_STEP_RAD))
+    except LimitViolation as exc:
+        raise SafetyRefusal(exc.limit, str(exc)) from None
 
 
 # ------------------------------------------------------------------------------------------ lease
+def lease_key(commander_id: str) -> str:
+    """Where a commander declares its lease token (the secure profile's ACL opens `gd2p/lease/**`)."""
+    return check_lease_key(f"{LEASE_PREFIX}/{commander_id}")
+
+
 def check_lease_key(token: str) -> str:
     """A lease token must be one concrete key (no wildcards: a pattern could match someone else's token)."""
     if not token or any(c in token for c in "*$?#") or token.startswith("/") or token.endswith("/") or "//" in token:
@@ -297,21 +294,25 @@ def stop_all(backends: Sequence[Backend]) -> None:
 # ------------------------------------------------------------------------------------------ executor
 @dataclass
 class Device:
-    """A backend with its limits; `arm` names the arm model (for the workspace check) when it is one."""
+    """A connected backend and its device limits."""
 
     backend: Backend
     limits: DeviceLimits
-    arm: str | None = None
 
 
 class SafeExecutor:
-    """Executes ExecutionCommands on hardware backends behind every safety check of this module."""
+    """Executes ExecutionCommands for one arm + hand on hardware backends behind every check of this module."""
 
-    def __init__(self, session: zenoh.Session, devices: Sequence[Device], workspace: WorkspaceBox | None = None,
+    def __init__(self, session: zenoh.Session, arm: str, hand: str, devices: Sequence[Device],
+                 workspace: WorkspaceBox | None = DEFAULT_WORKSPACE, T_world_base: np.ndarray | None = None,
                  start_tolerance_rad: float = 0.05, lease_timeout_s: float = 1.0, monitor_rate_hz: float = 50.0):
         self.session = session
+        self.arm, self.hand = arm, hand
         self.devices = list(devices)
-        self.workspace = workspace or WorkspaceBox()
+        self.limits = hardware_limits(arm, hand, [d.limits for d in self.devices], workspace, T_world_base)
+        uncovered = set(self.limits.joint_names) - {n for d in self.devices for n in d.backend.joint_names}
+        if uncovered:
+            raise ValueError(f"no device drives joints {sorted(uncovered)} of {arm} + {hand}")
         self.start_tolerance_rad = start_tolerance_rad
         self.lease_timeout_s = lease_timeout_s
         self.monitor_period_s = 1.0 / monitor_rate_hz
@@ -326,22 +327,16 @@ class SafeExecutor:
         if self.estop.triggered.is_set():
             reason = self.estop.last.reason if self.estop.last else "e-stop"
             raise SafetyRefusal("estop", f"e-stop is latched ({reason}); reset it before commanding motion")
+        plan = command.plan
+        if (plan.arm, plan.hand) != (self.arm, self.hand):
+            raise SafetyRefusal("plan", f"plan is for {plan.arm} + {plan.hand}; this bridge drives {self.arm} + {self.hand}")
+        check_plan(self.limits, plan, command.realtime_factor)
+        for device in self.devices:
+            device.limits.check_effort_cap(getattr(device.backend, "effort_cap", None))
         try:
-            trajectory = JointTrajectory.from_plan(command.plan, command.realtime_factor)
+            trajectory = JointTrajectory.from_plan(plan, command.realtime_factor)  # the timing that will run
         except TrajectoryError as exc:
             raise SafetyRefusal("plan", str(exc)) from None
-        covered = {name for d in self.devices for name in d.backend.joint_names}
-        unknown = [n for n in trajectory.joint_names if n not in covered]
-        if unknown:
-            raise SafetyRefusal("plan", f"no connected device drives joints {unknown}")
-        for device in self.devices:
-            try:
-                device.limits.check_trajectory(trajectory)
-            except TrajectoryError as exc:
-                raise SafetyRefusal("plan", str(exc)) from None
-            device.limits.check_effort_cap(getattr(device.backend, "effort_cap", None))
-            if device.arm is not None:
-                self.workspace.check(device.arm, device.backend.joint_names, trajectory)
         for device in self.devices:
             self._check_start(device.backend, trajectory)
         if not lease_alive(self.session, check_lease_key(command.lease_token), self.lease_timeout_s):
@@ -354,9 +349,9 @@ class SafeExecutor:
         current = backend.state().positions
         gap = np.abs(current - start)
         if gap.max() > self.start_tolerance_rad:
-            joint = backend.joint_names[int(np.argmax(gap))]
-            raise SafetyRefusal("start", f"{backend.name} joint {joint} is at {current[np.argmax(gap)]:.4f} rad but the "
-                                f"plan starts at {start[np.argmax(gap)]:.4f} rad (tolerance {self.start_tolerance_rad} rad)")
+            k = int(np.argmax(gap))
+            raise SafetyRefusal("start", f"{backend.name} joint {backend.joint_names[k]} is at {current[k]:.4f} rad but "
+                                f"the plan starts at {start[k]:.4f} rad (tolerance {self.start_tolerance_rad} rad)")
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
         """Check, then run every device's part of the plan at once; stop all on lease loss, e-stop or effort."""
@@ -380,6 +375,9 @@ class SafeExecutor:
         def run(device: Device) -> None:
             try:
                 reports[device.backend.name] = device.backend.execute(trajectory, stop)
+            except MotionStopped as exc:  # stopped from outside (e-stop, lease): the supervisor names why
+                reports[device.backend.name] = exc
+                stop.set()
             except BaseException as exc:  # reported below; any failure stops the other devices too
                 reports[device.backend.name] = exc
                 if not stop.is_set():
@@ -399,26 +397,37 @@ class SafeExecutor:
         """Until every device is done: stop all on lease loss, e-stop or an effort over its limit."""
         stopped = False
         while any(t.is_alive() for t in threads):
-            reason = None
-            if lease.lost.is_set():
-                reason = f"lease {lease.token!r} lost"
-            elif self.estop.triggered.is_set():
-                reason = f"e-stop: {self.estop.last.reason if self.estop.last else ''}"
-            else:
-                reason = self._effort_violation()
-            if reason and not stopped:
-                reasons.append(reason)
-                stop.set()
-                stop_all([d.backend for d in self.devices])
-                stopped = True
-            elif stop.is_set() and not stopped:  # a device failed: bring the others to a halt too
+            reason = self._stop_reason(lease) or self._protective_stop()
+            if (reason or stop.is_set()) and not stopped:
+                if reason:
+                    reasons.append(reason)
+                stop.set()  # a failing device (reason already recorded) halts the others too
                 stop_all([d.backend for d in self.devices])
                 stopped = True
             time.sleep(self.monitor_period_s)
-        if stopped:
-            for device in self.devices:  # a lease-loss stop is not a device fault: ready for the next lease
-                if not self.estop.triggered.is_set():
+        if stop.is_set() and not reasons:  # the devices saw the stop before this loop did
+            reasons.append(self._stop_reason(lease) or "stopped")
+        if stop.is_set() and not self.estop.triggered.is_set():
+            for device in self.devices:  # a lease-loss stop is no device fault: ready for the next lease
+                try:
                     device.backend.recover()
+                except BackendError as exc:
+                    reasons.append(f"{device.backend.name}: recovery after the stop failed: {exc}")
+
+    def _stop_reason(self, lease: LeaseWatch) -> str | None:
+        if lease.lost.is_set():
+            return f"lease {lease.token!r} lost"
+        if self.estop.triggered.is_set():
+            return f"e-stop: {self.estop.last.reason if self.estop.last else ''}"
+        return None
+
+    def _protective_stop(self) -> str | None:
+        """An effort over its limit (a collision, a jam) latches like an e-stop: an operator must look."""
+        violation = self._effort_violation()
+        if violation is None:
+            return None
+        self.estop.trigger(EStop(reason=f"protective stop: {violation}", issued_by="robot_bridge safety"))
+        return f"protective stop: {violation}"
 
     def _effort_violation(self) -> str | None:
         for device in self.devices:

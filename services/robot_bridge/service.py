@@ -1,25 +1,165 @@
-"""Bus adapter of the robot_bridge service: plan execution on the robot (issues 6, 7).
+"""Bus adapter of the robot_bridge service: executes plans on the simulated robot (issue 6).
 
-The simulated backend arrives with issue 6, the hardware adapters with issue 7. Until then an
-ExecutionCommand gets a clear `not_implemented` error reply — never a fake result — while the
-worker itself is real: it registers on the bus and answers health queries. `handlers()` is the
-one place where the algorithm plugs in.
+- An `ExecutionCommand` queried on `safety.COMMAND_KEY` (the one key the secure profile lets only
+  the planner query) runs on the simulated robot of the plan's arm + hand (`sim_backend.SimExecutor`);
+  the reply is the final `ExecutionState`: status "done", "stopped" (e-stop or lost lease), or
+  "refused" with a message naming the broken limit, joint and time. The worker's own job key does
+  not execute commands (anyone on the bus may query it); it serves health queries and EStop.
+- The command's `lease_token` must be a live liveliness token of the commander; its loss stops the
+  motion (`safety.LeaseWatch`).
+- `EStop` (as a job, or published on `safety.ESTOP_KEY`) stops every robot at once and latches:
+  later commands are refused until the bridge restarts (the operator's deliberate action).
+- While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the backend's state rate.
+
+Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
+one executes. Hardware backends (`safety.SafeExecutor`) follow the same contract.
 """
 from __future__ import annotations
 
+import logging
+import threading
+import time
 from collections.abc import Callable
 
-from shared.bus import ServiceError
-from shared.messages import ExecutionCommand, ExecutionState, Message
+import numpy as np
+import zenoh
+
+from services.robot_bridge.safety import (
+    COMMAND_KEY,
+    EStopLatch,
+    LeaseWatch,
+    SafetyRefusal,
+    check_lease_key,
+    lease_alive,
+)
+from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
+from shared.bus import BusConfig, OpenCancelled, Worker, open_session
+from shared.codec import CodecError, decode, encode
+from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message
 
 SERVICE = "robot_bridge"
+STATE_KEY = "gd2p/robot_bridge/state"
+
+log = logging.getLogger("gd2p.robot_bridge")
 
 
-def execute(command: ExecutionCommand) -> ExecutionState:
-    """Execute `command.plan` on the robot and report the final state."""
-    raise ServiceError("not_implemented", "robot_bridge: ExecutionCommand is not implemented yet (issue 6)")
+class Bridge:
+    """One simulated robot per (arm, hand), built on first use, behind lease and e-stop checks."""
+
+    def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0):
+        self.session = session
+        self.publish = publish
+        self.lease_timeout_s = lease_timeout_s
+        self.estop_latch = EStopLatch(session, [])
+        self._executors: dict[tuple[str, str], SimExecutor] = {}
+        self._lock = threading.Lock()
+
+    def executor(self, arm: str, hand: str) -> SimExecutor:
+        with self._lock:
+            if (arm, hand) not in self._executors:
+                backend = SimBackend(arm, hand, publish=self.publish)
+                backend.connect()
+                self.estop_latch.backends.append(backend)
+                self._executors[(arm, hand)] = SimExecutor(backend)
+            return self._executors[(arm, hand)]
+
+    def execute(self, command: ExecutionCommand) -> ExecutionState:
+        """Run `command.plan` if every check passes; the final state (or the refusal)."""
+        executor = self.executor(command.plan.arm, command.plan.hand)
+        try:
+            self._check_command(command)
+        except SafetyRefusal as exc:
+            log.warning("refused command %s: %s", command.id, exc)
+            return executor.backend.execution_state("refused", command.id, str(exc))
+        stop = threading.Event()
+        with LeaseWatch(self.session, command.lease_token, on_lost=stop.set):
+            state = executor.execute(command.plan, command.realtime_factor, command.id, stop)
+        if state.status == "refused":
+            log.warning("refused command %s: %s", command.id, state.message)
+        elif state.status == "stopped" and not self.estop_latch.triggered.is_set():
+            executor.backend.recover()  # a lost lease is not a fault: ready for the next commander
+            state = state.model_copy(update={"message": f"lease {command.lease_token!r} lost; {state.message}"})
+        return state
+
+    def _check_command(self, command: ExecutionCommand) -> None:
+        if self.estop_latch.triggered.is_set():
+            last = self.estop_latch.last
+            raise SafetyRefusal("estop", f"e-stop is latched ({last.reason if last else 'e-stop'}); restart the bridge "
+                                "to clear it")
+        if not lease_alive(self.session, check_lease_key(command.lease_token), self.lease_timeout_s):
+            raise SafetyRefusal("lease", f"lease {command.lease_token!r} is not alive: the commander holds no "
+                                "liveliness token there")
+
+    def estop(self, request: EStop) -> ExecutionState:
+        """Stop every robot now and latch; the reply is the state of the first robot (if any)."""
+        self.estop_latch.trigger(request)
+        with self._lock:
+            executors = list(self._executors.values())
+        message = f"e-stop: {request.reason}"
+        if not executors:
+            return ExecutionState(stamp=time.time(), joint_names=[], positions=np.zeros(0), velocities=np.zeros(0),
+                                  status="stopped", command_id=request.id, message=f"{message} (no robot was moving)")
+        return executors[0].backend.execution_state("stopped", request.id, message)
+
+    def close(self) -> None:
+        self.estop_latch.close()
+        with self._lock:
+            for executor in self._executors.values():
+                executor.backend.disconnect()
+            self._executors.clear()
+
+    def handlers(self) -> dict[type[Message], Callable[[Message], Message]]:
+        """Message type -> handler on the worker's job key (commands go to COMMAND_KEY instead)."""
+        return {EStop: self.estop}
+
+    def serve_commands(self) -> zenoh.Queryable:
+        """Execute ExecutionCommands queried on COMMAND_KEY, each on a thread of its own."""
+
+        def on_query(query: zenoh.Query) -> None:  # zenoh callback: never block here
+            threading.Thread(target=self._answer, args=(query,), name="bridge-command", daemon=True).start()
+
+        return self.session.declare_queryable(COMMAND_KEY, on_query)
+
+    def _answer(self, query: zenoh.Query) -> None:
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                command = decode(payload, str(query.encoding) if query.encoding is not None else None, ExecutionCommand)
+                if not isinstance(command, ExecutionCommand):
+                    raise CodecError(f"{COMMAND_KEY} accepts ExecutionCommand, got {type(command).__name__}")
+                reply: Message = self.execute(command)
+            except CodecError as exc:
+                reply = ErrorReply(code="bad_request", message=str(exc), service=SERVICE)
+            except Exception as exc:  # the caller must hear of it, and the bridge keeps serving
+                log.exception("command failed")
+                reply = ErrorReply(code="internal", message=repr(exc), service=SERVICE)
+            payload, encoding = encode(reply)
+            query.reply(COMMAND_KEY, payload, encoding=encoding)
+        finally:
+            query.drop()  # finalise: an unanswered query keeps its caller waiting
 
 
-def handlers() -> dict[type[Message], Callable[[Message], Message]]:
-    """Message type -> handler, served by every robot_bridge worker."""
-    return {ExecutionCommand: execute}
+def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None) -> None:
+    """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`."""
+    try:
+        session = open_session(cfg, stop=stop)
+    except OpenCancelled:
+        log.info("robot_bridge stopped before a router was reachable")
+        return
+    bridge = None
+    try:
+        publisher = session.declare_publisher(STATE_KEY)
+
+        def publish(state: ExecutionState) -> None:
+            payload, encoding = encode(state)
+            publisher.put(payload, encoding=encoding)
+
+        bridge = Bridge(session, publish)
+        commands = bridge.serve_commands()
+        Worker(SERVICE, bridge.handlers(), cfg, worker_id, stop=stop, session=session).run()
+        commands.undeclare()
+        publisher.undeclare()
+    finally:
+        if bridge is not None:
+            bridge.close()
+        session.close()

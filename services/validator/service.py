@@ -14,7 +14,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
@@ -43,7 +42,6 @@ def _limit_torch_threads() -> None:
 def _validator() -> Validator:
     validator = getattr(_local, "validator", None)
     if validator is None:
-        _limit_torch_threads()
         validator = _local.validator = Validator(DEFAULT_PARAMS)
     return validator
 
@@ -118,5 +116,6 @@ def to_result(job: ValidationJob, object_id: str, run: ValidationRun, elapsed_s:
 
 
 def handlers() -> dict[type[Message], Callable[[Message], Message]]:
-    """Message type -> handler, served by every validator worker."""
+    """Message type -> handler, served by every validator worker (called once at worker start-up)."""
+    _limit_torch_threads()
     return {ValidationJob: validate}

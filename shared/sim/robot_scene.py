@@ -6,7 +6,8 @@ the table plane at z = 0) and the arm + hand loaded from `shared.arms.combined_u
 `T_world_base` (default: the world origin, on the table).
 
 Collision rules (what counts as a collision of a configuration):
-- any robot link within `clearance_m` of the table, except the arm's base link, which stands on it;
+- any robot link within `clearance_m` of the table, except the arm's base link (and links fixed to
+  it), which stands on it;
 - any robot link within `clearance_m` of an obstacle;
 - any robot link within `clearance_m` of the object, unless the caller allows hand-object contact
   (a pre-contact pose touches the object on purpose; the push segment pushes it);
@@ -27,7 +28,7 @@ import pybullet as pb
 from shared.arms import ArmModel, combined_urdf, load_arm, mount_joint_name
 from shared.hands import HandModel, load_hand
 from shared.sim.params import PhysicsParams
-from shared.sim.scene import Body, SimError, SimScene, transform_to_pos_quat
+from shared.sim.scene import Body, SimError, SimScene, c_stdout_to_stderr, transform_to_pos_quat
 
 OBSTACLE_HEIGHT_M = 0.3
 
@@ -70,8 +71,9 @@ class RobotScene:
     def _load_robot(self, urdf: Path) -> int:
         pos, quat = transform_to_pos_quat(self.T_world_base)
         # Implicit cylinders: exact finger shapes, not faceted hulls with a 1 mm margin (as the validator).
-        robot = pb.loadURDF(str(urdf), pos, quat, useFixedBase=True, flags=pb.URDF_USE_IMPLICIT_CYLINDER,
-                            physicsClientId=self.client)
+        with c_stdout_to_stderr():  # PyBullet warns on stdout (links without inertia): keep stdout clean
+            robot = pb.loadURDF(str(urdf), pos, quat, useFixedBase=True, flags=pb.URDF_USE_IMPLICIT_CYLINDER,
+                                physicsClientId=self.client)
         for link in range(-1, pb.getNumJoints(robot, physicsClientId=self.client)):
             pb.changeDynamics(robot, link, lateralFriction=self.sim.params.hand_friction, physicsClientId=self.client)
         return robot
@@ -81,11 +83,15 @@ class RobotScene:
         by_joint: dict[str, int] = {}
         self.link_names: dict[int, str] = {-1: self.arm.base_link}
         parent: dict[int, int] = {}
-        for j in range(pb.getNumJoints(self.robot_id, physicsClientId=client)):
+        # The base and whatever is bolted to it (e.g. the xArm's world -> link_base): stands on the table.
+        self.base_links = {-1}
+        for j in range(pb.getNumJoints(self.robot_id, physicsClientId=client)):  # parents before children
             info = pb.getJointInfo(self.robot_id, j, physicsClientId=client)
             by_joint[info[1].decode()] = j
             self.link_names[j] = info[12].decode()
             parent[j] = info[16]
+            if info[2] == pb.JOINT_FIXED and parent[j] in self.base_links:
+                self.base_links.add(j)
         missing = [n for n in (*self.arm.joint_names, *self.hand.joint_names) if n not in by_joint]
         if missing:
             raise SimError(f"combined {self.arm.name}+{self.hand.name} URDF lacks joints {missing}")
@@ -101,7 +107,7 @@ class RobotScene:
         self.arm_links = set(self.link_names) - self.hand_links
         last_moving = self.arm_joints[-1]
         rigid_with_hand = {j for j in self.arm_links if j >= 0 and _descends_from(j, last_moving, parent)}
-        self.self_check_arm_links = sorted(self.arm_links - rigid_with_hand - {-1})
+        self.self_check_arm_links = sorted(self.arm_links - rigid_with_hand - self.base_links)
 
     def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> Body:
         """Load the object (URDF from `shared.objects.write_object_urdf`) with its frame O at `T_world_O`."""
@@ -183,13 +189,25 @@ class RobotScene:
         found += self._arm_vs_hand(clearance_m, first_only)
         return found[:1] if first_only else found
 
+    def contacts(self, allow_hand_object: bool = True) -> list[Collision]:
+        """Contacts of the last physics step under the same rules (executions: the paper's L_coll)."""
+        found: list[Collision] = []
+        for body, name, skip_links in self._environment(allow_hand_object):
+            deepest: dict[int, float] = {}
+            for point in pb.getContactPoints(self.robot_id, body, physicsClientId=self.client):
+                link = point[3]
+                if link not in skip_links:
+                    deepest[link] = min(point[8], deepest.get(link, np.inf))
+            found += [Collision(self.link_names[link], name, d) for link, d in sorted(deepest.items())]
+        return found
+
     def is_collision_free(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None, *,
                           clearance_m: float = 0.0, allow_hand_object: bool = False) -> bool:
         return not self.collisions(q_arm, q_hand, clearance_m=clearance_m, allow_hand_object=allow_hand_object,
                                    first_only=True)
 
     def _environment(self, allow_hand_object: bool) -> list[tuple[int, str, set[int]]]:
-        env = [(self.sim.table.id, "table", {-1})]
+        env = [(self.sim.table.id, "table", self.base_links)]
         if self.object is not None:
             env.append((self.object.id, "object", self.hand_links if allow_hand_object else set()))
         env += [(body.id, f"obstacle {i}", set()) for i, body in enumerate(self.obstacles)]

@@ -13,8 +13,10 @@ handled here once (DESIGN.md §6):
   invalid (PyBullet would zero them and print a warning per link).
 
 Reuse: build the scene once per (object, hand), `save()` its state, and `restore()` it before each
-episode — measured faster than `resetSimulation` + reload or removing/re-adding bodies, and
-bit-identical in outcome (see `services/validator/push.py`).
+episode. Measured here (Allegro + proc-box-001 / pb-mug, loaded machine): restoreState 0.002 /
+0.4 ms, removing and re-adding hand and object 37 / 39 ms, resetSimulation + reload 48 / 66 ms -
+against ~40-100 ms for the push itself. All three gave bit-identical outcomes for the same episode
+whatever ran before it.
 """
 from __future__ import annotations
 
@@ -99,8 +101,9 @@ class Body:
 class FloatingHand(Body):
     """A free-floating hand whose base is driven kinematically by a fixed constraint to the world.
 
-    Joints are held by PyBullet position control at the commanded angles with the per-joint force
-    limit of `PhysicsParams.hand_joint_force` (the URDF effort limit by default).
+    Joints are held by PyBullet position control at the commanded angles (gain
+    `PhysicsParams.hand_position_gain`), each with its URDF effort limit times
+    `PhysicsParams.hand_joint_force_scale` as the force limit.
     """
 
     def __init__(self, scene: "SimScene", body_id: int, com_offset: np.ndarray, joint_names: Sequence[str]):
@@ -137,8 +140,8 @@ class FloatingHand(Body):
     def drive(self, transform: np.ndarray) -> None:
         """Move the constraint target of the base to `transform` (URDF base frame); takes effect on step."""
         com = np.asarray(transform, dtype=np.float64) @ self.com_offset
-        pb.changeConstraint(self.constraint, com[:3, 3].tolist(), self._quaternion(com[:3, :3]), maxForce=self.scene.params.base_constraint_force_n,
-                            physicsClientId=self.scene.client)
+        pb.changeConstraint(self.constraint, com[:3, 3].tolist(), self._quaternion(com[:3, :3]),
+                            maxForce=self.scene.params.base_constraint_force_n, physicsClientId=self.scene.client)
 
     def _quaternion(self, rotation: np.ndarray) -> list[float]:
         """Quaternion of `rotation`, cached: a push drives the base at a constant orientation."""
@@ -219,7 +222,9 @@ class SimScene:
         # Implicit cylinders: exact shapes, not PyBullet's default faceted hulls with a 1 mm margin.
         body_id = self._load_urdf(urdf_path, flags=pb.URDF_USE_IMPLICIT_CYLINDER, base_position=(0.0, 0.0, 10.0))
         for link in range(-1, pb.getNumJoints(body_id, physicsClientId=self.client)):
-            pb.changeDynamics(body_id, link, lateralFriction=self.params.hand_friction,
+            mass = pb.getDynamicsInfo(body_id, link, physicsClientId=self.client)[0]
+            pb.changeDynamics(body_id, link, mass=mass * self.params.hand_mass_scale,
+                              lateralFriction=self.params.hand_friction,
                               jointDamping=self.params.hand_joint_damping, physicsClientId=self.client)
         return FloatingHand(self, body_id, self._com_offset(body_id), joint_names)
 
@@ -227,7 +232,7 @@ class SimScene:
         """Load a fixed-base robot (an arm, or arm + hand) with its URDF base frame at `base_transform`."""
         pos, quat = transform_to_pos_quat(base_transform)
         body_id = self._load_urdf(urdf_path, flags=0, base_position=pos, base_orientation=quat, fixed=True)
-        return Body(self, body_id, np.eye(4))  # a fixed base is placed by its URDF frame
+        return Body(self, body_id, self._com_offset(body_id))
 
     def add_cylinder_obstacle(self, x: float, y: float, radius: float, height: float = 0.3) -> Body:
         """A static vertical cylinder standing on the table."""

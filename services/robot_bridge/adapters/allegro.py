@@ -5,10 +5,10 @@ Connect: open the bus -> SYSTEM_OFF -> HAND_INFO request -> SET_PERIOD (position
 nothing answers, DeviceRefused if it reports a fault) -> SET_POSE to where the fingers are (holding,
 so servo-on does not jump) -> SYSTEM_ON.
 Motion: four SET_POSE frames (one per finger) each command period; the hand's firmware servoes.
-State: the latest FINGER_POSE reports; velocities are finite differences of consecutive reports (the V5
-reports no velocity); efforts are the FINGER_CURRENT reports, monitored against the effort limit.
-Stop: SET_POSE to the measured positions (hold). Recover: power-cycle the servos (SYSTEM_OFF, SYSTEM_ON)
-after re-reading HAND_INFO. Disconnect: reports off, SYSTEM_OFF.
+State: the latest FINGER_POSE reports; velocities are finite differences of consecutive reports through a
+30 Hz low-pass (the V5 reports no velocity); efforts are the FINGER_CURRENT reports, monitored against the effort limit.
+Stop: SET_POSE to the measured positions (hold). Recover: SYSTEM_OFF, re-read HAND_INFO (DeviceRefused
+while a fault persists), hold in place, SYSTEM_ON confirmed by HAND_INFO's servo bit. Disconnect: reports off, SYSTEM_OFF.
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from services.robot_bridge.adapters import allegro_protocol as proto
 from services.robot_bridge.backend import DeviceRefused, DeviceUnavailable, JointState, StreamingBackend
 
 ALLEGRO_JOINTS: tuple[str, ...] = tuple(f"joint_{i}.0" for i in range(16))
+VELOCITY_FILTER_HZ = 30.0  # the cut-off Wonik's driver uses for its joint-velocity low-pass (v4_spec.hpp)
 
 
 def _can():
@@ -92,7 +93,14 @@ class AllegroBackend(StreamingBackend):
                 raise DeviceUnavailable(f"Allegro hand on {self.interface}:{self.channel} sends no joint positions")
             time.sleep(0.005)
         self._send_positions(self.state().positions)  # hold here: servo-on must not jump to a stale target
+        self._servo_on()
+
+    def _servo_on(self) -> None:
         self._send(proto.ID_CMD_SYSTEM_ON)
+        status = self._request_info()
+        self._check_status(status)
+        if not status & proto.STATUS_SERVO_ON:
+            raise DeviceRefused("Allegro hand did not switch its servos on (HAND_INFO status shows servo off)")
 
     def _request_info(self) -> int:
         self._info_event.clear()
@@ -159,8 +167,10 @@ class AllegroBackend(StreamingBackend):
             previous = self._stamp[finger]
             if previous:
                 dt = now - previous
-                if dt > 1e-4:
-                    self._velocities[joints] = (q - self._positions[joints]) / dt
+                if dt > 1e-4:  # finite difference through a first-order low-pass (quantisation: 0.088 deg/count)
+                    raw = (q - self._positions[joints]) / dt
+                    alpha = dt / (dt + 1.0 / (2 * np.pi * VELOCITY_FILTER_HZ))
+                    self._velocities[joints] += alpha * (raw - self._velocities[joints])
             self._positions[joints] = q
             self._stamp[finger] = now
 
@@ -181,10 +191,10 @@ class AllegroBackend(StreamingBackend):
             self._send(proto.ID_CMD_SET_POSE + finger, proto.encode_joints(q[4 * finger:4 * finger + 4]))
 
     def recover(self) -> None:
-        """Re-read HAND_INFO; power-cycle the servos (clears latched faults), hold in place, servos on."""
+        """Servos off, re-read HAND_INFO (refused while a fault persists), hold in place, servos on."""
         super().recover()
         self.require_connected()
         self._send(proto.ID_CMD_SYSTEM_OFF)
         self._check_status(self._request_info())
         self._send_positions(self.state().positions)
-        self._send(proto.ID_CMD_SYSTEM_ON)
+        self._servo_on()

@@ -29,6 +29,9 @@ from services.robot_bridge.backend import (
 
 # Plans name the arm's joints like the Panda model in shared/arms.py (same kinematic structure as the FR3).
 FR3_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
+# External-torque reflex thresholds (Nm): libfranka's default-behaviour values (20, 20, 18, 18, 16, 14, 12)
+# capped at each joint's rated torque (12 Nm for joints 5-7), so the cap never exceeds the effort limit.
+DEFAULT_COLLISION_TORQUE_NM: tuple[float, ...] = (20.0, 20.0, 18.0, 18.0, 12.0, 12.0, 12.0)
 
 
 def _franky():
@@ -46,7 +49,7 @@ class FrankaBackend(Backend):
     reports_effort = True
 
     def __init__(self, host: str, joint_names: Sequence[str] = FR3_JOINTS, relative_dynamics_factor: float = 0.2,
-                 collision_torque_nm: Sequence[float] = (20.0,) * 7, realtime: bool = True,
+                 collision_torque_nm: Sequence[float] = DEFAULT_COLLISION_TORQUE_NM, realtime: bool = True,
                  settle_tolerance_rad: float = 0.01, poll_period_s: float = 0.01):
         super().__init__(joint_names)
         if len(self.joint_names) != 7:

@@ -27,7 +27,8 @@ from services.robot_bridge.backend import (
 )
 
 ADDR_OPERATING_MODE, ADDR_CURRENT_LIMIT, ADDR_TORQUE_ENABLE, ADDR_HARDWARE_ERROR = 11, 38, 64, 70
-ADDR_GOAL_CURRENT, ADDR_GOAL_POSITION, ADDR_PRESENT_CURRENT = 102, 116, 126
+ADDR_GOAL_CURRENT, ADDR_GOAL_POSITION = 102, 116
+ADDR_PRESENT_CURRENT, ADDR_PRESENT_VELOCITY, ADDR_PRESENT_POSITION = 126, 128, 132
 LEN_GOAL_POSITION, LEN_PRESENT_STATE = 4, 10  # present current(2) + velocity(4) + position(4)
 CURRENT_BASED_POSITION_MODE = 5
 TICKS_PER_RAD = 4096 / (2 * math.pi)
@@ -52,8 +53,10 @@ class LeapBackend(StreamingBackend):
 
     def __init__(self, port: str, baudrate: int = 4_000_000, motor_ids: Sequence[int] = tuple(range(16)),
                  joint_names: Sequence[str] = LEAP_JOINTS, current_limit_ma: float = 550.0,
-                 command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02, settle_timeout_s: float = 1.0):
+                 command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02, settle_timeout_s: float = 1.0,
+                 retries: int = 2):
         super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
+        self.retries = retries
         if len(motor_ids) != len(self.joint_names):
             raise ValueError(f"LEAP: {len(motor_ids)} motor ids for {len(self.joint_names)} joints")
         self.port, self.baudrate = port, baudrate
@@ -67,8 +70,18 @@ class LeapBackend(StreamingBackend):
         return self._port is not None
 
     def connect(self) -> None:
+        """Open the port and configure every motor; DeviceRefused if a motor reports a hardware error
+        (overload, overheating, ...): recover() reboots such motors and connects."""
         if self.connected:
             return
+        self._open_port()
+        try:
+            self._configure(_sdk())
+        except BackendError:
+            self._close_port()
+            raise
+
+    def _open_port(self) -> None:
         sdk = _sdk()
         port = sdk.PortHandler(self.port)
         try:
@@ -78,24 +91,19 @@ class LeapBackend(StreamingBackend):
         if not opened:
             raise DeviceUnavailable(f"LEAP hand: cannot open {self.port} at {self.baudrate} baud")
         self._port, self._packets = port, sdk.PacketHandler(2.0)
-        try:
-            self._configure(sdk)
-        except BackendError:
-            self._close_port()
-            raise
 
     def _configure(self, sdk) -> None:
-        missing = [i for i in self.motor_ids if self._packets.ping(self._port, i)[1] != sdk.COMM_SUCCESS]
+        missing = [i for i in self.motor_ids if not self._ping(sdk, i)]
         if missing:
             raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
                                     f"(power, cabling, ids or baud rate {self.baudrate})")
-        cap = int(round(self.effort_cap[0]))
-        for motor in self.motor_ids:
+        caps = [int(round(c)) for c in self.effort_cap]
+        for motor, cap in zip(self.motor_ids, caps):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)  # EEPROM items below are writable only with torque off
             self._write(motor, ADDR_OPERATING_MODE, 1, CURRENT_BASED_POSITION_MODE)
             self._write(motor, ADDR_CURRENT_LIMIT, 2, cap)
-        self._hold_here(sdk)
-        for motor in self.motor_ids:
+        self._hold_here()
+        for motor, cap in zip(self.motor_ids, caps):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 1)
             self._write(motor, ADDR_GOAL_CURRENT, 2, cap)
         self._writer = sdk.GroupSyncWrite(self._port, self._packets, ADDR_GOAL_POSITION, LEN_GOAL_POSITION)
@@ -103,17 +111,30 @@ class LeapBackend(StreamingBackend):
         for motor in self.motor_ids:
             self._reader.addParam(motor)
 
-    def _hold_here(self, sdk) -> None:
+    def _ping(self, sdk, motor: int) -> bool:
+        _, result, _ = self._transaction(self._packets.ping, motor)
+        return result == sdk.COMM_SUCCESS
+
+    def _hold_here(self) -> None:
         """Goal Position := present position before torque goes on, so enabling torque does not jump."""
         for motor in self.motor_ids:
-            ticks, result, error = self._packets.read4ByteTxRx(self._port, motor, ADDR_PRESENT_CURRENT + 6)
+            ticks, result, error = self._transaction(self._packets.read4ByteTxRx, motor, ADDR_PRESENT_POSITION)
             self._check(result, error, motor, "read present position")
             self._write(motor, ADDR_GOAL_POSITION, 4, ticks)
 
+    def _transaction(self, fn, *args):
+        """One instruction/status exchange; retried when the status packet is lost (writes and reads are
+        idempotent), as a lost packet on a loaded host or a noisy RS-485 line is not a dead motor."""
+        for _ in range(self.retries + 1):
+            with self._io:
+                answer = fn(self._port, *args)
+            if answer[-2] == 0:  # (..., result, error): COMM_SUCCESS
+                break
+        return answer
+
     def _write(self, motor: int, address: int, size: int, value: int) -> None:
         write = {1: self._packets.write1ByteTxRx, 2: self._packets.write2ByteTxRx, 4: self._packets.write4ByteTxRx}[size]
-        with self._io:
-            result, error = write(self._port, motor, address, int(value) & ((1 << (8 * size)) - 1))
+        result, error = self._transaction(write, motor, address, int(value) & ((1 << (8 * size)) - 1))
         self._check(result, error, motor, f"write {value} to address {address}")
 
     def _check(self, result: int, error: int, motor: int, what: str) -> None:
@@ -154,35 +175,47 @@ class LeapBackend(StreamingBackend):
     def state(self) -> JointState:
         self.require_connected()
         with self._io:
-            result = self._reader.txRxPacket()
+            for _ in range(self.retries + 1):  # a lost status packet is retried, as on a real USB-serial link
+                result = self._reader.txRxPacket()
+                if result == 0:
+                    break
             if result != 0:
                 raise DeviceUnavailable(f"LEAP hand: state sync read failed: {self._packets.getTxRxResult(result)}")
-            raw = [(self._reader.getData(m, ADDR_PRESENT_CURRENT, 2), self._reader.getData(m, ADDR_PRESENT_CURRENT + 2, 4),
-                    self._reader.getData(m, ADDR_PRESENT_CURRENT + 6, 4)) for m in self.motor_ids]
+            raw = [(self._reader.getData(m, ADDR_PRESENT_CURRENT, 2), self._reader.getData(m, ADDR_PRESENT_VELOCITY, 4),
+                    self._reader.getData(m, ADDR_PRESENT_POSITION, 4)) for m in self.motor_ids]
         current, velocity, position = (np.array([_signed(v[k], (2, 4, 4)[k]) for v in raw], dtype=np.float64)
                                        for k in range(3))
         return JointState(time.time(), self.joint_names, position / TICKS_PER_RAD - LEAP_ZERO_OFFSET_RAD,
                           velocity * VELOCITY_UNIT_RAD_S, current)
 
     def recover(self) -> None:
-        """Reboot motors reporting a hardware error (overload, overheating...), then re-enable torque in place."""
+        """Reboot motors reporting a hardware error (overload, overheating...), then re-enable torque in place.
+
+        Also usable when connect() was refused because of such an error: it opens the port first.
+        """
         super().recover()
-        self.require_connected()
-        sdk = _sdk()
+        opened_here = not self.connected
+        if opened_here:
+            self._open_port()
+        try:
+            sdk = _sdk()
+            for motor in self._faulty():
+                result, _ = self._transaction(self._packets.reboot, motor)
+                if result != 0:
+                    raise DeviceUnavailable(f"LEAP motor {motor}: reboot failed: {self._packets.getTxRxResult(result)}")
+            self._configure(sdk)
+        except BackendError:
+            if opened_here:
+                self._close_port()
+            raise
+
+    def _faulty(self) -> list[int]:
         faulty = []
         for motor in self.motor_ids:
-            with self._io:
-                value, result, error = self._packets.read1ByteTxRx(self._port, motor, ADDR_HARDWARE_ERROR)
+            value, result, error = self._transaction(self._packets.read1ByteTxRx, motor, ADDR_HARDWARE_ERROR)
             if result == 0 and (value or error & 0x80):
                 faulty.append(motor)
-        for motor in faulty:
-            with self._io:
-                result, error = self._packets.reboot(self._port, motor)
-            if result != 0:
-                raise DeviceUnavailable(f"LEAP motor {motor}: reboot failed: {self._packets.getTxRxResult(result)}")
-        if faulty:
-            time.sleep(0.05)
-            self._configure(sdk)
+        return faulty
 
 
 def _signed(value: int, size: int) -> int:

@@ -19,6 +19,10 @@ from services.robot_bridge.backend import DeviceRefused, DeviceUnavailable, Join
 
 XARM7_JOINTS: tuple[str, ...] = tuple(f"joint{i}" for i in range(1, 8))
 SERVO_MODE, STATE_READY, STATE_STOP = 1, 0, 4
+# Return codes that mean the link failed, not that the controller refused (xarm.x3.code.APIState):
+# NOT_CONNECTED -1, reply timeout 3, reply length/number/protocol/function mismatch 4-7, send error 8.
+# Every other non-zero code (an uncleared error 1, not ready -2/9, joint limit -7, e-stop -9, ...) is a refusal.
+LINK_ERROR_CODES = frozenset({-1, 3, 4, 5, 6, 7, 8})
 
 
 def _default_api(ip: str):
@@ -75,8 +79,8 @@ class XArmBackend(StreamingBackend):
             result = fn(*args, **kwargs)
         code = result[0] if isinstance(result, (tuple, list)) else result
         if code != 0:
-            if code < 0 or code == 2 or code == 3:  # SDK-side: not connected / not ready / timeout
-                raise DeviceUnavailable(f"xArm at {self.ip}: {what} failed with code {code}")
+            if code in LINK_ERROR_CODES:
+                raise DeviceUnavailable(f"xArm at {self.ip}: {what} failed with code {code} (link to the controller)")
             raise DeviceRefused(f"xArm at {self.ip}: {what} refused with code {code}; "
                                 f"controller error/warn {self._api.error_code}/{self._api.warn_code}")
         return result

@@ -57,6 +57,11 @@ class SimAllegroHand:
             self.status_faults = status_bits
             self.servo_on = False
 
+    def clear_fault(self) -> None:
+        """The cause is gone (e.g. the motors cooled down): HAND_INFO stops reporting it."""
+        with self._lock:
+            self.status_faults = 0
+
     def _receive(self) -> None:
         while not self._stop.is_set():
             msg = self.bus.recv(timeout=0.05)
@@ -77,7 +82,6 @@ class SimAllegroHand:
         elif mid == proto.ID_CMD_SYSTEM_OFF:
             self._integrate()
             self.servo_on = False
-            self.status_faults = 0  # power-cycling the servos clears latched faults
         elif mid == proto.ID_CMD_SET_PERIOD:
             position_ms = int.from_bytes(bytes(msg.data[:2]), "little", signed=True)
             self.period_s = position_ms / 1000.0

@@ -294,7 +294,8 @@ class DynamixelBus:
     def _sync_write(self, params: bytes) -> None:
         address, size = struct.unpack_from("<HH", params)
         body = params[4:]
-        for offset in range(0, len(body) - size, size + 1):  # entries: id(1) + data(size)
+        entry = 1 + size  # id, then `size` data bytes
+        for offset in range(0, len(body) - entry + 1, entry):
             motor = self.motors.get(body[offset])
             if motor is not None:
-                motor.write(address, body[offset + 1:offset + 1 + size])
+                motor.write(address, body[offset + 1:offset + entry])

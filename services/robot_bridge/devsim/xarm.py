@@ -40,6 +40,7 @@ class FakeXArmController:
         self.targets = self.positions.copy()
         self.velocities = np.zeros(7)
         self.torques = np.zeros(7)
+        self.external_torques = np.zeros(7)  # tests: a contact loading the joints (Nm), added to the reports
         self.tau, self.max_speed, self.torque_per_rad = time_constant_s, max_speed_rad_s, torque_per_rad
         self.enabled = False
         self.mode = 0
@@ -154,7 +155,7 @@ class FakeXArmController:
         step = speed * dt
         self.positions = np.where(np.abs(step) >= np.abs(error), self.positions + error, self.positions + step)
         self.velocities = np.where(np.abs(step) >= np.abs(error), 0.0, speed)
-        self.torques = self.torque_per_rad * error
+        self.torques = self.torque_per_rad * error + self.external_torques
 
 
 def fake_xarm_api(controller: FakeXArmController, ip: str = "192.168.1.201"):

@@ -1,0 +1,238 @@
+"""Multi-step pushing: a path for the object's centre around circular obstacles, cut into pushes.
+
+The paper plans the object's path with RRT* in the image plane around obstacles of a fixed radius,
+then plans one push (hand pose + arm motion) per path edge, re-planning from the observed object
+pose after each push. Here the plane is the table (world x, y):
+
+- the object is a disc of radius `object_radius_m` (its footprint's circumradius), so each obstacle
+  is inflated by that radius plus `margin_m` and the object's centre plans as a point;
+- OMPL RRT* (path-length objective) in R² within `bounds`, for `planning_time_s` (RRT* keeps
+  improving until then), then OMPL's shortcutting to drop needless corners (every corner is a new
+  push, i.e. another hand pose and arm plan);
+- the path is checked exactly (segment-to-circle distance) after planning, since OMPL checks edges
+  at a finite resolution;
+- `split_into_pushes` cuts every edge into equal pushes no longer than the longest single push;
+- `push_along_path` runs the loop: plan the path from where the object is, push to the first
+  waypoint (`push` callback: plan a hand pose and arm motion, execute, observe), re-plan from the
+  observed position, until the object is within `goal_tolerance_m` of the goal.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from ompl import base as ob
+from ompl import geometric as og
+from ompl import util as ou
+
+from services.planner.motion import PlanningError
+
+ou.setLogLevel(ou.LogLevel.LOG_ERROR)
+
+DEFAULT_PADDING_M = 0.3  # default bounds: the start-goal box grown by this much on every side
+EDGE_CHECK_M = 0.002  # OMPL's edge collision-check spacing
+
+
+@dataclass(frozen=True)
+class Disc:
+    """A circular obstacle on the table (world x, y, radius in metres)."""
+
+    x: float
+    y: float
+    radius: float
+
+    @classmethod
+    def of(cls, obstacle) -> "Disc":
+        """From a Disc, a shared.messages.CircleObstacle or an (x, y, radius) tuple."""
+        if isinstance(obstacle, Disc):
+            return obstacle
+        if hasattr(obstacle, "radius"):
+            return cls(float(obstacle.x), float(obstacle.y), float(obstacle.radius))
+        x, y, radius = obstacle
+        return cls(float(x), float(y), float(radius))
+
+
+@dataclass(frozen=True)
+class ObjectPath:
+    """The planned path of the object's centre and what it cost."""
+
+    waypoints: np.ndarray  # [n, 2], start first, goal last
+    length_m: float
+    min_clearance_m: float  # smallest distance from the path to an obstacle's edge (inf without obstacles)
+    planning_s: float
+
+
+def plan_object_path(
+    start_xy: Sequence[float],
+    goal_xy: Sequence[float],
+    obstacles: Sequence = (),
+    *,
+    object_radius_m: float,
+    margin_m: float = 0.02,
+    bounds: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    planning_time_s: float = 0.5,
+) -> ObjectPath:
+    """RRT* path for the object's centre from `start_xy` to `goal_xy` around circular `obstacles`.
+
+    Raises PlanningError when the start or goal is too close to an obstacle or no path is found.
+    """
+    if object_radius_m <= 0 or margin_m < 0:
+        raise PlanningError("bad request",
+                            f"object radius must be > 0 and margin >= 0, got {object_radius_m}, {margin_m}")
+    start, goal = np.asarray(start_xy, dtype=np.float64)[:2], np.asarray(goal_xy, dtype=np.float64)[:2]
+    discs = [Disc.of(o) for o in obstacles]
+    inflate = object_radius_m + margin_m
+    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
+    radii = np.array([d.radius + inflate for d in discs])
+    for name, point in (("start", start), ("goal", goal)):
+        gaps = np.linalg.norm(centres - point, axis=1) - radii
+        if gaps.size and gaps.min() < 0:
+            i = int(gaps.argmin())
+            raise PlanningError(f"{name} blocked", f"the object's {name} {point.round(3).tolist()} is within "
+                                f"{inflate:.3f} m (object radius + margin) of obstacle {i}")
+    low, high = _bounds(start, goal, bounds)
+    if np.any(start < low) or np.any(start > high) or np.any(goal < low) or np.any(goal > high):
+        raise PlanningError("bad request",
+                            f"start and goal must lie inside the bounds {low.tolist()} .. {high.tolist()}")
+
+    started = time.perf_counter()
+    waypoints = _rrt_star(start, goal, centres, radii, low, high, planning_time_s)
+    planning_s = time.perf_counter() - started
+    clearance = _path_clearance(waypoints, centres, radii - inflate)
+    if clearance < object_radius_m:  # OMPL's discrete edge checks missed a corner: never hand that out
+        raise PlanningError("no collision-free path", f"the object path passes {clearance:.3f} m from an obstacle")
+    length = float(np.linalg.norm(np.diff(waypoints, axis=0), axis=1).sum())
+    return ObjectPath(waypoints=waypoints, length_m=length, min_clearance_m=clearance, planning_s=planning_s)
+
+
+def _bounds(start: np.ndarray, goal: np.ndarray, bounds) -> tuple[np.ndarray, np.ndarray]:
+    if bounds is None:
+        return np.minimum(start, goal) - DEFAULT_PADDING_M, np.maximum(start, goal) + DEFAULT_PADDING_M
+    low, high = np.asarray(bounds[0], dtype=np.float64), np.asarray(bounds[1], dtype=np.float64)
+    if low.shape != (2,) or high.shape != (2,) or np.any(high <= low):
+        raise PlanningError("bad request", f"bounds must be ((xmin, ymin), (xmax, ymax)) with max > min, got {bounds}")
+    return low, high
+
+
+def _rrt_star(start, goal, centres, radii, low, high, planning_time_s) -> np.ndarray:
+    space = ob.RealVectorStateSpace(2)
+    limits = ob.RealVectorBounds(2)
+    for i in range(2):
+        limits.setLow(i, float(low[i]))
+        limits.setHigh(i, float(high[i]))
+    space.setBounds(limits)
+    space.setLongestValidSegmentFraction(EDGE_CHECK_M / space.getMaximumExtent())
+    setup = og.SimpleSetup(space)
+
+    def valid(state) -> bool:
+        point = np.array([state[0], state[1]])
+        return bool(np.all(np.sum((centres - point) ** 2, axis=1) > radii**2))
+
+    setup.setStateValidityChecker(valid)
+    start_state, goal_state = space.allocState(), space.allocState()
+    for i in range(2):
+        start_state[i], goal_state[i] = float(start[i]), float(goal[i])
+    setup.setStartAndGoalStates(start_state, goal_state)
+    info = setup.getSpaceInformation()
+    setup.setOptimizationObjective(ob.PathLengthOptimizationObjective(info))
+    setup.setPlanner(og.RRTstar(info))
+    solved = setup.solve(planning_time_s)
+    if not (solved and setup.haveExactSolutionPath()):
+        raise PlanningError("no collision-free path",
+                            f"RRT* found no path for the object around the obstacles within {planning_time_s:.1f} s")
+    path = setup.getSolutionPath()
+    simplifier = og.PathSimplifier(info)
+    simplifier.reduceVertices(path)
+    simplifier.partialShortcutPath(path)
+    simplifier.reduceVertices(path)
+    return np.array([[s[0], s[1]] for s in path.getStates()])
+
+
+def _path_clearance(waypoints: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> float:
+    """Smallest distance from the polyline to any circle's edge (exact segment-point distance)."""
+    if len(centres) == 0:
+        return math.inf
+    a, b = waypoints[:-1, None, :], waypoints[1:, None, :]  # [E, 1, 2]
+    ab = b - a
+    t = np.clip(np.sum((centres[None] - a) * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-12), 0.0, 1.0)
+    nearest = a + t[..., None] * ab
+    return float((np.linalg.norm(centres[None] - nearest, axis=-1) - radii[None]).min())
+
+
+def split_into_pushes(waypoints: np.ndarray, max_push_m: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(from_xy, to_xy) pushes along the path, each edge cut into equal pieces no longer than `max_push_m`."""
+    if max_push_m <= 0:
+        raise PlanningError("bad request", f"max push distance must be positive, got {max_push_m}")
+    waypoints = np.asarray(waypoints, dtype=np.float64)
+    pushes = []
+    for a, b in zip(waypoints[:-1], waypoints[1:]):
+        length = float(np.linalg.norm(b - a))
+        if length < 1e-9:
+            continue
+        pieces = math.ceil(length / max_push_m - 1e-9)
+        cuts = [a + (b - a) * k / pieces for k in range(pieces + 1)]
+        pushes += list(zip(cuts[:-1], cuts[1:]))
+    return pushes
+
+
+@dataclass(frozen=True)
+class MultiStepResult:
+    """How a multi-step push ended: every observed object position, the paths planned, success."""
+
+    positions: list[np.ndarray]  # observed object centre (x, y) before the first push and after each
+    paths: list[ObjectPath]  # the path planned before each push
+    success: bool  # final position within the goal tolerance
+    message: str
+
+
+PushStep = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""push(from_xy, to_xy) -> the object's observed (x, y) after pushing it toward to_xy."""
+
+
+def push_along_path(
+    start_xy: Sequence[float],
+    goal_xy: Sequence[float],
+    obstacles: Sequence,
+    push: PushStep,
+    *,
+    object_radius_m: float,
+    max_push_m: float = 0.20,
+    margin_m: float = 0.02,
+    goal_tolerance_m: float = 0.03,
+    max_steps: int = 10,
+    bounds: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    planning_time_s: float = 0.5,
+) -> MultiStepResult:
+    """Push the object from `start_xy` to `goal_xy` around `obstacles`, one path edge (piece) at a time.
+
+    After every push the path is planned again from the observed position (the paper's re-planning):
+    a push that lands off the path is corrected by the next one. Raises PlanningError when no path
+    exists from where the object is; `push` raises its own errors (e.g. no feasible hand pose).
+    """
+    goal = np.asarray(goal_xy, dtype=np.float64)[:2]
+    positions, paths = [np.asarray(start_xy, dtype=np.float64)[:2]], []
+    for _ in range(max_steps):
+        if np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m:
+            return MultiStepResult(positions, paths, True, f"reached the goal in {len(paths)} push(es)")
+        # A push may leave the object inside the margin band around an obstacle (never inside the obstacle
+        # plus the object's radius, or it would have hit it): plan the way out with the margin it has left.
+        margin = min(margin_m, _margin_left(positions[-1], obstacles, object_radius_m))
+        path = plan_object_path(positions[-1], goal, obstacles, object_radius_m=object_radius_m, margin_m=margin,
+                                bounds=bounds, planning_time_s=planning_time_s)
+        paths.append(path)
+        _, target = split_into_pushes(path.waypoints, max_push_m)[0]
+        positions.append(np.asarray(push(positions[-1], target), dtype=np.float64)[:2])
+    reached = np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m
+    return MultiStepResult(positions, paths, bool(reached),
+                           f"{'reached' if reached else 'did not reach'} the goal after {max_steps} pushes "
+                           f"({np.linalg.norm(positions[-1] - goal):.3f} m away)")
+
+
+def _margin_left(position: np.ndarray, obstacles: Sequence, object_radius_m: float) -> float:
+    """How much margin `position` keeps beyond every obstacle's radius + the object's radius (>= 0)."""
+    gaps = [np.hypot(position[0] - d.x, position[1] - d.y) - d.radius - object_radius_m
+            for d in map(Disc.of, obstacles)]
+    return max(0.0, min(gaps, default=np.inf) - 1e-3)

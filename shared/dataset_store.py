@@ -1,0 +1,275 @@
+"""The pose store: validated push poses in Parquet shards plus a `manifest.json` (issue 5).
+
+Written by the data engine (`gd2p dataset build`), read by the sampler's training
+(`services.sampler.dataset.load_pose_dataset`) and by `gd2p dataset stats`.
+
+Layout of a store directory:
+
+    manifest.json              what the store holds (below); the only file a reader trusts
+    shards/<object_id>.parquet the successful poses of one object (raw and augmented)
+
+Columns of a shard (the first five are the reader contract of `services.sampler.dataset`):
+
+    object_id  string             library id
+    hand       string             "allegro" | "leap"
+    pose       list<float32>[25]  [p(3), r6(6), q(16)] of the hand base in D (push along +x)
+    pose_index int32, null        resting pose of the object (null: its default one)
+    yaw_rad    float64            yaw of the object about D's z axis
+    stage      string             "raw" (a generator candidate) | "augmented" (a Halton copy)
+    pose_id    string             stable id: "<object>/r<round>/c<candidate>[/a<copy>]"
+    parent_id  string, null       augmented rows: the pose_id of the raw pose they perturb
+    round, candidate_index, generator_seed, validation_seed   provenance of the pose
+    position_error_m, rotation_deg, max_tilt_deg, contact_kept, hand_table_contact,
+    initial_penetration_m          the push outcome (every stored row succeeded)
+    energy_<term>, max_penetration_m, palm_normal_x   generator figures (raw rows; null on copies)
+    solver_iterations, time_step_s, push_speed_mps, push_distance_m, code_version
+
+Atomicity: one shard per finished object (the unit of work). A shard is written to a temporary
+file, fsynced and renamed into place; then the manifest - which lists the shard with its row
+count and sha256 and marks the object done - is replaced the same way. A crash at any point
+leaves either the old manifest (the object is redone on resume; its shard is rewritten with the
+same content, since every object's result is a function of the build seed and its id) or the new
+one. Readers only follow the manifest, so a half-written or orphaned file is never visible.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+MANIFEST_NAME = "manifest.json"
+SHARD_DIR = "shards"
+STORE_FORMAT = "gd2p-pose-store"
+STORE_VERSION = 1
+STAGES = ("raw", "augmented")
+# Per-object counts kept in the manifest (what `gd2p dataset stats` reports per stage).
+COUNT_KEYS = ("generated", "raw_successes", "augmented_validated", "augmented_successes")
+# Build parameters that fix the content: resuming with other values would mix two datasets.
+CONTENT_PARAMETERS = ("hand", "split", "per_object", "seed", "iterations", "min_poses", "max_rounds",
+                      "physics", "push_distance_m")
+_SAFE_NAME = re.compile(r"[^A-Za-z0-9._-]")
+
+
+class StoreError(ValueError):
+    """A store that cannot be opened or written as asked (missing, corrupt, other build)."""
+
+
+@dataclass(frozen=True)
+class ObjectStatus:
+    """What the manifest knows about one finished object."""
+
+    object_id: str
+    counts: dict[str, int]
+    shard: str | None  # relative path; None when the object gave no successful pose
+    rows: int
+
+
+# ----------------------------------------------------------------------------- atomic files
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write(path: Path, data: bytes) -> None:
+    """Write `data` to `path` so a reader sees the old file or the new one, never a part."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def table_to_parquet_bytes(table: pa.Table) -> bytes:
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    return sink.getvalue().to_pybytes()
+
+
+# ----------------------------------------------------------------------------- the store
+class DatasetStore:
+    """A pose store directory; see the module docstring. Not safe for two concurrent writers."""
+
+    def __init__(self, directory: Path, manifest: dict[str, Any]):
+        self.directory = directory
+        self.manifest = manifest
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(cls, directory: str | os.PathLike) -> "DatasetStore":
+        """An existing store (raises StoreError if there is none or its manifest is unreadable)."""
+        directory = Path(directory)
+        path = directory / MANIFEST_NAME
+        if not path.is_file():
+            raise StoreError(f"{directory}: not a pose store (no {MANIFEST_NAME})")
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"{path}: unreadable manifest: {exc}") from exc
+        if not isinstance(manifest, dict) or manifest.get("format") != STORE_FORMAT:
+            raise StoreError(f"{path}: not a {STORE_FORMAT} manifest")
+        if manifest.get("version") != STORE_VERSION:
+            raise StoreError(f"{path}: store version {manifest.get('version')} is not supported (expected {STORE_VERSION})")
+        return cls(directory, manifest)
+
+    @classmethod
+    def create_or_resume(cls, directory: str | os.PathLike, parameters: Mapping[str, Any]) -> "DatasetStore":
+        """Open the store for a build with `parameters`, creating it if the directory has none.
+
+        Refuses (StoreError) to resume a store built with different content parameters
+        (`CONTENT_PARAMETERS`): the result would be a mix of two datasets.
+        """
+        directory = Path(directory)
+        if (directory / MANIFEST_NAME).is_file():
+            store = cls.open(directory)
+            store._check_same_build(parameters)
+            return store
+        if directory.exists() and any(p.name != SHARD_DIR for p in directory.iterdir()):
+            raise StoreError(f"{directory}: exists and is not a pose store; choose an empty or new directory")
+        manifest = {"format": STORE_FORMAT, "version": STORE_VERSION, "hand": parameters["hand"],
+                    "split": parameters["split"], "parameters": dict(parameters), "shards": [], "objects": {},
+                    "runs": [], "totals": _totals({}), "content_hash": content_hash(pa.table({}))}
+        store = cls(directory, manifest)
+        store._save()
+        return store
+
+    def _check_same_build(self, parameters: Mapping[str, Any]) -> None:
+        stored = self.manifest.get("parameters", {})
+        differ = {k: (stored.get(k), parameters.get(k)) for k in CONTENT_PARAMETERS
+                  if _canonical(stored.get(k)) != _canonical(parameters.get(k))}
+        if differ:
+            listing = ", ".join(f"{k}: stored {a!r}, asked {b!r}" for k, (a, b) in differ.items())
+            raise StoreError(f"{self.directory}: was built with other parameters ({listing}); "
+                             "use another --out directory or the same parameters to resume")
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def hand(self) -> str:
+        return self.manifest["hand"]
+
+    def completed_objects(self) -> dict[str, ObjectStatus]:
+        """Objects whose result is stored, by id (done objects are skipped on resume)."""
+        return {oid: ObjectStatus(oid, dict(entry["counts"]), entry.get("shard"), int(entry.get("rows", 0)))
+                for oid, entry in self.manifest["objects"].items() if entry.get("status") == "done"}
+
+    def shard_paths(self) -> list[Path]:
+        return [self.directory / s["path"] for s in self.manifest["shards"]]
+
+    def rows(self, columns: Sequence[str] | None = None) -> pa.Table:
+        """Every stored row, shards in manifest order (an empty table for an empty store)."""
+        tables = [pq.read_table(p, columns=list(columns) if columns else None) for p in self.shard_paths()]
+        if not tables:
+            return pa.table({})
+        return pa.concat_tables(tables, promote_options="default")
+
+    def verify(self) -> None:
+        """Raise StoreError if a listed shard is missing or its bytes differ from the manifest."""
+        for entry in self.manifest["shards"]:
+            path = self.directory / entry["path"]
+            if not path.is_file():
+                raise StoreError(f"{path}: listed in the manifest but missing")
+            if _sha256_file(path) != entry["sha256"]:
+                raise StoreError(f"{path}: content differs from the manifest's sha256 (modified or corrupt)")
+
+    # ------------------------------------------------------------------ writing
+    def write_object(self, object_id: str, rows: pa.Table, stats: Mapping[str, Any]) -> ObjectStatus:
+        """Store one finished object atomically: its shard (if any row), then the manifest.
+
+        `stats` must hold the per-stage counts (`COUNT_KEYS`); other entries (rounds, elapsed_s,
+        seeds) are kept in the object's manifest entry. Re-writing an object replaces it.
+        """
+        missing = [k for k in COUNT_KEYS if k not in stats]
+        if missing:
+            raise StoreError(f"{object_id}: stats lack {missing}")
+        if rows.num_rows and set(rows.column("object_id").unique().to_pylist()) != {object_id}:
+            raise StoreError(f"{object_id}: rows of other objects given: {rows.column('object_id').unique().to_pylist()}")
+        shard = None
+        self.manifest["shards"] = [s for s in self.manifest["shards"] if s.get("object_id") != object_id]
+        if rows.num_rows:
+            shard = f"{SHARD_DIR}/{_SAFE_NAME.sub('_', object_id)}.parquet"
+            data = table_to_parquet_bytes(rows)
+            atomic_write(self.directory / shard, data)
+            self.manifest["shards"].append({"path": shard, "object_id": object_id, "rows": rows.num_rows,
+                                            "sha256": hashlib.sha256(data).hexdigest()})
+            self.manifest["shards"].sort(key=lambda s: s["object_id"])
+        counts = {k: int(stats[k]) for k in COUNT_KEYS}
+        extra = {k: v for k, v in stats.items() if k not in COUNT_KEYS}
+        self.manifest["objects"][object_id] = {"status": "done", "counts": counts, "shard": shard,
+                                               "rows": rows.num_rows, **extra}
+        self.manifest["objects"] = dict(sorted(self.manifest["objects"].items()))
+        self.manifest["totals"] = _totals(self.manifest["objects"])
+        self._save()
+        return ObjectStatus(object_id, counts, shard, rows.num_rows)
+
+    def record_run(self, run: Mapping[str, Any]) -> None:
+        """Append one build run (command line, wall time, figures) and refresh the content hash."""
+        self.manifest["runs"].append(dict(run))
+        self.manifest["content_hash"] = self.content_hash()
+        self._save()
+
+    def content_hash(self) -> str:
+        """SHA-256 of the stored rows, independent of shard order, file encoding and row order."""
+        return content_hash(self.rows())
+
+    def _save(self) -> None:
+        text = json.dumps(self.manifest, indent=1, sort_keys=False, default=_json_default)
+        atomic_write(self.directory / MANIFEST_NAME, text.encode())
+
+
+# ----------------------------------------------------------------------------- helpers
+def content_hash(table: pa.Table) -> str:
+    """SHA-256 over the rows of `table` as sorted canonical JSON lines (column order ignored)."""
+    lines = sorted(json.dumps(row, sort_keys=True, default=_json_default, allow_nan=True)
+                   for row in table.to_pylist())
+    digest = hashlib.sha256()
+    for line in lines:
+        digest.update(line.encode() + b"\n")
+    return digest.hexdigest()
+
+
+def _totals(objects: Mapping[str, Mapping[str, Any]]) -> dict[str, int]:
+    totals = {k: 0 for k in COUNT_KEYS}
+    for entry in objects.values():
+        for k in COUNT_KEYS:
+            totals[k] += int(entry["counts"][k])
+    totals["objects"] = len(objects)
+    totals["rows"] = sum(int(e.get("rows", 0)) for e in objects.values())
+    return totals
+
+
+def _sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _canonical(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, default=_json_default)
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "tolist"):  # numpy scalars and arrays
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

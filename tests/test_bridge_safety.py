@@ -1,0 +1,339 @@
+"""Safety of the hardware bridge: limits before motion, the commander's lease, the e-stop.
+
+The robot is an xArm7 (xarm-python-sdk with a fake controller at its transport boundary) carrying a
+LEAP hand (dynamixel-sdk talking Protocol 2.0 to a responder on a pty), driven by `SafeExecutor` on a
+real Zenoh session through an in-process router.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("xarm")
+pytest.importorskip("dynamixel_sdk")
+
+import zenoh  # noqa: E402
+
+from services.robot_bridge.adapters.leap import LeapBackend  # noqa: E402
+from services.robot_bridge.adapters.xarm import XArmBackend  # noqa: E402
+from services.robot_bridge.devsim import dynamixel as dx  # noqa: E402
+from services.robot_bridge.devsim.dynamixel import DynamixelBus  # noqa: E402
+from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api  # noqa: E402
+from services.robot_bridge.safety import (  # noqa: E402
+    ESTOP_KEY,
+    LEAP_LIMITS,
+    XARM7_LIMITS,
+    Device,
+    EStopLatch,
+    SafeExecutor,
+    SafetyRefusal,
+    check_lease_key,
+    lease_alive,
+    lease_key,
+)
+from shared.codec import encode  # noqa: E402
+from shared.messages import EStop, ExecutionCommand, Plan  # noqa: E402
+
+XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
+LEASE = "gd2p/lease/planner-test"
+
+
+def client(endpoint: str) -> zenoh.Session:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", json.dumps("client"))
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+class Robot:
+    """xArm7 + LEAP hand stand-ins, connected, behind a SafeExecutor."""
+
+    def __init__(self, endpoint: str, current_limit_ma: float = 550.0):
+        self.session = client(endpoint)
+        self.controller = FakeXArmController(initial_rad=XARM_HOME)
+        self.bus = DynamixelBus(motor_ids=range(16))
+        self.arm = XArmBackend("192.168.1.201", api_factory=lambda ip: fake_xarm_api(self.controller, ip))
+        self.hand = LeapBackend(self.bus.port_name, current_limit_ma=current_limit_ma)
+        self.arm.connect()
+        self.hand.connect()
+        self.executor = SafeExecutor(self.session, "xarm7", "leap",
+                                     [Device(self.arm, XARM7_LIMITS), Device(self.hand, LEAP_LIMITS)])
+        self._connected_at = (len(self.controller.commands), len(self.bus.instructions))
+
+    def moved(self) -> bool:
+        """Any motion command reached either device since connect."""
+        servo = any(c[0] == "move_servoj" for c in self.controller.commands[self._connected_at[0]:])
+        sync_writes = any(i == dx.INST_SYNC_WRITE for i, _ in self.bus.instructions[self._connected_at[1]:])
+        return servo or sync_writes
+
+    def close(self) -> None:
+        self.executor.close()
+        self.arm.disconnect()
+        self.hand.disconnect()
+        self.bus.close()
+        self.session.close()
+
+
+@pytest.fixture()
+def robot(zenoh_router):
+    r = Robot(zenoh_router)
+    yield r
+    r.close()
+
+
+@pytest.fixture()
+def planner(zenoh_router):
+    """The commander's session holding its lease (liveliness token)."""
+    session = client(zenoh_router)
+    token = session.liveliness().declare_token(LEASE)
+    yield session, token
+    session.close()
+
+
+def plan(arm_goal=XARM_HOME, hand_goal=np.zeros(16), duration_s=0.6, steps=4, arm_start=XARM_HOME,
+         hand_start=np.zeros(16)) -> Plan:
+    alphas = np.linspace(0.0, 1.0, steps)[:, None]
+    start = np.concatenate([arm_start, hand_start])
+    goal = np.concatenate([np.asarray(arm_goal, dtype=float), np.asarray(hand_goal, dtype=float)])
+    return Plan(arm="xarm7", hand="leap", joint_names=[*XARM7_LIMITS.joint_names, *LEAP_LIMITS.joint_names],
+                positions=start + alphas * (goal - start), times_s=np.linspace(0.0, duration_s, steps))
+
+
+def command(p: Plan, lease: str = LEASE, realtime_factor: float = 1.0) -> ExecutionCommand:
+    return ExecutionCommand(plan=p, lease_token=lease, realtime_factor=realtime_factor)
+
+
+def wait_for_lease(session: zenoh.Session, present: bool = True, timeout: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout
+    while lease_alive(session, LEASE, 0.5) != present:
+        assert time.monotonic() < deadline, f"lease presence never became {present}"
+        time.sleep(0.05)
+
+
+# ------------------------------------------------------------------------------------------ limits
+def test_a_valid_plan_with_a_live_lease_moves_both_devices(robot, planner):
+    wait_for_lease(robot.session)
+    goal_arm, goal_hand = XARM_HOME + 0.1, np.full(16, 0.3)
+    state = robot.executor.execute(command(plan(goal_arm, goal_hand)))
+    assert state.status == "done", state.message
+    np.testing.assert_allclose(robot.controller.positions, goal_arm, atol=0.01)
+    np.testing.assert_allclose(np.array(robot.bus.positions_rad()) - np.pi, goal_hand, atol=0.02)
+    assert state.joint_names[:7] == list(XARM7_LIMITS.joint_names)
+
+
+@pytest.mark.parametrize("case, check", [
+    ("hand joint beyond its limit", "joint position"),
+    ("arm joint too fast", "joint velocity"),
+    ("fine at 1x, too fast at 20x", "joint velocity"),
+    ("flange under the table", "workspace box"),
+    ("plan starts elsewhere", "start"),
+])
+def test_a_plan_outside_the_limits_is_refused_before_anything_moves(robot, planner, case, check):
+    wait_for_lease(robot.session)
+    factor = 1.0
+    if case == "hand joint beyond its limit":
+        hand = np.zeros(16)
+        hand[1] = 2.5  # LEAP joint 1 ends at 2.23 rad
+        p = plan(hand_goal=hand, duration_s=2.0)
+    elif case == "arm joint too fast":
+        p = plan(arm_goal=XARM_HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]), duration_s=0.1, steps=2)  # 6 rad/s
+    elif case == "fine at 1x, too fast at 20x":
+        p = plan(arm_goal=XARM_HOME + np.array([0.6, 0, 0, 0, 0, 0, 0]), duration_s=2.0)
+        factor = 20.0
+    elif case == "flange under the table":
+        bent = XARM_HOME.copy()
+        bent[1] = 1.2  # leaning forward with the elbow bent: flange ~0.1 m below the table top
+        p = plan(arm_goal=bent, duration_s=4.0, steps=8)
+    else:
+        p = plan(arm_start=XARM_HOME + 0.3, arm_goal=XARM_HOME + 0.3, duration_s=1.0)
+    state = robot.executor.execute(command(p, realtime_factor=factor))
+    assert state.status == "refused"
+    assert check in state.message
+    assert not robot.moved()
+
+
+def test_an_effort_cap_above_the_device_limit_is_refused(zenoh_router, planner):
+    robot = Robot(zenoh_router, current_limit_ma=900.0)  # LEAP limit: 550 mA
+    try:
+        with pytest.raises(SafetyRefusal, match="900 mA, above its limit 550 mA"):
+            robot.executor.check(command(plan(hand_goal=np.full(16, 0.1))))
+        assert not robot.moved()
+    finally:
+        robot.close()
+
+
+def test_a_measured_effort_over_its_limit_stops_every_device_and_latches(robot, planner):
+    wait_for_lease(robot.session)
+    def contact() -> None:  # 0.4 s in, the arm runs into something: joint 2 loads up to 65 Nm (limit 50)
+        robot.controller.external_torques[1] = 65.0
+
+    threading.Timer(0.4, contact).start()
+    goal = XARM_HOME + 0.6
+    state = robot.executor.execute(command(plan(goal, np.full(16, 0.8), duration_s=2.0, steps=6)))
+    assert state.status == "stopped" and "effort" in state.message and "Nm" in state.message
+    assert np.max(np.abs(robot.controller.positions - goal)) > 0.2
+    assert np.max(np.abs(np.array(robot.bus.positions_rad()) - np.pi - 0.8)) > 0.2  # the hand stopped too
+    here = np.concatenate([robot.arm.state().positions, robot.hand.state().positions])
+    refused = robot.executor.execute(command(plan(here[:7], here[7:], arm_start=here[:7], hand_start=here[7:])))
+    assert refused.status == "refused" and "protective stop" in refused.message  # latched until an operator resets
+
+
+# ------------------------------------------------------------------------------------------ lease
+def test_lease_tokens_must_be_concrete_keys():
+    for bad in ("gd2p/lease/*", "gd2p/**", "", "gd2p//x", "gd2p/lease/$*a"):
+        with pytest.raises(SafetyRefusal, match="lease"):
+            check_lease_key(bad)
+    assert check_lease_key(LEASE) == LEASE
+    assert lease_key("planner-test") == LEASE
+
+
+def test_a_command_whose_lease_is_not_alive_is_refused(robot):
+    state = robot.executor.execute(command(plan(XARM_HOME + 0.1)))
+    assert state.status == "refused" and "lease" in state.message and "not alive" in state.message
+    assert not robot.moved()
+
+
+def test_a_command_arriving_after_the_lease_is_lost_is_refused(robot, planner):
+    session, token = planner
+    wait_for_lease(robot.session)
+    token.undeclare()  # the planner lost its lease (crashed, network gone, session closed)
+    wait_for_lease(robot.session, present=False)
+    state = robot.executor.execute(command(plan(XARM_HOME + 0.1)))
+    assert state.status == "refused" and "not alive" in state.message
+    assert not robot.moved()
+
+
+def test_losing_the_lease_mid_execution_stops_the_motion(robot, zenoh_router):
+    commander = client(zenoh_router)
+    token = commander.liveliness().declare_token(LEASE)
+    try:
+        wait_for_lease(robot.session)
+        goal = XARM_HOME + 0.8
+        threading.Timer(0.5, commander.close).start()  # the commander's process goes away
+        t0 = time.monotonic()
+        state = robot.executor.execute(command(plan(goal, duration_s=3.0, steps=10)))
+        assert state.status == "stopped" and "lease" in state.message, state.message
+        assert time.monotonic() - t0 < 2.0  # stopped well before the 3 s plan would have ended
+        assert np.max(np.abs(robot.controller.positions - goal)) > 0.3  # it did not get there
+        assert ("set_state", 4) in robot.controller.commands  # the controller was told to stop
+        assert robot.controller.state == 0  # and made ready again: a lost lease is no fault
+    finally:
+        del token
+        if not commander.is_closed():
+            commander.close()
+
+
+# ------------------------------------------------------------------------------------------ e-stop
+def test_an_estop_message_stops_every_backend_at_once_and_latches(robot, planner, zenoh_router):
+    session, _ = planner
+    wait_for_lease(robot.session)
+    payload, encoding = encode(EStop(reason="person in the cell", issued_by="operator"))
+    threading.Timer(0.4, lambda: session.put(ESTOP_KEY, payload, encoding=encoding)).start()
+    arm_goal, hand_goal = XARM_HOME + 0.8, np.full(16, 1.0)
+    state = robot.executor.execute(command(plan(arm_goal, hand_goal, duration_s=3.0, steps=10)))
+    assert state.status == "stopped" and "person in the cell" in state.message
+    assert robot.controller.state == 4  # xArm: stop state
+    hand_now = np.array(robot.bus.positions_rad()) - np.pi
+    assert np.max(np.abs(hand_now - hand_goal)) > 0.3  # the hand stopped short too
+    time.sleep(0.2)
+    np.testing.assert_allclose(np.array(robot.bus.positions_rad()) - np.pi, hand_now, atol=0.02)  # and holds
+
+    here_arm = robot.arm.state().positions
+    here_hand = robot.hand.state().positions
+    refused = robot.executor.execute(command(plan(here_arm, here_hand, arm_start=here_arm, hand_start=here_hand)))
+    assert refused.status == "refused" and "e-stop is latched" in refused.message
+    robot.executor.estop.reset()
+    again = robot.executor.execute(command(plan(here_arm + 0.05, here_hand, arm_start=here_arm, hand_start=here_hand)))
+    assert again.status == "done", again.message
+
+
+def test_an_undecodable_message_on_the_estop_key_still_stops(robot, planner):
+    session, _ = planner
+    stopped = threading.Event()
+
+    class Recorder:
+        name, joint_names = "probe", ()
+
+        def stop(self):
+            stopped.set()
+
+    latch = EStopLatch(robot.session, [Recorder()])
+    try:
+        time.sleep(0.2)
+        session.put(ESTOP_KEY, b"STOP")
+        assert stopped.wait(2.0) and latch.triggered.is_set()
+    finally:
+        latch.close()
+
+
+def test_gd2p_bridge_estop_publishes_an_estop(zenoh_router):
+    from cli.main import main
+    from shared.codec import decode
+
+    received: list[EStop] = []
+    with client(zenoh_router) as listener:
+        subscriber = listener.declare_subscriber(
+            ESTOP_KEY, lambda s: received.append(decode(s.payload.to_bytes(), str(s.encoding), EStop)))
+        time.sleep(0.2)
+        assert main(["bridge", "estop", "--connect", zenoh_router, "--reason", "test stop"]) == 0
+        deadline = time.monotonic() + 2.0
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.05)
+        subscriber.undeclare()
+    assert [m.reason for m in received] == ["test stop"]
+
+
+@pytest.mark.hardware_sim
+@pytest.mark.skipif(os.environ.get("GD2P_HARDWARE_SIM") != "1", reason="franky-sim is opt-in: GD2P_HARDWARE_SIM=1")
+def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
+    """Panda-named plans on a Franka FR3 (franky-sim) + Allegro V5 (virtual CAN): runs, and a lost lease stops the FR3."""
+    pytest.importorskip("franky")
+    pytest.importorskip("franky_sim")
+    pytest.importorskip("can")
+    import uuid
+
+    from franky_sim import SimulationServer
+    from franky_sim.mujoco_simulator import MujocoSimulator
+
+    from services.robot_bridge.adapters.allegro import AllegroBackend
+    from services.robot_bridge.adapters.franka import FrankaBackend
+    from services.robot_bridge.devsim.allegro import SimAllegroHand
+    from services.robot_bridge.safety import ALLEGRO_LIMITS, FR3_LIMITS
+
+    channel = f"fr3-test-{uuid.uuid4().hex[:6]}"
+    with MujocoSimulator(enable_visualization=False) as sim, SimAllegroHand(channel=channel, initial_rad=np.full(16, 0.3)):
+        model = sim.add_robot()
+        with SimulationServer(sim) as server, client(zenoh_router) as session, client(zenoh_router) as commander:
+            server.run_async()
+            arm = FrankaBackend(model.hostname, realtime=False, relative_dynamics_factor=0.5)
+            hand = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10)
+            arm.connect()
+            hand.connect()
+            executor = SafeExecutor(session, "panda", "allegro", [Device(arm, FR3_LIMITS), Device(hand, ALLEGRO_LIMITS)])
+            try:
+                token = commander.liveliness().declare_token(LEASE)
+                wait_for_lease(session)
+                names = [*FR3_LIMITS.joint_names, *ALLEGRO_LIMITS.joint_names]
+
+                def fr3_plan(delta: float, duration_s: float) -> Plan:
+                    start = np.concatenate([arm.state().positions, hand.state().positions])
+                    goal = start + np.concatenate([np.full(7, delta), np.zeros(16)])
+                    alphas = np.linspace(0.0, 1.0, 5)[:, None]
+                    return Plan(arm="panda", hand="allegro", joint_names=names, positions=start + alphas * (goal - start),
+                                times_s=np.linspace(0.0, duration_s, 5))
+
+                done = executor.execute(command(fr3_plan(0.1, 1.0)))
+                assert done.status == "done", done.message
+                threading.Timer(0.4, token.undeclare).start()
+                stopped = executor.execute(command(fr3_plan(-0.3, 3.0)))
+                assert stopped.status == "stopped" and "lease" in stopped.message
+            finally:
+                executor.close()
+                arm.disconnect()
+                hand.disconnect()

@@ -1,0 +1,246 @@
+"""Dataset store and `gd2p dataset build/stats` (issue 5 items 5-7).
+
+The builds run against real generator and validator workers (threads of this process, on an
+in-process router) with tiny settings: three procedural train objects, 4 candidates each and 30
+generator iterations.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from cli.main import main as gd2p
+from services.sampler.dataset import load_pose_dataset
+from services.validator.data_engine import SCHEMA, BuildError, select_objects
+from shared.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
+
+REPO = Path(__file__).resolve().parents[1]
+OBJECTS = ["proc-box-003", "proc-box-004", "proc-cylinder-003"]
+PARAMETERS = {"hand": "allegro", "split": "train", "per_object": 4, "seed": 0}
+
+
+def build_args(out: Path, endpoint: str, *extra: str) -> list[str]:
+    return ["dataset", "build", "--hand", "allegro", "--per-object", "4", "--iterations", "30", "--seed", "3",
+            "--object-ids", *OBJECTS, "--connect", endpoint, "--out", str(out), "--no-progress", *extra]
+
+
+def synthetic_rows(object_id: str, n: int) -> pa.Table:
+    """n store rows of one object with random poses (every schema column filled or null)."""
+    rng = np.random.default_rng(abs(hash(object_id)) % 2**32)
+    columns = {name: [None] * n for name in SCHEMA.names}
+    columns.update(object_id=[object_id] * n, hand=["allegro"] * n, yaw_rad=[0.0] * n, stage=["raw"] * n,
+                   pose=rng.normal(size=(n, 25)).astype(np.float32).tolist(),
+                   pose_id=[f"{object_id}/r0/c{i}" for i in range(n)])
+    return pa.table(columns, schema=SCHEMA)
+
+
+def counts(n: int) -> dict[str, int]:
+    return {"generated": 2 * n, "raw_successes": n, "augmented_validated": 0, "augmented_successes": 0}
+
+
+# ----------------------------------------------------------------------------- the store
+def test_store_writes_are_readable_by_the_sampler_and_survive_a_crash_mid_write(tmp_path, monkeypatch):
+    store = DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+    store.write_object("proc-box-003", synthetic_rows("proc-box-003", 5), counts(5))
+    dataset = load_pose_dataset(tmp_path / "ds", "allegro")
+    assert len(dataset) == 5 and dataset.objects() == ["proc-box-003"]
+    hash_before = store.content_hash()
+
+    # The process dies while replacing the manifest: the new shard is on disk, the manifest is not.
+    real_replace = os.replace
+
+    def crash_on_manifest(src, dst):
+        if Path(dst).name == MANIFEST_NAME:
+            raise KeyboardInterrupt("killed")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", crash_on_manifest)
+    with pytest.raises(KeyboardInterrupt):
+        store.write_object("proc-box-004", synthetic_rows("proc-box-004", 7), counts(7))
+    monkeypatch.setattr(os, "replace", real_replace)
+
+    reopened = DatasetStore.open(tmp_path / "ds")
+    assert set(reopened.completed_objects()) == {"proc-box-003"}  # the object will be redone on resume
+    assert len(load_pose_dataset(tmp_path / "ds", "allegro")) == 5  # the orphan shard is invisible
+    assert reopened.content_hash() == hash_before
+    assert not list((tmp_path / "ds").rglob("*.tmp"))  # no temporary file left behind
+    reopened.verify()
+
+
+def test_store_content_hash_ignores_row_and_shard_order(tmp_path):
+    a = DatasetStore.create_or_resume(tmp_path / "a", PARAMETERS)
+    b = DatasetStore.create_or_resume(tmp_path / "b", PARAMETERS)
+    rows = {oid: synthetic_rows(oid, 4) for oid in OBJECTS[:2]}
+    for oid in OBJECTS[:2]:
+        a.write_object(oid, rows[oid], counts(4))
+    for oid in reversed(OBJECTS[:2]):
+        b.write_object(oid, rows[oid].take([3, 1, 2, 0]), counts(4))
+    assert a.content_hash() == b.content_hash()
+    b.write_object(OBJECTS[0], rows[OBJECTS[0]].slice(0, 3), counts(3))  # rewriting an object replaces it
+    assert a.content_hash() != b.content_hash()
+    assert b.rows().num_rows == 7
+
+
+def test_resuming_with_other_build_parameters_is_refused(tmp_path):
+    DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+    with pytest.raises(StoreError, match="per_object: stored 4, asked 8"):
+        DatasetStore.create_or_resume(tmp_path / "ds", {**PARAMETERS, "per_object": 8})
+    with pytest.raises(StoreError, match="not a pose store"):
+        DatasetStore.open(tmp_path)
+
+
+# ----------------------------------------------------------------------------- split guard
+def test_a_split_violation_is_refused_with_a_clear_error(tmp_path, capsys):
+    code = gd2p(["dataset", "build", "--split", "test", "--hand", "allegro", "--per-object", "2",
+                 "--objects", "2", "--out", str(tmp_path / "a")])
+    assert code == 2
+    assert "--allow-split" in capsys.readouterr().err
+    code = gd2p(["dataset", "build", "--hand", "allegro", "--per-object", "2", "--object-ids", "proc-box-003",
+                 "proc-box-000", "--out", str(tmp_path / "b")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "proc-box-000 (test)" in err and "never used for training" in err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert select_objects("test", 2, allow_split=True)  # evaluation data on purpose
+    with pytest.raises(BuildError):
+        select_objects("train", 0)
+
+
+def test_object_selection_is_a_fixed_order_that_larger_builds_extend():
+    small, large = select_objects("train", 5), select_objects("train", 40)
+    assert large[:5] == small and len(set(large)) == 40
+    assert {i.split("-")[0] for i in large} == {"rnd", "proc"}  # mixed families
+
+
+# ----------------------------------------------------------------------------- builds over the bus
+@pytest.fixture(scope="module")
+def bus():
+    """A router with one generator and one validator worker (threads of this process)."""
+    from services.generator import service as generator_service
+    from services.validator import service as validator_service
+    from shared.bus import BusConfig, open_session, run_worker
+    from deploy.launcher import free_loopback_endpoint
+
+    endpoint = free_loopback_endpoint()
+    router = open_session(BusConfig(mode="router", listen=[endpoint], connect=[]))
+    stop = threading.Event()
+    threads = [threading.Thread(target=run_worker, daemon=True,
+                                args=(svc.SERVICE, svc.handlers(), BusConfig(mode="client", connect=[endpoint])),
+                                kwargs={"worker_id": f"{svc.SERVICE}-test", "stop": stop})
+               for svc in (generator_service, validator_service)]
+    for thread in threads:
+        thread.start()
+    try:
+        yield endpoint
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(timeout=15)
+        router.close()
+
+
+@pytest.fixture(scope="module")
+def reference_store(bus, tmp_path_factory) -> Path:
+    """An uninterrupted build of the three objects."""
+    out = tmp_path_factory.mktemp("reference") / "ds"
+    assert gd2p(build_args(out, bus)) == 0
+    return out
+
+
+def test_a_build_stores_validated_poses_with_provenance(reference_store):
+    store = DatasetStore.open(reference_store)
+    assert set(store.completed_objects()) == set(OBJECTS)
+    rows = store.rows().to_pylist()
+    assert rows, "three boxes/cylinders and 12 candidates should give some successful pushes"
+    assert len({r["pose_id"] for r in rows}) == len(rows)
+    for row in rows:
+        assert row["stage"] in ("raw", "augmented") and row["position_error_m"] <= 0.03 and row["rotation_deg"] <= 45
+        assert (row["parent_id"] is None) == (row["stage"] == "raw")
+    raw_ids = {r["pose_id"] for r in rows if r["stage"] == "raw"}
+    assert {r["parent_id"] for r in rows if r["stage"] == "augmented"} <= raw_ids  # copies of successes only
+    totals = store.manifest["totals"]
+    assert totals["generated"] == 12 and totals["augmented_validated"] == 10 * totals["raw_successes"]
+    assert totals["rows"] == len(rows) == totals["raw_successes"] + totals["augmented_successes"]
+    run = store.manifest["runs"][-1]
+    assert run["command"][:3] == ["gd2p", "dataset", "build"] and run["wall_s"] > 0 and not run["interrupted"]
+    assert store.manifest["content_hash"] == store.content_hash()
+    assert len(load_pose_dataset(reference_store, "allegro")) == len(rows)
+
+
+def test_a_build_killed_midway_and_restarted_equals_an_uninterrupted_one(bus, reference_store, tmp_path):
+    out = tmp_path / "ds"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    child = subprocess.Popen([sys.executable, "-m", "cli.main", *build_args(out, bus)], cwd=REPO, env=env,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        done = _wait_for_first_object(out / MANIFEST_NAME, child, timeout=60)
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+    assert 1 <= len(done) < len(OBJECTS), "the kill must land mid-build"
+    assert set(DatasetStore.open(out).completed_objects()) == done
+
+    assert gd2p(build_args(out, bus)) == 0  # the same command resumes
+    resumed = DatasetStore.open(out)
+    reference = DatasetStore.open(reference_store)
+    assert resumed.manifest["runs"][-1]["objects_skipped"] == len(done)
+    assert resumed.content_hash() == reference.content_hash()
+    assert resumed.manifest["totals"] == reference.manifest["totals"]
+    ids = resumed.rows(columns=["pose_id"]).column("pose_id").to_pylist()
+    assert len(ids) == len(set(ids))  # no duplicates
+
+
+def _wait_for_first_object(manifest: Path, child: subprocess.Popen, timeout: float) -> set[str]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if child.poll() is not None:
+            pytest.fail(f"the build exited early ({child.returncode}): {child.stderr.read().decode()[-2000:]}")
+        try:
+            objects = json.loads(manifest.read_text())["objects"]
+        except (OSError, ValueError, KeyError):
+            objects = {}
+        if objects:
+            return set(objects)
+        time.sleep(0.02)
+    pytest.fail("no object was stored in time")
+
+
+def test_stats_reports_counts_rates_and_joint_histograms(reference_store, tmp_path, capsys):
+    plot = tmp_path / "joints.png"
+    assert gd2p(["dataset", "stats", str(reference_store), "--json", "--plot", str(plot)]) == 0
+    stats = json.loads(capsys.readouterr().out)
+    store = DatasetStore.open(reference_store)
+    rows = store.rows(columns=["object_id", "stage"]).to_pylist()
+    assert stats["objects"] == len(OBJECTS) and stats["poses"] == len(rows)
+    assert stats["by_hand"] == {"allegro": len(rows)}
+    assert stats["by_stage"]["raw"] == sum(r["stage"] == "raw" for r in rows)
+    for object_id in OBJECTS:
+        entry = stats["per_object"][object_id]
+        assert entry["poses"] == sum(r["object_id"] == object_id for r in rows)
+        assert entry["raw"] == entry["raw_successes"] and entry["augmented"] == entry["augmented_successes"]
+    totals = store.manifest["totals"]
+    assert stats["success_rates"]["raw"] == pytest.approx(totals["raw_successes"] / totals["generated"])
+    assert plot.stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_a_build_without_connect_runs_its_own_generator_and_validator_processes(tmp_path):
+    out = tmp_path / "ds"
+    code = gd2p(["dataset", "build", "--hand", "allegro", "--per-object", "2", "--iterations", "20",
+                 "--object-ids", OBJECTS[0], "--generators", "1", "--workers", "1", "--out", str(out), "--no-progress"])
+    assert code == 0
+    store = DatasetStore.open(out)
+    assert set(store.completed_objects()) == {OBJECTS[0]}
+    run = store.manifest["runs"][-1]
+    assert run["workers"] == {"generator": 1, "validator": 1}
+    assert run["command"][-6:-2] == ["--generators", "1", "--workers", "1"]

@@ -1,0 +1,210 @@
+"""Arm motion for a push (services/planner/motion.py) and the object's multi-step path (multistep.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from services.planner.motion import MotionPlanner, PlanningError, time_parameterise
+from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
+from services.robot_bridge.limits import RobotLimits
+from services.validator.fixed_poses import spatula_pose
+from shared.frames import direction_frame, make_transform, pose25_to_matrix
+from shared.hands import load_hand
+from shared.objects import load_object, write_object_urdf
+from shared.sim.robot_scene import RobotScene
+
+torch.set_num_threads(1)
+
+BOX_ID = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg
+BOX_XY = (0.55, 0.0)
+PUSH_YAW_DEG = 90.0  # sideways (+y): a direction the Panda + Allegro reach comfortably
+
+
+@pytest.fixture(scope="module")
+def box():
+    return load_object(BOX_ID)
+
+
+@pytest.fixture(scope="module")
+def scene(box):
+    """Panda + Allegro at the origin, the box lying long side across the push at BOX_XY."""
+    with RobotScene("panda", "allegro") as robot_scene:
+        robot_scene.add_object(write_object_urdf(box), box_pose(box))
+        yield robot_scene
+
+
+@pytest.fixture(scope="module")
+def planner(scene):
+    return MotionPlanner(scene)
+
+
+def push_frame() -> np.ndarray:
+    return direction_frame(np.array([*BOX_XY, 0.0]), PUSH_YAW_DEG)
+
+
+def box_pose(box) -> np.ndarray:
+    """T_world_O: resting, long side across the push direction."""
+    return push_frame() @ box.T_D_O(yaw_rad=np.pi / 2)
+
+
+def spatula_pre_contact(box) -> tuple[np.ndarray, np.ndarray]:
+    """The fixed spatula pose (palm facing the push, fingers down) behind the box, in the world."""
+    T_D_O = box.T_D_O(yaw_rad=np.pi / 2)
+    vertices_d = box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
+    T_D_hand, joints = pose25_to_matrix(spatula_pose(load_hand("allegro"), vertices_d))
+    return push_frame() @ T_D_hand, joints
+
+
+def hand_above_box(height_m: float) -> np.ndarray:
+    """Palm facing down (Allegro palm normal = base +x -> world -z), `height_m` above the table at the box."""
+    rotation = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    return make_transform(rotation, np.array([*BOX_XY, height_m]))
+
+
+def interpolate_path(path: np.ndarray, max_step_rad: float) -> np.ndarray:
+    states = [path[:1]]
+    for a, b in zip(path[:-1], path[1:]):
+        steps = max(1, int(np.ceil(np.abs(b - a).max() / max_step_rad)))
+        states.append(a + np.linspace(0.0, 1.0, steps + 1)[1:, None] * (b - a))
+    return np.concatenate(states)
+
+
+# ----------------------------------------------------------------------------------- joint space
+
+
+def test_rrtconnect_path_to_a_configuration_above_the_box_is_collision_free(scene, planner):
+    q_hand = load_hand("allegro").open_joint_positions.double().numpy()
+    ik = planner.ik.solve_hand_poses(hand_above_box(0.25))
+    assert ik.success[0]
+    home = scene.arm.home.double().numpy()
+    path = planner.plan_joint_path(home, ik.q[0], q_hand)
+    assert np.allclose(path[0], home) and np.allclose(path[-1], ik.q[0])
+    # Every state along the straight edges, 5x finer than the planner's own check, is collision-free.
+    for q in interpolate_path(path, 0.002):
+        assert not scene.collisions(q, q_hand), f"collision at {q}"
+
+
+def test_rrtconnect_goes_around_an_obstacle_that_blocks_the_straight_path():
+    q_hand = load_hand("allegro").open_joint_positions.double().numpy()
+    with RobotScene("panda", "allegro") as obstacle_scene:
+        obstacle_scene.add_obstacles([(0.35, 0.10, 0.05)])  # a 30 cm tall cylinder left of the home pose
+        planner = MotionPlanner(obstacle_scene)
+        home = obstacle_scene.arm.home.double().numpy()
+        ik = planner.ik.solve_hand_poses(make_transform(hand_above_box(0.0)[:3, :3], np.array([0.40, 0.30, 0.15])))
+        assert ik.success[0]
+        straight = interpolate_path(np.array([home, ik.q[0]]), 0.01)
+        assert any(obstacle_scene.collisions(q, q_hand) for q in straight), "test premise: the direct motion collides"
+        path = planner.plan_joint_path(home, ik.q[0], q_hand)
+        assert len(path) >= 3
+        for q in interpolate_path(path, 0.002):
+            assert not obstacle_scene.collisions(q, q_hand), f"collision at {q}"
+
+
+def test_time_parameterisation_respects_velocity_limits():
+    path = np.array([[0.0, 0.0], [1.0, -0.5], [1.2, 0.5]])
+    limits = np.array([1.0, 2.0])
+    positions, times = time_parameterise(path, limits, dt=0.02)
+    speeds = np.abs(np.diff(positions, axis=0)) / np.diff(times)[:, None]
+    assert (speeds <= limits * (1 + 1e-9)).all()
+    assert np.allclose(positions[-1], path[-1]) and times[0] == 0.0
+    assert np.all(np.diff(times) > 0)
+    # Each vertex of the path is passed through (rest-to-rest edges).
+    for vertex in path:
+        assert np.isclose(np.abs(positions - vertex).sum(axis=1), 0).any()
+
+
+# ----------------------------------------------------------------------------------------- pushes
+
+
+def test_push_plan_has_approach_push_retreat_and_passes_the_bridge_limits(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    plan = planner.plan_push(T_world_hand, q_hand, direction, 0.15)
+    assert [s.label for s in plan.segments] == ["approach", "push", "retreat"]
+    RobotLimits.for_robot("panda", "allegro").check_plan(plan)  # raises on any violation
+    positions = plan.positions.to_numpy()
+    push = plan.segments[1]
+    hand_path = planner.ik.hand_pose(positions[push.start - 1: push.stop, :7])
+    travel = hand_path[-1, :3, 3] - hand_path[0, :3, 3]
+    assert np.dot(travel, direction) == pytest.approx(0.15, abs=0.002)
+    assert np.linalg.norm(travel - np.dot(travel, direction) * direction) < 0.002
+    # The hand reaches the requested pre-contact pose exactly where the push starts.
+    assert np.allclose(hand_path[0][:3, 3], T_world_hand[:3, 3], atol=0.002)
+    assert np.allclose(positions[0, :7], planner.arm.home.numpy(), atol=1e-6)
+    assert np.allclose(positions[-1, :7], planner.arm.home.numpy(), atol=1e-6)
+
+
+def test_screening_keeps_reachable_free_poses_and_says_why_the_others_fail(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    poses = np.repeat(T_world_hand[None], 3, axis=0)
+    poses[1, 2, 3] = -0.05  # into the table
+    poses[2, 0, 3] = 2.0  # out of reach
+    result = planner.screen(poses, np.repeat(q_hand[None], 3, axis=0))
+    assert result.feasible.tolist() == [True, False, False]
+    assert result.reasons[0] == ""
+    assert result.reasons[1].startswith("pre-contact pose in collision") and "table" in result.reasons[1]
+    assert result.reasons[2] == "no IK solution"
+
+
+def test_target_inside_the_table_is_infeasible_with_a_clear_reason(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    T_world_hand[2, 3] = -0.05  # the hand base 5 cm below the table top
+    with pytest.raises(PlanningError) as error:
+        planner.plan_push(T_world_hand, q_hand, push_frame()[:3, 0], 0.15)
+    assert error.value.reason == "pre-contact pose in collision"
+    assert "vs table" in str(error.value)
+
+
+def test_unreachable_target_reports_no_ik_solution(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    T_world_hand[0, 3] = 2.0
+    with pytest.raises(PlanningError) as error:
+        planner.plan_push(T_world_hand, q_hand, push_frame()[:3, 0], 0.15)
+    assert error.value.reason == "no IK solution"
+
+
+# ------------------------------------------------------------------------------------- multi-step
+
+
+def test_rrt_star_object_path_goes_around_a_circular_obstacle():
+    start, goal, obstacle, object_radius = (0.5, -0.3), (0.5, 0.3), (0.5, 0.0, 0.08), 0.05
+    path = plan_object_path(start, goal, [obstacle], object_radius_m=object_radius, margin_m=0.02)
+    waypoints = path.waypoints
+    assert np.allclose(waypoints[0], start) and np.allclose(waypoints[-1], goal)
+    dense = interpolate_path(waypoints, 0.001)
+    clearance = np.linalg.norm(dense - np.array(obstacle[:2]), axis=1) - obstacle[2]
+    assert clearance.min() > object_radius
+    assert path.length_m > 0.6  # the straight line through the obstacle is 0.6 m
+    pushes = split_into_pushes(waypoints, 0.2)
+    lengths = [np.linalg.norm(b - a) for a, b in pushes]
+    assert max(lengths) <= 0.2 + 1e-9
+    assert np.allclose(pushes[0][0], start) and np.allclose(pushes[-1][1], goal)
+
+
+def test_object_path_refuses_a_goal_inside_an_obstacle():
+    with pytest.raises(PlanningError) as error:
+        plan_object_path((0.5, -0.3), (0.5, 0.02), [(0.5, 0.0, 0.08)], object_radius_m=0.05)
+    assert error.value.reason == "goal blocked"
+
+
+def test_multi_step_pushes_replan_from_the_observed_position_until_the_goal():
+    start, goal, obstacle, object_radius = np.array([0.5, -0.3]), np.array([0.5, 0.3]), (0.5, 0.0, 0.06), 0.05
+    pushes = []
+
+    def imperfect_push(from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
+        """Falls 10% short and drifts 1 cm to the right of the push, like a real push might."""
+        step = to_xy - from_xy
+        right = np.array([step[1], -step[0]]) / np.linalg.norm(step)
+        pushes.append((from_xy, to_xy))
+        return from_xy + 0.9 * step + 0.01 * right
+
+    result = push_along_path(start, goal, [obstacle], imperfect_push, object_radius_m=object_radius,
+                             max_push_m=0.2, goal_tolerance_m=0.03, max_steps=12, planning_time_s=0.2)
+    assert result.success, result.message
+    assert np.linalg.norm(result.positions[-1] - goal) <= 0.03
+    assert all(np.linalg.norm(b - a) <= 0.2 + 1e-9 for a, b in pushes)
+    # Every push started where the previous one was observed to end (re-planning, not the old path).
+    assert all(np.allclose(a, observed) for (a, _), observed in zip(pushes, result.positions[:-1]))
+    travelled = interpolate_path(np.array(result.positions), 0.001)
+    assert (np.linalg.norm(travelled - np.array(obstacle[:2]), axis=1) - obstacle[2]).min() > object_radius

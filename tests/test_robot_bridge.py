@@ -1,0 +1,179 @@
+"""The simulated robot bridge: refuses plans outside the limits, executes valid ones, pushes a box."""
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from services.planner.motion import MotionPlanner
+from services.robot_bridge.limits import WorkspaceBox
+from services.robot_bridge.sim_backend import SimBackend, SimExecutor
+from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
+from shared.hands import load_hand
+from shared.messages import ExecutionState, Plan
+from shared.objects import load_object, write_object_urdf
+from shared.sim.robot_scene import RobotScene
+
+torch.set_num_threads(1)
+
+HAND_JOINTS = 16
+
+
+@pytest.fixture(scope="module")
+def backend():
+    robot = SimBackend("panda", "allegro")
+    robot.connect()
+    yield robot
+    robot.disconnect()
+
+
+@pytest.fixture()
+def executor(backend):
+    backend.recover()
+    backend.reset()
+    return SimExecutor(backend)
+
+
+def start_configuration(backend: SimBackend) -> np.ndarray:
+    return backend.state().positions.copy()
+
+
+def straight_plan(start: np.ndarray, goal: np.ndarray, duration_s: float, steps: int = 50) -> Plan:
+    """A plan moving every joint linearly from `start` to `goal` in `duration_s`."""
+    alphas = np.linspace(0.0, 1.0, steps)[:, None]
+    return Plan(arm="panda", hand="allegro", joint_names=list(SimBackend("panda", "allegro").joint_names),
+                positions=start + alphas * (goal - start), times_s=np.linspace(0.0, duration_s, steps))
+
+
+# ---------------------------------------------------------------------------------------- refusals
+
+
+def test_refuses_a_joint_beyond_its_limit(backend, executor):
+    start = start_configuration(backend)
+    goal = start.copy()
+    goal[1] = 1.9  # panda_joint2's upper limit is 1.7628 rad
+    state = executor.execute(straight_plan(start, goal, 10.0), realtime_factor=100.0)
+    assert state.status == "refused"
+    assert "joint position" in state.message and "panda_joint2" in state.message and "t=" in state.message
+    assert np.allclose(backend.state().positions, start, atol=1e-3), "a refused plan must not move the robot"
+
+
+def test_refuses_a_plan_that_is_too_fast(backend, executor):
+    start = start_configuration(backend)
+    goal = start.copy()
+    goal[3] += 0.5  # panda_joint4 0.5 rad in 0.1 s = 5 rad/s > 2.175 rad/s
+    state = executor.execute(straight_plan(start, goal, 0.1), realtime_factor=100.0)
+    assert state.status == "refused"
+    assert "joint velocity" in state.message and "panda_joint4" in state.message and "rad/s" in state.message
+
+
+def test_refuses_a_plan_that_leaves_the_workspace_box(backend, executor):
+    start = start_configuration(backend)
+    goal = start.copy()
+    goal[0] += 1.0  # swings the hand ~0.28 m to the left (+y)
+    default = backend.limits
+    backend.limits = replace(default, workspace=WorkspaceBox(lower=(-0.4, -0.2, -0.005), upper=(1.0, 0.2, 1.3)))
+    try:
+        state = executor.execute(straight_plan(start, goal, 10.0), realtime_factor=100.0)
+    finally:
+        backend.limits = default
+    assert state.status == "refused"
+    assert "workspace box" in state.message and "t=" in state.message
+
+
+def test_refuses_a_plan_that_does_not_start_where_the_robot_is(backend, executor):
+    start = start_configuration(backend)
+    elsewhere = start.copy()
+    elsewhere[0] += 0.3
+    state = executor.execute(straight_plan(elsewhere, elsewhere + 0.01, 2.0), realtime_factor=100.0)
+    assert state.status == "refused" and "panda_joint1" in state.message
+
+
+# --------------------------------------------------------------------------------------- execution
+
+
+def test_executes_a_valid_plan_and_ends_at_its_final_configuration(backend):
+    states: list[ExecutionState] = []
+    backend.publish = states.append
+    try:
+        executor = SimExecutor(backend)
+        backend.reset()
+        start = start_configuration(backend)
+        goal = start.copy()
+        goal[:7] += np.array([0.3, 0.2, -0.2, 0.3, 0.2, -0.2, 0.3])
+        goal[7 + 1] = 0.8  # bend the index finger
+        plan = straight_plan(start, goal, 2.0)
+        started = time.monotonic()
+        state = executor.execute(plan, realtime_factor=4.0, command_id="valid")
+        elapsed = time.monotonic() - started
+    finally:
+        backend.publish = None
+    assert state.status == "done", state.message
+    assert np.abs(state.positions.to_numpy() - goal).max() < 0.01
+    assert elapsed >= (2.0 + 0.3) / 4.0 * 0.9, "paced to the realtime factor"
+    executing = [s for s in states if s.status == "executing"]
+    assert len(executing) >= 0.9 * 2.3 * backend.state_rate_hz  # published at the state rate of robot time
+    assert states[-1].status == "done" and states[-1].command_id == "valid"
+
+
+def test_stop_halts_a_running_plan(backend):
+    executor = SimExecutor(backend)
+    backend.reset()
+    start = start_configuration(backend)
+    goal = start.copy()
+    goal[0] += 1.0
+    stop = threading.Event()
+    threading.Timer(0.2, stop.set).start()
+    state = executor.execute(straight_plan(start, goal, 4.0), realtime_factor=1.0, stop=stop)
+    assert state.status == "stopped"
+    assert 0.0 < state.positions.to_numpy()[0] - start[0] < 0.5
+
+
+# ----------------------------------------------------------------------------------- push physics
+
+
+def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
+    """The open, spatula-like hand pushes a box 0.15 m sideways with the planner's IK + RRT + Cartesian push."""
+    from services.validator.fixed_poses import spatula_pose
+
+    box = load_object("proc-box-013")  # 13.9 x 4.6 x 7.5 cm, 0.24 kg
+    T_world_D = direction_frame(np.array([0.55, 0.0, 0.0]), 90.0)
+    T_D_O = box.T_D_O(yaw_rad=np.pi / 2)  # long side across the push
+    T_world_O = T_world_D @ T_D_O
+    hand = load_hand("allegro")
+    T_D_hand, q_hand = pose25_to_matrix(spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]))
+    urdf = write_object_urdf(box)
+    with RobotScene("panda", "allegro") as scene:
+        scene.add_object(urdf, T_world_O)
+        plan = MotionPlanner(scene).plan_push(T_world_D @ T_D_hand, q_hand, T_world_D[:3, 0], 0.15,
+                                              q_hand_start=hand.open_joint_positions.numpy())
+    with SimBackend("panda", "allegro") as robot:
+        robot.add_object(urdf, T_world_O)
+        state = SimExecutor(robot).execute(plan, realtime_factor=1000.0)
+        collisions = dict(robot.collisions)
+    assert state.status == "done", state.message
+    final = state.object_pose
+    moved = np.array(final.position) - T_world_O[:3, 3]
+    along = float(moved @ T_world_D[:3, 0])
+    assert 0.10 <= along <= 0.20, f"box moved {along:.3f} m along the push"
+    assert np.linalg.norm(moved[:2] - along * T_world_D[:2, 0]) < 0.03
+    rotation = quat_xyzw_to_matrix(np.array(final.quaternion_xyzw)) @ T_world_O[:3, :3].T
+    assert np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1))) < 15.0
+    assert np.abs(state.positions.to_numpy() - plan.positions.to_numpy()[-1]).max() < 0.01
+    assert collisions == {}, f"the robot touched something besides the box: {collisions}"
+
+
+def test_contact_with_an_obstacle_during_execution_is_recorded():
+    with SimBackend("panda", "allegro") as robot:
+        robot.add_obstacles([(0.45, -0.03, 0.05)])  # a 0.3 m tall cylinder in front of the hand
+        start = start_configuration(robot)
+        goal = start.copy()
+        goal[1] += 0.9  # leans forward: the hand comes down from 0.54 m to below the cylinder's top
+        state = SimExecutor(robot).execute(straight_plan(start, goal, 3.0), realtime_factor=1000.0)
+        collisions = dict(robot.collisions)
+    assert any(other == "obstacle 0" for _, other in collisions), collisions
+    assert "collisions:" in state.message and "obstacle 0" in state.message
