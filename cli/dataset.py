@@ -97,6 +97,7 @@ def run_build(args: argparse.Namespace) -> int:
         return 1
     finally:
         signal.signal(signal.SIGTERM, previous)
+        store.close()
 
 
 def _raise_keyboard_interrupt(signum, frame) -> None:

@@ -81,7 +81,8 @@ def _validate(args: argparse.Namespace) -> dict:
         hand = load_hand(args.hand)
         poses = spatula_pose(hand, obj.vertices_d)[None] if args.fixed_pose else read_poses(args.poses)
         repeated = np.repeat(poses, args.trials, axis=0)
-        offsets = list(placement_offsets(len(repeated), args.seed)) if args.trials > 1 else None
+        # The same K placements for every pose, so poses are compared on equal terms.
+        offsets = list(placement_offsets(args.trials, args.seed)) * len(poses) if args.trials > 1 else None
         with Validator(params) as validator, _progress(len(repeated)) as bar:
             run = validator.validate(obj, hand, repeated, object_offsets=offsets, augment=args.augment,
                                      seed=args.seed, push_distance_m=args.distance, progress=bar.update)

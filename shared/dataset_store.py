@@ -33,6 +33,7 @@ one. Readers only follow the manifest, so a half-written or orphaned file is nev
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -48,6 +49,7 @@ import pyarrow.parquet as pq
 
 MANIFEST_NAME = "manifest.json"
 SHARD_DIR = "shards"
+LOCK_NAME = ".writer.lock"
 STORE_FORMAT = "gd2p-pose-store"
 STORE_VERSION = 1
 STAGES = ("raw", "augmented")
@@ -135,21 +137,42 @@ class DatasetStore:
         """Open the store for a build with `parameters`, creating it if the directory has none.
 
         Refuses (StoreError) to resume a store built with different content parameters
-        (`CONTENT_PARAMETERS`): the result would be a mix of two datasets.
+        (`CONTENT_PARAMETERS`): the result would be a mix of two datasets; and to open a store
+        another live process is writing (an exclusive lock, released by the OS when that process
+        dies, however it dies).
         """
         directory = Path(directory)
         if (directory / MANIFEST_NAME).is_file():
             store = cls.open(directory)
             store._check_same_build(parameters)
+            store._lock_for_writing()
             return store
-        if directory.exists() and any(p.name != SHARD_DIR for p in directory.iterdir()):
+        if directory.exists() and any(p.name not in (SHARD_DIR, LOCK_NAME) for p in directory.iterdir()):
             raise StoreError(f"{directory}: exists and is not a pose store; choose an empty or new directory")
         manifest = {"format": STORE_FORMAT, "version": STORE_VERSION, "hand": parameters["hand"],
                     "split": parameters["split"], "parameters": dict(parameters), "shards": [], "objects": {},
                     "runs": [], "totals": _totals({}), "content_hash": content_hash(pa.table({}))}
         store = cls(directory, manifest)
+        store._lock_for_writing()
         store._save()
         return store
+
+    def _lock_for_writing(self) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        handle = open(self.directory / LOCK_NAME, "a")
+        try:
+            fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise StoreError(f"{self.directory}: another build is writing this store right now") from None
+        self._lock_handle = handle  # held until this object (or the process) goes away
+
+    def close(self) -> None:
+        """Release the writer lock (also released when the process exits)."""
+        handle = getattr(self, "_lock_handle", None)
+        if handle is not None:
+            handle.close()
+            self._lock_handle = None
 
     def _check_same_build(self, parameters: Mapping[str, Any]) -> None:
         stored = self.manifest.get("parameters", {})

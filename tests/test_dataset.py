@@ -91,8 +91,12 @@ def test_store_content_hash_ignores_row_and_shard_order(tmp_path):
     assert b.rows().num_rows == 7
 
 
-def test_resuming_with_other_build_parameters_is_refused(tmp_path):
-    DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+def test_resuming_with_other_build_parameters_or_while_another_build_writes_is_refused(tmp_path):
+    writer = DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+    with pytest.raises(StoreError, match="another build is writing"):
+        DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+    writer.close()
+    DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS).close()
     with pytest.raises(StoreError, match="per_object: stored 4, asked 8"):
         DatasetStore.create_or_resume(tmp_path / "ds", {**PARAMETERS, "per_object": 8})
     with pytest.raises(StoreError, match="not a pose store"):

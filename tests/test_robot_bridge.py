@@ -177,3 +177,62 @@ def test_contact_with_an_obstacle_during_execution_is_recorded():
         collisions = dict(robot.collisions)
     assert any(other == "obstacle 0" for _, other in collisions), collisions
     assert "collisions:" in state.message and "obstacle 0" in state.message
+
+
+# ------------------------------------------------------------------------------------------ bus
+
+
+def test_bridge_service_executes_a_leased_command_and_publishes_states(zenoh_router):
+    from services.robot_bridge.safety import COMMAND_KEY, ESTOP_KEY
+    from services.robot_bridge.service import SERVICE, STATE_KEY, run
+    from shared.arms import load_arm
+    from shared.bus import BusConfig, live_workers, open_session
+    from shared.codec import decode, encode
+    from shared.messages import EStop, ExecutionCommand
+
+    cfg = BusConfig(mode="client", connect=[zenoh_router], connect_timeout_ms=5000)
+    stop = threading.Event()
+    worker = threading.Thread(target=run, args=(cfg, "sim-bridge", stop), daemon=True)
+    worker.start()
+    published: list[ExecutionState] = []
+
+    def command(session, plan: Plan, lease: str, realtime_factor: float = 20.0) -> ExecutionState:
+        payload, encoding = encode(ExecutionCommand(plan=plan, lease_token=lease, realtime_factor=realtime_factor))
+        replies = list(session.get(COMMAND_KEY, payload=payload, encoding=encoding, timeout=30.0))
+        assert len(replies) == 1 and replies[0].ok is not None
+        return decode(replies[0].ok.payload.to_bytes(), str(replies[0].ok.encoding))
+
+    try:
+        with open_session(cfg) as client:
+            deadline = time.monotonic() + 20.0
+            while not live_workers(client, SERVICE).get(SERVICE) and time.monotonic() < deadline:
+                time.sleep(0.1)  # the command queryable is declared before the worker's liveliness token
+            subscriber = client.declare_subscriber(
+                STATE_KEY, lambda sample: published.append(decode(sample.payload.to_bytes(), str(sample.encoding))))
+            start = np.concatenate([load_arm("panda").home.numpy(), load_hand("allegro").open_joint_positions.numpy()])
+            goal = start.copy()
+            goal[0] += 0.2
+            plan = straight_plan(start, goal, 1.0)
+            lease = "gd2p/lease/test-commander"
+            refused = command(client, plan, lease)
+            token = client.liveliness().declare_token(lease)
+            done = command(client, plan, lease)
+            # Losing the lease mid-motion stops the robot.
+            threading.Timer(0.5, token.undeclare).start()
+            lease_lost = command(client, straight_plan(goal, start, 3.0), lease, realtime_factor=1.0)
+            # An e-stop stops everything and latches: the next command is refused.
+            estop_payload, estop_encoding = encode(EStop(reason="test e-stop"))
+            client.put(ESTOP_KEY, estop_payload, encoding=estop_encoding)
+            time.sleep(0.3)
+            client.liveliness().declare_token(lease)
+            after_estop = command(client, straight_plan(start, start, 1.0), lease)
+            subscriber.undeclare()
+    finally:
+        stop.set()
+        worker.join(timeout=15.0)
+    assert refused.status == "refused" and "lease" in refused.message  # no liveliness token at the lease yet
+    assert done.status == "done", done.message
+    assert np.abs(done.positions.to_numpy() - goal).max() < 0.01
+    assert any(s.status == "executing" for s in published) and done.command_id in {s.command_id for s in published}
+    assert lease_lost.status == "stopped" and "lease" in lease_lost.message
+    assert after_estop.status == "refused" and "e-stop" in after_estop.message

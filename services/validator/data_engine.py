@@ -37,7 +37,7 @@ import numpy as np
 import pyarrow as pa
 
 from shared.bus import DispatchError, Dispatcher
-from shared.dataset_store import DatasetStore
+from shared.dataset_store import COUNT_KEYS, DatasetStore
 from shared.messages import (
     ErrorReply,
     GenerationJob,
@@ -165,6 +165,8 @@ class BuildCounters:
     augmented_successes: int = 0
     stored_rows: int = 0
     generated_validated: int = 0  # candidates whose validation came back
+    generation_s: float = 0.0  # worker-reported compute time, summed over jobs: what the build spends where
+    validation_s: float = 0.0
 
     @property
     def elapsed_s(self) -> float:
@@ -186,8 +188,9 @@ class BuildCounters:
         }
 
     def summary(self) -> dict:
-        figures = {k: v for k, v in asdict(self).items() if k != "started"}
-        return {**figures, "validated_pushes": self.validated_pushes, "wall_s": round(self.elapsed_s, 3), **{k: round(v, 4) for k, v in self.rates().items()}}
+        figures = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in asdict(self).items() if k != "started"}
+        rates = {k: round(v, 4) for k, v in self.rates().items()}
+        return {**figures, "validated_pushes": self.validated_pushes, "wall_s": round(self.elapsed_s, 3), **rates}
 
 
 ProgressCallback = Callable[[BuildCounters, str | None], None]  # (counters, id of an object just finished)
@@ -199,10 +202,11 @@ class _ObjectWork:
     object_id: str
     round: int = 0
     tables: list[pa.Table] = field(default_factory=list)
-    counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(
-        ("generated", "raw_successes", "augmented_validated", "augmented_successes"), 0))
+    counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNT_KEYS, 0))
     started: float = field(default_factory=time.monotonic)
     generation: GenerationResult | None = None
+    generation_s: float = 0.0
+    validation_s: float = 0.0
 
     @property
     def stored(self) -> int:
@@ -258,11 +262,15 @@ class DataEngine:
         if stage == "generate":
             assert isinstance(reply, GenerationResult)
             work.generation = reply
+            work.generation_s += reply.elapsed_s
+            self.counters.generation_s += reply.elapsed_s
             work.counts["generated"] += len(reply.poses.to_numpy())
             self.counters.generated += len(reply.poses.to_numpy())
             self._report(None)
             return self._submit_validation(work), "validate"
         assert isinstance(reply, ValidationResult)
+        work.validation_s += reply.elapsed_s
+        self.counters.validation_s += reply.elapsed_s
         self._absorb_validation(work, reply)
         if work.stored < self.settings.min_poses and work.round + 1 < self.settings.max_rounds:
             work.round += 1
@@ -305,7 +313,8 @@ class DataEngine:
 
     def _finish(self, work: _ObjectWork) -> None:
         rows = pa.concat_tables(work.tables) if work.tables else empty_rows()
-        stats = {**work.counts, "rounds": work.round + 1, "elapsed_s": round(time.monotonic() - work.started, 3)}
+        stats = {**work.counts, "rounds": work.round + 1, "elapsed_s": round(time.monotonic() - work.started, 3),
+                 "generation_s": round(work.generation_s, 3), "validation_s": round(work.validation_s, 3)}
         self.store.write_object(work.object_id, rows, stats)
         self.counters.objects_done += 1
         self.counters.stored_rows += rows.num_rows

@@ -50,12 +50,13 @@ def augmentation_seed(seed: int, parent_index: int) -> int:
 def placement_offsets(trials: int, seed: int) -> np.ndarray:
     """[trials, 4, 4] object placement noise in D: a yaw about the object's vertical axis and a shift.
 
-    The rotation is about the object's own centre (the transforms are applied to the resting pose,
-    whose centre of mass sits above D's origin), so the object stays on the table.
+    Trial t's offset depends only on (seed, t), so a run with more trials extends a shorter one.
+    The offsets are applied to the resting pose, whose centre of mass sits above D's origin, so the
+    yaw turns the object about its own centre and it stays on the table.
     """
-    rng = np.random.default_rng(np.random.SeedSequence([seed, trials]))
     out = np.tile(np.eye(4), (trials, 1, 1))
-    for offset in out:
+    for trial, offset in enumerate(out):
+        rng = np.random.default_rng(np.random.SeedSequence([seed, trial]))
         yaw = math.radians(rng.uniform(-PLACEMENT_NOISE_YAW_DEG, PLACEMENT_NOISE_YAW_DEG))
         radius = PLACEMENT_NOISE_XY_M * math.sqrt(rng.uniform())
         angle = rng.uniform(0.0, 2.0 * math.pi)
