@@ -22,6 +22,7 @@ COMMAND_MODULES: list[str] = [
     "cli.generate",  # generate (energy-based push-pose synthesis)
     "cli.bridge",  # bridge selftest, bridge estop (robot bridge hardware adapters)
     "cli.dataset",  # dataset build, dataset stats (data engine pose store)
+    "cli.push",  # push (push / pull requests to the running system)
 ]
 
 

@@ -3,7 +3,7 @@
     gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447]
     gd2p status [--json] [bus flags]          live workers per service (liveliness)
     gd2p health --service S [--worker-id ID | --this-host] [bus flags]   exit 0 iff it answers
-    gd2p demo                                  bring the system up, look at it, shut it down
+    gd2p demo                                  bring the system up, push an object 0.20 m, shut it down
 
 The supervision logic lives in `deploy.launcher.Launcher`; this module only parses and prints.
 Heavy imports (zenoh, pydantic models) happen inside the handlers so `gd2p --help` stays fast.
@@ -61,9 +61,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     BusConfig.add_cli_args(health)
     health.set_defaults(func=run_health)
 
-    demo = subparsers.add_parser("demo", help="bring the system up, health-check it over the bus, shut it down",
-                                 description="The platform demo: start everything in-process, ask every worker "
-                                             "for its status over the bus, send a job, stop cleanly.")
+    demo = subparsers.add_parser("demo", help="bring the system up, push a bundled object 0.20 m, shut it down",
+                                 description="The push demo: start every service, push a bundled box 0.20 m with "
+                                             "the shipped checkpoint (or, without one, the fixed spatula pose — "
+                                             "said plainly), print the result and where the MCAP and PNG are, "
+                                             "stop cleanly.")
     demo.add_argument("--validators", type=int, default=1, help="validator processes (default %(default)s)")
     demo.add_argument("--record-dir", default="recordings", help="where the recorder writes MCAP (default %(default)s)")
     demo.set_defaults(func=run_demo)
@@ -215,70 +217,62 @@ def run_up(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-def run_demo(args: argparse.Namespace) -> int:
-    """Platform demo: up, health over the bus, one job, down. The push demo comes with the planner."""
-    from deploy.launcher import Launcher, LaunchError, free_loopback_endpoint
+DEMO_OBJECT = "proc-box-013"  # a procedural box of the test split (never trained on): 13.9 x 4.6 x 7.5 cm
+DEMO_DIRECTION_DEG = 90.0  # sideways across the table in front of the robot
+DEMO_DISTANCE_M = 0.20
 
-    print("GD2P demo — platform stage: the service system on a Zenoh bus.")
-    print("The push demo (push a bundled object 0.20 m with the shipped checkpoint, with MCAP and a")
-    print("storyboard PNG) arrives with the planner (issue 6); until then this shows the platform.\n")
-    launcher = Launcher(validators=args.validators, listen=free_loopback_endpoint(), record_dir=args.record_dir)
+
+def run_demo(args: argparse.Namespace) -> int:
+    """Push demo: bring the system up, push a bundled object 0.20 m, print the result and recordings, shut down."""
+    from deploy.launcher import Launcher, LaunchError, free_loopback_endpoint
+    from services.sampler.checkpoint import default_checkpoint_path
+
+    checkpoint = default_checkpoint_path("allegro")
+    method = "gd2p" if checkpoint.is_file() else "fixed"
+    print("GD2P demo: the robot pushes a bundled object 0.20 m (simulated Panda + Allegro).")
+    if method == "gd2p":
+        print(f"Hand poses: sampled by the diffusion model ({checkpoint}).")
+    else:
+        print(f"NOTE: no Allegro checkpoint at {checkpoint}, so this demo does NOT use the diffusion model: it falls")
+        print("      back to the fixed spatula hand pose (the paper's baseline). Train or install a checkpoint")
+        print("      (`gd2p train --hand allegro --out ...`) to see GD2P's sampled poses.")
+    record_dir = os.path.abspath(args.record_dir)
+    os.environ["GD2P_PUSH_RECORD_DIR"] = os.path.join(record_dir, "pushes")  # the planner child inherits it
+    launcher = Launcher(validators=args.validators, listen=free_loopback_endpoint(), record_dir=record_dir)
     t0 = time.monotonic()
     try:
         launcher.start()
         launcher.wait_ready(120.0)
-        print(f"1. started an embedded router on {launcher.listen} and {len(launcher.children())} service "
-              f"processes; all registered in {time.monotonic() - t0:.1f} s:")
-        print(launcher.table() + "\n")
-        ok = _demo_health(launcher) and _demo_generation_job(launcher)
+        print(f"\n1. started an embedded router on {launcher.listen} and {len(launcher.children())} service "
+              f"processes in {time.monotonic() - t0:.1f} s.")
+        ok = _demo_push(launcher, method)
     except LaunchError as exc:
         print(f"gd2p demo: {exc}", file=sys.stderr)
         ok = False
     finally:
         t1 = time.monotonic()
         launcher.stop()
-        print(f"\n4. stopped every process and the router in {time.monotonic() - t1:.1f} s "
-              f"(recording in {launcher.record_dir}).")
+        print(f"\n3. stopped every process and the router in {time.monotonic() - t1:.1f} s.")
     return 0 if ok else 1
 
 
-def _demo_client(launcher):
-    from shared.bus import BusConfig, open_session
+def _demo_push(launcher, method: str) -> bool:
+    from cli.push import describe
+    from shared.bus import BusConfig
+    from shared.messages import ObjectRef, PushRequest
+    from shared.push_client import PushFailed, push
 
-    return open_session(BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS))
-
-
-def _demo_health(launcher) -> bool:
-    from deploy.launcher import SERVICES
-
-    print("2. every worker's own answer to a HealthQuery, asked over the bus from a client session:")
-    with _demo_client(launcher) as session:
-        statuses = worker_statuses(session)
-    statuses.sort(key=lambda s: (SERVICES.index(s.service) if s.service in SERVICES else len(SERVICES), s.worker_id))
-    _print_table(_status_rows(statuses), indent="   ")
-    expected = {w for ids in launcher.expected_workers().values() for w in ids}
-    silent = sorted(expected - {s.worker_id for s in statuses})
-    if silent:
-        print(f"   workers that did not answer: {', '.join(silent)}", file=sys.stderr)
-    print()
-    return not silent
+    request = PushRequest(object=ObjectRef(library_id=DEMO_OBJECT), direction_deg=DEMO_DIRECTION_DEG,
+                          distance_m=DEMO_DISTANCE_M, method=method)
+    print(f"2. push request: {DEMO_OBJECT} at the default spot, {DEMO_DISTANCE_M:.2f} m toward "
+          f"{DEMO_DIRECTION_DEG:.0f} deg, pose source {method!r} (planning, arm rollouts, ranking, execution)...")
+    cfg = BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS)
+    try:
+        response = push(request, cfg, timeout_s=600.0)
+    except PushFailed as exc:
+        print(f"   -> the request failed: {exc}", file=sys.stderr)
+        return False
+    print("   " + describe(response).replace("\n", "\n   "))
+    return response.success
 
 
-def _demo_generation_job(launcher) -> bool:
-    from shared.bus import Dispatcher, DispatchError, RemoteError
-    from shared.messages import GenerationJob, ObjectRef
-
-    job = GenerationJob(object=ObjectRef(library_id="random_urdfs/000"), hand="allegro", batch_size=8, seed=0)
-    print(f"3. a GenerationJob (id {job.id[:8]}…) through the dispatcher to the generator:")
-    with _demo_client(launcher) as session, Dispatcher(session, "generator", timeout_s=10.0) as dispatcher:
-        try:
-            result = dispatcher.call(job, timeout=30.0)
-        except RemoteError as exc:
-            print(f"   -> ErrorReply code={exc.code!r}: {exc.message}")
-            print("      (a clear error, never a fake result: the generator's algorithm arrives with issue 4)")
-            return exc.code == "not_implemented"
-        except (DispatchError, TimeoutError) as exc:
-            print(f"   -> no answer: {exc}", file=sys.stderr)
-            return False
-    print(f"   -> {type(result).__name__} with {len(result.model_dump())} fields")
-    return True

@@ -44,6 +44,7 @@ MESH_FORMATS: tuple[str, ...] = ("obj", "stl", "ply", "glb")
 Hand = Literal["allegro", "leap"]
 Arm = Literal["panda", "xarm7"]
 Sampler = Literal["ddpm", "ddim"]
+PoseMethod = Literal["gd2p", "nearest", "fixed"]
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
 
@@ -592,6 +593,9 @@ class PushRequest(Message):
     ranking: bool = True
     max_steps: int = Field(default=10, ge=1, le=100)
     seed: Seed = 0
+    # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
+    # service) or the fixed spatula pose (the paper's baselines, for comparisons).
+    method: PoseMethod = "gd2p"
 
     @model_validator(mode="after")
     def _target_and_robot(self) -> "PushRequest":
@@ -654,12 +658,25 @@ class PushResponse(Message):
 # ---------------------------------------------------------------------------------------------
 
 
+class SimWorld(Value):
+    """The world a simulated robot starts from: the object at its pose, obstacles, the robot at home."""
+
+    object: ObjectRef
+    object_pose: ObjectPose  # frame O (centre of mass, principal axes) in the world
+    obstacles: list[CircleObstacle] = Field(default_factory=list)
+
+
 class ExecutionCommand(Message):
-    """Execute a plan; `lease_token` is the commander's liveliness key, whose loss stops motion."""
+    """Execute a plan; `lease_token` is the commander's liveliness key, whose loss stops motion.
+
+    `world` (for the simulated backend; a real robot lives in the real world) resets the simulation to it
+    before executing; without it the plan runs in the world as the previous command left it.
+    """
 
     plan: Plan
     lease_token: str = Field(min_length=1)
     realtime_factor: PositiveFloat = Field(default=1.0, le=1000.0)
+    world: SimWorld | None = None
 
 
 class ExecutionState(Message):

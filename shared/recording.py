@@ -108,6 +108,24 @@ class McapWriter:
         payload, encoding = encode(msg)
         self.write(key, payload, encoding, log_time_ns)
 
+    def write_foreign(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                      message_encoding: str, data: bytes, log_time_ns: int) -> None:
+        """Append a message of a non-bus schema (e.g. a Foxglove protobuf schema, for viewers)."""
+        if self._closed:
+            raise RecordingError("write on a closed MCAP writer")
+        channel_id = self._channels.get((topic, message_encoding))
+        if channel_id is None:
+            schema_id = self._schemas.get(schema_name)
+            if schema_id is None:
+                schema_id = self._schemas[schema_name] = self._writer.register_schema(
+                    name=schema_name, encoding=schema_encoding, data=schema_data)
+            channel_id = self._channels[(topic, message_encoding)] = self._writer.register_channel(
+                topic=topic, message_encoding=message_encoding, schema_id=schema_id)
+        sequence = self._sequence[channel_id] = self._sequence.get(channel_id, -1) + 1
+        self._writer.add_message(channel_id=channel_id, log_time=log_time_ns, data=bytes(data),
+                                 publish_time=log_time_ns, sequence=sequence)
+        self.message_count += 1
+
     def bytes_on_disk(self) -> int:
         """Bytes flushed to the file so far (buffered chunk data not yet included)."""
         return self._stream.tell()

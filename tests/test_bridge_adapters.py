@@ -234,8 +234,8 @@ def test_allegro_connects_holds_then_follows_a_trajectory(allegro_hand):
         goal = np.linspace(0.0, 0.9, 16)
         report = backend.execute(ramp(backend.joint_names, np.full(16, 0.2), goal))
         assert report.completed and report.final_joint_error < 0.02
-        np.testing.assert_allclose(hand.positions, goal, atol=0.02)
-        time.sleep(0.3)
+        time.sleep(0.3)  # the servos keep converging on the last target
+        np.testing.assert_allclose(hand.positions, goal, atol=0.005)
         assert np.abs(backend.state().velocities).max() < 0.05  # filtered finite differences: ~0 at rest
     finally:
         backend.disconnect()

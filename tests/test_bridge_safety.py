@@ -62,8 +62,10 @@ class Robot:
         self.hand = LeapBackend(self.bus.port_name, current_limit_ma=current_limit_ma)
         self.arm.connect()
         self.hand.connect()
+        self.published: list = []  # ExecutionStates published while executing
         self.executor = SafeExecutor(self.session, "xarm7", "leap",
-                                     [Device(self.arm, XARM7_LIMITS), Device(self.hand, LEAP_LIMITS)])
+                                     [Device(self.arm, XARM7_LIMITS), Device(self.hand, LEAP_LIMITS)],
+                                     publish=self.published.append)
         self._connected_at = (len(self.controller.commands), len(self.bus.instructions))
 
     def moved(self) -> bool:
@@ -125,6 +127,9 @@ def test_a_valid_plan_with_a_live_lease_moves_both_devices(robot, planner):
     np.testing.assert_allclose(robot.controller.positions, goal_arm, atol=0.01)
     np.testing.assert_allclose(np.array(robot.bus.positions_rad()) - np.pi, goal_hand, atol=0.02)
     assert state.joint_names[:7] == list(XARM7_LIMITS.joint_names)
+    executing = [s for s in robot.published if s.command_id == state.command_id]
+    assert len(executing) >= 15 and {s.status for s in executing} == {"executing"}  # ~50 Hz for >= 0.6 s
+    assert len(executing[0].joint_names) == 23 and np.all(np.diff([s.stamp for s in executing]) > 0)
 
 
 @pytest.mark.parametrize("case, check", [

@@ -3,7 +3,8 @@
 Who may command the robot: the router accepts only TLS links whose client presents a certificate
 signed by the deployment CA (`enable_mtls`), and its access-control rules (default: deny) let
 - every authenticated identity use the ordinary bus keys (liveliness, status, worker jobs and health,
-  the launcher's control key, leases, the bridge's state and e-stop keys) and subscribe to `gd2p/**`;
+  the launcher's control key, leases, each service's namespace, the bridge's state and e-stop keys)
+  and subscribe to `gd2p/**`;
 - only the planner's identity (certificate CN "planner") put or query `gd2p/robot_bridge/command/**`;
 - only the robot bridge's identity serve those keys (declare a queryable/subscriber, receive the
   queries and puts, answer them).

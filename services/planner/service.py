@@ -1,24 +1,186 @@
-"""Bus adapter of the planner service: push and pull requests: sampling, IK, planning, ranking (issue 6).
+"""Bus adapter of the planner service: a PushRequest in, a PushResponse out (issue 6).
 
-The algorithm arrives with issue 6. Until then a PushRequest gets a clear `not_implemented`
-error reply — never a fake result — while the worker itself is real: it registers on the bus
-and answers health queries. `handlers()` is the one place where the algorithm plugs in.
+The algorithm is `pipeline.PushPipeline`; this module gives it its services over Zenoh:
+- sampling: `SampleRequest` through a Dispatcher to the sampler workers;
+- arm rollouts: `ValidationJob(with_arm=True)` through a Dispatcher to the validator farm, all plans
+  of a push at once (they run in parallel on as many validator processes as there are);
+- execution: an `ExecutionCommand` queried on the robot bridge's command key, leased by this
+  worker's own liveliness token (`gd2p/lease/planner-<worker id>`), while the robot's
+  `ExecutionState` stream is collected for the recording.
+
+Each request is recorded (`recording.py`): an MCAP with Foxglove channels and the bus messages,
+and a PNG storyboard, in `record_dir` (`--record-dir`, env GD2P_PUSH_RECORD_DIR, default
+`recordings/pushes`); the response names the MCAP.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+import os
+import threading
+import time
+from concurrent.futures import wait
+from pathlib import Path
 
-from shared.bus import ServiceError
-from shared.messages import PushRequest, PushResponse, Message
+import zenoh
+
+from services.planner.pipeline import Execution, PushError, PushPipeline, PushServices
+from services.planner.recording import record_push
+from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, ServiceError, Worker, open_session
+from shared.bus.errors import DispatchError
+from shared.bus.keys import LEASE_PREFIX, ROBOT_COMMAND_KEY, ROBOT_STATE_KEY, check_chunk
+from shared.codec import CodecError, decode, encode
+from shared.messages import (
+    ErrorReply,
+    ExecutionCommand,
+    ExecutionState,
+    Plan,
+    PushRequest,
+    PushResponse,
+    SampleRequest,
+    SampleResponse,
+    SimWorld,
+    ValidationJob,
+    ValidationResult,
+)
 
 SERVICE = "planner"
+RECORD_DIR_ENV = "GD2P_PUSH_RECORD_DIR"
+DEFAULT_RECORD_DIR = "recordings/pushes"
+SAMPLE_TIMEOUT_S = 60.0
+ROLLOUT_TIMEOUT_S = 120.0
+EXECUTION_TIMEOUT_S = 300.0
+REALTIME_FACTOR = 1000.0  # the simulated robot runs as fast as it can (physics keeps the plan's timing)
+
+log = logging.getLogger("gd2p.planner")
 
 
-def push(request: PushRequest) -> PushResponse:
-    """Plan, rank and execute a push of `request.object`."""
-    raise ServiceError("not_implemented", "planner: PushRequest is not implemented yet (issue 6)")
+class BusServices:
+    """The pipeline's services over an open Zenoh session."""
+
+    def __init__(self, session: zenoh.Session, worker_id: str):
+        self.session = session
+        self.sampler = Dispatcher(session, "sampler", timeout_s=SAMPLE_TIMEOUT_S)
+        self.validator = Dispatcher(session, "validator", timeout_s=ROLLOUT_TIMEOUT_S, max_in_flight_per_worker=1)
+        self.lease_key = f"{LEASE_PREFIX}/{check_chunk(SERVICE + '-' + worker_id, 'lease id')}"
+        self.lease = session.liveliness().declare_token(self.lease_key)
+        self._states: dict[str, list[ExecutionState]] = {}
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(ROBOT_STATE_KEY, self._on_state)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self.lease.undeclare()
+        self.sampler.close()
+        self.validator.close()
+
+    def services(self) -> PushServices:
+        return PushServices(sample=self.sample, rollouts=self.rollouts, execute=self.execute)
+
+    def sample(self, request: SampleRequest) -> SampleResponse:
+        try:
+            return self.sampler.call(request, timeout=SAMPLE_TIMEOUT_S * 2)
+        except RemoteError as exc:
+            raise PushError(exc.code, f"sampler: {exc.message}") from exc
+        except (DispatchError, TimeoutError) as exc:
+            raise PushError("unavailable", f"no sampler answered: {exc}") from exc
+
+    def rollouts(self, jobs: list[ValidationJob]) -> list[ValidationResult | Exception]:
+        futures = [self.validator.submit(job) for job in jobs]
+        wait(futures, timeout=ROLLOUT_TIMEOUT_S * 2)
+        results: list[ValidationResult | Exception] = []
+        for future in futures:
+            try:
+                reply = future.result(timeout=0)
+            except Exception as exc:  # DispatchError, TimeoutError: reported with the other failures
+                results.append(exc)
+                continue
+            results.append(RemoteError(reply) if isinstance(reply, ErrorReply) else reply)
+        return results
+
+    def execute(self, plan: Plan, world: SimWorld | None) -> Execution:
+        command = ExecutionCommand(plan=plan, lease_token=self.lease_key, realtime_factor=REALTIME_FACTOR, world=world)
+        with self._lock:
+            self._states[command.id] = []
+        payload, encoding = encode(command)
+        try:
+            replies = list(self.session.get(ROBOT_COMMAND_KEY, payload=payload, encoding=encoding,
+                                            timeout=EXECUTION_TIMEOUT_S))
+        finally:
+            with self._lock:
+                states = self._states.pop(command.id)
+        answers = [r.ok for r in replies if r.ok is not None]
+        if not answers:
+            raise PushError("unavailable", "no robot bridge answered the execution command")
+        try:
+            reply = decode(answers[0].payload.to_bytes(), str(answers[0].encoding))
+        except CodecError as exc:
+            raise PushError("internal", f"robot bridge reply: {exc}") from exc
+        if isinstance(reply, ErrorReply):
+            raise PushError(reply.code if reply.code in ErrorReply.CODES else "internal", f"robot bridge: {reply.message}")
+        return Execution(final=reply, states=states)
+
+    def _on_state(self, sample: zenoh.Sample) -> None:  # zenoh callback: quick, never blocks
+        try:
+            state = decode(sample.payload.to_bytes(), str(sample.encoding), ExecutionState)
+        except CodecError:
+            return
+        with self._lock:
+            if state.command_id in self._states:
+                self._states[state.command_id].append(state)
 
 
-def handlers() -> dict[type[Message], Callable[[Message], Message]]:
-    """Message type -> handler, served by every planner worker."""
-    return {PushRequest: push}
+class PlannerService:
+    """Serves PushRequests: runs the pipeline, records the request, answers."""
+
+    def __init__(self, services: PushServices, record_dir: str | os.PathLike | None = None):
+        self.pipeline = PushPipeline(services)
+        self.record_dir = Path(record_dir or os.environ.get(RECORD_DIR_ENV, DEFAULT_RECORD_DIR)).resolve()
+        self._lock = threading.Lock()  # one robot: one push request at a time
+
+    def push(self, request: PushRequest) -> PushResponse:
+        """Plan, rank and execute a push of `request.object`; record it."""
+        with self._lock:
+            try:
+                response = self.pipeline.run(request)
+            except PushError as exc:
+                raise ServiceError(exc.code, exc.message) from exc
+            records = self.pipeline.last_records
+        started = time.perf_counter()
+        try:
+            with self.pipeline.scene(request.arm, request.hand) as scene:
+                path = record_push(self.record_dir, request, response, records, scene)
+        except OSError as exc:
+            log.warning("could not record push %s: %s", request.id, exc)
+            return response
+        timings = response.timings_s | {"recording": time.perf_counter() - started}
+        return response.model_copy(update={"recording_path": str(path), "timings_s": timings})
+
+    def handlers(self):
+        return {PushRequest: self.push}
+
+
+def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
+        record_dir: str | None = None) -> None:
+    """Serve the planner until SIGTERM/SIGINT or `stop`."""
+    import torch
+
+    torch.set_num_threads(1)
+    from shared.bus import default_worker_id
+
+    worker_id = worker_id or default_worker_id()
+    try:
+        session = open_session(cfg, stop=stop)
+    except OpenCancelled:
+        log.info("planner stopped before a router was reachable")
+        return
+    bus = service = None
+    try:
+        bus = BusServices(session, worker_id)
+        service = PlannerService(bus.services(), record_dir)
+        Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session).run()
+    finally:
+        if service is not None:
+            service.pipeline.close()
+        if bus is not None:
+            bus.close()
+        session.close()

@@ -33,6 +33,7 @@ from services.robot_bridge.backend import (
     Backend,
     BackendError,
     ExecutionReport,
+    JointState,
     JointTrajectory,
     MotionStopped,
     TrajectoryError,
@@ -46,13 +47,14 @@ from services.robot_bridge.limits import (
     densify,
 )
 from shared.codec import CodecError, decode
+from shared.bus.keys import LEASE_PREFIX, ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
 from shared.messages import EStop, ExecutionCommand, ExecutionState, Plan
 
 log = logging.getLogger("gd2p.robot_bridge.safety")
 
-ESTOP_KEY = "gd2p/robot_bridge/estop"
-COMMAND_KEY = "gd2p/robot_bridge/command/execute"
-LEASE_PREFIX = "gd2p/lease"  # commanders' liveliness tokens: gd2p/lease/<commander id>
+ESTOP_KEY = ROBOT_ESTOP_KEY
+COMMAND_KEY = ROBOT_COMMAND_KEY
+LEASE_PREFIX = LEASE_PREFIX  # commanders' liveliness tokens: gd2p/lease/<commander id>
 
 
 class SafetyRefusal(BackendError):
@@ -301,11 +303,17 @@ class Device:
 
 
 class SafeExecutor:
-    """Executes ExecutionCommands for one arm + hand on hardware backends behind every check of this module."""
+    """Executes ExecutionCommands for one arm + hand on hardware backends behind every check of this module.
+
+    While a plan runs it reads every device's state at `state_rate_hz`: efforts are checked against
+    the limits and, if `publish` is given, an ExecutionState ("executing") is published each tick.
+    Pass the service's `estop` latch to share it (its backends are added); otherwise one is created.
+    """
 
     def __init__(self, session: zenoh.Session, arm: str, hand: str, devices: Sequence[Device],
                  workspace: WorkspaceBox | None = DEFAULT_WORKSPACE, T_world_base: np.ndarray | None = None,
-                 start_tolerance_rad: float = 0.05, lease_timeout_s: float = 1.0, monitor_rate_hz: float = 50.0):
+                 start_tolerance_rad: float = 0.05, lease_timeout_s: float = 1.0, state_rate_hz: float = 50.0,
+                 publish: Callable[[ExecutionState], None] | None = None, estop: EStopLatch | None = None):
         self.session = session
         self.arm, self.hand = arm, hand
         self.devices = list(devices)
@@ -315,12 +323,16 @@ class SafeExecutor:
             raise ValueError(f"no device drives joints {sorted(uncovered)} of {arm} + {hand}")
         self.start_tolerance_rad = start_tolerance_rad
         self.lease_timeout_s = lease_timeout_s
-        self.monitor_period_s = 1.0 / monitor_rate_hz
-        self.estop = EStopLatch(session, [d.backend for d in self.devices])
+        self.state_period_s = 1.0 / state_rate_hz
+        self.publish = publish
+        self._owns_estop = estop is None
+        self.estop = estop or EStopLatch(session, [])
+        self.estop.backends.extend(d.backend for d in self.devices)
         self._busy = threading.Lock()
 
     def close(self) -> None:
-        self.estop.close()
+        if self._owns_estop:
+            self.estop.close()
 
     def check(self, command: ExecutionCommand) -> JointTrajectory:
         """Every check that must pass before anything moves; returns the trajectory. Raises SafetyRefusal."""
@@ -389,22 +401,28 @@ class SafeExecutor:
                        for d in self.devices]
             for thread in threads:
                 thread.start()
-            self._supervise(threads, stop, lease, reasons)
+            self._supervise(command, threads, stop, lease, reasons)
         return self._outcome(command, reports, reasons)
 
-    def _supervise(self, threads: list[threading.Thread], stop: threading.Event, lease: LeaseWatch,
-                   reasons: list[str]) -> None:
-        """Until every device is done: stop all on lease loss, e-stop or an effort over its limit."""
+    def _supervise(self, command: ExecutionCommand, threads: list[threading.Thread], stop: threading.Event,
+                   lease: LeaseWatch, reasons: list[str]) -> None:
+        """Until every device is done, each state tick: stop all on lease loss, e-stop or an effort over
+        its limit, and publish the state."""
         stopped = False
+        next_tick = time.monotonic()
         while any(t.is_alive() for t in threads):
-            reason = self._stop_reason(lease) or self._protective_stop()
+            states = self._read_states()
+            reason = self._stop_reason(lease) or self._protective_stop(states)
             if (reason or stop.is_set()) and not stopped:
                 if reason:
                     reasons.append(reason)
                 stop.set()  # a failing device (reason already recorded) halts the others too
                 stop_all([d.backend for d in self.devices])
                 stopped = True
-            time.sleep(self.monitor_period_s)
+            if self.publish is not None and states:
+                self.publish(self._state(command, "executing", "", states))
+            next_tick += self.state_period_s
+            time.sleep(max(0.0, next_tick - time.monotonic()))
         if stop.is_set() and not reasons:  # the devices saw the stop before this loop did
             reasons.append(self._stop_reason(lease) or "stopped")
         if stop.is_set() and not self.estop.triggered.is_set():
@@ -421,25 +439,32 @@ class SafeExecutor:
             return f"e-stop: {self.estop.last.reason if self.estop.last else ''}"
         return None
 
-    def _protective_stop(self) -> str | None:
+    def _protective_stop(self, states: Mapping[str, JointState]) -> str | None:
         """An effort over its limit (a collision, a jam) latches like an e-stop: an operator must look."""
-        violation = self._effort_violation()
+        violation = self._effort_violation(states)
         if violation is None:
             return None
         self.estop.trigger(EStop(reason=f"protective stop: {violation}", issued_by="robot_bridge safety"))
         return f"protective stop: {violation}"
 
-    def _effort_violation(self) -> str | None:
+    def _effort_violation(self, states: Mapping[str, JointState]) -> str | None:
         for device in self.devices:
-            if not getattr(device.backend, "reports_effort", False):
-                continue
-            try:
-                message = device.limits.check_measured_effort(device.backend.state().efforts)
-            except BackendError:
-                continue  # the device's own execute() reports link failures
-            if message:
-                return message
+            state = states.get(device.backend.name)
+            if state is not None and getattr(device.backend, "reports_effort", False):
+                message = device.limits.check_measured_effort(state.efforts)
+                if message:
+                    return message
         return None
+
+    def _read_states(self) -> dict[str, JointState]:
+        """Every device's state now (a device whose read fails is left out: its execute() reports the link)."""
+        states = {}
+        for device in self.devices:
+            try:
+                states[device.backend.name] = device.backend.state()
+            except BackendError:
+                continue
+        return states
 
     def _outcome(self, command: ExecutionCommand, reports: Mapping[str, object], reasons: list[str]) -> ExecutionState:
         failures = {name: r for name, r in reports.items() if isinstance(r, BaseException)}
@@ -447,18 +472,15 @@ class SafeExecutor:
             return self._state(command, "stopped", "; ".join(reasons))
         if failures:
             return self._state(command, "error", "; ".join(f"{n}: {e}" for n, e in failures.items()))
-        errors = [f"{n}: {r.message}" for n, r in reports.items() if isinstance(r, ExecutionReport) and r.message]
-        return self._state(command, "done", "; ".join(errors))
+        short = [f"{n}: {r.message}" for n, r in reports.items() if isinstance(r, ExecutionReport) and not r.completed]
+        return self._state(command, "error" if short else "done", "; ".join(short))  # a device fell short of its goal
 
-    def _state(self, command: ExecutionCommand, status: str, message: str) -> ExecutionState:
+    def _state(self, command: ExecutionCommand, status: str, message: str,
+               states: Mapping[str, JointState] | None = None) -> ExecutionState:
         names: list[str] = []
         positions: list[float] = []
         velocities: list[float] = []
-        for device in self.devices:
-            try:
-                state = device.backend.state()
-            except BackendError:
-                continue
+        for state in (states if states is not None else self._read_states()).values():
             names.extend(state.joint_names)
             positions.extend(state.positions.tolist())
             velocities.extend(state.velocities.tolist())

@@ -9,6 +9,8 @@
   motion (`safety.LeaseWatch`).
 - `EStop` (as a job, or published on `safety.ESTOP_KEY`) stops every robot at once and latches:
   later commands are refused until the bridge restarts (the operator's deliberate action).
+- A command with a `world` first resets the simulation to it (object, obstacles, robot at home);
+  without one the plan runs in the world the previous command left (multi-step pushes).
 - While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the backend's state rate.
 
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
@@ -34,11 +36,15 @@ from services.robot_bridge.safety import (
 )
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
+from shared.bus.keys import ROBOT_STATE_KEY
 from shared.codec import CodecError, decode, encode
-from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message
+from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message, SimWorld
+from shared.object_refs import load_object_ref
+from shared.objects import ObjectLoadError, write_object_urdf
+from shared.push_outcome import pose_matrix
 
 SERVICE = "robot_bridge"
-STATE_KEY = "gd2p/robot_bridge/state"
+STATE_KEY = ROBOT_STATE_KEY
 
 log = logging.getLogger("gd2p.robot_bridge")
 
@@ -71,6 +77,11 @@ class Bridge:
         except SafetyRefusal as exc:
             log.warning("refused command %s: %s", command.id, exc)
             return executor.backend.execution_state("refused", command.id, str(exc))
+        if command.world is not None:
+            try:
+                reset_world(executor.backend, command.world)
+            except ObjectLoadError as exc:
+                return executor.backend.execution_state("refused", command.id, f"world: {exc}")
         stop = threading.Event()
         with LeaseWatch(self.session, command.lease_token, on_lost=stop.set):
             state = executor.execute(command.plan, command.realtime_factor, command.id, stop)
@@ -137,6 +148,15 @@ class Bridge:
             query.reply(COMMAND_KEY, payload, encoding=encoding)
         finally:
             query.drop()  # finalise: an unanswered query keeps its caller waiting
+
+
+def reset_world(backend: SimBackend, world: SimWorld) -> None:
+    """A fresh simulation: robot at home with the hand open, the object at its pose, the obstacles."""
+    obj = load_object_ref(world.object)
+    backend.disconnect()
+    backend.connect()
+    backend.add_object(write_object_urdf(obj), pose_matrix(world.object_pose))
+    backend.add_obstacles([(o.x, o.y, o.radius) for o in world.obstacles])
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None) -> None:

@@ -5,7 +5,8 @@ worker started with concurrency > 1 stays correct; one process per core is what 
 §6). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
 job seed fixes the augmentation copies, so a job gives the same result on any worker.
 
-Arm rollouts (`with_arm=True`, issue 6) are answered with a clear `not_implemented` error.
+Arm rollouts (`with_arm=True`, issue 6: a planned push played with the arm, for the planner's
+ranking) go to `rollout.rollout`.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from services.validator.rollout import rollout
 from services.validator.push import PushInputError, PushOutcome, table_object
 from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
@@ -77,7 +79,7 @@ def resolve_object(ref: ObjectRef) -> ObjectModel:
 def validate(job: ValidationJob) -> ValidationResult:
     """Push `job.object` with the hand at each pose of `job.poses` and judge the outcome."""
     if job.with_arm:
-        raise ServiceError("not_implemented", "validator: arm rollouts (with_arm=True) arrive with the planner (issue 6)")
+        return rollout(job, params_for(job.settings))
     started = time.perf_counter()
     obj = resolve_object(job.object)
     hand = load_hand(job.hand)

@@ -3,6 +3,10 @@
     gd2p/alive/<service>/<worker_id>             liveliness token of a worker
     gd2p/<service>/worker/<worker_id>/job        the worker's queryable (jobs and health queries)
     gd2p/status/<service>/<worker_id>            WorkerStatus heartbeat (~2 s), captured by the recorder
+    gd2p/robot_bridge/command/execute            ExecutionCommand queries (only the planner may send them)
+    gd2p/robot_bridge/state                      ExecutionState stream of the robot
+    gd2p/robot_bridge/estop                      EStop: stop every robot backend
+    gd2p/lease/<commander id>                    a commander's liveliness token (the command's lease)
 """
 from __future__ import annotations
 
@@ -12,6 +16,10 @@ PREFIX = "gd2p"
 ALIVE_PREFIX = f"{PREFIX}/alive"
 STATUS_PREFIX = f"{PREFIX}/status"
 ALL_KEYS = f"{PREFIX}/**"
+ROBOT_COMMAND_KEY = f"{PREFIX}/robot_bridge/command/execute"
+ROBOT_STATE_KEY = f"{PREFIX}/robot_bridge/state"
+ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
+LEASE_PREFIX = f"{PREFIX}/lease"
 _FORBIDDEN = set("/*$?#")
 
 

@@ -1,0 +1,400 @@
+"""The push request algorithm (the paper's deployment loop), independent of Zenoh.
+
+One push: candidate hand poses (in the direction frame D) from a pose source -> world frame ->
+`MotionPlanner.screen` (batched arm IK + collision check of each pre-contact configuration) ->
+`plan_push` for the most promising feasible poses until `max_plans` plans exist -> an arm rollout of
+each plan in simulation (validator farm) -> V = α L_goal + β L_coll + γ L_dir (`ranking.py`) -> the
+best plan is executed by the robot bridge, and the object pose it observes afterwards is judged.
+
+Pose sources (`PushRequest.method`), so that methods can be compared on the same pipeline:
+- "gd2p": K poses from the diffusion sampler service;
+- "nearest": the nearest-neighbour baseline's poses — not served by the sampler service yet, so
+  refused with `not_implemented` (see the report of issue 6);
+- "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline).
+
+Without ranking (`ranking=False`, the paper's ablation) a random feasible pose is planned and
+executed, with no rollouts.
+
+With `goal_xy` the request is multi-step: RRT* plans the object's path around the obstacles
+(`multistep.py`); each push goes to the next piece of the path and is planned from the object pose
+the robot bridge observed after the previous push.
+
+The rest of the system is reached through `PushServices` callables (the service adapter fills them
+with bus clients; tests may fill them directly).
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.planner import ranking
+from services.planner.motion import MotionPlanner, PlanningError
+from services.planner.multistep import push_along_path
+from shared.fixed_poses import FixedPoseError, spatula_pose
+from shared.frames import direction_frame, direction_xy, invert_transform, make_transform, pose25_to_matrix, poses_d_to_world
+from shared.hands import HandModel, load_hand
+from shared.ik import ArmIK
+from shared.messages import (
+    DirectionFrame,
+    ExecutionResult,
+    ExecutionState,
+    Plan,
+    PushRequest,
+    PushResponse,
+    PushStep,
+    SampleRequest,
+    SampleResponse,
+    ScoreTerms,
+    SimWorld,
+    ValidationJob,
+    ValidationResult,
+)
+from shared.object_refs import load_object_ref
+from shared.objects import ObjectLoadError, ObjectModel, write_object_urdf
+from shared.push_outcome import judge_push, object_pose, pose_matrix
+from shared.robot_limits import LimitViolation, RobotLimits
+from shared.sim.robot_scene import RobotScene
+
+DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base, where both arms reach every direction
+
+
+class PushError(Exception):
+    """A push request that cannot be served; `code` is an ErrorReply code (infeasible, bad_request, ...)."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class Execution:
+    """What the robot bridge reports for one executed plan: its final state and the states on the way."""
+
+    final: ExecutionState
+    states: list[ExecutionState] = field(default_factory=list)
+
+
+@dataclass
+class PushServices:
+    """How the pipeline reaches the other services."""
+
+    sample: Callable[[SampleRequest], SampleResponse]
+    rollouts: Callable[[list[ValidationJob]], list[ValidationResult | Exception]]
+    execute: Callable[[Plan, SimWorld | None], Execution]
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    max_plans: int = 3  # feasible plans rolled out and ranked per push
+    max_plan_attempts: int = 6  # poses planned per push before giving up
+    limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
+    weights: ranking.Weights = ranking.Weights()
+
+
+@dataclass
+class StepRecord:
+    """Everything about one executed push, for the response and the recording."""
+
+    step: PushStep
+    T_world_O_start: np.ndarray
+    execution: Execution
+    world: SimWorld | None
+
+
+@dataclass
+class _Request:
+    """Per-request state: the object, where it is now, the robot's joints now, timings."""
+
+    request: PushRequest
+    obj: ObjectModel
+    urdf: str
+    hand: HandModel
+    T_world_O: np.ndarray
+    q_robot: np.ndarray | None = None  # None: the bridge world is (re)set, robot at home, hand open
+    timings: dict[str, float] = field(default_factory=dict)
+    records: list[StepRecord] = field(default_factory=list)
+
+    def time(self, stage: str, seconds: float) -> None:
+        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+
+class PushPipeline:
+    """Serves PushRequests with the given services (see the module docstring)."""
+
+    def __init__(self, services: PushServices, settings: PipelineSettings = PipelineSettings()):
+        self.services = services
+        self.settings = settings
+        self.last_records: list[StepRecord] = []
+        self._robot_limits: dict[tuple[str, str], RobotLimits] = {}
+        self._scenes: dict[tuple[str, str], RobotScene] = {}
+        self._iks: dict[tuple[str, str], ArmIK] = {}
+
+    # ------------------------------------------------------------------------------- requests
+
+    def run(self, request: PushRequest) -> PushResponse:
+        """Plan, rank and execute `request`; PushError when it cannot be done."""
+        started = time.perf_counter()
+        ctx = self._start(request)
+        if request.goal_xy is None:
+            u = direction_xy(request.direction_deg)
+            target = ctx.T_world_O[:2, 3] + request.distance_m * u
+            self._push_once(ctx, u, request.distance_m)
+            final = judge_push(self._first_start(ctx), target, ctx.records[-1].step.result.final_object_pose)
+        else:
+            final = self._multi_step(ctx)
+        self.last_records = ctx.records
+        first = ctx.records[0].step
+        ctx.timings["total"] = time.perf_counter() - started
+        return PushResponse(request_id=request.id, success=final.success, chosen_pose=first.chosen_pose,
+                            chosen_pose_world=first.chosen_pose_world, plan=first.plan, score=first.score,
+                            result=final, steps=[r.step for r in ctx.records], timings_s=ctx.timings)
+
+    def _start(self, request: PushRequest) -> _Request:
+        if request.method == "nearest":
+            raise PushError("not_implemented", "planner: the nearest-neighbour pose source is not served by the "
+                            "sampler service yet; use method 'gd2p' or 'fixed'")
+        try:
+            obj = load_object_ref(request.object)
+            urdf = str(write_object_urdf(obj))
+        except ObjectLoadError as exc:
+            raise PushError("bad_request", f"bad object: {exc}") from exc
+        if request.object_pose is not None:
+            T_world_O = pose_matrix(request.object_pose)
+        else:
+            T_world_O = make_transform(np.eye(3), np.array([*DEFAULT_OBJECT_XY, 0.0])) @ obj.T_D_O()
+        return _Request(request, obj, urdf, load_hand(request.hand), T_world_O)
+
+    @staticmethod
+    def _first_start(ctx: _Request) -> np.ndarray:
+        return ctx.records[0].T_world_O_start
+
+    def _multi_step(self, ctx: _Request) -> ExecutionResult:
+        request = ctx.request
+        start_T = ctx.T_world_O.copy()
+
+        def push(_from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
+            offset = np.asarray(to_xy) - ctx.T_world_O[:2, 3]  # from where the object really is
+            self._push_once(ctx, offset / np.linalg.norm(offset), float(np.linalg.norm(offset)))
+            return ctx.T_world_O[:2, 3]
+
+        try:
+            outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles, push,
+                                      object_radius_m=self._footprint_radius(ctx.obj), max_push_m=request.distance_m,
+                                      max_steps=request.max_steps)
+        except PlanningError as exc:
+            if ctx.records:  # the object moved, then got stuck: report how far it got
+                raise PushError("infeasible", f"after {len(ctx.records)} push(es): {exc}") from exc
+            raise PushError("infeasible", f"no object path to the goal: {exc}") from exc
+        if not ctx.records:
+            raise PushError("bad_request", "the object is already at the goal")
+        final = judge_push(start_T, np.asarray(request.goal_xy), ctx.records[-1].step.result.final_object_pose)
+        ctx.timings["object_path"] = sum(p.planning_s for p in outcome.paths)
+        return final
+
+    @staticmethod
+    def _footprint_radius(obj: ObjectModel) -> float:
+        """Radius of the object's footprint around its centre of mass at rest (the multi-step disc)."""
+        vertices = obj.mesh_in_d().vertices
+        return float(np.linalg.norm(vertices[:, :2], axis=1).max())
+
+    # ------------------------------------------------------------------------------- one push
+
+    def _push_once(self, ctx: _Request, u: np.ndarray, distance_m: float) -> None:
+        """Plan, rank and execute one push of `distance_m` along `u` from where the object is now."""
+        request = ctx.request
+        T_world_O = ctx.T_world_O.copy()
+        T_world_D = direction_frame(T_world_O[:3, 3], u)
+        frame = DirectionFrame(object_pose=object_pose(T_world_O), direction_xy=(float(u[0]), float(u[1])))
+        poses_d = self._candidate_poses(ctx, T_world_D, T_world_O, frame)
+        poses_world = poses_d_to_world(poses_d, T_world_D)
+        T_world_hand, q_hands = pose25_to_matrix(poses_world)
+        with self.scene(request.arm, request.hand) as scene:
+            scene.add_object(ctx.urdf, T_world_O)
+            scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
+            planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
+            started = time.perf_counter()
+            screen = planner.screen(T_world_hand, q_hands)
+            ctx.time("ik", time.perf_counter() - started)
+            feasible = np.flatnonzero(screen.feasible)
+            if feasible.size == 0:
+                raise PushError("infeasible", _no_feasible_pose_message(screen.reasons))
+            l_dir = ranking.direction_costs(ctx.hand, poses_d)
+            order = self._planning_order(ctx, feasible, l_dir)
+            started = time.perf_counter()
+            plans = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, screen.q, u, distance_m)
+            ctx.time("planning", time.perf_counter() - started)
+        if request.ranking:
+            chosen, score = self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
+        else:
+            chosen, score = plans[0], None
+        index, plan = chosen
+        self._execute(ctx, plan, poses_d[index], poses_world[index], score, T_world_O, u, distance_m)
+
+    def _candidate_poses(self, ctx: _Request, T_world_D: np.ndarray, T_world_O: np.ndarray,
+                         frame: DirectionFrame) -> np.ndarray:
+        """[K, 25] poses in D from the request's pose source."""
+        request = ctx.request
+        started = time.perf_counter()
+        if request.method == "fixed":
+            T_D_O = invert_transform(T_world_D) @ T_world_O
+            vertices_d = ctx.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
+            try:
+                poses = spatula_pose(ctx.hand, vertices_d)[None]
+            except FixedPoseError as exc:
+                raise PushError("bad_request", str(exc)) from exc
+        else:
+            reply = self.services.sample(SampleRequest(object=request.object, hand=request.hand, frame=frame,
+                                                       k=request.k, seed=request.seed + len(ctx.records)))
+            poses = reply.poses_d.to_numpy().astype(np.float64)
+        ctx.time("sampling", time.perf_counter() - started)
+        return poses
+
+    def _planning_order(self, ctx: _Request, feasible: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
+        """Which feasible poses to plan first: best-aligned palms when ranking, a random order when not."""
+        if ctx.request.ranking:
+            return feasible[np.argsort(l_dir[feasible], kind="stable")]
+        rng = np.random.default_rng(ctx.request.seed + len(ctx.records))
+        return rng.permutation(feasible)
+
+    def _plan_candidates(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
+                         q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray,
+                         distance_m: float) -> list[tuple[int, Plan]]:
+        """[(pose index, plan)] for up to `max_plans` poses, in `order` (one plan when not ranking)."""
+        wanted = self.settings.max_plans if ctx.request.ranking else 1
+        q_arm_start, q_hand_start = self._robot_start(ctx, planner)
+        plans, failures = [], Counter()
+        for index in order[: self.settings.max_plan_attempts]:
+            plan = self._plan_within_limits(ctx, planner, failures, T_world_hand[index], q_hands[index],
+                                            np.append(u, 0.0), distance_m, q_arm_start, q_hand_start, q_pre[index])
+            if plan is None:
+                continue
+            plans.append((int(index), plan))
+            if len(plans) == wanted:
+                break
+        if not plans:
+            tried = sum(failures.values())
+            raise PushError("infeasible", f"no collision-free arm plan for any of the {tried} feasible pose(s) tried ("
+                            + ", ".join(f"{n}× {reason}" for reason, n in failures.most_common()) + ")")
+        return plans
+
+    def _plan_within_limits(self, ctx: _Request, planner: MotionPlanner, failures: Counter, T_world_hand, q_hand,
+                            direction, distance_m, q_arm_start, q_hand_start, q_pre) -> Plan | None:
+        """A plan for one pose that the robot bridge will accept (joint, velocity, workspace limits), or None.
+
+        RRTConnect paths are random: one that swings the hand out of the workspace box is planned
+        again (`limit_retries` times) before the pose is given up.
+        """
+        limits = self._limits(ctx)
+        for _ in range(1 + self.settings.limit_retries):
+            try:
+                plan = planner.plan_push(T_world_hand, q_hand, direction, distance_m, q_start=q_arm_start,
+                                         q_hand_start=q_hand_start, q_pre_contact=q_pre)
+                limits.check_plan(plan)
+                return plan
+            except PlanningError as exc:
+                failures[exc.reason] += 1
+                return None
+            except LimitViolation as exc:
+                failures[f"plan breaks the robot's {exc.limit} limit"] += 1
+        return None
+
+    @contextlib.contextmanager
+    def scene(self, arm: str, hand: str) -> Iterator[RobotScene]:
+        """The pipeline's robot scene for (arm, hand), emptied after use (one request at a time uses it).
+
+        Kept between pushes: loading the robot is most of a scene's cost (~0.7 s).
+        """
+        key = (arm, hand)
+        if key not in self._scenes:
+            self._scenes[key] = RobotScene(arm, hand)
+        scene = self._scenes[key]
+        try:
+            yield scene
+        finally:
+            scene.clear_environment()
+
+    def _ik(self, arm: str, hand: str, scene: RobotScene) -> ArmIK:
+        key = (arm, hand)
+        if key not in self._iks:
+            self._iks[key] = ArmIK(scene.arm, scene.hand, T_world_base=scene.T_world_base)
+        return self._iks[key]
+
+    def close(self) -> None:
+        for scene in self._scenes.values():
+            scene.close()
+        self._scenes.clear()
+
+    def _limits(self, ctx: _Request) -> RobotLimits:
+        key = (ctx.request.arm, ctx.request.hand)
+        if key not in self._robot_limits:
+            self._robot_limits[key] = RobotLimits.for_robot(*key)
+        return self._robot_limits[key]
+
+    @staticmethod
+    def _robot_start(ctx: _Request, planner: MotionPlanner) -> tuple[np.ndarray, np.ndarray]:
+        """Where the robot is: home with the hand open for a fresh world, else as the last push left it."""
+        if ctx.q_robot is None:
+            return planner.arm.home.double().numpy(), ctx.hand.open_joint_positions.double().numpy()
+        n_arm = planner.arm.dof
+        return ctx.q_robot[:n_arm], ctx.q_robot[n_arm:]
+
+    def _rank(self, ctx: _Request, plans: list[tuple[int, Plan]], poses_d: np.ndarray, l_dir: np.ndarray, frame: DirectionFrame,
+              distance_m: float) -> tuple[tuple[int, Plan], ScoreTerms]:
+        """Roll every plan out with the arm, score it, return the best (and its score)."""
+        request = ctx.request
+        jobs = [ValidationJob(object=request.object, hand=request.hand, poses=poses_d[index][None],
+                              push_distance_m=distance_m, with_arm=True, arm=request.arm, plan=plan, frame=frame,
+                              obstacles=request.obstacles, seed=request.seed)
+                for index, plan in plans]
+        started = time.perf_counter()
+        results = self.services.rollouts(jobs)
+        ctx.time("rollouts", time.perf_counter() - started)
+        scored, errors = [], []
+        for (index, plan), result in zip(plans, results):
+            if isinstance(result, Exception):
+                errors.append(str(result))
+                continue
+            terms = ranking.score(float(result.goal_error_m.to_numpy()[0]), float(result.collision_cost.to_numpy()[0]),
+                                  float(l_dir[index]), self.settings.weights)
+            scored.append(((index, plan), terms))
+        if not scored:
+            raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
+        best = ranking.best([terms for _, terms in scored])
+        return scored[best]
+
+    def _execute(self, ctx: _Request, plan: Plan, pose_d: np.ndarray, pose_world: np.ndarray,
+                 score: ScoreTerms | None, T_world_O: np.ndarray, u: np.ndarray, distance_m: float) -> None:
+        request = ctx.request
+        world = None
+        if ctx.q_robot is None:
+            world = SimWorld(object=request.object, object_pose=object_pose(T_world_O), obstacles=request.obstacles)
+        started = time.perf_counter()
+        execution = self.services.execute(plan, world)
+        ctx.time("execution", time.perf_counter() - started)
+        state = execution.final
+        if state.status != "done":
+            code = "infeasible" if state.status == "refused" else "internal"
+            raise PushError(code, f"the robot bridge did not execute the plan ({state.status}): {state.message}")
+        if state.object_pose is None:
+            raise PushError("internal", "the robot bridge observed no object pose after the push")
+        target = T_world_O[:2, 3] + distance_m * u
+        result = judge_push(T_world_O, target, state.object_pose)
+        step = PushStep(chosen_pose=pose_d, chosen_pose_world=pose_world, plan=plan, score=score, result=result)
+        ctx.records.append(StepRecord(step, T_world_O, execution, world))
+        ctx.T_world_O = pose_matrix(state.object_pose)
+        ctx.q_robot = state.positions.to_numpy().astype(np.float64)
+
+
+def _no_feasible_pose_message(reasons: list[str]) -> str:
+    counts = Counter(r.split(":")[0] for r in reasons if r)
+    summary = ", ".join(f"{n}× {reason}" for reason, n in counts.most_common())
+    hint = ""
+    if counts.get("no IK solution", 0) == len(reasons):
+        hint = " — the object is probably out of the arm's reach"
+    return f"no kinematically feasible hand pose among {len(reasons)} candidate(s) ({summary}){hint}"

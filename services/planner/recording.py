@@ -1,0 +1,169 @@
+"""Recording of one push request for people: an MCAP viewable in Foxglove, and a PNG storyboard.
+
+`<record_dir>/push-<request id>.mcap` holds
+- Foxglove channels: `/scene` (SceneUpdate: the object's mesh in its own frame, the table, the
+  obstacles), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
+  robot state), `/joint_states` (JointStates);
+- the bus messages as they travel (msgpack, `shared.recording`): the PushRequest, every executed
+  Plan, the robot's ExecutionStates and the PushResponse.
+`<record_dir>/push-<request id>.png` is the storyboard: one row per push — start, pre-contact
+(the first waypoint of the push segment) and end — rendered with PyBullet's TinyRenderer.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pybullet as pb
+from foxglove import messages as fg
+from PIL import Image, ImageDraw
+
+from services.planner.pipeline import StepRecord
+from shared.messages import ExecutionState, PushRequest, PushResponse
+from shared.objects import write_object_urdf
+from shared.object_refs import load_object_ref
+from shared.push_outcome import pose_matrix
+from shared.recording import McapWriter
+from shared.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
+from shared.sim.scene import transform_to_pos_quat
+
+WORLD_FRAME = "world"
+OBJECT_FRAME = "object"
+IMAGE_SIZE = (480, 360)
+CAMERA = dict(distance=1.5, yaw=50.0, pitch=-35.0)  # looking at the object from the robot's front-left
+
+
+def record_push(record_dir: Path, request: PushRequest, response: PushResponse, records: list[StepRecord],
+                scene: RobotScene) -> Path:
+    """Write the MCAP and the storyboard PNG of a served request; returns the MCAP's path.
+
+    `scene` is an empty robot scene of the request's arm and hand (used for forward kinematics and
+    rendering; the object and obstacles are added to it here).
+    """
+    record_dir.mkdir(parents=True, exist_ok=True)
+    mcap_path = record_dir / f"push-{request.id[:16]}.mcap"
+    obj = load_object_ref(request.object)
+    scene.add_object(write_object_urdf(obj), records[0].T_world_O_start)
+    scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
+    with McapWriter(str(mcap_path)) as writer:
+        start_ns = time.time_ns()
+        writer.write_message("gd2p/planner/request", request, start_ns)
+        _write_scene(writer, obj.mesh, request, start_ns)
+        for record in records:
+            writer.write_message("gd2p/planner/plan", record.step.plan, start_ns)
+            for state in record.execution.states + [record.execution.final]:
+                _write_state(writer, scene, state)
+        writer.write_message("gd2p/planner/response", response, time.time_ns())
+    write_storyboard(scene, records, mcap_path.with_suffix(".png"))
+    return mcap_path
+
+
+# ------------------------------------------------------------------------------------- Foxglove
+
+
+def _stamp(ns: int) -> fg.Timestamp:
+    return fg.Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def _foxglove(writer: McapWriter, topic: str, message, log_time_ns: int) -> None:
+    schema = type(message).get_schema()
+    writer.write_foreign(topic, schema.name, schema.encoding, schema.data, "protobuf", message.encode(), log_time_ns)
+
+
+def _write_scene(writer: McapWriter, mesh, request: PushRequest, ns: int) -> None:
+    """The object's mesh (frame-locked to its frame: it moves with /tf), the table and the obstacles."""
+    triangles = mesh.vertices[mesh.faces].reshape(-1, 3)
+    entities = [
+        fg.SceneEntity(timestamp=_stamp(ns), frame_id=OBJECT_FRAME, id="object", frame_locked=True,
+                       triangles=[fg.TriangleListPrimitive(
+                           points=[fg.Point3(x=float(x), y=float(y), z=float(z)) for x, y, z in triangles],
+                           color=fg.Color(r=0.9, g=0.5, b=0.1, a=1.0))]),
+        fg.SceneEntity(timestamp=_stamp(ns), frame_id=WORLD_FRAME, id="table",
+                       cubes=[fg.CubePrimitive(pose=fg.Pose(position=fg.Vector3(x=0.6, y=0.0, z=-0.01)),
+                                               size=fg.Vector3(x=1.2, y=1.6, z=0.02),
+                                               color=fg.Color(r=0.6, g=0.6, b=0.6, a=0.5))]),
+    ]
+    for i, o in enumerate(request.obstacles):
+        entities.append(fg.SceneEntity(
+            timestamp=_stamp(ns), frame_id=WORLD_FRAME, id=f"obstacle {i}",
+            cylinders=[fg.CylinderPrimitive(pose=fg.Pose(position=fg.Vector3(x=o.x, y=o.y, z=OBSTACLE_HEIGHT_M / 2)),
+                                            size=fg.Vector3(x=2 * o.radius, y=2 * o.radius, z=OBSTACLE_HEIGHT_M),
+                                            bottom_scale=1.0, top_scale=1.0,
+                                            color=fg.Color(r=0.8, g=0.1, b=0.1, a=0.8))]))
+    _foxglove(writer, "/scene", fg.SceneUpdate(entities=entities), ns)
+
+
+def _transform(parent: str, child: str, position, quat_xyzw, ns: int) -> fg.FrameTransform:
+    x, y, z = (float(v) for v in position)
+    qx, qy, qz, qw = (float(v) for v in quat_xyzw)
+    return fg.FrameTransform(timestamp=_stamp(ns), parent_frame_id=parent, child_frame_id=child,
+                             translation=fg.Vector3(x=x, y=y, z=z), rotation=fg.Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+def _link_poses(scene: RobotScene) -> list[tuple[str, tuple, tuple]]:
+    """(name, position, quaternion xyzw) of every robot link's URDF frame, by one batched FK call."""
+    links = [j for j in scene.link_names if j >= 0]
+    states = pb.getLinkStates(scene.robot_id, links, computeForwardKinematics=True, physicsClientId=scene.client)
+    base_position, base_quat = transform_to_pos_quat(scene.T_world_base)  # the base's URDF frame, not its COM
+    poses = [(scene.link_names[-1], base_position, base_quat)]
+    return poses + [(scene.link_names[j], state[4], state[5]) for j, state in zip(links, states)]
+
+
+def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -> None:
+    """One robot state: the bus message, the joint states, and world -> object / link transforms."""
+    ns = int(state.stamp * 1e9)
+    writer.write_message("gd2p/robot_bridge/state", state, ns)
+    q = state.positions.to_numpy().astype(np.float64)
+    joints = [fg.JointState(name=name, position=float(p), velocity=float(v))
+              for name, p, v in zip(state.joint_names, q, state.velocities.to_numpy())]
+    _foxglove(writer, "/joint_states", fg.JointStates(timestamp=_stamp(ns), joints=joints), ns)
+    n_arm = len(scene.arm_joints)
+    scene.set_configuration(q[:n_arm], q[n_arm:])
+    transforms = [_transform(WORLD_FRAME, name, position, quat, ns) for name, position, quat in _link_poses(scene)]
+    if state.object_pose is not None:
+        pose = state.object_pose
+        transforms.append(_transform(WORLD_FRAME, OBJECT_FRAME, pose.position, pose.quaternion_xyzw, ns))
+    _foxglove(writer, "/tf", fg.FrameTransforms(transforms=transforms), ns)
+
+
+# ----------------------------------------------------------------------------------- storyboard
+
+
+def write_storyboard(scene: RobotScene, records: list[StepRecord], path: Path) -> Path:
+    """PNG: per push, the start, the pre-contact configuration and the end."""
+    rows = []
+    for i, record in enumerate(records):
+        plan = record.step.plan
+        positions = plan.positions.to_numpy().astype(np.float64)
+        push = next(s for s in plan.segments if s.label == "push")
+        end_q = record.execution.final.positions.to_numpy().astype(np.float64)
+        end_object = pose_matrix(record.step.result.final_object_pose)
+        frames = [(f"push {i + 1}: start", positions[0], record.T_world_O_start),
+                  ("pre-contact", positions[push.start], record.T_world_O_start),
+                  (f"end ({'success' if record.step.result.success else 'miss'}: "
+                   f"{record.step.result.position_error_m * 100:.1f} cm)", end_q, end_object)]
+        rows.append([_render(scene, q, T_object, label) for label, q, T_object in frames])
+    width, height = IMAGE_SIZE
+    sheet = Image.new("RGB", (3 * width, len(rows) * height), "white")
+    for r, row in enumerate(rows):
+        for c, image in enumerate(row):
+            sheet.paste(image, (c * width, r * height))
+    sheet.save(path)
+    return path
+
+
+def _render(scene: RobotScene, q: np.ndarray, T_world_O: np.ndarray, label: str) -> Image.Image:
+    n_arm = len(scene.arm_joints)
+    scene.set_configuration(q[:n_arm], q[n_arm:])
+    scene.object.reset_pose(T_world_O)
+    target = [float(T_world_O[0, 3]) * 0.7, float(T_world_O[1, 3]) * 0.7, 0.2]
+    view = pb.computeViewMatrixFromYawPitchRoll(target, CAMERA["distance"], CAMERA["yaw"], CAMERA["pitch"], 0.0, 2,
+                                                physicsClientId=scene.client)
+    width, height = IMAGE_SIZE
+    projection = pb.computeProjectionMatrixFOV(60.0, width / height, 0.05, 5.0, physicsClientId=scene.client)
+    _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
+                                         physicsClientId=scene.client)
+    image = Image.fromarray(np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3])
+    ImageDraw.Draw(image).text((8, 8), label, fill=(0, 0, 0))
+    return image

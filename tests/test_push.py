@@ -1,0 +1,145 @@
+"""End-to-end push requests through the Zenoh router: planner + validator (arm rollouts) + robot bridge.
+
+The workers run in this process as threads on the conftest router (module-scoped here). Method "fixed" (the
+spatula pose) needs no diffusion checkpoint; the pipeline around it — IK screening, RRTConnect
+planning, arm rollouts, ranking, execution by the bridge, recording — is the one every method uses.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from shared.bus import BusConfig, live_workers, open_session
+from shared.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest
+from shared.push_client import PushFailed, push
+
+BOX = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg (test split)
+
+
+@pytest.fixture(scope="module")
+def module_router():
+    """The conftest router, kept for the whole module (the workers take seconds to start)."""
+    import zenoh
+
+    from conftest import free_port, router_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    session = zenoh.open(router_config(endpoint))
+    try:
+        yield endpoint
+    finally:
+        session.close()
+
+
+@pytest.fixture(scope="module")
+def system(module_router, tmp_path_factory):
+    """Planner, one validator and the simulated robot bridge, registered on the router."""
+    from services.planner import service as planner
+    from services.robot_bridge import service as bridge
+    from services.validator import service as validator
+    from shared.bus import run_worker
+
+    cfg = BusConfig(mode="client", connect=[module_router], connect_timeout_ms=5000)
+    record_dir = tmp_path_factory.mktemp("pushes")
+    stop = threading.Event()
+    workers = [
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-t", stop), daemon=True),
+        threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-t"),
+                         kwargs={"stop": stop}, daemon=True),
+        threading.Thread(target=planner.run, args=(cfg, "planner-t", stop, str(record_dir)), daemon=True),
+    ]
+    for w in workers:
+        w.start()
+    with open_session(cfg) as session:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            live = live_workers(session)
+            if all(live.get(s) for s in ("planner", "validator", "robot_bridge")):
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail(f"workers did not register: {live}")
+    yield cfg, record_dir
+    stop.set()
+    for w in workers:
+        w.join(timeout=15.0)
+
+
+def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
+    from mcap.reader import make_reader
+
+    cfg, record_dir = system
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, distance_m=0.20, method="fixed")
+    response = push(request, cfg, timeout_s=240.0)
+    result = response.result
+    assert response.success and result.success
+    assert result.position_error_m <= 0.03 and result.rotation_deg <= 45.0 and not result.toppled
+    # The object really moved 0.20 m along +y (direction 90°) from the default spot.
+    assert np.allclose(result.final_object_pose.position[:2], (0.55, 0.20), atol=0.03)
+    assert response.score is not None and response.score.l_coll == 0.0 and response.score.l_dir < -0.9
+    assert {"ik", "planning", "rollouts", "execution"} <= set(response.timings_s)
+    # Recording: the Foxglove channels, the bus messages, and the storyboard beside it.
+    with open(response.recording_path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        channels = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+        counts = summary.statistics.channel_message_counts
+    assert channels["/scene"] == "foxglove.SceneUpdate"
+    assert channels["/tf"] == "foxglove.FrameTransforms"
+    assert channels["/joint_states"] == "foxglove.JointStates"
+    tf_channel = next(i for i, c in summary.channels.items() if c.topic == "/tf")
+    assert counts[tf_channel] > 10  # one per robot state streamed during the execution
+    assert {"gd2p/planner/request", "gd2p/planner/response", "gd2p/robot_bridge/state"} <= set(channels)
+    png = response.recording_path.replace(".mcap", ".png")
+    from PIL import Image
+
+    with Image.open(png) as image:
+        assert image.size[0] >= 3 * 320 and np.asarray(image).std() > 10  # three rendered frames, not blank
+
+
+def test_an_unreachable_object_gets_the_infeasible_error_with_its_reason(system):
+    cfg, _ = system
+    far = ObjectPose(position=(2.0, 0.0, 0.0375))
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=far, direction_deg=90.0, method="fixed")
+    with pytest.raises(PushFailed) as failure:
+        push(request, cfg, timeout_s=120.0)
+    assert failure.value.code == "infeasible"
+    assert "no IK solution" in failure.value.message and "reach" in failure.value.message
+
+
+def test_a_multi_step_push_goes_around_the_obstacle_without_touching_it(system):
+    from shared.codec import decode
+    from shared.objects import load_object
+    from shared.push_outcome import pose_matrix
+    from shared.recording import read_records
+
+    cfg, _ = system
+    obstacle = CircleObstacle(x=0.60, y=0.0, radius=0.04)  # the straight line x = 0.50 passes 0.10 m from it:
+    box = load_object(BOX)  # closer than the box's footprint radius (7.3 cm) + margin, so it must bend
+    start_T = box.T_D_O()
+    start_T[:2, 3] = (0.50, 0.15)
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start_T), goal_xy=(0.50, -0.15),
+                          obstacles=[obstacle], distance_m=0.20, method="fixed")
+    response = push(request, cfg, timeout_s=600.0)
+    assert response.success, response.result
+    assert np.linalg.norm(np.array(response.result.final_object_pose.position[:2]) - (0.50, -0.15)) <= 0.03
+    assert len(response.steps) >= 2  # the straight line is blocked: at least one corner
+    # Every executed object pose (the bridge's state stream, recorded) keeps the box's footprint off the obstacle.
+    footprints = []
+    for record in read_records(response.recording_path):
+        if record.key == "gd2p/robot_bridge/state":
+            state = decode(record.payload, record.encoding)
+            T = pose_matrix(state.object_pose)
+            footprints.append(box.mesh.vertices[:, :2] @ T[:2, :2].T + T[:2, 3])
+    assert len(footprints) > 50
+    gaps = [np.linalg.norm(f - (obstacle.x, obstacle.y), axis=1).min() - obstacle.radius for f in footprints]
+    assert min(gaps) > 0.0, f"the box came within {min(gaps):.3f} m of the obstacle"
+
+
+def _pose(T: np.ndarray) -> ObjectPose:
+    from shared.push_outcome import object_pose
+
+    return object_pose(T)
