@@ -35,7 +35,9 @@ DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 
 STAGES = ("sampling", "ik", "planning", "rollouts", "execution")
 
 
-def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threading.Event) -> BusConfig:
+def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threading.Event,
+                 threads: list[threading.Thread]) -> tuple[BusConfig, "zenoh.Session"]:
+    """Open an embedded router and start the workers (threads in `threads`); (client config, router)."""
     import zenoh
 
     from services.planner import service as planner
@@ -48,8 +50,6 @@ def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threa
     router.insert_json5("listen/endpoints", json.dumps([endpoint]))
     router.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(router)
-    stop_router = threading.Thread(target=lambda: (stop.wait(), session.close()), daemon=True)
-    stop_router.start()
     cfg = BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000)
     targets = [(bridge.run, (cfg, "bench-bridge", stop), {}),
                (run_worker, (validator.SERVICE, validator.handlers(), cfg, "bench-validator"), {"stop": stop}),
@@ -57,7 +57,9 @@ def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threa
     if with_sampler:
         targets.append((run_worker, (sampler.SERVICE, sampler.handlers(), cfg, "bench-sampler"), {"stop": stop}))
     for target, args, kwargs in targets:
-        threading.Thread(target=target, args=args, kwargs=kwargs, daemon=True).start()
+        thread = threading.Thread(target=target, args=args, kwargs=kwargs, daemon=True)
+        thread.start()
+        threads.append(thread)
     wanted = {"planner", "validator", "robot_bridge"} | ({"sampler"} if with_sampler else set())
     with open_session(cfg) as client:
         deadline = time.monotonic() + 60.0
@@ -65,7 +67,7 @@ def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threa
             if time.monotonic() > deadline:
                 raise RuntimeError("the workers did not register within 60 s")
             time.sleep(0.2)
-    return cfg
+    return cfg, session
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -87,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     if method == "auto":
         method = "gd2p" if default_checkpoint_path("allegro").is_file() else "fixed"
     stop = threading.Event()
-    cfg = start_system(f"tcp/127.0.0.1:{free_port()}", args.record_dir, method == "gd2p", stop)
+    threads: list[threading.Thread] = []
+    cfg, router = start_system(f"tcp/127.0.0.1:{free_port()}", args.record_dir, method == "gd2p", stop, threads)
     rows = []
     try:
         for object_id in OBJECTS:
@@ -110,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
                     print(json.dumps(row))
     finally:
         stop.set()
+        for thread in threads:
+            thread.join(timeout=15.0)
+        router.close()
     served = [r for r in rows if "stages_s" in r]
     totals = [r["total_s"] for r in served]
     summary = {

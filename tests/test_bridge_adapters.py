@@ -224,7 +224,7 @@ def test_allegro_connects_holds_then_follows_a_trajectory(allegro_hand):
     from services.robot_bridge.adapters.allegro import AllegroBackend
 
     hand, channel = allegro_hand
-    backend = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10)
+    backend = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0)
     backend.connect()
     try:
         assert hand.servo_on
@@ -247,7 +247,7 @@ def test_allegro_fault_is_refused_until_its_cause_is_cleared(allegro_hand):
 
     hand, channel = allegro_hand
     hand.fault()
-    backend = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10)
+    backend = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0)
     with pytest.raises(DeviceRefused, match="over-temperature"):
         backend.connect()
     assert not backend.connected and not hand.servo_on

@@ -317,7 +317,8 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
         with SimulationServer(sim) as server, client(zenoh_router) as session, client(zenoh_router) as commander:
             server.run_async()
             arm = FrankaBackend(model.hostname, realtime=False, relative_dynamics_factor=0.5)
-            hand = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10)
+            # The simulated hand is a Python thread on a loaded host: allow it longer gaps than a real hand.
+            hand = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0)
             arm.connect()
             hand.connect()
             executor = SafeExecutor(session, "panda", "allegro", [Device(arm, FR3_LIMITS), Device(hand, ALLEGRO_LIMITS)])
@@ -337,7 +338,7 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
                 assert done.status == "done", done.message
                 threading.Timer(0.4, token.undeclare).start()
                 stopped = executor.execute(command(fr3_plan(-0.3, 3.0)))
-                assert stopped.status == "stopped" and "lease" in stopped.message
+                assert stopped.status == "stopped" and "lease" in stopped.message, stopped.message
             finally:
                 executor.close()
                 arm.disconnect()

@@ -6,7 +6,6 @@ runs last. Every check goes through the bus, as a user's `gd2p status` / `scale_
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import os
 import signal
@@ -20,14 +19,14 @@ import pytest
 import cli.system
 from deploy import scale_validators
 from deploy.launcher import SERVICES, LaunchError, Launcher, free_loopback_endpoint, request_scale
-from shared.bus import BusConfig, Dispatcher, RemoteError, ServiceError, live_workers, open_session
+from shared.bus import BusConfig, Dispatcher, RemoteError, live_workers, open_session
 from shared.messages import GenerationJob, ObjectRef
 
 pytestmark = pytest.mark.timeout(120)
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 
-def eventually(condition, timeout: float = 10.0, what: str = "condition"):
+def eventually(condition, timeout: float = 60.0, what: str = "condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = condition()
@@ -92,24 +91,14 @@ def test_health_command_asks_the_worker_itself(launcher, capsys):
                        "--connect", launcher.endpoint) == 1
 
 
-def test_generation_job_gets_a_not_implemented_error_reply(client):
-    job = GenerationJob(object=ObjectRef(library_id="box"), hand="allegro", batch_size=4)
-    with Dispatcher(client, "generator", timeout_s=10.0) as dispatcher:
+def test_a_bad_request_through_the_system_gets_a_clear_error_reply(client):
+    """A job naming an object the library doesn't have is refused with a reply that names it."""
+    job = GenerationJob(object=ObjectRef(library_id="no-such-object"), hand="allegro", batch_size=4)
+    with Dispatcher(client, "generator", timeout_s=30.0) as dispatcher:
         with pytest.raises(RemoteError) as caught:
-            dispatcher.call(job, timeout=30.0)
-    assert caught.value.code == "not_implemented"
-    assert "GenerationJob is not implemented yet" in caught.value.message
-
-
-@pytest.mark.parametrize("service", ["generator", "validator", "sampler", "planner", "robot_bridge"])
-def test_algorithm_requests_are_refused_not_faked(service):
-    """Each stub service serves exactly its request type and refuses it with not_implemented."""
-    module = importlib.import_module(f"services.{service}.service")
-    (request_type, handler), = module.handlers().items()
-    with pytest.raises(ServiceError) as caught:
-        handler(request_type.model_construct())
-    assert caught.value.code == "not_implemented"
-    assert caught.value.message.startswith(f"{service}: {request_type.__name__} is not implemented yet (issue ")
+            dispatcher.call(job, timeout=60.0)
+    assert caught.value.code == "bad_request"
+    assert "no-such-object" in caught.value.message
 
 
 def test_scale_validators_up_and_down_through_the_control_key(launcher, client, capsys):

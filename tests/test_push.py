@@ -143,3 +143,54 @@ def _pose(T: np.ndarray) -> ObjectPose:
     from shared.push_outcome import object_pose
 
     return object_pose(T)
+
+
+def test_gd2p_push_json_reports_an_infeasible_request_and_exits_2(system, capsys):
+    import json
+
+    from cli.main import main
+
+    cfg, _ = system
+    code = main(["push", "--object", BOX, "--position", "2.0", "0.0", "--direction-deg", "90", "--method", "fixed",
+                 "--json", "--connect", cfg.connect[0]])
+    assert code == 2
+    reply = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert reply["error"] == "infeasible" and "no IK solution" in reply["message"]
+
+
+# ------------------------------------------------------------------------------- ranking and judging
+
+
+def test_l_dir_is_minus_one_for_a_palm_facing_the_push_and_plus_one_facing_back():
+    from services.planner.ranking import direction_costs, score
+    from shared.fixed_poses import spatula_pose
+    from shared.frames import make_transform, matrix_to_pose25, pose25_to_matrix, yaw_rotation
+    from shared.hands import load_hand
+    from shared.objects import load_object
+
+    hand = load_hand("allegro")
+    box = load_object(BOX)
+    facing = spatula_pose(hand, box.mesh_in_d().vertices)  # palm normal along +x of D
+    T, q = pose25_to_matrix(facing)
+    turned = matrix_to_pose25(make_transform(yaw_rotation(np.pi), np.zeros(3)) @ T, q)
+    assert direction_costs(hand, np.stack([facing, turned])) == pytest.approx([-1.0, 1.0], abs=1e-6)
+    # A collision outweighs any miss within the success tolerance; alignment only breaks near-ties.
+    colliding_but_accurate = score(l_goal=0.0, l_coll=1.0, l_dir=-1.0)
+    clean_but_3cm_off = score(l_goal=0.03, l_coll=0.0, l_dir=1.0)
+    assert clean_but_3cm_off.v < colliding_but_accurate.v
+
+
+def test_a_push_that_tips_the_object_over_is_judged_toppled_and_failed():
+    from shared.push_outcome import judge_push, object_pose
+
+    start = np.eye(4)
+    start[:3, 3] = (0.5, 0.0, 0.04)
+    on_its_side = np.eye(4)
+    on_its_side[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]  # 90° about x
+    on_its_side[:3, 3] = (0.5, 0.2, 0.02)
+    result = judge_push(start, np.array([0.5, 0.2]), object_pose(on_its_side))
+    assert result.toppled and not result.success and result.position_error_m < 1e-9
+    upright = start.copy()
+    upright[:3, 3] = (0.5, 0.22, 0.04)
+    result = judge_push(start, np.array([0.5, 0.2]), object_pose(upright))
+    assert result.success and result.position_error_m == pytest.approx(0.02)

@@ -130,7 +130,12 @@ class FrankaBackend(Backend):
                     self._halt()
                     raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
                                         f"{own.duration_s:.2f} s trajectory")
-        except franky.Exception as exc:  # reflexes (collision, limits) abort the motion on the robot side
+        except franky.Exception as exc:
+            if self._stop_requested.is_set() or (stop is not None and stop.is_set()):
+                # stop() from another thread preempts the motion; libfranka reports that as an exception
+                raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
+                                    f"{own.duration_s:.2f} s trajectory") from None
+            # reflexes (collision, joint limits) abort the motion on the robot side
             raise DeviceRefused(f"Franka at {self.host}: motion aborted: {exc}; call recover()") from None
         final = self._settled_positions()
         error = float(np.max(np.abs(final - own.final)))

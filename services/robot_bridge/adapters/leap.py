@@ -54,7 +54,7 @@ class LeapBackend(StreamingBackend):
     def __init__(self, port: str, baudrate: int = 4_000_000, motor_ids: Sequence[int] = tuple(range(16)),
                  joint_names: Sequence[str] = LEAP_JOINTS, current_limit_ma: float = 550.0,
                  command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02, settle_timeout_s: float = 1.0,
-                 retries: int = 2):
+                 retries: int = 3):
         super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
         self.retries = retries
         if len(motor_ids) != len(self.joint_names):
