@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -36,9 +37,8 @@ STAGES = ("sampling", "ik", "planning", "rollouts", "execution")
 
 
 def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threading.Event,
-                 threads: list[threading.Thread]) -> tuple[BusConfig, "zenoh.Session"]:
+                 threads: list[threading.Thread]) -> tuple[BusConfig, zenoh.Session]:
     """Open an embedded router and start the workers (threads in `threads`); (client config, router)."""
-    import zenoh
 
     from services.planner import service as planner
     from services.robot_bridge import service as bridge

@@ -16,7 +16,8 @@ Measured:
   1/240 s), with ms per episode; and the reference's own `noise_floor`: its agreement with itself
   when every hand pose moves 0.1 mm sideways (no setting can be expected to agree better);
 - `throughput`: validated pushes per second, reference and chosen settings, with 1 and 2 worker
-  processes (spawn pool, one PyBullet client each; scene builds included);
+  processes (spawn pool, one PyBullet client each; scene builds included), and the CPU time per push
+  (`cpu_ms_per_push`), from which `cpu_bound_pushes_per_s_2_cores` estimates two idle cores;
 - `augmentation`: success rate of the raw candidates and of the 10 Halton copies of each success.
 The last line printed is a JSON object with `validated_pushes_per_s` (chosen settings, most processes).
 """
@@ -115,11 +116,12 @@ def run_chunk(task: tuple) -> dict:
     from shared.sim import PhysicsParams, c_stdout_to_stderr
 
     params = dataclasses.replace(PhysicsParams(), solver_iterations=solver[0], time_step_s=1.0 / solver[1])
+    cpu_started = time.process_time()
     with c_stdout_to_stderr(), Validator(params) as validator:
         run = validator.validate(table_object(load_object(object_id)), load_hand(hand_name), poses, augment=augment)
     raw = [dataclasses.asdict(o) for o in run.outcomes]
     copies = [dataclasses.asdict(o) for o in run.augmented.outcomes] if run.augmented else []
-    return {"raw": raw, "copies": copies}
+    return {"raw": raw, "copies": copies, "cpu_s": time.process_time() - cpu_started}
 
 
 def _warm_worker(_: int) -> None:
@@ -151,6 +153,12 @@ def run_all(episodes, solver: tuple[int, int], processes: int, augment: bool = F
             wall = time.perf_counter() - started
     pushes = sum(len(r["raw"]) + len(r["copies"]) for r in results)
     return results, wall, pushes
+
+
+def _cpu_ms_per_push(results: list[dict]) -> float:
+    """CPU time per push (scene builds included): unlike wall time, barely affected by other load."""
+    pushes = sum(len(r["raw"]) + len(r["copies"]) for r in results)
+    return 1000.0 * sum(r["cpu_s"] for r in results) / pushes
 
 
 def _successes(results: list[dict]) -> np.ndarray:
@@ -203,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     reference, ref_wall, _ = run_all(episodes, REFERENCE, 1)
     ref_success = _successes(reference)
     agreement = {"reference": {"setting": f"{REFERENCE[0]}x{REFERENCE[1]}", "ms_per_push": 1000 * ref_wall / total,
-                               "success_rate": float(ref_success.mean())}}
+                               "cpu_ms_per_push": _cpu_ms_per_push(reference), "success_rate": float(ref_success.mean())}}
     shifted = [(o, h, p + np.r_[0.0, 1e-4, np.zeros(23)]) for o, h, p in episodes]
     agreement["noise_floor"] = float(np.mean(_successes(run_all(shifted, REFERENCE, 1)[0]) == ref_success))
     log(f"reference {REFERENCE}: {1000 * ref_wall / total:.1f} ms/push, success {ref_success.mean():.3f}, "
@@ -213,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         success = _successes(results)
         agreement[f"{setting[0]}x{setting[1]}"] = {
             "agreement": float(np.mean(success == ref_success)), "ms_per_push": 1000 * wall / total,
+            "cpu_ms_per_push": _cpu_ms_per_push(results),
             "success_rate": float(success.mean()), "chosen": setting == chosen}
         log(f"{setting}: agreement {np.mean(success == ref_success):.3f}, {1000 * wall / total:.1f} ms/push")
 
@@ -232,10 +241,13 @@ def main(argv: list[str] | None = None) -> int:
                 throughput[f"{name}_{processes}proc"] = pushes / wall
                 log(f"throughput {name} {setting} x{processes}: {pushes / wall:.1f} pushes/s")
     best = max((v for k, v in throughput.items() if k.startswith("chosen")), default=None)
+    chosen_cpu_ms = agreement[f"{chosen[0]}x{chosen[1]}"]["cpu_ms_per_push"]
     summary = {
         "benchmark": "validator", "episodes": total, "source": args.source, "objects": args.objects.split(","), "hands": list(HANDS),
         "chosen_setting": f"{chosen[0]}x{chosen[1]}", "agreement": agreement, "augmentation": augmentation,
         "throughput_pushes_per_s": throughput, "validated_pushes_per_s": best,
+        # What two idle cores would do, from CPU time per push (robust to the machine being shared).
+        "cpu_bound_pushes_per_s_2_cores": 2000.0 / chosen_cpu_ms,
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "load_avg_1m": os.getloadavg()[0],
                     "note": "shared with other jobs while measured; see load_avg_1m"},
     }

@@ -18,6 +18,7 @@ COMMAND_MODULES: list[str] = [
     "cli.hands",  # hands info
     "cli.objects",  # objects list
     "cli.validate",  # validate (push validation in PyBullet)
+    "cli.show",  # show (picture of an object with hand poses)
     "cli.sampler",  # train, sample (pose diffusion model)
     "cli.generate",  # generate (energy-based push-pose synthesis)
     "cli.bridge",  # bridge selftest, bridge estop (robot bridge hardware adapters)

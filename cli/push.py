@@ -94,10 +94,36 @@ def run_push(args: argparse.Namespace) -> int:
         print(f"gd2p push: {exc} (is `gd2p up` running?)", file=sys.stderr)
         return 2
     if args.json:
-        print(response.model_dump_json(exclude={"plan": {"positions", "times_s"}, "steps": {"__all__": {"plan"}}}))
+        print(json.dumps(response_json(response)))
     else:
         print(describe(response))
     return 0 if response.success else 1
+
+
+def response_json(response) -> dict:
+    """The PushResponse as plain JSON: arrays as nested lists; the plans' trajectories summarised
+    (joint names, waypoint count, duration, segments) — the full plans are in the recording."""
+    import numpy as np
+    from pydantic import BaseModel
+
+    from shared.messages import NDArray, Plan
+
+    def convert(value):
+        if isinstance(value, Plan):
+            times = value.times_s.to_numpy()
+            return {"arm": value.arm, "hand": value.hand, "joint_names": value.joint_names, "waypoints": len(times),
+                    "duration_s": float(times[-1] - times[0]), "segments": [s.model_dump() for s in value.segments]}
+        if isinstance(value, NDArray):
+            return np.asarray(value.to_numpy()).tolist()
+        if isinstance(value, BaseModel):
+            return {name: convert(getattr(value, name)) for name in type(value).model_fields}
+        if isinstance(value, (list, tuple)):
+            return [convert(v) for v in value]
+        if isinstance(value, dict):
+            return {k: convert(v) for k, v in value.items()}
+        return value
+
+    return convert(response)
 
 
 def describe(response) -> str:

@@ -242,6 +242,24 @@ def test_allegro_connects_holds_then_follows_a_trajectory(allegro_hand):
     assert not hand.servo_on and hand.period_s == 0
 
 
+def test_allegro_h_inf_firmware_takes_positions_on_the_torque_ids():
+    pytest.importorskip("can")
+    from services.robot_bridge.adapters import allegro_protocol as proto
+    from services.robot_bridge.adapters.allegro import AllegroBackend
+    from services.robot_bridge.devsim.allegro import SimAllegroHand
+
+    channel = f"hinf-{uuid.uuid4().hex[:8]}"
+    with SimAllegroHand(channel=channel, h_inf_firmware=True) as hand:
+        backend = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0,
+                                 h_inf_firmware=True)
+        backend.connect()
+        try:
+            assert backend.execute(ramp(backend.joint_names, np.zeros(16), np.full(16, 0.4))).completed
+            assert proto.ID_CMD_SET_TORQUE in hand.received and proto.ID_CMD_SET_POSE not in hand.received
+        finally:
+            backend.disconnect()
+
+
 def test_allegro_fault_is_refused_until_its_cause_is_cleared(allegro_hand):
     from services.robot_bridge.adapters.allegro import AllegroBackend
 

@@ -81,6 +81,14 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
     assert np.allclose(result.final_object_pose.position[:2], (0.55, 0.20), atol=0.03)
     assert response.score is not None and response.score.l_coll == 0.0 and response.score.l_dir < -0.9
     assert {"ik", "planning", "rollouts", "execution"} <= set(response.timings_s)
+    # What `gd2p push --json` prints for it is plain JSON.
+    import json
+
+    from cli.push import response_json
+
+    printed = json.loads(json.dumps(response_json(response)))
+    assert printed["result"]["success"] is True and len(printed["chosen_pose_world"]) == 25
+    assert printed["plan"]["segments"][1]["label"] == "push"
     # Recording: the Foxglove channels, the bus messages, and the storyboard beside it.
     with open(response.recording_path, "rb") as f:
         reader = make_reader(f)

@@ -180,7 +180,14 @@ class PushPipeline:
 
         def push(_from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
             offset = np.asarray(to_xy) - ctx.T_world_O[:2, 3]  # from where the object really is
-            self._push_once(ctx, offset / np.linalg.norm(offset), float(np.linalg.norm(offset)))
+            try:
+                self._push_once(ctx, offset / np.linalg.norm(offset), float(np.linalg.norm(offset)))
+            except PushError as exc:
+                if not ctx.records:
+                    raise
+                where = ", ".join(f"{v:.3f}" for v in ctx.T_world_O[:2, 3])
+                raise PushError(exc.code, f"push {len(ctx.records) + 1}, with the object at ({where}) after "
+                                f"{len(ctx.records)} push(es): {exc.message}") from exc
             return ctx.T_world_O[:2, 3]
 
         try:

@@ -35,6 +35,7 @@ class HardwareSpec:
     leap_current_limit_ma: float = 550.0
     allegro_interface: str = "socketcan"
     allegro_channel: str = "can0"
+    allegro_h_inf_firmware: bool = False
 
     def __post_init__(self) -> None:
         if (self.hand, self.arm) not in HAND_ARM_PAIRS:
@@ -56,6 +57,8 @@ class HardwareSpec:
                            help="Dynamixel current cap (mA) of the LEAP motors (at most the device limit)")
         group.add_argument("--allegro-interface", default="socketcan", help="python-can interface (default %(default)s)")
         group.add_argument("--allegro-channel", default="can0", help="CAN channel (default %(default)s)")
+        group.add_argument("--allegro-h-inf", action="store_true",
+                           help="the Allegro runs H-inf firmware (position targets on the SET_TORQUE ids)")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> "HardwareSpec | None":
@@ -68,7 +71,7 @@ class HardwareSpec:
         return cls(arm=arm, hand=hand, franka_host=args.franka_host, franka_realtime=not args.franka_no_realtime,
                    xarm_ip=args.xarm_ip, leap_port=args.leap_port, leap_baudrate=args.leap_baudrate,
                    leap_current_limit_ma=args.leap_current_limit_ma, allegro_interface=args.allegro_interface,
-                   allegro_channel=args.allegro_channel)
+                   allegro_channel=args.allegro_channel, allegro_h_inf_firmware=args.allegro_h_inf)
 
     def devices(self) -> list[Device]:
         """The arm's and the hand's adapters with their limits (HardwareConfigError if an address is missing)."""
@@ -92,7 +95,8 @@ class HardwareSpec:
                                       current_limit_ma=self.leap_current_limit_ma), LEAP_LIMITS)
         from services.robot_bridge.adapters.allegro import AllegroBackend
 
-        return Device(AllegroBackend(self.allegro_interface, self.allegro_channel), ALLEGRO_LIMITS)
+        return Device(AllegroBackend(self.allegro_interface, self.allegro_channel,
+                                     h_inf_firmware=self.allegro_h_inf_firmware), ALLEGRO_LIMITS)
 
 
 def _need(value: str | None, flag: str) -> str:

@@ -42,12 +42,14 @@ class AllegroBackend(StreamingBackend):
     def __init__(self, interface: str = "socketcan", channel: str = "can0", bitrate: int | None = 1_000_000,
                  joint_names: Sequence[str] = ALLEGRO_JOINTS, report_period_ms: int = 5, connect_timeout_s: float = 1.0,
                  stale_after_s: float = 0.2, command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02,
-                 settle_timeout_s: float = 1.0):
+                 settle_timeout_s: float = 1.0, h_inf_firmware: bool = False):
         super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
         if len(self.joint_names) != 16:
             raise ValueError(f"Allegro: 16 joints expected, got {len(self.joint_names)}")
         self.interface, self.channel, self.bitrate = interface, channel, bitrate
         self.report_period_ms, self.connect_timeout_s, self.stale_after_s = report_period_ms, connect_timeout_s, stale_after_s
+        # Which message carries position targets: SET_POSE, or SET_TORQUE's ids on H-inf firmware.
+        self.pose_message_id = proto.ID_CMD_SET_TORQUE if h_inf_firmware else proto.ID_CMD_SET_POSE
         self.effort_cap = None  # position mode: the firmware's own current limit applies; measured current is monitored
         self._bus = None
         self._notifier = None
@@ -188,7 +190,7 @@ class AllegroBackend(StreamingBackend):
         self.require_connected()
         q = np.asarray(q, dtype=np.float64)
         for finger in range(proto.FINGERS):
-            self._send(proto.ID_CMD_SET_POSE + finger, proto.encode_joints(q[4 * finger:4 * finger + 4]))
+            self._send(self.pose_message_id + finger, proto.encode_joints(q[4 * finger:4 * finger + 4]))
 
     def recover(self) -> None:
         """Servos off, re-read HAND_INFO (refused while a fault persists), hold in place, servos on."""

@@ -11,9 +11,14 @@ src/allegro_hand_driver/src/candrv/candef.h, socket_can.cpp and AllegroHandDrv.c
 | SYSTEM_ON / OFF    | 0x40/0x41 | 0x100 / 0x104  | none: servo power on / off                               |
 | SET_PERIOD         | 0x81      | 0x204          | int16 x3: position, IMU, temperature report period (ms)  |
 | SET_POSE finger f  | 0xE0 + f  | 0x380 + 4f     | int16 x4: joint position targets (0.088 deg counts)      |
+| SET_TORQUE f       | 0x60 + f  | 0x180 + 4f     | H-inf firmware: int16 x4 position targets, as SET_POSE   |
 | FINGER_CURRENT f   | 0x00 + f  | 0x000 + 4f     | int16 x4: joint currents (hand -> host)                  |
 | FINGER_POSE f      | 0x20 + f  | 0x080 + 4f     | int16 x4: joint positions (hand -> host, every period)   |
 | HAND_INFO          | 0x80      | 0x200 (RTR)    | hw version(2), fw version(2), type, temperature, status  |
+
+Firmware variants: Wonik's driver notes that the V5 "H-inf" firmware takes position targets on the
+SET_TORQUE ids (0x60 + f, wire 0x180 + 4f; `command_set_pose_direct`), disambiguated by its control
+mode. The adapter sends SET_POSE by default and the SET_TORQUE ids when told the hand runs that firmware.
 
 HAND_INFO status bits (Wonik's v4_spec.hpp `data_info_t`, kept in V5): bit 0 servo on, bit 1
 high-temperature fault, bit 2 internal communication fault.
@@ -30,6 +35,7 @@ import numpy as np
 ID_CMD_SYSTEM_ON, ID_CMD_SYSTEM_OFF = 0x40, 0x41
 ID_CMD_SET_PERIOD = 0x81
 ID_CMD_SET_POSE = 0xE0
+ID_CMD_SET_TORQUE = 0x60  # position targets on H-inf firmware (see the module docstring)
 ID_RTR_FINGER_CURRENT = 0x00
 ID_RTR_FINGER_POSE = 0x20
 ID_RTR_HAND_INFO = 0x80

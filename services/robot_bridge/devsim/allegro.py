@@ -21,7 +21,8 @@ from services.robot_bridge.adapters import allegro_protocol as proto
 
 class SimAllegroHand:
     def __init__(self, interface: str = "virtual", channel: str = "allegro", initial_rad: np.ndarray | None = None,
-                 max_speed_rad_s: float = 7.0, time_constant_s: float = 0.02, current_per_rad: float = 400.0):
+                 max_speed_rad_s: float = 7.0, time_constant_s: float = 0.02, current_per_rad: float = 400.0,
+                 h_inf_firmware: bool = False):
         self.bus = can.Bus(interface=interface, channel=channel)
         self.positions = np.zeros(16) if initial_rad is None else np.asarray(initial_rad, dtype=np.float64).copy()
         self.targets = self.positions.copy()
@@ -30,6 +31,7 @@ class SimAllegroHand:
         self.status_faults = 0
         self.max_speed, self.tau, self.current_per_rad = max_speed_rad_s, time_constant_s, current_per_rad
         self.period_s = 0.0
+        self.pose_message_id = proto.ID_CMD_SET_TORQUE if h_inf_firmware else proto.ID_CMD_SET_POSE
         self.received: list[int] = []  # message ids, for tests
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -85,8 +87,8 @@ class SimAllegroHand:
         elif mid == proto.ID_CMD_SET_PERIOD:
             position_ms = int.from_bytes(bytes(msg.data[:2]), "little", signed=True)
             self.period_s = position_ms / 1000.0
-        elif proto.ID_CMD_SET_POSE <= mid < proto.ID_CMD_SET_POSE + proto.FINGERS:
-            finger = mid - proto.ID_CMD_SET_POSE
+        elif self.pose_message_id <= mid < self.pose_message_id + proto.FINGERS:
+            finger = mid - self.pose_message_id
             self._integrate()
             self.targets[4 * finger:4 * finger + 4] = proto.decode_joints(msg.data)
 
