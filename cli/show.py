@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,10 +64,7 @@ def run_show(args: argparse.Namespace) -> int:
 
 def show(args: argparse.Namespace) -> tuple[Path, str]:
     """Build the scene described by the arguments and write the PNG; returns (path, summary)."""
-    from shared.frames import direction_frame, poses_d_to_world
-    from shared.render import (
-        HAND_COLORS, OBJECT_RGBA, LegendEntry, MARKER_RGBA, CANDIDATE_COLORS, candidate_items, hand_item,
-        mesh_item, push_markers, render_scene, views_by_name)
+    from shared.render import render_scene, views_by_name
     from shared.sim import c_stdout_to_stderr
 
     size = parse_size(args.size)
@@ -81,27 +79,52 @@ def show(args: argparse.Namespace) -> tuple[Path, str]:
         obj = _load_object(args.object)
         T_D_O = _object_placement(obj, args.resting_pose)
         hand, poses_d, indices = _hand_and_poses(args, obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
-        T_world_D = direction_frame(np.zeros(3), args.direction_deg)
-        items = [mesh_item(obj.id, obj.mesh, T_world_D @ T_D_O, OBJECT_RGBA)]
-        legend = [LegendEntry(obj.id, OBJECT_RGBA)]
-        alpha = 1.0 if len(indices) <= 1 else MULTI_POSE_ALPHA
-        for number, (index, pose_d) in enumerate(zip(indices, poses_d)):
-            color = HAND_COLORS[number % len(HAND_COLORS)]
-            pose_world = poses_d_to_world(pose_d, T_world_D)
-            label = f"{args.fixed_pose} pose" if args.fixed_pose else f"pose {index}"
-            items.append(hand_item(label, hand, pose_world, (*color[:3], alpha)))
-            legend.append(LegendEntry(label, color))
-            if args.candidates:
-                items += candidate_items(label, hand, pose_world)
-        if args.candidates and hand is not None:
-            legend += [LegendEntry(f"{kind} candidates", rgba) for kind, rgba in CANDIDATE_COLORS.items()]
-        items += push_markers(T_world_D, args.distance, SUCCESS_TOLERANCE_M)
-        legend.append(LegendEntry(f"push {args.distance:.2f} m, target ±{SUCCESS_TOLERANCE_M * 100:.0f} cm", MARKER_RGBA))
-        hand_text = f" · {hand.name} · {_count(len(indices), 'pose')}" if hand is not None else ""
-        title = f"{obj.id}{hand_text} · push direction {args.direction_deg:g}° in the world · grid 5 cm"
-        path = render_scene(items, args.out, views=views, size=size, heading_deg=args.direction_deg,
-                            title=title, legend=legend)
+        labels = [f"{args.fixed_pose} pose" if args.fixed_pose else f"pose {i}" for i in indices]
+        scene = show_scene(obj, T_D_O, hand, poses_d, labels, direction_deg=args.direction_deg,
+                           distance_m=args.distance, candidates=args.candidates)
+        path = render_scene(scene.items, args.out, views=views, size=size, heading_deg=args.direction_deg,
+                            title=scene.title, legend=scene.legend)
     return path, f"{_count(len(views), 'view')}, {_count(len(indices), 'pose')}"
+
+
+@dataclass
+class ShowScene:
+    items: list
+    legend: list
+    title: str
+
+
+def show_scene(obj, T_D_O: np.ndarray, hand, poses_d: np.ndarray, labels: list[str], *, direction_deg: float = 0.0,
+               distance_m: float = 0.20, candidates: bool = False) -> ShowScene:
+    """The picture's items in the world: D's origin at the world origin, its +x `direction_deg` from world +x.
+
+    `obj` is an ObjectModel resting at T_D_O; `poses_d` [N,25] are poses of `hand` in D, named by `labels`.
+    Several hands are drawn see-through (alpha MULTI_POSE_ALPHA) so the object stays visible.
+    """
+    from shared.frames import direction_frame, poses_d_to_world
+    from shared.render import (
+        CANDIDATE_COLORS, HAND_COLORS, MARKER_RGBA, OBJECT_RGBA, WORLD_X_RGBA, WORLD_Y_RGBA, LegendEntry,
+        candidate_items, hand_item, mesh_item, push_markers)
+
+    T_world_D = direction_frame(np.zeros(3), direction_deg)
+    items = [mesh_item(obj.id, obj.mesh, T_world_D @ T_D_O, OBJECT_RGBA)]
+    legend = [LegendEntry(obj.id, OBJECT_RGBA)]
+    alpha = 1.0 if len(poses_d) <= 1 else MULTI_POSE_ALPHA
+    for number, (label, pose_d) in enumerate(zip(labels, poses_d)):
+        color = HAND_COLORS[number % len(HAND_COLORS)]
+        pose_world = poses_d_to_world(np.asarray(pose_d, dtype=np.float64), T_world_D)
+        items.append(hand_item(label, hand, pose_world, (*color[:3], alpha)))
+        legend.append(LegendEntry(label, color))
+        if candidates:
+            items += candidate_items(label, hand, pose_world)
+    if candidates and len(poses_d):
+        legend += [LegendEntry(f"{kind} candidates", rgba) for kind, rgba in CANDIDATE_COLORS.items()]
+    items += push_markers(T_world_D, distance_m, SUCCESS_TOLERANCE_M)
+    legend += [LegendEntry(f"push {distance_m:.2f} m, target ±{SUCCESS_TOLERANCE_M * 100:.0f} cm", MARKER_RGBA),
+               LegendEntry("world +x", WORLD_X_RGBA), LegendEntry("world +y", WORLD_Y_RGBA)]
+    hand_text = f" · {hand.name} · {_count(len(poses_d), 'pose')}" if hand is not None else ""
+    title = f"{obj.id}{hand_text} · push direction {direction_deg:g}° in the world · grid 5 cm"
+    return ShowScene(items, legend, title)
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -177,6 +177,8 @@ def run_up(args: argparse.Namespace) -> int:
     try:
         secure = getattr(args, "secure", False)
         listen = SECURE_LISTEN if secure and args.listen == DEFAULT_LISTEN else args.listen
+        # Each push request's MCAP + storyboard go beside the bus recording (the planner child inherits this).
+        os.environ.setdefault("GD2P_PUSH_RECORD_DIR", os.path.join(os.path.abspath(args.record_dir), "pushes"))
         launcher = Launcher(validators=args.validators, listen=listen, record_dir=args.record_dir,
                             log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None)
     except LaunchError as exc:

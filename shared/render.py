@@ -1,7 +1,7 @@
 """CPU pictures of a scene: the table, objects, hands (or whole robots) and markers, from several views.
 
-    from shared.render import DEFAULT_VIEWS, hand_item, mesh_item, push_markers, render_scene
-    items = [mesh_item("object", obj.mesh, T_world_O), hand_item("pose 0", hand, pose_world, ORANGE),
+    from shared.render import HAND_COLORS, hand_item, mesh_item, push_markers, render_scene
+    items = [mesh_item("object", obj.mesh, T_world_O), hand_item("pose 0", hand, pose_world, HAND_COLORS[0]),
              *push_markers(T_world_D, 0.20, 0.03)]
     render_scene(items, "scene.png", title="proc-box-001 · allegro")
 
@@ -15,8 +15,9 @@ Conventions and choices:
 - Views are defined relative to a *heading* (the push direction's yaw): "side" looks at the push from
   its right so the push always reads left to right, whatever the direction in the world. A small world
   axes glyph (x red, y green) on the table shows how the scene sits in the world.
-- Each view frames the items automatically (the camera distance is solved so every item's bounding box
-  fits, with a margin); side and top views use a narrow field of view, close to an orthographic drawing.
+- Each view frames the items automatically (the camera distance is solved so that every mesh vertex and
+  link bounding box is in the image, with a margin), or given `frame_points` so that several renders share
+  one camera. Side and top views use a narrow field of view, close to an orthographic drawing.
 - TinyRenderer ignores alpha. Items with alpha < 1 are made see-through by compositing: the scene is
   rendered with and without them, and their pixels are blended by alpha.
 - TinyRenderer does not anti-alias; views are rendered `supersample` times larger and downsampled.
@@ -35,13 +36,14 @@ import pybullet as pb
 import trimesh
 from PIL import Image
 
-from shared.frames import matrix_to_quat_xyzw, pose25_to_matrix
+from shared.frames import (
+    invert_transform, matrix_to_quat_xyzw, pose25_to_matrix, transform_points, yaw_rotation)
 from shared.sim.scene import c_stdout_to_stderr, pos_quat_to_transform
 
 RGBA = tuple[float, float, float, float]
 
 GRID_M = 0.05  # table grid spacing, stated in the picture's title
-TABLE_MARGIN_M = 0.12  # table extends this far beyond the items
+TABLE_MARGIN_M = 0.25  # table extends this far beyond the items: its edges stay out of most views
 TABLE_THICKNESS_M = 0.012
 TABLE_RGBA: RGBA = (0.87, 0.86, 0.83, 1.0)
 GRID_RGBA: RGBA = (0.70, 0.70, 0.68, 1.0)
@@ -59,10 +61,11 @@ CANDIDATE_COLORS: dict[str, RGBA] = {
 CANDIDATE_RADIUS_M = 0.0025
 WORLD_X_RGBA: RGBA = (0.85, 0.10, 0.10, 1.0)
 WORLD_Y_RGBA: RGBA = (0.10, 0.65, 0.10, 1.0)
-AXES_LENGTH_M = 0.05
+AXES_LENGTH_M = 0.04
 LIGHT_DIRECTION = (0.4, -0.6, 1.0)  # from the upper right of the side view: shadows fall behind, to the left
 LIGHT_AMBIENT, LIGHT_DIFFUSE, LIGHT_SPECULAR = 0.5, 0.55, 0.05  # soft, matte: no glare spots on flat faces
 _FRAMING_MARGIN = 1.10  # items fill ~90% of the tighter image dimension
+_MIN_DEPTH_M = 0.02
 _HIDDEN_Z_M = -1000.0  # where translucent bodies go while the scene behind them is rendered
 
 
@@ -233,10 +236,11 @@ def frame_camera(view: View, points: np.ndarray, heading_deg: float, aspect: flo
     tan_v = math.tan(math.radians(view.fov_deg) / 2.0)
     # A point at depth d (along forward, from the centre) is in view iff |x| <= tan_h (distance + d).
     distance = float(np.max(np.maximum(np.abs(x) / (tan_v * aspect), np.abs(y) / tan_v) - depth))
-    radius = float(np.linalg.norm(offsets, axis=1).max()) + 0.05
-    distance = max(distance, radius * 0.5 + 0.02)
+    distance = max(distance, float(np.max(-depth)) + _MIN_DEPTH_M)  # nothing at or behind the eye
     eye = centre + toward_eye * distance
-    near, far = max(0.005, distance - radius - TABLE_MARGIN_M), distance + 4.0 * radius + 1.0
+    # The near plane stays close to the eye: the table reaches out toward the camera beyond the items.
+    radius = float(np.linalg.norm(offsets, axis=1).max())
+    near, far = min(_MIN_DEPTH_M, 0.02 * distance), distance + 4.0 * radius + 2.0 * TABLE_MARGIN_M + 1.0
     return Camera(pb.computeViewMatrix(eye.tolist(), centre.tolist(), up.tolist()),
                   pb.computeProjectionMatrixFOV(view.fov_deg, aspect, near, far))
 
@@ -257,22 +261,41 @@ class RenderWorld:
     """The items loaded into a PyBullet DIRECT client, ready to be rendered from any camera.
 
     Use as a context manager. `body_ids[i]` are the PyBullet bodies of `items[i]` (for inspection).
+    `heading_deg` is the yaw the views are relative to; the table and its grid are aligned with it.
+    `frame_points` [N,3], when given, are framed instead of the items: several renders then share their
+    cameras and table (e.g. a storyboard's frames, with the union of everything they show).
     """
 
-    def __init__(self, items: Sequence[Item], *, table: bool = True):
+    def __init__(self, items: Sequence[Item], *, heading_deg: float = 0.0, table: bool = True,
+                 frame_points: np.ndarray | None = None):
         if not items:
             raise RenderError("nothing to render: the scene has no items")
+        if not math.isfinite(heading_deg):
+            raise RenderError(f"heading must be finite, got {heading_deg}")
         self.items = list(items)
+        self.heading_deg = float(heading_deg)
+        self.T_world_heading = _translation([0.0, 0.0, 0.0])
+        self.T_world_heading[:3, :3] = yaw_rotation(math.radians(heading_deg))
         with c_stdout_to_stderr():  # PyBullet prints warnings on file descriptor 1
             self.client = pb.connect(pb.DIRECT)
         if self.client < 0:
             raise RenderError("could not start a PyBullet DIRECT client")
         try:
             self.body_ids: list[list[int]] = [self._add(item) for item in self.items]
-            item_points = np.concatenate([self._bounds_corners(i) for i in range(len(self.items))])
-            # The world axes glyph sits just outside the items' far-left corner and is framed with them.
-            self.axes_origin = np.array([item_points[:, 0].min() - 0.02, item_points[:, 1].max() + 0.02, 0.0])
-            glyph = self.axes_origin + AXES_LENGTH_M * np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+            if frame_points is None:
+                item_points = np.concatenate([self._framing_points(i) for i in range(len(self.items))])
+            else:
+                item_points = np.asarray(frame_points, dtype=np.float64).reshape(-1, 3)
+                if len(item_points) == 0 or not np.all(np.isfinite(item_points)):
+                    raise RenderError("frame_points must be a non-empty array of finite [N,3] points")
+            # The world axes glyph (an L of two arrows) sits just outside the items' rear-left corner as seen
+            # along the heading, framed with them; its bounding circle has radius AXES_LENGTH_M / 2 + ~1 cm.
+            in_heading = transform_points(invert_transform(self.T_world_heading), item_points)
+            reach = AXES_LENGTH_M / 2 + 0.012
+            centre = transform_points(self.T_world_heading, np.array(
+                [in_heading[:, 0].min() - reach, in_heading[:, 1].max() + reach, 0.0]))
+            self.axes_origin = centre - np.array([AXES_LENGTH_M / 2, AXES_LENGTH_M / 2, 0.0])
+            glyph = centre + reach * np.array([[-1.0, -1, 0], [1, -1, 0], [-1, 1, 0], [1, 1, 0]])
             self.framing_points = np.concatenate([item_points, glyph]) if table else item_points
             self.scenery_ids = self._add_table() if table else []
             self._item_of_body = self._body_lookup()
@@ -293,11 +316,11 @@ class RenderWorld:
 
     # ------------------------------------------------------------------------------------ rendering
 
-    def render(self, view: View, width: int, height: int, heading_deg: float = 0.0, supersample: int = 2) -> RenderedView:
+    def render(self, view: View, width: int, height: int, supersample: int = 2) -> RenderedView:
         """Render one view at width x height pixels (items framed automatically)."""
         if width < 16 or height < 16 or supersample < 1:
             raise RenderError(f"image size must be at least 16x16 and supersample >= 1, got {width}x{height}, {supersample}")
-        camera = frame_camera(view, self.framing_points, heading_deg, width / height)
+        camera = frame_camera(view, self.framing_points, self.heading_deg, width / height)
         big_w, big_h = width * supersample, height * supersample
         rgb, segmentation = self._capture(camera, big_w, big_h)
         item_index = self._item_of_body[segmentation]  # segmentation -1 (background) picks the last entry, -1
@@ -424,22 +447,24 @@ class RenderWorld:
         return [self._add_mesh(arrow.vertices, arrow.faces, transform, item.rgba)]
 
     def _add_table(self) -> list[int]:
-        """A table slab under the items (top at z = 0) with a grid texture, and a world axes glyph on it.
+        """A square table slab under the items (top at z = 0), aligned with the heading, with a grid texture.
 
         The grid is a texture on one quad: TinyRenderer rasterises every triangle over its screen bounding
-        box, so long thin grid-line boxes seen at an angle would cost a full-screen pass each.
+        box, so long thin grid-line boxes seen at an angle would cost a full-screen pass each. The table is
+        square so that it still fills the top view when the image is wider than the items.
         """
-        low = np.floor((self.framing_points[:, :2].min(axis=0) - TABLE_MARGIN_M) / GRID_M) * GRID_M
-        high = np.ceil((self.framing_points[:, :2].max(axis=0) + TABLE_MARGIN_M) / GRID_M) * GRID_M
-        size, centre = high - low, (low + high) / 2
-        slab = trimesh.creation.box([size[0], size[1], TABLE_THICKNESS_M])
-        bodies = [self._add_mesh(slab.vertices, slab.faces, _translation([*centre, -TABLE_THICKNESS_M / 2 - 2e-4]),
-                                 TABLE_RGBA, smooth=False)]
-        corners = [[low[0], low[1], 0.0], [high[0], low[1], 0.0], [high[0], high[1], 0.0], [low[0], high[1], 0.0]]
+        points = transform_points(invert_transform(self.T_world_heading), self.framing_points)[:, :2]
+        centre = (points.min(axis=0) + points.max(axis=0)) / 2
+        cells = int(np.ceil((np.ptp(points, axis=0).max() + 2 * TABLE_MARGIN_M) / GRID_M))
+        half = cells * GRID_M / 2
+        centre = np.round(centre / GRID_M) * GRID_M  # grid lines on round coordinates of the heading frame
+        slab = trimesh.creation.box([2 * half, 2 * half, TABLE_THICKNESS_M])
+        slab.apply_translation([*centre, -TABLE_THICKNESS_M / 2 - 2e-4])
+        bodies = [self._add_mesh(slab.vertices, slab.faces, self.T_world_heading, TABLE_RGBA, smooth=False)]
+        corners = [[centre[0] + sx * half, centre[1] + sy * half, 0.0] for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         top = pb.createVisualShape(pb.GEOM_MESH, vertices=corners, indices=[0, 1, 2, 0, 2, 3],
                                    uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], normals=[[0, 0, 1]] * 4, physicsClientId=self.client)
-        bodies.append(pb.createMultiBody(0.0, -1, top, physicsClientId=self.client))
-        cells = np.rint(size / GRID_M).astype(int)
+        bodies.append(pb.createMultiBody(0.0, -1, top, *_pos_quat(self.T_world_heading), physicsClientId=self.client))
         pb.changeVisualShape(bodies[-1], -1, textureUniqueId=self._grid_texture(cells), rgbaColor=[1, 1, 1, 1],
                              physicsClientId=self.client)
         for axis, rgba in ((0, WORLD_X_RGBA), (1, WORLD_Y_RGBA)):
@@ -447,10 +472,10 @@ class RenderWorld:
             bodies += self._add_arrow(ArrowItem("world axis", self.axes_origin, end, rgba, width_m=0.005))
         return bodies
 
-    def _grid_texture(self, cells: np.ndarray) -> int:
-        """A texture of cells[0] x cells[1] grid cells in the table colours (row 0 of the image is v = 0)."""
-        pixels = max(4, min(32, 2048 // int(cells.max())))
-        image = np.empty((cells[1] * pixels, cells[0] * pixels, 3), dtype=np.uint8)
+    def _grid_texture(self, cells: int) -> int:
+        """A texture of cells x cells grid cells in the table colours."""
+        pixels = max(4, min(32, 2048 // cells))
+        image = np.empty((cells * pixels, cells * pixels, 3), dtype=np.uint8)
         image[:] = np.rint(np.array(TABLE_RGBA[:3]) * 255)
         line = np.rint(np.array(GRID_RGBA[:3]) * 255)
         image[::pixels, :], image[:, ::pixels] = line, line
@@ -463,28 +488,22 @@ class RenderWorld:
             raise RenderError("PyBullet could not load the table texture")
         return texture
 
-    def _bounds_corners(self, index: int) -> np.ndarray:
-        """Corners of the world-space bounding box of item `index` (what the cameras must show)."""
+    def _framing_points(self, index: int) -> np.ndarray:
+        """World points that bound item `index` (what the cameras must show): vertices, link boxes, centres."""
         item, bodies = self.items[index], self.body_ids[index]
         if isinstance(item, MeshItem):
-            points = np.asarray(item.vertices) @ item.transform[:3, :3].T + item.transform[:3, 3]
-        elif isinstance(item, UrdfItem):
-            body = bodies[0]
-            links = range(-1, pb.getNumJoints(body, physicsClientId=self.client))
-            points = np.array([corner for link in links for corner in pb.getAABB(body, link, physicsClientId=self.client)])
-        elif isinstance(item, PointsItem):
-            points = np.asarray(item.points).reshape(-1, 3)
-            if len(points) == 0:
-                return np.zeros((0, 3))
-            points = np.concatenate([points - item.radius_m, points + item.radius_m])
-        elif isinstance(item, ArrowItem):
-            points = np.array([[*item.start[:2], 0.0], [*item.end[:2], 0.0]])
-        else:
-            reach = item.radius_m + item.width_m
-            points = np.array([[item.centre[0] - reach, item.centre[1] - reach, 0.0],
-                               [item.centre[0] + reach, item.centre[1] + reach, 0.0]])
-        low, high = points.min(axis=0), points.max(axis=0)
-        return np.array([[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])])
+            return transform_points(item.transform, item.vertices)
+        if isinstance(item, UrdfItem):
+            links = range(-1, pb.getNumJoints(bodies[0], physicsClientId=self.client))
+            boxes = [pb.getAABB(bodies[0], link, physicsClientId=self.client) for link in links]
+            return np.array([[x, y, z] for low, high in boxes for x in (low[0], high[0]) for y in (low[1], high[1])
+                             for z in (low[2], high[2])])
+        if isinstance(item, PointsItem):
+            return np.asarray(item.points, dtype=np.float64).reshape(-1, 3)
+        if isinstance(item, ArrowItem):
+            return np.array([[*item.start[:2], 0.0], [*item.end[:2], 0.0]])
+        reach = item.radius_m + item.width_m
+        return np.array([[item.centre[0] + dx, item.centre[1] + dy, 0.0] for dx in (-reach, reach) for dy in (-reach, reach)])
 
 
 def _alpha(item: Item) -> float:
@@ -522,58 +541,74 @@ class LegendEntry:
 
 
 def render_views(items: Sequence[Item], views: Sequence[View | str] = DEFAULT_VIEWS, size: tuple[int, int] = (480, 360),
-                 heading_deg: float = 0.0, *, table: bool = True, supersample: int = 2) -> list[RenderedView]:
-    """Render the items from each view at `size` = (width, height) pixels."""
+                 heading_deg: float = 0.0, *, table: bool = True, supersample: int = 2,
+                 frame_points: np.ndarray | None = None) -> list[RenderedView]:
+    """Render the items from each view at `size` = (width, height) pixels (see RenderWorld for the options)."""
     views = [views_by_name([v])[0] if isinstance(v, str) else v for v in views]
     if not views:
         raise RenderError("at least one view is needed")
-    with RenderWorld(items, table=table) as world:
-        return [world.render(view, size[0], size[1], heading_deg, supersample) for view in views]
+    with RenderWorld(items, heading_deg=heading_deg, table=table, frame_points=frame_points) as world:
+        return [world.render(view, size[0], size[1], supersample) for view in views]
 
 
-def picture_size(view_count: int, size: tuple[int, int], columns: int | None = None,
-                 legend_count: int = 0) -> tuple[int, int]:
-    """Pixel size (width, height) of the PNG `compose_png` writes."""
+def picture_size(view_count: int, size: tuple[int, int], columns: int | None = None, *, title: str = "",
+                 legend: Sequence[LegendEntry] = ()) -> tuple[int, int]:
+    """Pixel size (width, height) of the PNG `compose_png` writes for these views, title and legend."""
     columns = _columns(view_count, columns)
-    rows = math.ceil(view_count / columns)
     width = columns * size[0]
-    return width, rows * size[1] + _header_height(width, legend_count)
+    return width, math.ceil(view_count / columns) * size[1] + _header_layout(width, title, legend).height
 
 
 def compose_png(rendered: Sequence[RenderedView], out: str | Path, *, title: str = "",
                 legend: Sequence[LegendEntry] = (), columns: int | None = None) -> Path:
-    """Tile the views into one PNG with a title, a legend and a label on each view; returns the path."""
+    """Tile the views into one PNG under a header (title, legend) with a label on each view; returns the path.
+
+    The header is laid out from measured text widths: the title wraps at its " · " separators and the
+    legend at entry boundaries, so nothing is cut off however narrow the picture.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Patch
+    from matplotlib.patches import Rectangle
 
     if not rendered:
         raise RenderError("no views to compose")
     tile_h, tile_w = rendered[0].rgb.shape[:2]
     columns = _columns(len(rendered), columns)
-    width, height = picture_size(len(rendered), (tile_w, tile_h), columns, len(legend))
-    header = height - math.ceil(len(rendered) / columns) * tile_h
-    dpi = 100
-    figure = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi, facecolor="white")
+    width, height = picture_size(len(rendered), (tile_w, tile_h), columns, title=title, legend=legend)
+    header = _header_layout(width, title, legend)
+    figure = plt.figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI, facecolor="white")
+    px_x, px_y = (lambda x: x / width), (lambda y: 1.0 - y / height)  # header pixels (from the top-left) -> figure
     try:
         for index, view in enumerate(rendered):
             row, col = divmod(index, columns)
-            bottom = height - header - (row + 1) * tile_h
+            bottom = height - header.height - (row + 1) * tile_h
             axes = figure.add_axes((col * tile_w / width, bottom / height, tile_w / width, tile_h / height))
             axes.imshow(view.rgb, interpolation="nearest", aspect="auto")
-            axes.set_axis_off()
-            axes.text(8, 8, view.view.title, fontsize=11, va="top", ha="left",
+            axes.set_xticks([])
+            axes.set_yticks([])
+            for spine in axes.spines.values():  # a thin frame separates the tiles
+                spine.set_edgecolor("0.55")
+                spine.set_linewidth(1.0)
+            axes.text(8, 8, view.view.title, fontsize=_LABEL_PT, va="top", ha="left",
                       bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none", "pad": 2})
-        figure.text(8 / width, 1 - 6 / height, title, fontsize=12, fontweight="bold", va="top", ha="left")
-        if legend:
-            handles = [Patch(facecolor=e.rgba[:3], edgecolor="black", linewidth=0.5, label=e.label) for e in legend]
-            figure.legend(handles=handles, loc="upper left", bbox_to_anchor=(0, 1 - _TITLE_PX / height),
-                          ncol=_legend_columns(width, len(legend)), frameon=False, fontsize=9,
-                          handlelength=1.2, columnspacing=1.0, borderaxespad=0.3)
+        y = _PAD_PX
+        for line in header.title_lines:
+            figure.text(px_x(_PAD_PX), px_y(y), line, fontsize=_TITLE_PT, fontweight="bold", va="top", ha="left")
+            y += _TITLE_LINE_PX
+        for row in header.legend_rows:
+            x = _PAD_PX
+            for entry in row:
+                figure.add_artist(Rectangle((px_x(x), px_y(y + _SWATCH_PX + 3)), px_x(_SWATCH_PX) - px_x(0),
+                                            _SWATCH_PX / height, facecolor=entry.rgba[:3], edgecolor="black",
+                                            linewidth=0.5, transform=figure.transFigure))
+                figure.text(px_x(x + _SWATCH_PX + _SWATCH_GAP_PX), px_y(y + 1), entry.label, fontsize=_LEGEND_PT,
+                            va="top", ha="left")
+                x += _legend_entry_width(entry.label)
+            y += _LEGEND_LINE_PX
         buffer = io.BytesIO()
-        figure.savefig(buffer, dpi=dpi, format="png", facecolor="white")
+        figure.savefig(buffer, dpi=_DPI, format="png", facecolor="white")
     finally:
         plt.close(figure)
     out = Path(out)
@@ -586,27 +621,72 @@ def compose_png(rendered: Sequence[RenderedView], out: str | Path, *, title: str
 
 def render_scene(items: Sequence[Item], out: str | Path, *, views: Sequence[View | str] = DEFAULT_VIEWS,
                  size: tuple[int, int] = (480, 360), heading_deg: float = 0.0, title: str = "",
-                 legend: Sequence[LegendEntry] = (), columns: int | None = None, supersample: int = 2) -> Path:
+                 legend: Sequence[LegendEntry] = (), columns: int | None = None, supersample: int = 2,
+                 frame_points: np.ndarray | None = None) -> Path:
     """Render the items from several views and write them, tiled and labelled, to a PNG."""
-    rendered = render_views(items, views, size, heading_deg, supersample=supersample)
+    rendered = render_views(items, views, size, heading_deg, supersample=supersample, frame_points=frame_points)
     return compose_png(rendered, out, title=title, legend=legend, columns=columns)
 
 
-_TITLE_PX = 26
-_LEGEND_ROW_PX = 22
-_LEGEND_ENTRY_PX = 120
+_DPI = 100
+_TITLE_PT, _LEGEND_PT, _LABEL_PT = 12, 9, 11
+_PAD_PX = 8
+_TITLE_LINE_PX = 22
+_LEGEND_LINE_PX = 20
+_SWATCH_PX = 11
+_SWATCH_GAP_PX = 5
+_ENTRY_GAP_PX = 16
+_TEXT_WIDTH_SAFETY = 1.05  # measured outlines vs the renderer's hinted text: a few % wider at most
+
+
+@dataclass(frozen=True)
+class _HeaderLayout:
+    title_lines: list[str]
+    legend_rows: list[list[LegendEntry]]
+
+    @property
+    def height(self) -> int:
+        if not self.title_lines and not self.legend_rows:
+            return 0
+        return 2 * _PAD_PX + len(self.title_lines) * _TITLE_LINE_PX + len(self.legend_rows) * _LEGEND_LINE_PX
 
 
 def _columns(view_count: int, columns: int | None) -> int:
+    """Tiles per row: as asked, else rows of at most 3 filled evenly (4 views -> 2 x 2)."""
     if view_count < 1:
         raise RenderError("at least one view is needed")
-    return max(1, min(view_count, columns or 3))
+    if columns is None:
+        columns = math.ceil(view_count / math.ceil(view_count / 3))
+    return max(1, min(view_count, columns))
 
 
-def _legend_columns(width: int, count: int) -> int:
-    return max(1, min(count, width // _LEGEND_ENTRY_PX))
+def _text_width_px(text: str, size_pt: float, bold: bool = False) -> float:
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextToPath
+
+    width_pt, _, _ = TextToPath().get_text_width_height_descent(
+        text, FontProperties(size=size_pt, weight="bold" if bold else "normal"), ismath=False)
+    return width_pt * _DPI / 72.0 * _TEXT_WIDTH_SAFETY
 
 
-def _header_height(width: int, legend_count: int) -> int:
-    rows = math.ceil(legend_count / _legend_columns(width, legend_count)) if legend_count else 0
-    return _TITLE_PX + rows * _LEGEND_ROW_PX + (6 if rows else 0)
+def _legend_entry_width(label: str) -> float:
+    return _SWATCH_PX + _SWATCH_GAP_PX + _text_width_px(label, _LEGEND_PT) + _ENTRY_GAP_PX
+
+
+def _header_layout(width: int, title: str, legend: Sequence[LegendEntry]) -> _HeaderLayout:
+    """Greedy line filling: title parts (split at " · ") and legend entries, each line within the width."""
+    available = width - 2 * _PAD_PX
+    parts = [p for p in title.split(" · ") if p] if title else []
+    title_lines = _fill_lines(parts, lambda line: _text_width_px(" · ".join(line), _TITLE_PT, bold=True), available)
+    rows = _fill_lines(list(legend), lambda row: sum(_legend_entry_width(e.label) for e in row) - _ENTRY_GAP_PX, available)
+    return _HeaderLayout([" · ".join(line) for line in title_lines], rows)
+
+
+def _fill_lines(pieces: list, line_width, available: float) -> list[list]:
+    lines: list[list] = []
+    for piece in pieces:
+        if lines and line_width(lines[-1] + [piece]) <= available:
+            lines[-1].append(piece)
+        else:
+            lines.append([piece])  # a piece wider than the line gets a line of its own
+    return lines

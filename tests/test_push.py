@@ -108,6 +108,14 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
         assert image.size[0] >= 3 * 320 and np.asarray(image).std() > 10  # three rendered frames, not blank
 
 
+def test_without_ranking_a_feasible_plan_is_executed_without_rollouts(system):
+    cfg, _ = system
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, method="fixed", ranking=False)
+    response = push(request, cfg, timeout_s=240.0)
+    assert response.score is None and "rollouts" not in response.timings_s
+    assert response.result.success, response.result
+
+
 def test_an_unreachable_object_gets_the_infeasible_error_with_its_reason(system):
     cfg, _ = system
     far = ObjectPose(position=(2.0, 0.0, 0.0375))

@@ -7,31 +7,38 @@
 - the bus messages as they travel (msgpack, `shared.recording`): the PushRequest, every executed
   Plan, the robot's ExecutionStates and the PushResponse.
 `<record_dir>/push-<request id>.png` is the storyboard: one row per push — start, pre-contact
-(the first waypoint of the push segment) and end — rendered with PyBullet's TinyRenderer.
+(the first waypoint of the push segment) and end — drawn by `shared.render` from one camera.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 import pybullet as pb
+import trimesh
 from foxglove import messages as fg
-from PIL import Image, ImageDraw
 
 from services.planner.pipeline import StepRecord
 from shared.messages import ExecutionState, PushRequest, PushResponse
 from shared.objects import write_object_urdf
 from shared.object_refs import load_object_ref
 from shared.push_outcome import pose_matrix
+from shared.arms import combined_urdf
 from shared.recording import McapWriter
+from shared.render import VIEWS, UrdfItem, compose_png, mesh_item, render_views
 from shared.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
 from shared.sim.scene import transform_to_pos_quat
 
 WORLD_FRAME = "world"
 OBJECT_FRAME = "object"
 IMAGE_SIZE = (480, 360)
-CAMERA = dict(distance=1.5, yaw=50.0, pitch=-35.0)  # looking at the object from the robot's front-left
+OBSTACLE_RGBA = (0.80, 0.15, 0.15, 1.0)
+# No anti-aliasing: the storyboard is written before the push request is answered, and TinyRenderer
+# at 2x took 1.2 s per frame here under load (3.6 s of a 6 s storyboard), at 1x 0.3 s.
+STORYBOARD_SUPERSAMPLE = 1
 
 
 def record_push(record_dir: Path, request: PushRequest, response: PushResponse, records: list[StepRecord],
@@ -55,7 +62,7 @@ def record_push(record_dir: Path, request: PushRequest, response: PushResponse, 
             for state in record.execution.states + [record.execution.final]:
                 _write_state(writer, scene, state)
         writer.write_message("gd2p/planner/response", response, time.time_ns())
-    write_storyboard(scene, records, mcap_path.with_suffix(".png"))
+    write_storyboard(scene, records, obj.mesh, request.obstacles, mcap_path.with_suffix(".png"))
     return mcap_path
 
 
@@ -130,40 +137,53 @@ def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -
 # ----------------------------------------------------------------------------------- storyboard
 
 
-def write_storyboard(scene: RobotScene, records: list[StepRecord], path: Path) -> Path:
-    """PNG: per push, the start, the pre-contact configuration and the end."""
-    rows = []
+def write_storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, path: Path) -> Path:
+    """PNG (`shared.render`): per push, the start, the pre-contact configuration and the end, one camera for all."""
+    robot_urdf = combined_urdf(scene.arm, scene.hand)
+    frames = []  # (label, joint positions, T_world_O)
     for i, record in enumerate(records):
         plan = record.step.plan
         positions = plan.positions.to_numpy().astype(np.float64)
         push = next(s for s in plan.segments if s.label == "push")
-        end_q = record.execution.final.positions.to_numpy().astype(np.float64)
-        end_object = pose_matrix(record.step.result.final_object_pose)
-        frames = [(f"push {i + 1}: start", positions[0], record.T_world_O_start),
-                  ("pre-contact", positions[push.start], record.T_world_O_start),
-                  (f"end ({'success' if record.step.result.success else 'miss'}: "
-                   f"{record.step.result.position_error_m * 100:.1f} cm)", end_q, end_object)]
-        rows.append([_render(scene, q, T_object, label) for label, q, T_object in frames])
-    width, height = IMAGE_SIZE
-    sheet = Image.new("RGB", (3 * width, len(rows) * height), "white")
-    for r, row in enumerate(rows):
-        for c, image in enumerate(row):
-            sheet.paste(image, (c * width, r * height))
-    sheet.save(path)
-    return path
+        result = record.step.result
+        frames += [(f"push {i + 1}: start", positions[0], record.T_world_O_start),
+                   (f"push {i + 1}: pre-contact", positions[push.start], record.T_world_O_start),
+                   (f"push {i + 1}: end ({'success' if result.success else 'miss'}, "
+                    f"{result.position_error_m * 100:.1f} cm off)",
+                    record.execution.final.positions.to_numpy().astype(np.float64), pose_matrix(result.final_object_pose))]
+    obstacle_items = [mesh_item(f"obstacle {k}", trimesh.creation.cylinder(o.radius, OBSTACLE_HEIGHT_M),
+                                _translation([o.x, o.y, OBSTACLE_HEIGHT_M / 2]), OBSTACLE_RGBA)
+                      for k, o in enumerate(obstacles)]
+    joint_names = list(records[0].step.plan.joint_names)
+    framing = np.concatenate([_robot_points(scene, q) for _, q, _ in frames]
+                             + [mesh.vertices @ T[:3, :3].T + T[:3, 3] for _, _, T in frames])
+    heading = math.degrees(math.atan2(*_push_direction(records[0])[::-1]))
+    rendered = []
+    for label, q, T_world_O in frames:
+        items = [UrdfItem("robot", robot_urdf, scene.T_world_base, dict(zip(joint_names, map(float, q)))),
+                 mesh_item("object", mesh, T_world_O), *obstacle_items]
+        view = dataclasses.replace(VIEWS["iso"], label=label)
+        rendered += render_views(items, [view], IMAGE_SIZE, heading, supersample=STORYBOARD_SUPERSAMPLE,
+                                 frame_points=framing)
+    return compose_png(rendered, path, title=f"push request: {len(records)} push(es)", columns=3)
 
 
-def _render(scene: RobotScene, q: np.ndarray, T_world_O: np.ndarray, label: str) -> Image.Image:
+def _robot_points(scene: RobotScene, q: np.ndarray) -> np.ndarray:
+    """Link origins of the robot at joints q (what the storyboard's camera must keep in view)."""
     n_arm = len(scene.arm_joints)
     scene.set_configuration(q[:n_arm], q[n_arm:])
-    scene.object.reset_pose(T_world_O)
-    target = [float(T_world_O[0, 3]) * 0.7, float(T_world_O[1, 3]) * 0.7, 0.2]
-    view = pb.computeViewMatrixFromYawPitchRoll(target, CAMERA["distance"], CAMERA["yaw"], CAMERA["pitch"], 0.0, 2,
-                                                physicsClientId=scene.client)
-    width, height = IMAGE_SIZE
-    projection = pb.computeProjectionMatrixFOV(60.0, width / height, 0.05, 5.0, physicsClientId=scene.client)
-    _, _, rgba, _, _ = pb.getCameraImage(width, height, view, projection, renderer=pb.ER_TINY_RENDERER,
-                                         physicsClientId=scene.client)
-    image = Image.fromarray(np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3])
-    ImageDraw.Draw(image).text((8, 8), label, fill=(0, 0, 0))
-    return image
+    return np.array([position for _, position, _ in _link_poses(scene)], dtype=np.float64)
+
+
+def _push_direction(record: StepRecord) -> np.ndarray:
+    """The planned push direction (world xy) of a step: from the object's start toward where it should go."""
+    start = record.T_world_O_start[:2, 3]
+    end = np.array(record.step.result.final_object_pose.position[:2])
+    delta = end - start
+    return delta / np.linalg.norm(delta) if np.linalg.norm(delta) > 1e-6 else np.array([1.0, 0.0])
+
+
+def _translation(xyz) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = xyz
+    return T
