@@ -75,6 +75,7 @@ def show(args: argparse.Namespace) -> tuple[Path, str]:
         raise ShowInputError(f"--direction-deg must be finite, got {args.direction_deg}")
     if args.out.suffix.lower() != ".png":
         raise ShowInputError(f"--out must be a .png file, got {args.out}")
+    _check_pose_options(args)
     with c_stdout_to_stderr():  # PyBullet prints on file descriptor 1
         obj = _load_object(args.object)
         T_D_O = _object_placement(obj, args.resting_pose)
@@ -155,17 +156,23 @@ def _object_placement(obj, resting_pose: int | None) -> np.ndarray:
     return obj.T_D_O(resting_pose)
 
 
+def _check_pose_options(args: argparse.Namespace) -> None:
+    """Reject option combinations that cannot be drawn, before anything slow is loaded."""
+    wants_hand = args.poses is not None or args.fixed_pose is not None or args.candidates
+    if args.hand is not None and args.poses is None and args.fixed_pose is None:
+        raise ShowInputError("--hand needs --poses FILE or --fixed-pose spatula to place it")
+    if wants_hand and args.hand is None:
+        raise ShowInputError("--poses, --fixed-pose and --candidates need --hand (allegro or leap)")
+    if args.index is not None and args.poses is None:
+        raise ShowInputError("--index selects a pose of a --poses file")
+    if args.max_poses < 1:
+        raise ShowInputError(f"--max-poses must be >= 1, got {args.max_poses}")
+
+
 def _hand_and_poses(args: argparse.Namespace, object_vertices_d: np.ndarray):
     """(hand model or None, poses [N,25] in D, their indices in the file) chosen by the arguments."""
-    wants_hand = args.poses is not None or args.fixed_pose is not None or args.candidates
-    if not wants_hand:
-        if args.hand is not None:
-            raise ShowInputError("--hand needs --poses FILE or --fixed-pose spatula to place it")
-        return None, np.zeros((0, 25)), []
     if args.hand is None:
-        raise ShowInputError("--poses, --fixed-pose and --candidates need --hand (allegro or leap)")
-    if args.poses is None and args.fixed_pose is None:
-        raise ShowInputError("--candidates needs hand poses: add --poses FILE or --fixed-pose spatula")
+        return None, np.zeros((0, 25)), []
     hand = _load_hand(args.hand)
     if args.fixed_pose is not None:
         from services.validator.fixed_poses import spatula_pose

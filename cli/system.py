@@ -275,6 +275,19 @@ def _demo_push(launcher, method: str) -> bool:
         print(f"   -> the request failed: {exc}", file=sys.stderr)
         return False
     print("   " + describe(response).replace("\n", "\n   "))
+    _wait_for_storyboard(response.recording_path)
     return response.success
+
+
+def _wait_for_storyboard(recording_path: str | None, timeout_s: float = 60.0) -> None:
+    """The planner renders the storyboard just after answering: let it finish before shutting down."""
+    if recording_path is None:
+        return
+    png = os.path.splitext(recording_path)[0] + ".png"
+    deadline = time.monotonic() + timeout_s
+    while not os.path.isfile(png) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    if not os.path.isfile(png):
+        print(f"   (the storyboard {png} was not written within {timeout_s:.0f} s)", file=sys.stderr)
 
 

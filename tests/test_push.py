@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -101,7 +102,10 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
     tf_channel = next(i for i, c in summary.channels.items() if c.topic == "/tf")
     assert counts[tf_channel] > 10  # one per robot state streamed during the execution
     assert {"gd2p/planner/request", "gd2p/planner/response", "gd2p/robot_bridge/state"} <= set(channels)
-    png = response.recording_path.replace(".mcap", ".png")
+    png = Path(response.recording_path.replace(".mcap", ".png"))
+    deadline = time.monotonic() + 60.0  # rendered just after the answer
+    while not png.is_file() and time.monotonic() < deadline:
+        time.sleep(0.2)
     from PIL import Image
 
     with Image.open(png) as image:

@@ -208,10 +208,23 @@ def test_bad_poses_file_is_a_clear_error(tmp_path, capsys, box_scene, case, mess
     (["--size", "480by360"], "--size must be WIDTHxHEIGHT"),
     (["--views", "iso,fisheye"], "unknown view(s) ['fisheye']"),
     (["--resting-pose", "99"], "--resting-pose 99"),
+    (["--hand", "allegro", "--fixed-pose", "spatula", "--index", "0"], "--index selects a pose of a --poses file"),
+    (["--hand", "allegro", "--fixed-pose", "spatula", "--max-poses", "0"], "--max-poses must be >= 1"),
 ])
 def test_bad_options_are_clear_errors(tmp_path, capsys, box_scene, extra, message):
     assert main(["show", "--object", BOX, *extra, "--out", str(tmp_path / "x.png")]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_max_poses_and_index_choose_the_poses_drawn(tmp_path, capsys, box_scene):
+    pose = box_scene[3]
+    shifted = [pose + np.r_[0.0, 0.03 * k, np.zeros(23)] for k in range(3)]
+    poses = _write(tmp_path / "three.json", {"poses": [{"pose": p.tolist(), "energy": {"total": 1.0}} for p in shifted]})
+    common = ["show", "--object", BOX, "--hand", "allegro", "--poses", poses, "--views", "side", "--size", "160x120"]
+    assert main([*common, "--max-poses", "2", "--out", str(tmp_path / "two.png")]) == 0
+    assert "(1 view, 2 poses)" in capsys.readouterr().out
+    assert main([*common, "--index", "2", "--out", str(tmp_path / "one.png")]) == 0
+    assert "(1 view, 1 pose)" in capsys.readouterr().out
 
 
 def test_unknown_object_is_a_clear_error(tmp_path, capsys):

@@ -7,13 +7,16 @@
 - the bus messages as they travel (msgpack, `shared.recording`): the PushRequest, every executed
   Plan, the robot's ExecutionStates and the PushResponse.
 `<record_dir>/push-<request id>.png` is the storyboard: one row per push — start, pre-contact
-(the first waypoint of the push segment) and end — drawn by `shared.render` from one camera.
+(the first waypoint of the push segment) and end — drawn by `shared.render` from one camera. The
+planner service renders it after answering (it takes about as long as a push); it appears complete.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -42,11 +45,13 @@ STORYBOARD_SUPERSAMPLE = 1
 
 
 def record_push(record_dir: Path, request: PushRequest, response: PushResponse, records: list[StepRecord],
-                scene: RobotScene) -> Path:
+                scene: RobotScene, defer: Callable[[Callable[[], Path]], object] | None = None) -> Path:
     """Write the MCAP and the storyboard PNG of a served request; returns the MCAP's path.
 
-    `scene` is an empty robot scene of the request's arm and hand (used for forward kinematics and
-    rendering; the object and obstacles are added to it here).
+    `scene` is an empty robot scene of the request's arm and hand (forward kinematics; the object and
+    obstacles are added to it here). `defer`, when given, is handed the storyboard's rendering (about
+    as long as a push, measured 3-4 s on 2 loaded cores) to run later, e.g. on a background thread,
+    so the request can be answered first.
     """
     record_dir.mkdir(parents=True, exist_ok=True)
     mcap_path = record_dir / f"push-{request.id[:16]}.mcap"
@@ -62,7 +67,11 @@ def record_push(record_dir: Path, request: PushRequest, response: PushResponse, 
             for state in record.execution.states + [record.execution.final]:
                 _write_state(writer, scene, state)
         writer.write_message("gd2p/planner/response", response, time.time_ns())
-    write_storyboard(scene, records, obj.mesh, request.obstacles, mcap_path.with_suffix(".png"))
+    render = storyboard(scene, records, obj.mesh, request.obstacles, mcap_path.with_suffix(".png"))
+    if defer is None:
+        render()
+    else:
+        defer(render)
     return mcap_path
 
 
@@ -137,8 +146,14 @@ def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -
 # ----------------------------------------------------------------------------------- storyboard
 
 
-def write_storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, path: Path) -> Path:
-    """PNG (`shared.render`): per push, the start, the pre-contact configuration and the end, one camera for all."""
+def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, path: Path) -> Callable[[], Path]:
+    """A function that writes the storyboard PNG (`shared.render`): per push, the start, the pre-contact
+    configuration and the end, all from one camera.
+
+    What needs `scene` (forward kinematics for the camera's framing) is done now; the returned function
+    renders in PyBullet clients of its own, so it may run on another thread while `scene` is reused. The
+    PNG appears at `path` complete (written beside, then renamed).
+    """
     robot_urdf = combined_urdf(scene.arm, scene.hand)
     frames = []  # (label, joint positions, T_world_O)
     for i, record in enumerate(records):
@@ -158,14 +173,22 @@ def write_storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacl
     framing = np.concatenate([_robot_points(scene, q) for _, q, _ in frames]
                              + [mesh.vertices @ T[:3, :3].T + T[:3, 3] for _, _, T in frames])
     heading = math.degrees(math.atan2(*_push_direction(records[0])[::-1]))
-    rendered = []
-    for label, q, T_world_O in frames:
-        items = [UrdfItem("robot", robot_urdf, scene.T_world_base, dict(zip(joint_names, map(float, q)))),
-                 mesh_item("object", mesh, T_world_O), *obstacle_items]
-        view = dataclasses.replace(VIEWS["iso"], label=label)
-        rendered += render_views(items, [view], IMAGE_SIZE, heading, supersample=STORYBOARD_SUPERSAMPLE,
-                                 frame_points=framing)
-    return compose_png(rendered, path, title=f"push request: {len(records)} push(es)", columns=3)
+    T_world_base = scene.T_world_base.copy()
+
+    def render() -> Path:
+        rendered = []
+        for label, q, T_world_O in frames:
+            items = [UrdfItem("robot", robot_urdf, T_world_base, dict(zip(joint_names, map(float, q)))),
+                     mesh_item("object", mesh, T_world_O), *obstacle_items]
+            view = dataclasses.replace(VIEWS["iso"], label=label)
+            rendered += render_views(items, [view], IMAGE_SIZE, heading, supersample=STORYBOARD_SUPERSAMPLE,
+                                     frame_points=framing)
+        partial = path.with_name(path.name + ".partial.png")
+        compose_png(rendered, partial, title=f"push request: {len(records)} push(es)", columns=3)
+        os.replace(partial, path)
+        return path
+
+    return render
 
 
 def _robot_points(scene: RobotScene, q: np.ndarray) -> np.ndarray:

@@ -8,8 +8,8 @@ The algorithm is `pipeline.PushPipeline`; this module gives it its services over
   worker's own liveliness token (`gd2p/lease/planner-<worker id>`), while the robot's
   `ExecutionState` stream is collected for the recording.
 
-Each request is recorded (`recording.py`): an MCAP with Foxglove channels and the bus messages,
-and a PNG storyboard, in `record_dir` (`--record-dir`, env GD2P_PUSH_RECORD_DIR, default
+Each request is recorded (`recording.py`): an MCAP with Foxglove channels and the bus messages
+(written before the answer), and a PNG storyboard beside it (rendered just after), in `record_dir` (`--record-dir`, env GD2P_PUSH_RECORD_DIR, default
 `recordings/pushes`); the response names the MCAP.
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ import logging
 import os
 import threading
 import time
-from concurrent.futures import wait
+from concurrent.futures import ThreadPoolExecutor, wait
 from pathlib import Path
 
 import zenoh
@@ -136,6 +136,8 @@ class PlannerService:
         self.pipeline = PushPipeline(services)
         self.record_dir = Path(record_dir or os.environ.get(RECORD_DIR_ENV, DEFAULT_RECORD_DIR)).resolve()
         self._lock = threading.Lock()  # one robot: one push request at a time
+        # Storyboards are rendered after the answer, one at a time (they take about as long as a push).
+        self._storyboards = ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner-storyboard")
 
     def push(self, request: PushRequest) -> PushResponse:
         """Plan, rank and execute a push of `request.object`; record it."""
@@ -148,7 +150,8 @@ class PlannerService:
         started = time.perf_counter()
         try:
             with self.pipeline.scene(request.arm, request.hand) as scene:
-                path = record_push(self.record_dir, request, response, records, scene)
+                path = record_push(self.record_dir, request, response, records, scene,
+                                   defer=lambda render: self._storyboards.submit(_render_logged, render))
         except OSError as exc:
             log.warning("could not record push %s: %s", request.id, exc)
             return response
@@ -157,6 +160,18 @@ class PlannerService:
 
     def handlers(self):
         return {PushRequest: self.push}
+
+    def close(self) -> None:
+        """Finish the storyboards still being rendered, release the pipeline's scenes."""
+        self._storyboards.shutdown(wait=True)
+        self.pipeline.close()
+
+
+def _render_logged(render) -> None:
+    try:
+        log.info("storyboard written: %s", render())
+    except Exception:  # on a background thread: nobody else would hear of it
+        log.exception("storyboard rendering failed")
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
@@ -180,7 +195,7 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
         Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session).run()
     finally:
         if service is not None:
-            service.pipeline.close()
+            service.close()
         if bus is not None:
             bus.close()
         session.close()
