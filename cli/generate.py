@@ -11,10 +11,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
-import tempfile
 from pathlib import Path
+
+from shared.atomic import atomic_write_text
 
 HANDS = ("allegro", "leap")
 
@@ -113,15 +113,7 @@ def output_document(output, scene, seed: int, config) -> dict:
 
 def _write_json(path: Path, document: dict) -> None:
     """Write atomically (temp file + rename): a reader never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            json.dump(document, handle)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, json.dumps(document))
 
 
 def _fail(message: str) -> int:

@@ -22,10 +22,10 @@ import numpy as np
 import pytorch_kinematics as pk
 import torch
 
+from shared.atomic import atomic_write_text
 from shared.hands import HandModel, load_hand
 from shared.hands.urdf import (
     RobotAssetError,
-    atomic_write_text,
     cache_dir,
     example_robot_data_file,
     merge_urdf,

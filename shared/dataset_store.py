@@ -38,7 +38,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +45,8 @@ from typing import Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from shared.atomic import atomic_write_bytes
 
 MANIFEST_NAME = "manifest.json"
 SHARD_DIR = "shards"
@@ -76,30 +77,6 @@ class ObjectStatus:
 
 
 # ----------------------------------------------------------------------------- atomic files
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    """Write `data` to `path` so a reader sees the old file or the new one, never a part."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-
-
 def table_to_parquet_bytes(table: pa.Table) -> bytes:
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink, compression="zstd")
@@ -229,7 +206,7 @@ class DatasetStore:
         if rows.num_rows:
             shard = f"{SHARD_DIR}/{_SAFE_NAME.sub('_', object_id)}.parquet"
             data = table_to_parquet_bytes(rows)
-            atomic_write(self.directory / shard, data)
+            atomic_write_bytes(self.directory / shard, data, durable=True)
             self.manifest["shards"].append({"path": shard, "object_id": object_id, "rows": rows.num_rows,
                                             "sha256": hashlib.sha256(data).hexdigest()})
             self.manifest["shards"].sort(key=lambda s: s["object_id"])
@@ -254,7 +231,7 @@ class DatasetStore:
 
     def _save(self) -> None:
         text = json.dumps(self.manifest, indent=1, sort_keys=False, default=_json_default)
-        atomic_write(self.directory / MANIFEST_NAME, text.encode())
+        atomic_write_bytes(self.directory / MANIFEST_NAME, text.encode(), durable=True)
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -19,8 +19,8 @@ from services.generator.synthesis import GenerationError, GenerationOutput, gene
 from shared.bus import ServiceError
 from shared.hands import load_hand
 from shared.messages import GenerationJob, GenerationResult, Message, ObjectRef
-from shared.objects import ObjectLoadError, ObjectModel, load_object
-from shared.objects.cache import atomic_write_bytes, cache_root
+from shared.object_refs import load_object_ref
+from shared.objects import ObjectLoadError, ObjectModel
 
 SERVICE = "generator"
 _SCENES: dict[str, PushScene] = {}  # per object id: SDF and samples are reused by later jobs
@@ -34,23 +34,12 @@ def _limit_torch_threads() -> None:
         torch.set_num_threads(1)
 
 
-# TODO(lead): the validator service has the same ObjectRef -> ObjectModel resolution; move it to shared/objects.
 def resolve_object(ref: ObjectRef) -> ObjectModel:
-    """The library object or user mesh of a job (a mesh is written once to the cache by its hash)."""
-    if ref.point_cloud is not None:
-        raise ServiceError("bad_request", "the generator needs an object mesh or library id; a point cloud has no SDF")
-    if ref.scale is not None and ref.scale != 1.0:
-        raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported")
+    """The library object or user mesh of a job; a bad one is a bad_request naming the problem."""
     try:
-        if ref.library_id is not None:
-            return load_object(ref.library_id)
-        assert ref.mesh is not None
-        path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
-        if not path.is_file():
-            atomic_write_bytes(path, ref.mesh.data)
-        return load_object(path)
+        return load_object_ref(ref)
     except ObjectLoadError as exc:
-        raise ServiceError("bad_request", f"object {ref.object_id}: {exc}") from exc
+        raise ServiceError("bad_request", f"the generator needs an object mesh or library id: {exc}") from exc
 
 
 def scene_for(ref: ObjectRef, config: GenerationConfig) -> PushScene:

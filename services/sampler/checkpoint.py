@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ import torch
 
 from services.sampler.diffusion import PoseNormalizer
 from services.sampler.model import DenoiserConfig, PoseDenoiser
+from shared.atomic import atomic_write_text, atomic_writer
 from shared.bps import BasisPointSet
 
 CHECKPOINT_FORMAT = "gd2p-sampler-v1"
@@ -100,31 +100,10 @@ class SamplerCheckpoint:
 
 # ----------------------------------------------------------------------------- files
 def atomic_torch_save(obj: Any, path: str | Path) -> Path:
-    """torch.save to a temporary file in the target directory, fsync, then rename over `path`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            torch.save(obj, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """torch.save through an atomic, durable write: a crash never leaves a half checkpoint."""
+    with atomic_writer(path, "wb", durable=True) as handle:
+        torch.save(obj, handle)
+    return Path(path)
 
 
 def manifest_path(checkpoint_path: str | Path) -> Path:
@@ -135,7 +114,7 @@ def manifest_path(checkpoint_path: str | Path) -> Path:
 def save_checkpoint(checkpoint: SamplerCheckpoint, path: str | Path, half: bool = False) -> Path:
     """Write the shipped checkpoint (fp16 weights with `half`) and its manifest JSON beside it."""
     path = atomic_torch_save(checkpoint.to_dict(half=half), path)
-    _atomic_write_text(manifest_path(path), json.dumps(checkpoint.manifest, indent=2, sort_keys=True) + "\n")
+    atomic_write_text(manifest_path(path), json.dumps(checkpoint.manifest, indent=2, sort_keys=True) + "\n")
     return path
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import os
-import tempfile
 import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -23,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from shared.atomic import atomic_write_text
 
 CACHE_ENV = "GD2P_CACHE_DIR"
 # Bump when the resolving/sanitising rules change so stale cached copies are not reused.
@@ -116,19 +117,6 @@ def merge_urdf(parent_path: Path, child_path: Path, parent_link: str, transform:
     xyz, rpy = matrix_to_xyz_rpy(transform)
     ET.SubElement(joint, "origin", {"xyz": _fmt(xyz), "rpy": _fmt(rpy)})
     return _to_text(merged)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write via a temporary file in the same directory and rename, so readers never see a partial file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def content_key(*parts: str) -> str:

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from shared.atomic import atomic_write_bytes
 
 CACHE_ENV = "GD2P_CACHE_DIR"
 
@@ -21,24 +22,6 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
     """The objects cache directory (argument > $GD2P_CACHE_DIR > ~/.cache/gd2p)."""
     base = Path(cache_dir) if cache_dir is not None else Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "gd2p"))
     return base.expanduser() / "objects"
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> Path:
-    """Write `data` to `path` atomically (temp file + rename); creates parent directories."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def atomic_write_text(path: Path, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def save_npz(path: Path, **arrays: np.ndarray) -> Path:

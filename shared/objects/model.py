@@ -21,7 +21,9 @@ import trimesh
 from tqdm import tqdm
 
 from . import meshio
-from .cache import atomic_write_text, cache_root, load_npz, save_npz
+from shared.atomic import atomic_write_text
+
+from .cache import cache_root, load_npz, save_npz
 from .catalog import (
     ObjectInfo,
     ObjectSource,

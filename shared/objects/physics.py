@@ -21,7 +21,7 @@ import pybullet
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from .cache import atomic_write_bytes, atomic_write_text
+from shared.atomic import atomic_write_bytes, atomic_write_text
 from .model import ObjectModel
 
 # V-HACD voxel resolution: 2e5 resolves a mug handle in ~1.5 s (1e5: coarser, 4e5: ~3.5 s).
