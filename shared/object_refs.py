@@ -1,13 +1,24 @@
-"""ObjectRef -> ObjectModel, for every service that simulates or plans around an object's mesh."""
+"""ObjectRef -> ObjectModel, for every service that simulates, plans around or samples for an object."""
 from __future__ import annotations
 
-from shared.messages import ObjectRef
+from pathlib import Path
+
+from shared.atomic import atomic_write_bytes
+from shared.messages import MeshBlob, ObjectRef
 from shared.objects import ObjectLoadError, ObjectModel, load_object
-from shared.objects.cache import atomic_write_bytes, cache_root
+from shared.objects.cache import cache_root
+
+
+def uploaded_mesh_path(mesh: MeshBlob) -> Path:
+    """The cached file of an uploaded mesh (written once, named by its content hash)."""
+    path = cache_root() / "uploads" / f"{mesh.sha256}.{mesh.format}"
+    if not path.is_file():
+        atomic_write_bytes(path, mesh.data)
+    return path
 
 
 def load_object_ref(ref: ObjectRef) -> ObjectModel:
-    """The library object or uploaded mesh of `ref` (a mesh is written once to the cache by its hash).
+    """The library object or uploaded mesh of `ref`.
 
     Raises ObjectLoadError for point clouds and scaled objects (no mesh to simulate) and bad meshes.
     """
@@ -18,7 +29,4 @@ def load_object_ref(ref: ObjectRef) -> ObjectModel:
     if ref.library_id is not None:
         return load_object(ref.library_id)
     assert ref.mesh is not None
-    path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
-    if not path.is_file():
-        atomic_write_bytes(path, ref.mesh.data)
-    return load_object(path)
+    return load_object(uploaded_mesh_path(ref.mesh))

@@ -21,7 +21,7 @@ from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
 from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
-from shared.objects.cache import atomic_write_bytes, cache_root
+from shared.object_refs import uploaded_mesh_path
 
 SERVICE = "sampler"
 
@@ -80,10 +80,7 @@ def object_input(ref: ObjectRef) -> ObjectInput:
     if ref.library_id is not None:
         return ref.library_id
     if ref.mesh is not None:
-        path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
-        if not path.is_file():
-            atomic_write_bytes(path, ref.mesh.data)
-        return path
+        return uploaded_mesh_path(ref.mesh)
     assert ref.point_cloud is not None
     return ref.point_cloud.to_numpy().astype(np.float64)
 

@@ -24,8 +24,8 @@ from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
 from shared.hands import load_hand
 from shared.messages import AugmentedOutcomes, Message, ObjectRef, PhysicsSettings, ValidationJob, ValidationResult
-from shared.objects import ObjectLoadError, ObjectModel, load_object
-from shared.objects.cache import atomic_write_bytes, cache_root
+from shared.object_refs import load_object_ref
+from shared.objects import ObjectLoadError, ObjectModel
 from shared.sim import PhysicsParams, SimError
 
 SERVICE = "validator"
@@ -57,23 +57,11 @@ def params_for(settings: PhysicsSettings | None) -> PhysicsParams:
 
 
 def resolve_object(ref: ObjectRef) -> ObjectModel:
-    """The library object or user mesh of a job (a mesh is written once to the cache by its hash)."""
-    if ref.point_cloud is not None:
-        raise ServiceError("bad_request", "the validator needs an object mesh or library id; a point cloud cannot be simulated")
+    """The library object or user mesh of a job; a bad one is a bad_request naming the problem."""
     try:
-        if ref.library_id is not None:
-            obj = load_object(ref.library_id)
-        else:
-            assert ref.mesh is not None
-            path = cache_root() / "uploads" / f"{ref.mesh.sha256}.{ref.mesh.format}"
-            if not path.is_file():
-                atomic_write_bytes(path, ref.mesh.data)
-            obj = load_object(path)
+        return load_object_ref(ref)
     except ObjectLoadError as exc:
-        raise ServiceError("bad_request", f"object {ref.object_id}: {exc}") from exc
-    if ref.scale is not None and ref.scale != 1.0:
-        raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported by the validator")
-    return obj
+        raise ServiceError("bad_request", f"the validator needs an object mesh or library id: {exc}") from exc
 
 
 def validate(job: ValidationJob) -> ValidationResult:
