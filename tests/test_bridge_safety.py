@@ -343,3 +343,33 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
                 executor.close()
                 arm.disconnect()
                 hand.disconnect()
+
+
+# ------------------------------------------------------------------------------------------ the bridge service
+def test_the_bridge_service_routes_commands_to_its_hardware_and_refuses_other_robots(robot, planner):
+    from services.robot_bridge.service import Bridge
+
+    bridge = Bridge(robot.session)
+    bridge.hardware = robot.executor  # what attach_hardware sets after connecting the devices
+    try:
+        wait_for_lease(robot.session)
+        state = bridge.execute(command(plan(arm_goal=XARM_HOME + 0.05)))
+        assert state.status == "done", state.message
+        assert robot.moved()
+        panda_plan = Plan(arm="panda", hand="allegro", joint_names=["a"], positions=np.zeros((2, 1)),
+                          times_s=np.array([0.0, 1.0]))
+        refused = bridge.execute(command(panda_plan))
+        assert refused.status == "refused" and "xarm7 + leap" in refused.message
+        assert not bridge._executors  # no simulated robot was built behind the hardware
+    finally:
+        bridge.hardware = None  # the fixture disconnects the devices
+        bridge.close()
+
+
+def test_the_bridge_process_names_a_missing_device_address():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "services.robot_bridge", "--hardware", "xarm7+leap"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "--xarm-ip is required" in done.stderr

@@ -14,7 +14,9 @@
 - While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the backend's state rate.
 
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
-one executes. Hardware backends (`safety.SafeExecutor`) follow the same contract.
+one executes. With `--hardware ARM+HAND` the bridge drives real devices instead
+(`hardware.HardwareSpec` -> `safety.SafeExecutor`, same lease and e-stop latch); a command for
+any other robot is refused, and no simulated world is built.
 """
 from __future__ import annotations
 
@@ -30,10 +32,12 @@ from services.robot_bridge.safety import (
     COMMAND_KEY,
     EStopLatch,
     LeaseWatch,
+    SafeExecutor,
     SafetyRefusal,
     check_lease_key,
     lease_alive,
 )
+from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
@@ -59,6 +63,14 @@ class Bridge:
         self.estop_latch = EStopLatch(session, [])
         self._executors: dict[tuple[str, str], SimExecutor] = {}
         self._lock = threading.Lock()
+        self.hardware: SafeExecutor | None = None  # set by `attach_hardware`; then no simulated robot is used
+
+    def attach_hardware(self, spec: HardwareSpec) -> None:
+        """Connect the real arm and hand (all or none) and route every command to them."""
+        devices = spec.devices()
+        connect_all(devices)
+        self.hardware = SafeExecutor(self.session, spec.arm, spec.hand, devices, publish=self.publish,
+                                     estop=self.estop_latch)
 
     def executor(self, arm: str, hand: str) -> SimExecutor:
         with self._lock:
@@ -71,6 +83,8 @@ class Bridge:
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
         """Run `command.plan` if every check passes; the final state (or the refusal)."""
+        if self.hardware is not None:
+            return self.hardware.execute(command)  # its own lease, e-stop, limit and workspace checks
         executor = self.executor(command.plan.arm, command.plan.hand)
         try:
             self._check_command(command)
@@ -114,6 +128,10 @@ class Bridge:
 
     def close(self) -> None:
         self.estop_latch.close()
+        if self.hardware is not None:
+            for device in self.hardware.devices:
+                device.backend.disconnect()
+            self.hardware = None
         with self._lock:
             for executor in self._executors.values():
                 executor.backend.disconnect()
@@ -159,8 +177,13 @@ def reset_world(backend: SimBackend, world: SimWorld) -> None:
     backend.add_obstacles([(o.x, o.y, o.radius) for o in world.obstacles])
 
 
-def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None) -> None:
-    """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`."""
+def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
+        hardware: HardwareSpec | None = None) -> None:
+    """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`.
+
+    `hardware` (None = the simulated robot) is connected before the worker registers, so a bridge
+    whose devices are absent fails at start with the device's error instead of announcing itself.
+    """
     try:
         session = open_session(cfg, stop=stop)
     except OpenCancelled:
@@ -175,6 +198,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
             publisher.put(payload, encoding=encoding)
 
         bridge = Bridge(session, publish)
+        if hardware is not None:
+            bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()
         Worker(SERVICE, bridge.handlers(), cfg, worker_id, stop=stop, session=session).run()
         commands.undeclare()
