@@ -400,10 +400,13 @@ def test_selftest_names_a_missing_simulator(monkeypatch):
 
     from services.robot_bridge import selftest
 
+    # Neither franky package installed (a fresh `make install`: they are the opt-in hardware-sim extra).
     real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "franky_sim" else real(name, *a))
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name in ("franky", "franky_sim") else real(name, *a))
     result = selftest.run_selftest(("franky",))
-    assert result == {"franky": {"ok": False, "reason": "franky-sim not installed (pip install franky-sim)"}}
+    assert result == {"franky": {"ok": False, "reason": "franky-control, franky-sim not installed "
+                                                        "(pip install franky-control franky-sim)"}}
 
 
 # ------------------------------------------------------------------------------------------ hardware flags
