@@ -354,3 +354,15 @@ def test_cli_writes_the_documented_json_and_plot(box_file, cache_dir, tmp_path, 
     assert len(entry["pose"]) == 25 and len(entry["palm_normal"]) == 3 and entry["max_penetration_m"] >= 0.0
     assert {"fc", "dis", "pen", "spen", "joints", "ff", "fp", "tpen", "dir", "arm", "total"} == set(entry["energy"])
     assert plot.stat().st_size > 10_000
+
+
+def test_initialisation_starts_behind_objects_whose_push_side_is_a_sliver(hand):
+    """rnd-648's push side is a sliver of its inflated hull (1 of 8 start points by plain rejection,
+    which failed its dataset build): start poses are still found, all behind the object."""
+    from shared.objects import load_object
+
+    scene = PushScene.from_object(load_object("rnd-648"))
+    for seed in (1, 3, 8):  # seeds on which plain rejection sampling found too few start points
+        start = initial_poses(hand, scene.hull_vertices, 8, GenerationConfig().init, torch.Generator().manual_seed(seed))
+        assert start.shape == (8, 25) and bool(torch.isfinite(start).all())
+        assert float(start[:, 0].max()) < float(scene.hull_vertices[:, 0].max())

@@ -73,6 +73,21 @@ def sample_hull_points(hull: trimesh.Trimesh, count: int, generator: torch.Gener
         have += int(ok.sum())
         if have >= count:
             return torch.cat(kept_points)[:count], torch.cat(kept_normals)[:count]
+    # The push side is a small part of this hull (thin or pointed objects): draw from its faces only.
+    # (A fallback, not the first strategy, so objects that sampled fine keep their seeded results.)
+    eligible = torch.tensor(hull.triangles[:, :, 2].max(axis=1) >= min_height_m)
+    if min_inward_x is not None:
+        eligible &= -normals[:, 0] >= min_inward_x
+    if bool(eligible.any()):
+        for _ in range(_MAX_DRAWS):
+            faces = torch.multinomial(area * eligible, _POOL_FACTOR * count, replacement=True, generator=generator)
+            points = _uniform_in_triangles(triangles[faces], generator)
+            ok = points[:, 2] >= min_height_m
+            kept_points.append(points[ok])
+            kept_normals.append(normals[faces][ok])
+            have += int(ok.sum())
+            if have >= count:
+                return torch.cat(kept_points)[:count], torch.cat(kept_normals)[:count]
     raise InitialisationError(
         f"only {have} of {count} start points found on the inflated hull above {min_height_m} m"
         + ("" if min_inward_x is None else f" facing +x by >= {min_inward_x}"))
