@@ -1,6 +1,7 @@
 """Shared pytest fixtures: an in-process Zenoh router on a free loopback port."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -27,9 +28,9 @@ def router_config(endpoint: str):
     return cfg
 
 
-@pytest.fixture()
-def zenoh_router():
-    """Start an embedded router; yields its endpoint, e.g. 'tcp/127.0.0.1:40123'."""
+@contextlib.contextmanager
+def running_router():
+    """An embedded router on a free loopback port for the duration of the block; yields its endpoint."""
     import zenoh
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -38,3 +39,17 @@ def zenoh_router():
         yield endpoint
     finally:
         session.close()
+
+
+@pytest.fixture()
+def zenoh_router():
+    """Start an embedded router; yields its endpoint, e.g. 'tcp/127.0.0.1:40123'."""
+    with running_router() as endpoint:
+        yield endpoint
+
+
+@pytest.fixture(scope="module")
+def module_router():
+    """One router for a whole test module (when the module's workers take seconds to start)."""
+    with running_router() as endpoint:
+        yield endpoint

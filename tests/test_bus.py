@@ -65,11 +65,8 @@ def stop_process(proc: subprocess.Popen) -> None:
 
 
 @pytest.fixture(scope="module")
-def router():
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = zenoh.open(router_config(endpoint))
-    yield endpoint
-    session.close()
+def router(module_router):
+    return module_router
 
 
 @pytest.fixture(scope="module")

@@ -6,10 +6,8 @@ import time
 from collections import Counter
 
 import pytest
-import zenoh
 
 import bus_test_workers as tw
-from conftest import free_port, router_config
 from shared.bus import BusConfig, DispatchError, Dispatcher, RemoteError, open_session
 from shared.messages import ErrorReply
 
@@ -33,11 +31,8 @@ def stop_all(procs: list[subprocess.Popen]) -> None:
 
 
 @pytest.fixture(scope="module")
-def router():
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = zenoh.open(router_config(endpoint))
-    yield endpoint
-    session.close()
+def router(module_router):
+    return module_router
 
 
 @pytest.fixture(scope="module")

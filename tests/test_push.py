@@ -21,21 +21,6 @@ BOX = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg (test split)
 
 
 @pytest.fixture(scope="module")
-def module_router():
-    """The conftest router, kept for the whole module (the workers take seconds to start)."""
-    import zenoh
-
-    from conftest import free_port, router_config
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = zenoh.open(router_config(endpoint))
-    try:
-        yield endpoint
-    finally:
-        session.close()
-
-
-@pytest.fixture(scope="module")
 def system(module_router, tmp_path_factory):
     """Planner, one validator and the simulated robot bridge, registered on the router."""
     from services.planner import service as planner
