@@ -290,7 +290,9 @@ def test_nearest_neighbor_returns_the_closest_training_frame_and_round_trips(sto
 
 
 # ----------------------------------------------------------------------------- service and CLI
-def test_sample_request_over_the_bus(zenoh_router, trained):
+def test_sample_request_over_the_bus(zenoh_router, trained, tmp_path, monkeypatch):
+    # A hand whose checkpoint is missing (the shipped leap.pt is pointed away) gets a clear error reply.
+    monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_LEAP", str(tmp_path / "no-such-leap.pt"))
     from shared.bus import BusConfig, Dispatcher, RemoteError, Worker, open_session
     from services.sampler.service import SERVICE, handlers
 
