@@ -4,20 +4,17 @@ Without --hardware it drives the simulated robot (PyBullet); with it, the real d
 """
 from __future__ import annotations
 
-import argparse
-import logging
 import sys
 
 from services.robot_bridge.backend import BackendError
 from services.robot_bridge.hardware import HardwareConfigError, HardwareSpec
 from services.robot_bridge.service import run
 from shared.bus import BusConfig
+from shared.bus.service_cli import configure_service_logging, service_arg_parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.robot_bridge", description=__doc__)
-    BusConfig.add_cli_args(parser)
-    parser.add_argument("--worker-id", default=None, help="unique id on the bus (default: host-pid-random)")
+    parser = service_arg_parser("robot_bridge", __doc__)
     HardwareSpec.add_cli_args(parser)
     args = parser.parse_args(argv)
     try:
@@ -26,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
             hardware.devices()  # every address given? (connecting happens in run)
     except HardwareConfigError as exc:
         parser.error(str(exc))
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    configure_service_logging()
     try:
         run(BusConfig.from_args(args), worker_id=args.worker_id, hardware=hardware)
     except BackendError as exc:

@@ -5,13 +5,13 @@ Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped services/s
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 import torch
 
 from services.sampler.service import SERVICE, handlers
 from shared.bus import BusConfig, run_worker
+from shared.bus.service_cli import configure_service_logging, service_arg_parser
 
 # Requests handled at once: they wait together in the sampler's batching thread and share network passes.
 CONCURRENT_REQUESTS = 8
@@ -25,14 +25,12 @@ def _checkpoint_arg(text: str) -> tuple[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.sampler", description=__doc__)
-    BusConfig.add_cli_args(parser)
-    parser.add_argument("--worker-id", default=None, help="unique id on the bus (default: host-pid-random)")
+    parser = service_arg_parser("sampler", __doc__)
     parser.add_argument("--checkpoint", action="append", type=_checkpoint_arg, default=[], metavar="HAND=PATH",
                         help="checkpoint of a hand (repeatable), e.g. allegro=ckpt/allegro.pt")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: cores are shared, DESIGN.md §6)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    configure_service_logging()
     torch.set_num_threads(max(1, args.threads))
     run_worker(SERVICE, handlers(dict(args.checkpoint)), BusConfig.from_args(args), worker_id=args.worker_id,
                concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim"])
