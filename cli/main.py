@@ -19,11 +19,12 @@ COMMAND_MODULES: list[str] = [
     "cli.objects",  # objects list
     "cli.validate",  # validate (push validation in PyBullet)
     "cli.show",  # show (picture of an object with hand poses)
-    "cli.sampler",  # train, sample (pose diffusion model)
+    "cli.sampler",  # train, sample, sampler-nn (pose diffusion model, nearest-neighbour index)
     "cli.generate",  # generate (energy-based push-pose synthesis)
     "cli.bridge",  # bridge selftest, bridge estop (robot bridge hardware adapters)
     "cli.dataset",  # dataset build, dataset stats (data engine pose store)
     "cli.push",  # push (push / pull requests to the running system)
+    "cli.eval",  # eval (the paper's experiments in simulation)
 ]
 
 

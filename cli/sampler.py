@@ -1,7 +1,9 @@
-"""`gd2p train` and `gd2p sample`: train the pose diffusion model, and sample push poses from it.
+"""`gd2p train`, `gd2p sample`, `gd2p sampler-nn build`: train the pose diffusion model, sample push poses
+from it (or from the nearest-neighbour baseline), and build the baseline's index.
 
     gd2p train --dataset data/allegro --hand allegro --out ckpt/allegro.pt [--fraction 0.2] [--seed 1] [--steps 20000]
-    gd2p sample --object proc-box-001 --hand allegro --n 200 [--sampler ddim] [--checkpoint PATH] [--validate] --json
+    gd2p sample --object proc-box-001 --hand allegro --n 200 [--sampler ddim|nearest] [--checkpoint PATH] [--validate] --json
+    gd2p sampler-nn build --dataset data/allegro --hand allegro --out ckpt/allegro_nn.npz [--half]
 
 `train` resumes from `<out>.train.pt` when it exists (same command), `--restart` starts over.
 Ctrl-C saves the training state first, so the same command continues later.
@@ -11,6 +13,13 @@ Ctrl-C saves the training state first, so the same command continues later.
 D], "pose_world": [25]}, ...], ...}` — the same "poses" layout `gd2p validate --poses` reads.
 `--validate` pushes every pose in the validator's PyBullet simulation (runs locally; needs
 services.validator) and adds `"validated_success"` (how many succeeded) and per-pose `"success"`.
+`--sampler nearest` returns the stored poses of the training frame nearest in BPS space (at most
+`--n`; all of them when it has fewer) from `--nn-index` or the shipped index, and adds
+`"matched_object"` and `"bps_distance"`.
+
+`sampler-nn build` indexes every training frame of a dataset store (its BPS and its poses) into one
+.npz, with `<out>.manifest.json` beside it; `--half` stores the BPS in float16 and refuses to if that
+would change any frame's nearest neighbour.
 """
 from __future__ import annotations
 
@@ -34,6 +43,7 @@ class SamplerCliError(ValueError):
 def register(subparsers: argparse._SubParsersAction) -> None:
     _register_train(subparsers)
     _register_sample(subparsers)
+    _register_nn(subparsers)
 
 
 # ----------------------------------------------------------------------------- train
@@ -141,10 +151,13 @@ def _register_sample(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--object", required=True, help="library id (e.g. proc-box-001) or a mesh file in metres")
     parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
     parser.add_argument("--n", type=int, default=200, help="number of poses (1..1000, default 200)")
-    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm", help="DDPM-100 (paper) or DDIM fast path")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim", "nearest"), default="ddpm",
+                        help="DDPM-100 (paper), DDIM fast path, or the nearest-neighbour baseline")
     parser.add_argument("--steps", type=int, default=None, help="DDIM steps (default 10)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint file (default: $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped one)")
+    parser.add_argument("--nn-index", type=Path, default=None,
+                        help="with --sampler nearest: index file (default: $GD2P_SAMPLER_NN_INDEX_<HAND> or the shipped one)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--direction-deg", type=float, default=0.0, help="push direction in the world (default 0 = +x)")
     parser.add_argument("--validate", action="store_true", help="push every pose in simulation and count successes")
@@ -169,39 +182,72 @@ def run_sample(args: argparse.Namespace) -> int:
 def _sample(args: argparse.Namespace) -> dict:
     import torch
 
-    from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
-    from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
+    from services.sampler.sampling import SamplerInputError, default_frame
     from shared.objects import ObjectLoadError, load_object
 
     torch.set_num_threads(max(1, args.threads))
     validator = _validator_modules() if args.validate else None  # fail before any work if it cannot run
-    path = args.checkpoint or default_checkpoint_path(args.hand)
-    if not path.is_file():
-        raise SamplerCliError(f"no {args.hand} checkpoint at {path}; train one with `gd2p train --dataset DIR --hand {args.hand} "
-                              f"--out {path}` or pass --checkpoint")
     try:
         obj = load_object(args.object)
-        sampler = PoseSampler(path)
-    except (ObjectLoadError, CheckpointError) as exc:
+    except ObjectLoadError as exc:
         raise SamplerCliError(str(exc)) from exc
-    if sampler.hand != args.hand:
-        raise SamplerCliError(f"{path} is a {sampler.hand} checkpoint, not {args.hand}")
     frame = default_frame(obj, args.direction_deg)
-    with sampler:
-        try:
-            result = sampler.sample(obj, frame, k=args.n, sampler=args.sampler, steps=args.steps, seed=args.seed)
-        except SamplerInputError as exc:
-            raise SamplerCliError(str(exc)) from exc
+    try:
+        if args.sampler == "nearest":
+            result, source = _sample_nearest(args, obj, frame)
+        else:
+            result, source = _sample_diffusion(args, obj, frame)
+    except SamplerInputError as exc:
+        raise SamplerCliError(str(exc)) from exc
     poses = [{"pose": d.tolist(), "pose_world": w.tolist()} for d, w in zip(result.poses_d, result.poses_world)]
     report = {"n": len(poses), "latency_s": round(result.latency_s, 6), "poses": poses, "object": obj.id, "hand": args.hand,
               "sampler": result.sampler, "steps": result.steps, "seed": args.seed, "direction_deg": args.direction_deg,
-              "checkpoint": str(path), "checkpoint_id": sampler.checkpoint_id}
+              **source}
     if validator is not None:
         successes = validate_sampled_poses(obj, args.hand, result.poses_d, frame, progress=True)
         for entry, success in zip(poses, successes):
             entry["success"] = success
         report["validated_success"] = int(sum(successes))
     return report
+
+
+def _sample_diffusion(args: argparse.Namespace, obj, frame) -> tuple:
+    """(SampleResult, report fields naming the checkpoint) from the diffusion model."""
+    from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
+    from services.sampler.sampling import PoseSampler
+
+    path = args.checkpoint or default_checkpoint_path(args.hand)
+    if not path.is_file():
+        raise SamplerCliError(f"no {args.hand} checkpoint at {path}; train one with `gd2p train --dataset DIR --hand {args.hand} "
+                              f"--out {path}` or pass --checkpoint")
+    try:
+        sampler = PoseSampler(path)
+    except CheckpointError as exc:
+        raise SamplerCliError(str(exc)) from exc
+    if sampler.hand != args.hand:
+        raise SamplerCliError(f"{path} is a {sampler.hand} checkpoint, not {args.hand}")
+    with sampler:
+        result = sampler.sample(obj, frame, k=args.n, sampler=args.sampler, steps=args.steps, seed=args.seed)
+    return result, {"checkpoint": str(path), "checkpoint_id": sampler.checkpoint_id}
+
+
+def _sample_nearest(args: argparse.Namespace, obj, frame) -> tuple:
+    """(SampleResult, report fields naming the index and the match) from the nearest-neighbour baseline."""
+    from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
+
+    if args.steps is not None:
+        raise SamplerCliError("--steps applies to the diffusion samplers, not --sampler nearest")
+    path = args.nn_index or default_nn_index_path(args.hand)
+    try:
+        nearest = NearestNeighborSampler.load(path)
+    except NearestNeighborError as exc:
+        raise SamplerCliError(f"{exc}; build one with `gd2p sampler-nn build --dataset DIR --hand {args.hand} --out {path}` "
+                              "or pass --nn-index") from exc
+    if nearest.hand != args.hand:
+        raise SamplerCliError(f"{path} is a {nearest.hand} nearest-neighbour index, not {args.hand}")
+    reply = nearest.sample(obj, frame, k=args.n, seed=args.seed)
+    return reply.result, {"checkpoint": str(path), "checkpoint_id": reply.source_id,
+                          "matched_object": reply.match.object_id, "bps_distance": round(reply.match.distance, 6)}
 
 
 def _validator_modules():
@@ -244,3 +290,42 @@ def _print_summary(report: dict) -> None:
         print(f"  pose {index}: position {np.round(entry['pose'][:3], 3).tolist()}")
     if report["n"] > 5:
         print(f"  ... ({report['n'] - 5} more; use --json for all)")
+
+
+# ----------------------------------------------------------------------------- sampler-nn build
+def _register_nn(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("sampler-nn", help="the nearest-neighbour baseline's index (build)",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    actions = parser.add_subparsers(dest="nn_command", required=True)
+    build = actions.add_parser("build", help="index every training frame of a dataset store (BPS + stored poses)")
+    build.add_argument("--dataset", required=True, type=Path, help="dataset store directory (Parquet shards + manifest)")
+    build.add_argument("--hand", required=True, choices=("allegro", "leap"))
+    build.add_argument("--out", required=True, type=Path, help="index file to write (e.g. ckpt/allegro_nn.npz)")
+    build.add_argument("--half", action="store_true",
+                       help="store the BPS in float16 (half the size); refused if any frame's nearest neighbour changes")
+    build.add_argument("--no-progress", action="store_true", help="no progress bar")
+    build.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
+    build.set_defaults(func=run_nn_build)
+
+
+def run_nn_build(args: argparse.Namespace) -> int:
+    from services.sampler.dataset import DatasetError
+    from services.sampler.nearest_neighbor import NearestNeighborError, build_index
+
+    # The command that reproduces the file (from the parsed arguments, so it is right however gd2p was called).
+    command = shlex.join(["gd2p", "sampler-nn", "build", "--dataset", str(args.dataset), "--hand", args.hand,
+                          "--out", str(args.out), *(["--half"] if args.half else [])])
+    try:
+        index = build_index(args.dataset, args.hand, args.out, half=args.half, command=command,
+                            progress=not args.no_progress)
+    except (DatasetError, NearestNeighborError) as exc:
+        print(f"gd2p sampler-nn build: error: {exc}", file=sys.stderr)
+        return 2
+    summary = {"index": str(args.out), "size_bytes": args.out.stat().st_size, "frames": len(index),
+               "poses": index.pose_count, "features_dtype": index.manifest["features_dtype"],
+               "float16_check": index.manifest.get("float16_check")}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.out} ({summary['size_bytes'] / 1e6:.1f} MB): {summary['frames']} frames, {summary['poses']} poses")
+    return 0

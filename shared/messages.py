@@ -43,7 +43,7 @@ MESH_FORMATS: tuple[str, ...] = ("obj", "stl", "ply", "glb")
 
 Hand = Literal["allegro", "leap"]
 Arm = Literal["panda", "xarm7"]
-Sampler = Literal["ddpm", "ddim"]
+Sampler = Literal["ddpm", "ddim", "nearest"]  # nearest: the nearest-neighbour baseline (stored training poses)
 PoseMethod = Literal["gd2p", "nearest", "fixed"]
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
@@ -545,7 +545,11 @@ class ValidationResult(PushOutcomes, Message):
 
 
 class SampleRequest(Message):
-    """Sample K push poses from the diffusion model for an object in a direction frame."""
+    """Sample K push poses for an object in a direction frame.
+
+    `sampler` "ddpm" / "ddim": the diffusion model; "nearest": the stored poses of the training frame
+    nearest in BPS space (a seeded subset of K, or all of them when it has fewer).
+    """
 
     object: ObjectRef
     hand: Hand
@@ -557,7 +561,10 @@ class SampleRequest(Message):
 
 
 class SampleResponse(Message):
-    """K sampled poses, in D and in the world, with the checkpoint that produced them."""
+    """Sampled poses, in D and in the world, with the checkpoint (or NN index) that produced them.
+
+    K rows for the diffusion samplers; for "nearest" at most K (all the matched frame has, when fewer).
+    """
 
     request_id: str
     hand: Hand

@@ -140,13 +140,16 @@ class MotionPlanner:
         q_start: np.ndarray | None = None,
         q_hand_start: np.ndarray | None = None,
         q_pre_contact: np.ndarray | None = None,
+        return_home: bool = True,
     ) -> Plan:
         """A timed approach / push / retreat plan for the hand base pre-contact pose `T_world_hand`.
 
         `push_direction` is a horizontal world vector (+x of D); `q_start` the arm's current joints
         (default: home), `q_hand_start` the hand's (default: `q_hand`); `q_pre_contact` an IK solution
         already found for `T_world_hand` (e.g. by `screen`), else up to `max_ik_candidates` distinct
-        solutions are tried. Raises PlanningError (with a `reason`) when no plan is found.
+        solutions are tried. Without `return_home` the plan ends backed off and lifted above the pushed
+        object — enough to roll it out and rank it; `plan_return` adds the way back for the plan that is
+        executed. Raises PlanningError (with a `reason`) when no plan is found.
         """
         self.stats = PlanStats()
         q_hand = np.asarray(q_hand, dtype=np.float64)
@@ -164,13 +167,34 @@ class MotionPlanner:
         self.stats.configurations.update(pre_contact=q_pre, approach=approach_line[0], push_end=push_line[-1],
                                          back_off=back_off[-1])
         free_path = self.plan_joint_path(q_start, approach_line[0], q_hand)
-        # Return to the start around the object where the push should have left it.
-        with self._object_moved(distance_m * direction):
+        home_path = self._home_path(back_off[-1], q_start, q_hand, distance_m * direction) if return_home else None
+        return self._assemble(q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back_off, home_path)
+
+    def plan_return(self, plan: Plan, q_start: np.ndarray, push_offset: np.ndarray) -> Plan:
+        """`plan` (made with `return_home=False`) extended by the joint-space way back to `q_start`.
+
+        `push_offset` is where the push should move the object (world), which the way back avoids.
+        """
+        positions, times = plan.positions.to_numpy(), plan.times_s.to_numpy()
+        dof = self.arm.dof
+        q_end, q_hand = positions[-1, :dof], positions[-1, dof:]
+        home_q, home_t = time_parameterise(self._home_path(q_end, np.asarray(q_start, dtype=np.float64), q_hand,
+                                                           np.asarray(push_offset, dtype=np.float64)),
+                                           self.velocity_limits * self.settings.velocity_scale, self.settings.sample_dt_s)
+        extra = np.concatenate([home_q[1:], np.repeat(q_hand[None], len(home_q) - 1, axis=0)], axis=1)
+        segments = [PlanSegment(label=seg.label, start=seg.start, stop=len(positions) + len(extra))
+                    if seg.label == "retreat" else seg for seg in plan.segments]
+        return Plan(arm=plan.arm, hand=plan.hand, joint_names=plan.joint_names,
+                    positions=np.concatenate([positions, extra]),
+                    times_s=np.concatenate([times, times[-1] + home_t[1:]]), segments=segments)
+
+    def _home_path(self, q_from: np.ndarray, q_start: np.ndarray, q_hand: np.ndarray, push_offset: np.ndarray) -> np.ndarray:
+        """Joint path back to the start, around the object where the push should have left it."""
+        with self._object_moved(push_offset):
             try:
-                home_path = self.plan_joint_path(back_off[-1], q_start, q_hand)
+                return self.plan_joint_path(q_from, q_start, q_hand)
             except PlanningError as exc:
                 raise PlanningError(exc.reason, f"retreat: {exc.detail}") from None
-        return self._assemble(q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back_off, home_path)
 
     def _approach_line(self, q_pre: np.ndarray, T_pre: np.ndarray, direction: np.ndarray,
                        q_hand: np.ndarray) -> np.ndarray:
@@ -365,8 +389,9 @@ class MotionPlanner:
             self._cartesian_timing(approach_line),
             self._cartesian_timing(push_line),
             self._cartesian_timing(back),
-            time_parameterise(home_path, limits, s.sample_dt_s),
         ]
+        if home_path is not None:
+            arm_pieces.append(time_parameterise(home_path, limits, s.sample_dt_s))
         arm_q, times, counts, offset = [], [], [], 0.0
         for i, (q, t) in enumerate(arm_pieces):
             skip = 0 if i == 0 else 1  # the first waypoint of a piece is the last of the previous one

@@ -8,8 +8,8 @@ best plan is executed by the robot bridge, and the object pose it observes after
 
 Pose sources (`PushRequest.method`), so that methods can be compared on the same pipeline:
 - "gd2p": K poses from the diffusion sampler service;
-- "nearest": the nearest-neighbour baseline's poses — not served by the sampler service yet, so
-  refused with `not_implemented` (see the report of issue 6);
+- "nearest": the paper's Nearest-Neighbour baseline, also from the sampler service (`sampler="nearest"`):
+  the stored poses of the training frame nearest to the object in BPS space, at most K of them;
 - "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline).
 
 Without ranking (`ranking=False`, the paper's ablation) a random feasible pose is planned and
@@ -156,9 +156,6 @@ class PushPipeline:
                             result=final, steps=[r.step for r in ctx.records], timings_s=ctx.timings)
 
     def _start(self, request: PushRequest) -> _Request:
-        if request.method == "nearest":
-            raise PushError("not_implemented", "planner: the nearest-neighbour pose source is not served by the "
-                            "sampler service yet; use method 'gd2p' or 'fixed'")
         try:
             obj = load_object_ref(request.object)
             urdf = str(write_object_urdf(obj))
@@ -236,11 +233,13 @@ class PushPipeline:
             started = time.perf_counter()
             plans = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, screen.q, u, distance_m)
             ctx.time("planning", time.perf_counter() - started)
-        if request.ranking:
-            chosen, score = self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
-        else:
-            chosen, score = plans[0], None
-        index, plan = chosen
+            if request.ranking:
+                ranked = self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
+                started = time.perf_counter()
+                (index, plan), score = self._with_way_back(ctx, planner, ranked, distance_m * np.append(u, 0.0))
+                ctx.time("planning", time.perf_counter() - started)
+            else:
+                (index, plan), score = plans[0], None
         self._execute(ctx, plan, poses_d[index], poses_world[index], score, T_world_O, u, distance_m)
 
     def _candidate_poses(self, ctx: _Request, T_world_D: np.ndarray, T_world_O: np.ndarray,
@@ -256,8 +255,9 @@ class PushPipeline:
             except FixedPoseError as exc:
                 raise PushError("bad_request", str(exc)) from exc
         else:
+            sampler = "nearest" if request.method == "nearest" else "ddpm"
             reply = self.services.sample(SampleRequest(object=request.object, hand=request.hand, frame=frame,
-                                                       k=request.k, seed=request.seed + len(ctx.records)))
+                                                       k=request.k, sampler=sampler, seed=request.seed + len(ctx.records)))
             poses = reply.poses_d.to_numpy().astype(np.float64)
         ctx.time("sampling", time.perf_counter() - started)
         return poses
@@ -272,7 +272,11 @@ class PushPipeline:
     def _plan_candidates(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
                          q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray,
                          distance_m: float) -> list[tuple[int, Plan]]:
-        """[(pose index, plan)] for up to `max_plans` poses, in `order` (one plan when not ranking)."""
+        """[(pose index, plan)] for up to `max_plans` poses, in `order` (one plan when not ranking).
+
+        Plans to be ranked end above the pushed object: only the executed one needs the way back
+        (`_with_way_back`), which saves an RRTConnect per ranked plan.
+        """
         wanted = self.settings.max_plans if ctx.request.ranking else 1
         q_arm_start, q_hand_start = self._robot_start(ctx, planner)
         plans, failures = [], Counter()
@@ -301,7 +305,8 @@ class PushPipeline:
         for _ in range(1 + self.settings.limit_retries):
             try:
                 plan = planner.plan_push(T_world_hand, q_hand, direction, distance_m, q_start=q_arm_start,
-                                         q_hand_start=q_hand_start, q_pre_contact=q_pre)
+                                         q_hand_start=q_hand_start, q_pre_contact=q_pre,
+                                         return_home=not ctx.request.ranking)
                 limits.check_plan(plan)
                 return plan
             except PlanningError as exc:
@@ -351,9 +356,28 @@ class PushPipeline:
         n_arm = planner.arm.dof
         return ctx.q_robot[:n_arm], ctx.q_robot[n_arm:]
 
+    def _with_way_back(self, ctx: _Request, planner: MotionPlanner, ranked: list[tuple[tuple[int, Plan], ScoreTerms]],
+                       push_offset: np.ndarray) -> tuple[tuple[int, Plan], ScoreTerms]:
+        """The best-ranked plan completed with its way back to the start (the next best if that fails)."""
+        q_arm_start, _ = self._robot_start(ctx, planner)
+        limits, failures = self._limits(ctx), Counter()
+        for (index, plan), terms in ranked:
+            for _ in range(1 + self.settings.limit_retries):
+                try:
+                    full = planner.plan_return(plan, q_arm_start, push_offset)
+                    limits.check_plan(full)
+                    return (index, full), terms
+                except PlanningError as exc:
+                    failures[exc.reason] += 1
+                    break
+                except LimitViolation as exc:
+                    failures[f"way back breaks the robot's {exc.limit} limit"] += 1
+        raise PushError("infeasible", f"no way back to the start for any of the {len(ranked)} ranked plan(s) ("
+                        + ", ".join(f"{n}× {reason}" for reason, n in failures.most_common()) + ")")
+
     def _rank(self, ctx: _Request, plans: list[tuple[int, Plan]], poses_d: np.ndarray, l_dir: np.ndarray, frame: DirectionFrame,
-              distance_m: float) -> tuple[tuple[int, Plan], ScoreTerms]:
-        """Roll every plan out with the arm, score it, return the best (and its score)."""
+              distance_m: float) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
+        """Roll every plan out with the arm and score it; the plans from best (lowest V) to worst."""
         request = ctx.request
         jobs = [ValidationJob(object=request.object, hand=request.hand, poses=poses_d[index][None],
                               push_distance_m=distance_m, with_arm=True, arm=request.arm, plan=plan, frame=frame,
@@ -372,8 +396,7 @@ class PushPipeline:
             scored.append(((index, plan), terms))
         if not scored:
             raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
-        best = ranking.best([terms for _, terms in scored])
-        return scored[best]
+        return [scored[i] for i in ranking.order([terms for _, terms in scored])]
 
     def _execute(self, ctx: _Request, plan: Plan, pose_d: np.ndarray, pose_world: np.ndarray,
                  score: ScoreTerms | None, T_world_O: np.ndarray, u: np.ndarray, distance_m: float) -> None:

@@ -58,8 +58,8 @@ def score(l_goal: float, l_coll: float, l_dir: float, weights: Weights = Weights
                       gamma=weights.gamma)
 
 
-def best(scores: list[ScoreTerms]) -> int:
-    """Index of the plan with the lowest V (the first one on ties)."""
+def order(scores: list[ScoreTerms]) -> list[int]:
+    """Indices of the plans from the lowest V to the highest (stable on ties)."""
     if not scores:
         raise ValueError("nothing to rank: no scored plans")
-    return int(np.argmin([s.v for s in scores]))
+    return [int(i) for i in np.argsort([s.v for s in scores], kind="stable")]

@@ -1,6 +1,8 @@
-"""`python -m services.sampler [bus flags] [--worker-id ID] [--checkpoint HAND=PATH ...]`: one sampler worker until SIGTERM.
+"""`python -m services.sampler [bus flags] [--worker-id ID] [--checkpoint HAND=PATH ...] [--nn-index HAND=PATH ...]`:
+one sampler worker until SIGTERM.
 
-Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped services/sampler/checkpoints/<hand>.pt.
+Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped services/sampler/checkpoints/<hand>.pt;
+nearest-neighbour indexes (sampler "nearest") to $GD2P_SAMPLER_NN_INDEX_<HAND> or the shipped <hand>_nn.npz.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from shared.bus.service_cli import configure_service_logging, service_arg_parser
 CONCURRENT_REQUESTS = 8
 
 
-def _checkpoint_arg(text: str) -> tuple[str, str]:
+def _hand_path_arg(text: str) -> tuple[str, str]:
     hand, sep, path = text.partition("=")
     if not sep or not hand or not path:
         raise argparse.ArgumentTypeError(f"expected HAND=PATH, got {text!r}")
@@ -26,14 +28,16 @@ def _checkpoint_arg(text: str) -> tuple[str, str]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = service_arg_parser("sampler", __doc__)
-    parser.add_argument("--checkpoint", action="append", type=_checkpoint_arg, default=[], metavar="HAND=PATH",
+    parser.add_argument("--checkpoint", action="append", type=_hand_path_arg, default=[], metavar="HAND=PATH",
                         help="checkpoint of a hand (repeatable), e.g. allegro=ckpt/allegro.pt")
+    parser.add_argument("--nn-index", action="append", type=_hand_path_arg, default=[], metavar="HAND=PATH",
+                        help="nearest-neighbour index of a hand (repeatable), e.g. allegro=ckpt/allegro_nn.npz")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: cores are shared, DESIGN.md §6)")
     args = parser.parse_args(argv)
     configure_service_logging()
     torch.set_num_threads(max(1, args.threads))
-    run_worker(SERVICE, handlers(dict(args.checkpoint)), BusConfig.from_args(args), worker_id=args.worker_id,
-               concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim"])
+    run_worker(SERVICE, handlers(dict(args.checkpoint), dict(args.nn_index)), BusConfig.from_args(args),
+               worker_id=args.worker_id, concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim", "nearest"])
     return 0
 
 

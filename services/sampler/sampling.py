@@ -116,8 +116,10 @@ def _object_transform(frame: DirectionFrame) -> np.ndarray:
     return pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
 
 
-class _ObjectPoints:
-    """Surface samples (in O) of recently used objects, so repeated requests skip mesh loading."""
+class ObjectPoints:
+    """An object's surface samples placed in D; samples (in O) of recent objects are cached, so repeated
+    requests skip mesh loading. Every BPS query of the sampler (diffusion and nearest neighbour) goes
+    through `in_d`, so both see exactly the same points."""
 
     def __init__(self, n_points: int, seed: int):
         self.n_points, self.seed = n_points, seed
@@ -137,6 +139,22 @@ class _ObjectPoints:
             while len(self._cache) > _OBJECT_CACHE_SIZE:
                 self._cache.popitem(last=False)
         return model, points
+
+    def in_d(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(object surface points in D [N, 3], T_world_D, a label naming the object); see the module docstring."""
+        if isinstance(obj, np.ndarray):
+            cloud = np.asarray(obj, dtype=np.float64)
+            if cloud.ndim != 2 or cloud.shape[-1] != 3:
+                raise SamplerInputError(f"a point cloud must be [N, 3], got shape {cloud.shape}")
+            if frame is None:
+                return cloud, np.eye(4), "point cloud (in D)"
+            T_world_D = frame_transform(frame)
+            return points_world_to_d(cloud, T_world_D), T_world_D, "point cloud"
+        model, points_o = self.get(obj)
+        frame = frame or default_frame(model)
+        T_world_D = frame_transform(frame)
+        T_D_O = invert_transform(T_world_D) @ _object_transform(frame)
+        return transform_points(T_D_O, points_o), T_world_D, model.id
 
 
 def _source_key(id_or_path: str | Path) -> str:
@@ -171,7 +189,7 @@ class PoseSampler:
         self.normalizer = self.checkpoint.normalizer
         self.bps = self.checkpoint.bps
         self.max_batch_poses = max_batch_poses
-        self._objects = _ObjectPoints(self.checkpoint.surface_points, self.checkpoint.surface_seed)
+        self._objects = ObjectPoints(self.checkpoint.surface_points, self.checkpoint.surface_seed)
         self._queue: queue.Queue[_Job | None] = queue.Queue()
         self._thread: threading.Thread | None = None
         self._start_lock = threading.Lock()
@@ -195,19 +213,7 @@ class PoseSampler:
     # ------------------------------------------------------------------ public API
     def points_in_d(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
         """(object surface points in D [N, 3], T_world_D, a label naming the object)."""
-        if isinstance(obj, np.ndarray):
-            cloud = np.asarray(obj, dtype=np.float64)
-            if cloud.ndim != 2 or cloud.shape[-1] != 3:
-                raise SamplerInputError(f"a point cloud must be [N, 3], got shape {cloud.shape}")
-            if frame is None:
-                return cloud, np.eye(4), "point cloud (in D)"
-            T_world_D = frame_transform(frame)
-            return points_world_to_d(cloud, T_world_D), T_world_D, "point cloud"
-        model, points_o = self._objects.get(obj)
-        frame = frame or default_frame(model)
-        T_world_D = frame_transform(frame)
-        T_D_O = invert_transform(T_world_D) @ _object_transform(frame)
-        return transform_points(T_D_O, points_o), T_world_D, model.id
+        return self._objects.in_d(obj, frame)
 
     def encode(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
         """(BPS [n_basis] float32 of the object in D, T_world_D, label); SamplerInputError if it cannot be encoded."""
@@ -298,12 +304,17 @@ class PoseSampler:
         return poses.numpy()
 
 
-def _check_request(k: int, sampler: str, steps: int | None, seed: int) -> int:
-    """Validate a request's settings; returns the number of denoising steps it will run."""
+def check_count_and_seed(k: int, seed: int) -> None:
+    """SamplerInputError unless 1 <= k <= MAX_POSES_PER_REQUEST and seed >= 0."""
     if not 1 <= int(k) <= MAX_POSES_PER_REQUEST:
         raise SamplerInputError(f"k must be in 1..{MAX_POSES_PER_REQUEST}, got {k}")
     if int(seed) < 0:
         raise SamplerInputError(f"seed must be >= 0, got {seed}")
+
+
+def _check_request(k: int, sampler: str, steps: int | None, seed: int) -> int:
+    """Validate a request's settings; returns the number of denoising steps it will run."""
+    check_count_and_seed(k, seed)
     try:
         return resolve_steps(sampler, steps)
     except DiffusionConfigError as exc:

@@ -5,6 +5,11 @@ One `PoseSampler` per hand, loaded on the first request for that hand from its c
 concurrency above one (see `__main__`): concurrent requests then wait together in the sampler's
 batching thread and share network passes.
 
+`sampler="nearest"` is the paper's Nearest-Neighbour baseline: one index per hand
+(`nearest_neighbor.default_nn_index_path`: the shipped `checkpoints/<hand>_nn.npz`, or the paths
+given to `handlers`), loaded on first use; the reply holds the stored poses of the training frame
+nearest to the object in BPS space, and its `checkpoint_id` names the index file and that object.
+
 Objects: a library id, a mesh (written once to the object cache by its hash, as the validator
 does) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
 sampled for a scaled object could not be validated or executed on the same geometry.
@@ -18,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
+from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
 from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
@@ -27,12 +33,15 @@ SERVICE = "sampler"
 
 
 class SamplerService:
-    """Serves SampleRequests for every hand it has (or can find) a checkpoint for."""
+    """Serves SampleRequests for every hand it has (or can find) a checkpoint / NN index for."""
 
-    def __init__(self, checkpoints: Mapping[str, str | Path] | None = None, device: str = "cpu"):
+    def __init__(self, checkpoints: Mapping[str, str | Path] | None = None, device: str = "cpu",
+                 nn_indexes: Mapping[str, str | Path] | None = None):
         self._paths = {hand: Path(path) for hand, path in (checkpoints or {}).items()}
+        self._nn_paths = {hand: Path(path) for hand, path in (nn_indexes or {}).items()}
         self._device = device
         self._samplers: dict[str, PoseSampler] = {}
+        self._nearest: dict[str, NearestNeighborSampler] = {}
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -59,8 +68,25 @@ class SamplerService:
                 self._samplers[hand] = sampler
             return self._samplers[hand]
 
+    def nearest(self, hand: str) -> NearestNeighborSampler:
+        """The loaded NN index for `hand`; ServiceError 'not_implemented' (see `sampler`) when there is none."""
+        with self._lock:
+            if hand not in self._nearest:
+                path = self._nn_paths.get(hand) or default_nn_index_path(hand)
+                try:
+                    nearest = NearestNeighborSampler.load(path)
+                except NearestNeighborError as exc:
+                    raise ServiceError("not_implemented", f"sampler: no usable {hand} nearest-neighbour index: {exc} "
+                                       f"(build one with `gd2p sampler-nn build --dataset DIR --hand {hand} --out {path}`)") from exc
+                if nearest.hand != hand:
+                    raise ServiceError("not_implemented", f"sampler: {path} is a {nearest.hand} nearest-neighbour index, not {hand}")
+                self._nearest[hand] = nearest
+            return self._nearest[hand]
+
     def handle(self, request: SampleRequest) -> SampleResponse:
         """Sample `request.k` poses for `request.object` in `request.frame`."""
+        if request.sampler == "nearest":
+            return self._handle_nearest(request)
         sampler = self.sampler(request.hand)
         try:
             result = sampler.sample(object_input(request.object), request.frame, k=request.k, sampler=request.sampler,
@@ -71,6 +97,20 @@ class SamplerService:
             request_id=request.id, hand=request.hand, poses_d=result.poses_d,
             poses_world=result.poses_world, latency_s=result.latency_s,
             checkpoint_id=sampler.checkpoint_id, sampler=request.sampler)
+
+    def _handle_nearest(self, request: SampleRequest) -> SampleResponse:
+        """The nearest training frame's poses: `request.k` of them, seeded, or all when it has fewer."""
+        if request.steps is not None:
+            raise ServiceError("bad_request", "sampler: `steps` applies to the diffusion samplers, not 'nearest'")
+        nearest = self.nearest(request.hand)
+        try:
+            reply = nearest.sample(object_input(request.object), request.frame, k=request.k, seed=request.seed)
+        except SamplerInputError as exc:
+            raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
+        return SampleResponse(
+            request_id=request.id, hand=request.hand, poses_d=reply.result.poses_d,
+            poses_world=reply.result.poses_world, latency_s=reply.result.latency_s,
+            checkpoint_id=reply.source_id, sampler="nearest")
 
 
 def object_input(ref: ObjectRef) -> ObjectInput:
@@ -85,6 +125,7 @@ def object_input(ref: ObjectRef) -> ObjectInput:
     return ref.point_cloud.to_numpy().astype(np.float64)
 
 
-def handlers(checkpoints: Mapping[str, str | Path] | None = None) -> dict[type[Message], Callable[[Message], Message]]:
+def handlers(checkpoints: Mapping[str, str | Path] | None = None,
+             nn_indexes: Mapping[str, str | Path] | None = None) -> dict[type[Message], Callable[[Message], Message]]:
     """Message type -> handler, served by every sampler worker."""
-    return {SampleRequest: SamplerService(checkpoints).handle}
+    return {SampleRequest: SamplerService(checkpoints, nn_indexes=nn_indexes).handle}
