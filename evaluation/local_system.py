@@ -1,0 +1,132 @@
+"""The push pipeline's services in this process, for evaluation: same algorithms, no bus.
+
+An evaluation runs thousands of push requests; each worker process holds its own pipeline wired to
+in-process services — the sampler service's handler, the validator's arm rollout, and a simulated
+robot bridge (`SimExecutor`, with its limit checks) — so the measured behaviour is the system's,
+without a router in the loop. The pose source is pluggable (`PoseSource`), which is how the
+baselines that have no service of their own (the grasp-pose baseline) enter the same pipeline.
+
+The simulated bridge here also watches the object against the obstacles while a plan runs (the
+bus bridge reports robot contacts only); multi-step evaluation needs both.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import pybullet as pb
+
+from services.planner.pipeline import Execution, PipelineSettings, PushError, PushPipeline, PushServices
+from services.robot_bridge.service import reset_world
+from services.robot_bridge.sim_backend import SimBackend, SimExecutor
+from services.sampler.service import SamplerService
+from services.validator.service import validate
+from shared.bus.errors import ServiceError
+from shared.messages import ExecutionState, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob, ValidationResult
+
+REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
+
+PoseSource = Callable[[SampleRequest], SampleResponse]
+
+
+@dataclass
+class Contacts:
+    """What touched an obstacle during the executions since the last `reset()`."""
+
+    robot_obstacle: set[str] = field(default_factory=set)  # robot link names
+    object_obstacle: bool = False
+
+    def reset(self) -> None:
+        self.robot_obstacle.clear()
+        self.object_obstacle = False
+
+    @property
+    def any(self) -> bool:
+        return bool(self.robot_obstacle) or self.object_obstacle
+
+
+class LocalRobot:
+    """Simulated robots (one per arm + hand) executing plans in this process."""
+
+    def __init__(self):
+        self._executors: dict[tuple[str, str], SimExecutor] = {}
+        self.contacts = Contacts()
+
+    def executor(self, arm: str, hand: str) -> SimExecutor:
+        key = (arm, hand)
+        if key not in self._executors:
+            backend = SimBackend(arm, hand)
+            backend.publish = lambda _state, backend=backend: self._watch_object(backend)
+            backend.connect()
+            self._executors[key] = SimExecutor(backend)
+        return self._executors[key]
+
+    def execute(self, plan: Plan, world: SimWorld | None) -> Execution:
+        executor = self.executor(plan.arm, plan.hand)
+        if world is not None:
+            reset_world(executor.backend, world)
+        state: ExecutionState = executor.execute(plan, REALTIME_FACTOR)
+        self.contacts.robot_obstacle.update(link for link, other in executor.backend.collisions if other.startswith("obstacle"))
+        return Execution(final=state)
+
+    def _watch_object(self, backend: SimBackend) -> None:
+        """Called at the state rate during execution: does the object touch an obstacle?"""
+        scene = backend.scene
+        if scene is None or scene.object is None or self.contacts.object_obstacle:
+            return
+        for obstacle in scene.obstacles:
+            if pb.getContactPoints(scene.object.id, obstacle.id, physicsClientId=scene.client):
+                self.contacts.object_obstacle = True
+                return
+
+    def close(self) -> None:
+        for executor in self._executors.values():
+            executor.backend.disconnect()
+        self._executors.clear()
+
+
+def rollouts(jobs: list[ValidationJob]) -> list[ValidationResult | Exception]:
+    """The validator farm's arm rollouts, one after another in this process."""
+    results: list[ValidationResult | Exception] = []
+    for job in jobs:
+        try:
+            results.append(validate(job))
+        except ServiceError as exc:
+            results.append(exc)
+    return results
+
+
+def sampler_source(service: SamplerService) -> PoseSource:
+    """The sampler service's handler as a pose source (service errors become PushErrors, as over the bus)."""
+
+    def sample(request: SampleRequest) -> SampleResponse:
+        try:
+            return service.handle(request)
+        except ServiceError as exc:
+            raise PushError(exc.code, f"sampler: {exc}") from exc
+
+    return sample
+
+
+class LocalSystem:
+    """A push pipeline per pose source, sharing one simulated robot."""
+
+    def __init__(self, settings: PipelineSettings = PipelineSettings()):
+        self.settings = settings
+        self.robot = LocalRobot()
+        self.sampler = SamplerService()
+        self._pipelines: dict[str, PushPipeline] = {}
+
+    def pipeline(self, source_name: str, source: PoseSource | None = None) -> PushPipeline:
+        """The pipeline whose pose source is `source` (default: the sampler service)."""
+        if source_name not in self._pipelines:
+            services = PushServices(sample=source or sampler_source(self.sampler), rollouts=rollouts,
+                                    execute=self.robot.execute)
+            self._pipelines[source_name] = PushPipeline(services, self.settings)
+        return self._pipelines[source_name]
+
+    def close(self) -> None:
+        for pipeline in self._pipelines.values():
+            pipeline.close()
+        self.robot.close()
+        self.sampler.close()

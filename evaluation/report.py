@@ -1,0 +1,94 @@
+"""Writing an experiment's results: a Markdown report, a JSON summary, and the index `results/README.md`.
+
+Each experiment writes `<out>/<experiment>/report.md` and `summary.json` (plots beside them);
+`write_index` gathers every experiment found under `<out>` into `<out>/README.md` with the exact
+command, the wall time and the machine each one ran on.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shlex
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from shared.atomic import atomic_write_text
+
+REPORT_FILE = "report.md"
+SUMMARY_FILE = "summary.json"
+
+
+def machine() -> str:
+    """One line naming the machine: CPU, core count, memory, OS, Python."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory = ""
+    try:
+        pages, page_size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+        memory = f", {pages * page_size / 2**30:.0f} GiB"
+    except (ValueError, OSError, AttributeError):
+        pass
+    return f"{cpu}, {os.cpu_count()} cores{memory}, no GPU used, {platform.system()} {platform.release()}, Python {platform.python_version()}"
+
+
+def command_line() -> str:
+    """The command as the user typed it (`gd2p eval ...`)."""
+    argv = list(sys.argv)
+    argv[0] = "gd2p" if Path(argv[0]).name in ("gd2p", "main.py", "__main__.py") else argv[0]
+    return " ".join(shlex.quote(a) for a in argv)
+
+
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub Markdown table; floats with two decimals unless already formatted."""
+
+    def cell(value: Any) -> str:
+        if isinstance(value, float):
+            return f"{value:.2f}"
+        return str(value)
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def write_experiment(directory: str | os.PathLike, title: str, body_markdown: str, summary: dict[str, Any],
+                     wall_time_s: float, quick: bool) -> Path:
+    """Write report.md and summary.json of one experiment; returns the report's path."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    meta = {"command": command_line(), "wall_time_s": round(wall_time_s, 1), "machine": machine(), "quick": quick}
+    header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {wall_time_s / 60:.1f} min "
+              f"(this invocation; a resumed run adds to earlier ones)\n- machine: {meta['machine']}\n"
+              + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
+              + "\n")
+    atomic_write_text(directory / REPORT_FILE, header + body_markdown)
+    atomic_write_text(directory / SUMMARY_FILE, json.dumps({**meta, "title": title, **summary}, indent=2, sort_keys=True) + "\n")
+    return directory / REPORT_FILE
+
+
+def write_index(out: str | os.PathLike) -> Path:
+    """`<out>/README.md`: every experiment's title, command, wall time, machine and report link."""
+    out = Path(out)
+    sections = []
+    for summary_path in sorted(out.glob(f"*/{SUMMARY_FILE}")):
+        summary = json.loads(summary_path.read_text())
+        name = summary_path.parent.name
+        report = (summary_path.parent / REPORT_FILE).read_text()
+        body = report.split("\n\n", 1)[1] if "\n\n" in report else ""
+        sections.append(f"## [{summary.get('title', name)}]({name}/{REPORT_FILE})\n\n"
+                        f"- command: `{summary.get('command', '?')}`\n"
+                        f"- wall time: {summary.get('wall_time_s', 0) / 60:.1f} min\n"
+                        f"- machine: {summary.get('machine', '?')}\n\n{body.strip()}\n")
+    text = ("# Evaluation results\n\nReproduced in simulation by `gd2p eval` (see `gd2p eval --help`). Each section "
+            "is copied from its experiment's report; the JSON beside each report has every figure.\n\n"
+            + "\n".join(sections))
+    return atomic_write_text(out / "README.md", text)
