@@ -7,7 +7,8 @@ sampler when a checkpoint exists) run in this process as threads; each request g
 push client exactly as `gd2p push` sends it. K = 200 candidate poses from the diffusion sampler
 (method "gd2p") when an Allegro checkpoint is at the default path, else the fixed spatula pose
 (method "fixed", one candidate) — the JSON says which. Stages (from the response's timings):
-sampling, ik (batched IK + collision screen), planning (RRTConnect + Cartesian segments),
+sampling, ik (batched IK + collision screen), prescreen (floating-hand pushes of the best-aligned
+feasible poses), planning (RRTConnect + Cartesian segments),
 rollouts (arm rollouts of the candidate plans on the validator), execution (the simulated robot
 bridge, at full physics speed); "total" is the client's wall time per request.
 """
@@ -33,7 +34,7 @@ from shared.push_client import PushFailed, push  # noqa: E402
 
 OBJECTS = ("proc-box-013", "proc-box-000", "proc-cylinder-000")  # test split
 DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 m in front of the robot
-STAGES = ("sampling", "ik", "planning", "rollouts", "execution")
+STAGES = ("sampling", "ik", "prescreen", "planning", "rollouts", "execution")
 
 
 def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threading.Event,

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from pathlib import Path
 
@@ -26,6 +27,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
     "data-size": "evaluation.data_size:run",
     "sampler-quality": "evaluation.sampler_quality:run",
 }
+TRIAL_EXPERIMENTS = ("methods", "leap")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,6 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=Path("results"), help="results directory (default results/)")
     parser.add_argument("--quick", action="store_true", help="a small slice of the protocol (minutes, for CI)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2: one per core here)")
+    parser.add_argument("--trials", type=int, default=None,
+                        help="methods / leap: trials per object and direction (default: the paper's 5); a run can "
+                             "later be extended to more trials in the same --out")
     parser.set_defaults(func=run)
 
 
@@ -47,13 +52,20 @@ def run(args: argparse.Namespace) -> int:
     from evaluation.report import write_index
     from evaluation.store import ResultStoreError
 
+    # A stopped evaluation must not leave its worker processes running: SystemExit unwinds the pool's
+    # context, which terminates them (finished trials are already on disk).
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if args.workers < 1:
         print("gd2p eval: --workers must be >= 1", file=sys.stderr)
         return 2
+    if args.trials is not None and args.trials < 1:
+        print("gd2p eval: --trials must be >= 1", file=sys.stderr)
+        return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     for name in names:
+        options = {"trials": args.trials} if args.trials is not None and name in TRIAL_EXPERIMENTS else {}
         try:
-            report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers)
+            report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except ResultStoreError as exc:
             print(f"gd2p eval {name}: {exc}", file=sys.stderr)
             return 2

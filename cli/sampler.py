@@ -266,7 +266,7 @@ def validate_sampled_poses(obj, hand_name: str, poses_d: np.ndarray, frame, prog
     """
     from tqdm import tqdm
 
-    from services.sampler.sampling import object_yaw_in_d
+    from shared.frames import object_yaw_in_d
     from services.validator.push import table_object
     from services.validator.validator import Validator
     from shared.hands import load_hand

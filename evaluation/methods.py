@@ -34,15 +34,17 @@ class Protocol:
     trials: int
 
     def settings(self) -> dict[str, Any]:
+        """What a resumed run must share with the records on disk. Not the trial count: trial k is the
+        same episode whatever the count, so a run with fewer trials can later be extended."""
         return {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "methods": list(self.methods),
-                "objects": list(self.objects), "directions_deg": list(self.directions), "trials": self.trials,
+                "objects": list(self.objects), "directions_deg": list(self.directions),
                 "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                 "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M}
 
 
-def protocol_for(name: str, quick: bool) -> Protocol:
+def protocol_for(name: str, quick: bool, trials: int | None = None) -> Protocol:
     objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
-    trials = 1 if quick else protocol.TRIALS
+    trials = trials or (1 if quick else protocol.TRIALS)
     if name == "methods":
         return Protocol(name, "Methods × objects × directions (Allegro + Panda)", "allegro", protocol.METHODS,
                         objects, protocol.DIRECTIONS_DEG, trials)
@@ -52,8 +54,8 @@ def protocol_for(name: str, quick: bool) -> Protocol:
     raise ValueError(f"unknown protocol {name!r}")
 
 
-def run_protocol(name: str, out: Path, quick: bool, workers: int) -> Path:
-    spec = protocol_for(name, quick)
+def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None) -> Path:
+    spec = protocol_for(name, quick, trials)
     directory = Path(out) / name
     store = ResultStore(directory, spec.settings())
     started = time.perf_counter()
@@ -65,16 +67,16 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int) -> Path:
     body = report_body(records, spec, summary)
     _plot(records, spec, directory / "success_by_direction.png")
     body += "\n![success by method and direction](success_by_direction.png)\n"
-    return write_experiment(directory, spec.title, body, {"settings": spec.settings(), **summary},
-                            time.perf_counter() - started, quick)
+    return write_experiment(directory, spec.title, body, {"settings": {**spec.settings(), "trials": spec.trials},
+                                                          **summary}, time.perf_counter() - started, quick)
 
 
-def run_methods(out: Path, quick: bool = False, workers: int = 2) -> Path:
-    return run_protocol("methods", out, quick, workers)
+def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None) -> Path:
+    return run_protocol("methods", out, quick, workers, trials)
 
 
-def run_leap(out: Path, quick: bool = False, workers: int = 2) -> Path:
-    return run_protocol("leap", out, quick, workers)
+def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None) -> Path:
+    return run_protocol("leap", out, quick, workers, trials)
 
 
 # ------------------------------------------------------------------------------------------ tables

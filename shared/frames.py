@@ -282,3 +282,30 @@ def direction_yaw_deg(T_world_D: np.ndarray) -> float:
     """The push direction of a direction frame as yaw degrees in (-180, 180]."""
     T_world_D = np.asarray(T_world_D, dtype=np.float64)
     return math.degrees(math.atan2(T_world_D[1, 0], T_world_D[0, 0]))
+
+
+# ---------------------------------------------------------------------- DirectionFrame messages
+# (duck-typed: anything with `object_pose.position`, `object_pose.quaternion_xyzw`, `yaw_deg` and
+# `direction_xy`, i.e. shared.messages.DirectionFrame, which this module does not import)
+
+
+def frame_transform(frame) -> np.ndarray:
+    """T_world_D of a DirectionFrame."""
+    direction = frame.yaw_deg if frame.yaw_deg is not None else np.asarray(frame.direction_xy)
+    return direction_frame(np.asarray(frame.object_pose.position), direction)
+
+
+def frame_object_transform(frame) -> np.ndarray:
+    """T_world_O of a DirectionFrame's object."""
+    return pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
+
+
+def object_yaw_in_d(frame, rest_rotation: np.ndarray) -> float:
+    """The yaw (radians, about D's z) that turns the resting pose `rest_rotation` into the frame's object.
+
+    `ObjectModel.T_D_O(pose, yaw)` is Rz(yaw) @ rest_rotation, so Rz(yaw) = R_D_O @ rest_rotation^T;
+    this is what the validator's `table_object(obj, pose_index, yaw)` needs to place the object the same way.
+    """
+    R_D_O = (invert_transform(frame_transform(frame)) @ frame_object_transform(frame))[:3, :3]
+    turn = R_D_O @ np.asarray(rest_rotation, dtype=np.float64).T
+    return math.atan2(turn[1, 0], turn[0, 0])

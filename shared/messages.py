@@ -455,14 +455,16 @@ class ValidationJob(Message):
     with_arm: bool = False  # roll out `plan` with the arm instead of a floating hand
     arm: Arm | None = None
     plan: Plan | None = None
-    frame: DirectionFrame | None = None  # the object's world pose and push direction (arm rollouts)
+    # The object's world pose and push direction: required for arm rollouts; for a floating hand it
+    # places the object (default resting pose) turned in D as the frame says (default: yaw 0 in D).
+    frame: DirectionFrame | None = None
     obstacles: list[CircleObstacle] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _rollout_complete(self) -> "ValidationJob":
-        rollout_fields = {"arm": self.arm, "plan": self.plan, "frame": self.frame}
+        rollout_fields = {"arm": self.arm, "plan": self.plan}
         if self.with_arm:
-            missing = [n for n, v in rollout_fields.items() if v is None]
+            missing = [n for n, v in {**rollout_fields, "frame": self.frame}.items() if v is None]
             if missing:
                 raise ValueError(f"with_arm=True needs {', '.join(missing)}")
             _check_pair(self.hand, self.arm)  # type: ignore[arg-type]

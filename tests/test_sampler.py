@@ -30,7 +30,8 @@ from services.sampler.dataset import (
 from services.sampler.diffusion import TRAIN_TIMESTEPS
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
-from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame, object_yaw_in_d
+from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
+from shared.frames import object_yaw_in_d
 from services.sampler.train import RunOptions, TrainConfig, TrainingError, hand_joint_limits, train
 from shared.frames import JOINTS, ROTATION_6D, poses_d_to_world, r6_to_matrix
 from shared.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse

@@ -13,11 +13,12 @@ from services.validator.push import PushSimulator, table_object
 from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
 from shared.bus import ServiceError
-from shared.frames import pose25_to_matrix
+from shared.frames import make_transform, pose25_to_matrix
 from shared.hands import load_hand
 from shared.codec import decode, encode
-from shared.messages import ObjectRef, ValidationJob, ValidationResult
+from shared.messages import DirectionFrame, ObjectRef, ValidationJob, ValidationResult
 from shared.objects import load_object
+from shared.push_outcome import object_pose
 
 BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm, 0.86 kg, volumetric
 
@@ -179,3 +180,19 @@ def test_cli_validate_reports_bad_poses_file(tmp_path, capsys):
     assert code == 2
     captured = capsys.readouterr()
     assert captured.out == "" and 'poses[0]["pose"] must be 25' in captured.err
+
+
+def test_floating_job_places_the_object_as_its_frame_says():
+    """A job's DirectionFrame turns the object in D (the planner's pre-screen pushes in the request's frame)."""
+    obj = load_object(BOX_ID)
+    yaw = np.radians(90.0)
+    turned = table_object(obj, None, yaw)
+    hand = load_hand("allegro")
+    pose = spatula_pose(hand, turned.vertices_d)
+    T_world_O = make_transform(np.eye(3), np.array([0.5, 0.1, 0.0])) @ obj.T_D_O(None, yaw)
+    frame = DirectionFrame(object_pose=object_pose(T_world_O), yaw_deg=0.0)
+    framed = validate(ValidationJob(object=ObjectRef(library_id=BOX_ID), hand="allegro", poses=pose[None], frame=frame))
+    with PushSimulator(hand, turned) as sim:
+        expected = sim.run(pose)
+    assert expected.success and bool(framed.success.to_numpy()[0])
+    assert framed.position_error_m.to_numpy()[0] == pytest.approx(expected.position_error_m, abs=1e-9)

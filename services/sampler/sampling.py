@@ -22,7 +22,6 @@ rotation) and joints are clamped to the hand's limits stored in the checkpoint.
 """
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
@@ -41,12 +40,12 @@ from shared.bps import BPSError
 from shared.frames import (
     JOINTS,
     ROTATION_6D,
-    direction_frame,
+    frame_object_transform,
+    frame_transform,
     invert_transform,
     matrix_to_pos_quat,
     matrix_to_r6,
     points_world_to_d,
-    pos_quat_to_matrix,
     poses_d_to_world,
     r6_to_matrix,
     transform_points,
@@ -95,27 +94,6 @@ def default_frame(obj: ObjectModel, direction_deg: float = 0.0) -> DirectionFram
                           yaw_deg=float(direction_deg))
 
 
-def frame_transform(frame: DirectionFrame) -> np.ndarray:
-    """T_world_D of a DirectionFrame."""
-    direction = frame.yaw_deg if frame.yaw_deg is not None else np.asarray(frame.direction_xy)
-    return direction_frame(np.asarray(frame.object_pose.position), direction)
-
-
-def object_yaw_in_d(frame: DirectionFrame, rest_rotation: np.ndarray) -> float:
-    """The yaw (radians, about D's z) that turns the resting pose `rest_rotation` into the frame's object.
-
-    `ObjectModel.T_D_O(pose, yaw)` is Rz(yaw) @ rest_rotation, so Rz(yaw) = R_D_O @ rest_rotation^T;
-    this is what the validator's `table_object(obj, pose_index, yaw)` needs to place the object the same way.
-    """
-    R_D_O = (invert_transform(frame_transform(frame)) @ _object_transform(frame))[:3, :3]
-    turn = R_D_O @ np.asarray(rest_rotation, dtype=np.float64).T
-    return math.atan2(turn[1, 0], turn[0, 0])
-
-
-def _object_transform(frame: DirectionFrame) -> np.ndarray:
-    return pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
-
-
 class ObjectPoints:
     """An object's surface samples placed in D; samples (in O) of recent objects are cached, so repeated
     requests skip mesh loading. Every BPS query of the sampler (diffusion and nearest neighbour) goes
@@ -153,7 +131,7 @@ class ObjectPoints:
         model, points_o = self.get(obj)
         frame = frame or default_frame(model)
         T_world_D = frame_transform(frame)
-        T_D_O = invert_transform(T_world_D) @ _object_transform(frame)
+        T_D_O = invert_transform(T_world_D) @ frame_object_transform(frame)
         return transform_points(T_D_O, points_o), T_world_D, model.id
 
 

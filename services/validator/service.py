@@ -22,6 +22,7 @@ from services.validator.rollout import rollout
 from services.validator.push import PushInputError, PushOutcome, table_object
 from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
+from shared.frames import object_yaw_in_d
 from shared.hands import load_hand
 from shared.messages import AugmentedOutcomes, Message, ObjectRef, PhysicsSettings, ValidationJob, ValidationResult
 from shared.object_refs import load_object_ref
@@ -71,9 +72,10 @@ def validate(job: ValidationJob) -> ValidationResult:
     started = time.perf_counter()
     obj = resolve_object(job.object)
     hand = load_hand(job.hand)
+    yaw = 0.0 if job.frame is None else object_yaw_in_d(job.frame, obj.default_pose.rotation)
     try:
         run = _validator().validate(
-            table_object(obj), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
+            table_object(obj, None, yaw), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
             push_distance_m=job.push_distance_m, augment=job.augment, seed=job.seed)
     except (PushInputError, SimError) as exc:
         raise ServiceError("bad_request", f"validator: {exc}") from exc

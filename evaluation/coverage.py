@@ -1,0 +1,366 @@
+"""Coverage of a pose source over objects: how many sampled poses push, and does any push at all.
+
+The shared measurement behind the data-size experiment (paper Table "objects with >= 1 feasible
+pose") and the sampler-quality benchmark. For every object:
+
+1. the object rests in its default pose at the origin and is pushed along +x (`default_frame`), so
+   D = world and the measurement does not depend on a random placement;
+2. the pose source draws `samples` poses (200, the paper's count) for it in D, seeded from
+   (settings seed, object id) so a record never depends on scheduling or on other objects;
+3. the poses are pushed in order in the floating-hand validator with its default physics — the
+   data engine's success criterion (centre within 0.03 m of the goal, <= 45 deg turned):
+   - the first `fraction_poses` (50) are all pushed: successes / pushed = `validated_fraction`;
+   - then chunks of `chunk` (25) are pushed only until one pose has succeeded or all are tried:
+     `any_success` ("the object has >= 1 validated pose of 200").
+
+Early stopping is exact for `any_success`: the poses are drawn before any is pushed, each push
+starts from the same restored scene (outcomes do not depend on what ran before), and the question
+is only whether *some* pose succeeds, so stopping at the first success gives the count that pushing
+all 200 would. It saves most of the cost: an object with a success among its first 50 poses costs
+50 pushes instead of 200, and only the objects with no validated pose at all cost the full 200. `n_success` is
+therefore a lower bound beyond the first `fraction_poses`; the rates reported use the first
+`fraction_poses` only, which every object has pushed in full.
+
+Objects are spread over `workers` spawn processes (one PyBullet scene and one torch thread each);
+every finished object is one record in a `ResultStore`, so a killed run resumes where it stopped.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import multiprocessing
+import os
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from tqdm import tqdm
+
+from evaluation.store import ResultStore
+
+SAMPLES_PER_OBJECT = 200  # the paper's candidates per test object
+FRACTION_POSES = 50  # poses always pushed: the validated-fraction estimate
+CHUNK_POSES = 25  # then pushed this many at a time until one succeeds
+
+
+class CoverageError(ValueError):
+    """Settings or a pose source the measurement cannot use."""
+
+
+# ----------------------------------------------------------------------------- settings
+@dataclass(frozen=True)
+class CoverageSettings:
+    """What fixes a coverage record (pinned in the experiment's store)."""
+
+    samples: int = SAMPLES_PER_OBJECT
+    fraction_poses: int = FRACTION_POSES
+    chunk: int = CHUNK_POSES
+    seed: int = 0
+    hand: str = "allegro"
+
+    def __post_init__(self) -> None:
+        if self.samples < 1 or self.fraction_poses < 1 or self.chunk < 1:
+            raise CoverageError(f"samples, fraction_poses and chunk must be >= 1; got {self.samples}, "
+                                f"{self.fraction_poses}, {self.chunk}")
+        if self.fraction_poses > self.samples:
+            raise CoverageError(f"fraction_poses ({self.fraction_poses}) cannot exceed samples ({self.samples})")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def object_seed(seed: int, object_id: str) -> int:
+    """The sampling seed of one object: from (settings seed, object id) only, never from scheduling."""
+    digest = hashlib.sha256(f"gd2p-coverage:{seed}:{object_id}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+# ----------------------------------------------------------------------------- pose sources
+class PoseSource(Protocol):
+    """Draws candidate poses in D for an object placed by a frame. Picklable (sent to workers)."""
+
+    def label(self) -> str: ...
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        """[<= k, 25] poses in D."""
+        ...
+
+
+_OPEN_SOURCES: OrderedDict[tuple, Any] = OrderedDict()  # per process: loaded checkpoints / indexes
+_OPEN_LIMIT = 2
+
+
+def _cached(key: tuple, load: Callable[[], Any], close: Callable[[Any], None] | None = None) -> Any:
+    if key in _OPEN_SOURCES:
+        _OPEN_SOURCES.move_to_end(key)
+        return _OPEN_SOURCES[key]
+    value = load()
+    _OPEN_SOURCES[key] = value
+    while len(_OPEN_SOURCES) > _OPEN_LIMIT:
+        _, evicted = _OPEN_SOURCES.popitem(last=False)
+        if hasattr(evicted, "close"):
+            evicted.close()
+    return value
+
+
+@dataclass(frozen=True)
+class DiffusionSource:
+    """Poses from a sampler checkpoint (`PoseSampler.sample`), DDPM or DDIM."""
+
+    checkpoint: str
+    sampler: str = "ddpm"
+    steps: int | None = None  # None: the sampler's default (DDPM 100, DDIM 10)
+
+    def label(self) -> str:
+        steps = self.steps if self.steps is not None else (100 if self.sampler == "ddpm" else 10)
+        return f"{self.sampler.upper()}-{steps}"
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        from services.sampler.sampling import PoseSampler
+
+        sampler = _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
+        return sampler.sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed).poses_d
+
+
+@dataclass(frozen=True)
+class NearestNeighborSource:
+    """The paper's Nearest Neighbor baseline: the stored poses of the training frame nearest in BPS.
+
+    A frame holds fewer poses than 200 (typically 20-90), so this source gives all of them — fewer
+    candidates than the model's 200; the per-object record says how many.
+    """
+
+    index: str  # a NearestNeighborBaseline .npz
+
+    def label(self) -> str:
+        return "Nearest neighbour"
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
+        from services.sampler.nearest_neighbor import NearestNeighborBaseline
+
+        baseline = _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborBaseline.load(self.index))
+        points, _ = obj.surface_points(SURFACE_POINTS, seed=SURFACE_SEED, T_D_O=object_in_d(frame))
+        return baseline.query_points(points, k=k, seed=seed).poses
+
+
+def _file_stamp(path: str) -> tuple[int, int]:
+    stat = Path(path).stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
+def object_in_d(frame: Any) -> np.ndarray:
+    """T_D_O: the object's pose in the direction frame D of a `DirectionFrame`."""
+    from shared.frames import frame_transform
+    from shared.frames import invert_transform, pos_quat_to_matrix
+
+    T_world_O = pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
+    return invert_transform(frame_transform(frame)) @ T_world_O
+
+
+# ----------------------------------------------------------------------------- early stopping
+@dataclass
+class PushTally:
+    """Outcomes of one object's poses as far as they were pushed."""
+
+    n_poses: int
+    successes: list[bool]
+    fraction_poses: int
+
+    @property
+    def n_validated(self) -> int:
+        return len(self.successes)
+
+    @property
+    def first_success_index(self) -> int | None:
+        return self.successes.index(True) if True in self.successes else None
+
+    @property
+    def fraction_pushed(self) -> int:
+        return min(self.fraction_poses, self.n_poses)
+
+    @property
+    def fraction_successes(self) -> int:
+        return sum(self.successes[: self.fraction_poses])
+
+    @property
+    def validated_fraction(self) -> float:
+        return self.fraction_successes / self.fraction_pushed if self.fraction_pushed else 0.0
+
+
+def push_until_covered(n_poses: int, push: Callable[[int, int], Sequence[bool]], fraction_poses: int = FRACTION_POSES,
+                       chunk: int = CHUNK_POSES) -> PushTally:
+    """Push poses [0, fraction_poses) all, then chunks of `chunk` until one succeeded or all are pushed.
+
+    `push(start, stop)` pushes poses start..stop-1 and returns their successes.
+    """
+    successes: list[bool] = []
+    stop = min(fraction_poses, n_poses)
+    while True:
+        start = len(successes)
+        if stop > start:
+            outcome = [bool(s) for s in push(start, stop)]
+            if len(outcome) != stop - start:
+                raise CoverageError(f"push({start}, {stop}) returned {len(outcome)} outcomes")
+            successes += outcome
+        if any(successes) or len(successes) >= n_poses:
+            return PushTally(n_poses, successes, fraction_poses)
+        stop = min(len(successes) + chunk, n_poses)
+
+
+# ----------------------------------------------------------------------------- one object
+_WORKER_STATE: dict[str, Any] = {}
+
+
+def _validator():
+    from services.validator.validator import Validator
+
+    if "validator" not in _WORKER_STATE:
+        _WORKER_STATE["validator"] = Validator()  # default physics: the data engine's criterion
+    return _WORKER_STATE["validator"]
+
+
+def _hand(name: str):
+    from shared.hands import load_hand
+
+    hands = _WORKER_STATE.setdefault("hands", {})
+    if name not in hands:
+        hands[name] = load_hand(name)
+    return hands[name]
+
+
+def measure_object(source: PoseSource, object_id: str, settings: CoverageSettings) -> dict[str, Any]:
+    """Sample, push with early stopping, and return the object's coverage record."""
+    from services.sampler.sampling import default_frame
+    from shared.frames import object_yaw_in_d
+    from services.validator.push import table_object
+    from shared.objects import load_object
+
+    started = time.perf_counter()
+    obj = load_object(object_id)
+    frame = default_frame(obj)
+    poses = np.asarray(source.poses(obj, frame, settings.samples, object_seed(settings.seed, object_id)), dtype=np.float64)
+    placed = table_object(obj, None, yaw_rad=object_yaw_in_d(frame, obj.default_pose.rotation))
+    validator, hand = _validator(), _hand(settings.hand)
+
+    def push(start: int, stop: int) -> list[bool]:
+        return [o.success for o in validator.validate(placed, hand, poses[start:stop]).outcomes]
+
+    tally = push_until_covered(len(poses), push, settings.fraction_poses, settings.chunk)
+    return coverage_record(object_id, tally, time.perf_counter() - started)
+
+
+def coverage_record(object_id: str, tally: PushTally, seconds: float) -> dict[str, Any]:
+    return {
+        "object": object_id,
+        "n_poses": tally.n_poses,
+        "n_validated": tally.n_validated,
+        "n_success": sum(tally.successes),
+        "fraction_pushed": tally.fraction_pushed,
+        "fraction_successes": tally.fraction_successes,
+        "validated_fraction": tally.validated_fraction,
+        "any_success": tally.first_success_index is not None,
+        "first_success_index": tally.first_success_index,
+        "seconds": round(seconds, 3),
+    }
+
+
+# ----------------------------------------------------------------------------- workers
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)  # one busy process per core (DESIGN.md §6)
+    os.dup2(2, 1)  # PyBullet prints on fd 1; keep the parent's stdout clean
+
+
+def _measure_task(task: tuple[str, PoseSource, str, CoverageSettings]) -> tuple[str, dict[str, Any]]:
+    key, source, object_id, settings = task
+    try:
+        return key, measure_object(source, object_id, settings)
+    except Exception as exc:  # name the object: a worker's traceback does not reach the parent
+        raise CoverageError(f"{source.label()} on {object_id}: {type(exc).__name__}: {exc}") from exc
+
+
+class CoveragePool:
+    """Spawn worker processes measuring objects; one pool can serve several sources in turn.
+
+    With `workers <= 1` the objects are measured in the calling process (no start-up cost).
+    """
+
+    def __init__(self, workers: int = 2):
+        self.workers = max(1, int(workers))
+        self._pool = None
+
+    def __enter__(self) -> "CoveragePool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool = None
+
+    def _results(self, tasks: list[tuple[str, PoseSource, str, CoverageSettings]]) -> Iterator[tuple[str, dict[str, Any]]]:
+        if self.workers == 1:
+            for task in tasks:
+                yield _measure_task(task)
+            return
+        if self._pool is None:
+            self._pool = multiprocessing.get_context("spawn").Pool(self.workers, initializer=_init_worker)
+        yield from self._pool.imap_unordered(_measure_task, tasks, chunksize=1)
+
+    def measure(self, source: PoseSource, object_ids: Sequence[str], store: ResultStore, key_prefix: str,
+                settings: CoverageSettings, desc: str | None = None, progress: bool = True) -> list[dict[str, Any]]:
+        """Coverage records of `object_ids` (in that order); objects already in `store` are not redone."""
+        keys = {object_id: f"{key_prefix}/{object_id}" for object_id in object_ids}
+        pending = [(keys[o], source, o, settings) for o in object_ids if not store.done(keys[o])]
+        done = [store.records[keys[o]] for o in object_ids if store.done(keys[o])]
+        with tqdm(total=len(object_ids), initial=len(done), desc=desc or source.label(), unit="obj",
+                  disable=not progress, dynamic_ncols=True) as bar:
+            bar.set_postfix(live_postfix(done), refresh=False)
+            for key, record in self._results(pending):
+                store.add(key, record)
+                done.append(store.records[key])
+                bar.set_postfix(live_postfix(done), refresh=False)
+                bar.update(1)
+        return [store.records[keys[o]] for o in object_ids]
+
+
+def measure_coverage(source: PoseSource, object_ids: Sequence[str], store: ResultStore, key_prefix: str,
+                     settings: CoverageSettings | None = None, workers: int = 2, desc: str | None = None,
+                     progress: bool = True) -> list[dict[str, Any]]:
+    """One source over `object_ids` with a fresh pool (see `CoveragePool.measure`)."""
+    with CoveragePool(workers) as pool:
+        return pool.measure(source, object_ids, store, key_prefix, settings or CoverageSettings(), desc, progress)
+
+
+# ----------------------------------------------------------------------------- summaries
+def live_postfix(records: Sequence[Mapping[str, Any]]) -> dict[str, str]:
+    """Progress-bar figures so far: objects covered and the pooled validated fraction."""
+    if not records:
+        return {}
+    summary = summarize(records)
+    return {"covered": f"{summary['covered']}/{summary['objects']}", "valid": f"{summary['pooled_validated_fraction']:.0%}"}
+
+
+def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Objects, objects covered (>= 1 validated pose), mean / pooled validated fraction, pushes, seconds."""
+    n = len(records)
+    pushed = sum(r["fraction_pushed"] for r in records)
+    return {
+        "objects": n,
+        "covered": sum(bool(r["any_success"]) for r in records),
+        "covered_pct": 100.0 * sum(bool(r["any_success"]) for r in records) / n if n else math.nan,
+        "mean_validated_fraction": float(np.mean([r["validated_fraction"] for r in records])) if n else math.nan,
+        "pooled_validated_fraction": sum(r["fraction_successes"] for r in records) / pushed if pushed else math.nan,
+        "pushes": sum(r["n_validated"] for r in records),
+        "seconds": round(sum(r["seconds"] for r in records), 1),
+    }

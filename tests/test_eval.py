@@ -1,0 +1,99 @@
+"""`gd2p eval` building blocks: resumable records, the push protocol, the grasp baseline's frames, reports."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from evaluation import push_protocol as protocol
+from evaluation.grasp_baseline import GraspPoseSource
+from evaluation.report import markdown_table, write_experiment, write_index
+from evaluation.store import ResultStore, ResultStoreError
+from shared.frames import direction_frame, direction_xy, invert_transform, pose25_to_matrix
+from shared.messages import DirectionFrame, ObjectRef, SampleRequest
+from shared.objects import load_object
+from shared.push_outcome import object_pose, pose_matrix
+
+
+def test_store_resumes_and_survives_a_torn_line(tmp_path):
+    store = ResultStore(tmp_path, {"trials": 5})
+    store.add("a", {"success": True})
+    with store.path.open("a") as f:
+        f.write('{"key": "b", "succ')  # killed mid-write
+    again = ResultStore(tmp_path, {"trials": 5})
+    assert again.done("a") and not again.done("b")
+    assert again.pending(["a", "b", "c"]) == ["b", "c"]
+    again.add("b", {"success": False})
+    assert set(ResultStore(tmp_path, {"trials": 5}).records) == {"a", "b"}
+
+
+def test_store_refuses_other_settings(tmp_path):
+    ResultStore(tmp_path, {"trials": 5, "objects": ["x"]})
+    with pytest.raises(ResultStoreError, match="trials"):
+        ResultStore(tmp_path, {"trials": 3, "objects": ["x"]})
+
+
+def test_episodes_use_test_objects_only_and_known_methods():
+    with pytest.raises(ValueError, match="train split"):
+        protocol.episodes(["gd2p"], "allegro", ["proc-box-050"], [60.0], 1)
+    with pytest.raises(ValueError, match="unknown method"):
+        protocol.episodes(["magic"], "allegro", ["proc-box-001"], [60.0], 1)
+    eps = protocol.episodes(["gd2p", "fixed"], "allegro", ["proc-box-001", "pb-mug"], protocol.DIRECTIONS_DEG, 5)
+    assert len(eps) == 2 * 2 * 3 * 5 and len({e.key for e in eps}) == len(eps)
+
+
+def test_every_method_faces_the_same_placement():
+    a = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 3)
+    b = protocol.Episode("fixed", "allegro", "pb-mug", 180.0, 3)
+    other_trial = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 4)
+    assert np.allclose(protocol.placement(a), protocol.placement(b))
+    assert not np.allclose(protocol.placement(a), protocol.placement(other_trial))
+    offset = protocol.placement(a)[:2, 3] - np.array(protocol.OBJECT_XY)
+    assert np.all(np.abs(offset) <= protocol.PLACEMENT_NOISE_M + 1e-9)
+    request = protocol.push_request(a)
+    assert request.ranking and request.method == "gd2p" and request.distance_m == pytest.approx(0.20)
+    assert not protocol.push_request(protocol.Episode("gd2p-no-ranking", "allegro", "pb-mug", 180.0, 3)).ranking
+
+
+def test_grasp_poses_move_with_the_object(tmp_path):
+    """A cached grasp pose keeps its place on the object whatever the object's yaw and the push direction."""
+    obj = load_object("proc-box-001")
+    T_D0_O = obj.T_D_O()
+    pose = np.zeros(25)
+    pose[:3] = (-0.12, 0.02, 0.05)
+    pose[3:9] = (1, 0, 0, 0, 1, 0)
+    cache = tmp_path / "allegro" / "proc-box-001_4.npz"
+    cache.parent.mkdir(parents=True)
+    np.savez(cache, poses=pose[None], T_D_O=T_D0_O)
+    source = GraspPoseSource(tmp_path, generated=4, offered=1)
+
+    T_world_O = pose_matrix(object_pose(np.array([[math.cos(0.4), -math.sin(0.4), 0, 0.45],
+                                                   [math.sin(0.4), math.cos(0.4), 0, 0.05],
+                                                   [0, 0, 1, 0], [0, 0, 0, 1]]) @ T_D0_O))
+    frame = DirectionFrame(object_pose=object_pose(T_world_O), direction_xy=tuple(direction_xy(130.0)))
+    reply = source(SampleRequest(object=ObjectRef(library_id="proc-box-001"), hand="allegro", frame=frame, k=1))
+    T_world_hand, _ = pose25_to_matrix(reply.poses_world.to_numpy()[0])
+    T_O_hand_expected = invert_transform(T_D0_O) @ pose25_to_matrix(pose)[0]
+    assert np.allclose(invert_transform(T_world_O) @ T_world_hand, T_O_hand_expected, atol=1e-9)
+    T_world_D = direction_frame(T_world_O[:3, 3], direction_xy(130.0))
+    assert np.allclose(T_world_D @ pose25_to_matrix(reply.poses_d.to_numpy()[0])[0], T_world_hand, atol=1e-9)
+
+
+def test_fixed_pose_pull_toward_the_robot_succeeds_with_the_arm(tmp_path):
+    """One full protocol trial in physics: the spatula pose pulls the box 0.20 m toward the robot."""
+    protocol._init_worker(str(tmp_path))
+    record = protocol.run_episode(protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0))
+    assert record["outcome"] == "success", record
+    assert record["position_error_m"] <= 0.03 and not record["toppled"]
+
+
+def test_reports_and_index(tmp_path):
+    table = markdown_table(["method", "rate"], [["GD2P", 0.8123], ["fixed", "–"]])
+    assert table.splitlines()[2] == "| GD2P | 0.81 |"
+    write_experiment(tmp_path / "methods", "Methods", table, {"success": 0.8}, wall_time_s=90.0, quick=True)
+    summary = json.loads((tmp_path / "methods" / "summary.json").read_text())
+    assert summary["success"] == 0.8 and summary["quick"] and "cores" in summary["machine"]
+    index = write_index(tmp_path).read_text()
+    assert "[Methods](methods/report.md)" in index and "| GD2P | 0.81 |" in index

@@ -1,0 +1,126 @@
+"""Coverage measurement (evaluation/coverage.py): exact early stopping, resumable records, data-size subset."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from evaluation.coverage import (
+    CoverageSettings,
+    measure_coverage,
+    measure_object,
+    push_until_covered,
+    summarize,
+)
+from evaluation.data_size import object_subset
+from evaluation.store import ResultStore, ResultStoreError
+from services.validator.augment import halton_perturbations
+from services.validator.fixed_poses import spatula_pose
+from services.validator.push import table_object
+from services.validator.validator import Validator
+from shared.hands import load_hand
+from shared.objects import load_object, split_of
+
+BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm: the spatula pose pushes it to the goal
+
+
+@dataclass(frozen=True)
+class ScriptedSource:
+    """`failing` copies of the spatula pose moved past the box (the hand never touches it), then
+    `spatula` Halton-perturbed spatula poses (which push it). Module-level, so spawn workers can unpickle it."""
+
+    failing: int
+    spatula: int
+
+    def label(self) -> str:
+        return "scripted"
+
+    def poses(self, obj, frame, k, seed) -> np.ndarray:
+        hand = load_hand("allegro")
+        vertices = table_object(obj).vertices_d
+        pose = spatula_pose(hand, vertices)
+        far_side = pose + np.r_[np.ptp(vertices[:, 0]) + 0.10, np.zeros(24)]
+        lower, upper = hand.joint_lower.double().numpy(), hand.joint_upper.double().numpy()
+        near = halton_perturbations(pose, self.spatula, seed, lower, upper) if self.spatula else np.zeros((0, 25))
+        return np.concatenate([np.repeat(far_side[None], self.failing, axis=0), near])[:k]
+
+
+@dataclass(frozen=True)
+class RefusingSource:
+    """A source that must not be asked for poses (everything is already recorded)."""
+
+    def label(self) -> str:
+        return "refusing"
+
+    def poses(self, obj, frame, k, seed) -> np.ndarray:
+        raise AssertionError(f"{obj.id} was measured again")
+
+
+def _push_all(source: ScriptedSource, settings: CoverageSettings) -> list[bool]:
+    obj = load_object(BOX_ID)
+    poses = source.poses(obj, None, settings.samples, 0)
+    with Validator() as validator:
+        return [o.success for o in validator.validate(table_object(obj), load_hand("allegro"), poses).outcomes]
+
+
+@pytest.mark.parametrize("source", [ScriptedSource(failing=7, spatula=5), ScriptedSource(failing=6, spatula=0)],
+                         ids=["success-after-chunks", "no-success"])
+def test_early_stopping_matches_pushing_every_pose(source):
+    settings = CoverageSettings(samples=12, fraction_poses=4, chunk=3, seed=0)
+    record = measure_object(source, BOX_ID, settings)
+    full = _push_all(source, settings)
+
+    assert record["any_success"] == any(full)
+    assert record["first_success_index"] == (full.index(True) if any(full) else None)
+    assert record["validated_fraction"] == sum(full[:4]) / 4
+    if any(full):  # stopped at the end of the chunk holding the first success
+        assert record["n_validated"] == min(len(full), 4 + 3 * -(-(full.index(True) + 1 - 4) // 3))
+        assert record["n_validated"] < len(full)
+    else:
+        assert record["n_validated"] == len(full)
+
+
+def test_early_stopping_never_changes_any_success_on_random_outcomes():
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        n = int(rng.integers(1, 60))
+        outcomes = rng.random(n) < rng.choice([0.0, 0.02, 0.2])
+        pushed: list[int] = []
+
+        def push(start: int, stop: int) -> list[bool]:
+            pushed.extend(range(start, stop))
+            return list(outcomes[start:stop])
+
+        tally = push_until_covered(n, push, fraction_poses=10, chunk=4)
+        assert (tally.first_success_index is not None) == bool(outcomes.any())
+        assert pushed == list(range(len(pushed)))  # in order, each pose once
+        assert len(pushed) >= min(10, n)
+        if not outcomes.any():
+            assert len(pushed) == n
+
+
+def test_records_resume_and_settings_are_pinned(tmp_path):
+    settings = CoverageSettings(samples=3, fraction_poses=2, chunk=1, seed=0)
+    objects = [BOX_ID, "proc-box-002"]
+    pinned = {"coverage": settings.to_dict(), "objects": objects}
+    first = measure_coverage(ScriptedSource(failing=1, spatula=2), objects, ResultStore(tmp_path, pinned), "scripted",
+                             settings, workers=2, progress=False)
+    assert [r["object"] for r in first] == objects
+    assert all(r["n_validated"] >= 2 for r in first)
+
+    again = measure_coverage(RefusingSource(), objects, ResultStore(tmp_path, pinned), "scripted", settings,
+                             workers=1, progress=False)
+    assert again == first
+    assert summarize(again)["objects"] == 2
+
+    with pytest.raises(ResultStoreError, match="coverage"):
+        ResultStore(tmp_path, {**pinned, "coverage": CoverageSettings(samples=200).to_dict()})
+
+
+def test_data_size_object_subset_is_fixed_and_from_the_test_split():
+    subset = object_subset(20)
+    assert subset == object_subset(20)
+    assert len(set(subset)) == 20 and all(split_of(i) == "test" for i in subset)
+    assert object_subset(8) == subset[:8]  # a larger subset extends a smaller one
+    assert object_subset(20, seed=1) != subset
