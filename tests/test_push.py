@@ -122,8 +122,8 @@ def test_a_multi_step_push_goes_around_the_obstacle_without_touching_it(system):
     from shared.recording import read_records
 
     cfg, _ = system
-    obstacle = CircleObstacle(x=0.60, y=0.0, radius=0.04)  # the straight line x = 0.50 passes 0.10 m from it:
-    box = load_object(BOX)  # closer than the box's footprint radius (7.3 cm) + margin, so it must bend
+    obstacle = CircleObstacle(x=0.66, y=0.0, radius=0.04)  # the straight line x = 0.50 passes 0.16 m from it:
+    box = load_object(BOX)  # closer than the box's footprint radius (7.3 cm) + 4 cm + 8 cm margin: it must bend
     start_T = box.T_D_O()
     start_T[:2, 3] = (0.50, 0.15)
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start_T), goal_xy=(0.50, -0.15),

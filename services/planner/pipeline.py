@@ -95,6 +95,9 @@ class PushServices:
 @dataclass(frozen=True)
 class PipelineSettings:
     max_plans: int = 6  # feasible plans rolled out and ranked per push (3 missed the demo box; 6 costs ~+3 s)
+    # Multi-step: the object's path keeps this far from obstacles beyond its own footprint, room for the
+    # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
+    obstacle_margin_m: float = 0.08
     prescreen: int = 24  # feasible poses pushed by a floating hand before planning (0: off); see _prescreened
     max_plan_attempts: int = 10  # poses planned per push before giving up
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
@@ -194,7 +197,7 @@ class PushPipeline:
         try:
             outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles, push,
                                       object_radius_m=self._footprint_radius(ctx.obj), max_push_m=request.distance_m,
-                                      max_steps=request.max_steps)
+                                      margin_m=self.settings.obstacle_margin_m, max_steps=request.max_steps)
         except PlanningError as exc:
             if ctx.records:  # the object moved, then got stuck: report how far it got
                 raise PushError("infeasible", f"after {len(ctx.records)} push(es): {exc}") from exc
