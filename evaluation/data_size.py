@@ -16,8 +16,8 @@ coverage — is a record in the experiment's store, so a killed run resumes wher
 Budget (2 idle cores): training ~45 s per model at 2 threads (data loading included); pushes ~25/s
 over 2 processes. An object costs 50 pushes when one of its first 50 poses validates and up to 200
 when none does. Measured here, even a 2% model (4 training objects) had a validated pose among the
-first 50 on 12 of 12 test objects, so a model costs ~60 x 50 pushes ~ 2.3 min: 12 models ~ 37 min
-for FULL's 60 objects (more if many objects go uncovered: +6 s each).
+first 50 on 12 of 12 test objects, so a model costs ~40 x 50 pushes ~ 1.5 min: 12 models ~ 27 min
+for FULL's 40 objects (more if many objects go uncovered: +6 s each).
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class DataSizeSettings:
     seeds: tuple[int, ...] = (0, 1, 2)
     train_steps: int = 2000  # the shipped checkpoint's budget
     batch_size: int = 256
-    test_objects: int = 60
+    test_objects: int = 40  # of the 185 test objects: the 12 models must fit a 2-core session
     subset_seed: int = SUBSET_SEED
     samples: int = 200
 
