@@ -47,6 +47,10 @@ SAMPLES_PER_OBJECT = 200  # the paper's candidates per test object
 FRACTION_POSES = 50  # poses always pushed: the validated-fraction estimate
 CHUNK_POSES = 25  # then pushed this many at a time until one succeeds
 
+HAND = "allegro"  # the hand the coverage experiments measure (the shipped Allegro checkpoint and dataset)
+DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "data" / f"{HAND}-train"
+TARGET_COVERED_PCT = 75.0  # issues 8 and 9: test objects with >= 1 validated pose of 200 samples
+
 
 class CoverageError(ValueError):
     """Settings or a pose source the measurement cannot use."""
@@ -61,7 +65,7 @@ class CoverageSettings:
     fraction_poses: int = FRACTION_POSES
     chunk: int = CHUNK_POSES
     seed: int = 0
-    hand: str = "allegro"
+    hand: str = HAND
 
     def __post_init__(self) -> None:
         if self.samples < 1 or self.fraction_poses < 1 or self.chunk < 1:

@@ -32,19 +32,15 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.coverage import CoverageError, CoveragePool, CoverageSettings, DiffusionSource, summarize
+from evaluation.coverage import DEFAULT_DATASET, HAND, TARGET_COVERED_PCT, CoverageError, CoveragePool, CoverageSettings, DiffusionSource, summarize
 from evaluation.report import markdown_table, write_experiment
 from evaluation.store import ResultStore
 
 NAME = "data-size"
 TITLE = "Data size: test objects with >= 1 validated pose"
-HAND = "allegro"
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO_ROOT / "data" / f"{HAND}-train"
 SUBSET_SEED = 0
 PAPER_OBJECTS = 300
 PAPER_COVERED = {0.02: (41.67, 10.21), 0.2: (102.67, 5.85), 0.5: (110.33, 29.67), 1.0: (169.33, 15.18)}
-TARGET_COVERED_PCT = 75.0
 
 
 @dataclass(frozen=True)

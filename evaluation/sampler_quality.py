@@ -19,6 +19,9 @@ from typing import Any
 import numpy as np
 
 from evaluation.coverage import (
+    DEFAULT_DATASET,
+    HAND,
+    TARGET_COVERED_PCT,
     CoverageError,
     CoveragePool,
     CoverageSettings,
@@ -32,12 +35,8 @@ from evaluation.store import ResultStore
 
 NAME = "sampler-quality"
 TITLE = "Sampler quality on the test split (issue 9)"
-HAND = "allegro"
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = REPO_ROOT / "data" / f"{HAND}-train"
 QUICK_OBJECTS = 8
 PAPER_COVERED, PAPER_OBJECTS = 169.33, 300
-TARGET_COVERED_PCT = 75.0
 
 
 def shipped_checkpoint() -> Path:
