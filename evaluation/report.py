@@ -65,14 +65,24 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     """Write report.md and summary.json of one experiment; returns the report's path."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    meta = {"command": command_line(), "wall_time_s": round(wall_time_s, 1), "machine": machine(), "quick": quick}
-    header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {wall_time_s / 60:.1f} min "
-              f"(this invocation; a resumed run adds to earlier ones)\n- machine: {meta['machine']}\n"
+    total = wall_time_s + _earlier_wall_time(directory)
+    meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
+            "machine": machine(), "quick": quick}
+    header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min summed over the invocations "
+              f"that finished (the last one {wall_time_s / 60:.1f} min)\n- machine: {meta['machine']}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
               + "\n")
     atomic_write_text(directory / REPORT_FILE, header + body_markdown)
     atomic_write_text(directory / SUMMARY_FILE, json.dumps({**meta, "title": title, **summary}, indent=2, sort_keys=True) + "\n")
     return directory / REPORT_FILE
+
+
+def _earlier_wall_time(directory: Path) -> float:
+    """Wall time of the earlier invocations of a resumed experiment (0 for a fresh one)."""
+    try:
+        return float(json.loads((directory / SUMMARY_FILE).read_text()).get("wall_time_s", 0.0))
+    except (OSError, ValueError):
+        return 0.0
 
 
 def write_index(out: str | os.PathLike) -> Path:
