@@ -96,8 +96,10 @@ def summarise(records: Sequence[dict[str, Any]], spec: Protocol) -> dict[str, An
         outcomes = defaultdict(int)
         for r in rs:
             outcomes[r["outcome"]] += 1
+        feasible = [r for r in rs if r["outcome"] != "infeasible"]
         methods[method] = {
             "success_rate": _rate(rs),
+            "feasible_success_rate": _rate(feasible),  # pose quality apart from the arm's reach
             "procedural_success_rate": _rate([r for r in rs if r["object_id"] in protocol.PROCEDURAL_OBJECTS]),
             "everyday_success_rate": _rate([r for r in rs if r["object_id"] in protocol.EVERYDAY_OBJECTS]),
             "by_direction": {f"{d:g}": _rate([r for r in rs if r["direction_deg"] == d]) for d in spec.directions},
@@ -138,10 +140,10 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
         s = averages[m]
         o = s["outcomes"]
         summary_rows.append([METHOD_LABELS[m], f"{s['success_rate']:.1%}", f"{s['procedural_success_rate']:.1%}",
-                             f"{s['everyday_success_rate']:.1%}"]
+                             f"{s['everyday_success_rate']:.1%}", f"{s['feasible_success_rate']:.1%}"]
                             + [f"{s['by_direction'][f'{d:g}']:.1%}" for d in spec.directions]
                             + [o.get("infeasible", 0), o.get("error", 0), s["trials"], s["median_seconds"]])
-    text += markdown_table(["method", "all", "3D", "DO"] + [f"{d:g}°" for d in spec.directions]
+    text += markdown_table(["method", "all", "3D", "DO", "when feasible"] + [f"{d:g}°" for d in spec.directions]
                            + ["infeasible", "errors", "trials", "median s/trial"], summary_rows)
     return text
 
