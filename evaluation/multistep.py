@@ -41,12 +41,12 @@ class Scenario:
 
 
 # The obstacle stands just beyond the straight line (away from the robot), close enough that the line is
-# blocked for the object's footprint plus the planner's margin: the path bends toward the robot, where
-# the arms push sideways well (see push_protocol for reach).
+# blocked for the object's footprint plus the planner's 8 cm margin, and far enough that the goal is not:
+# the path bends toward the robot, where the arms push sideways well (see push_protocol for reach).
 SCENARIOS = (
-    Scenario("left", (0.50, -0.15), (0.50, 0.15), (0.60, 0.0, 0.04)),
-    Scenario("right", (0.50, 0.15), (0.50, -0.15), (0.60, 0.0, 0.04)),
-    Scenario("diagonal", (0.46, -0.15), (0.54, 0.15), (0.60, 0.0, 0.04)),
+    Scenario("left", (0.50, -0.18), (0.50, 0.18), (0.62, 0.0, 0.035)),
+    Scenario("right", (0.50, 0.18), (0.50, -0.18), (0.62, 0.0, 0.035)),
+    Scenario("diagonal", (0.46, -0.18), (0.54, 0.18), (0.62, 0.0, 0.035)),
 )
 OBJECTS = ("proc-cylinder-001", "pb-mug", "pb-toy-cylinder")
 TRIALS = 2

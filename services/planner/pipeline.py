@@ -148,6 +148,7 @@ class PushPipeline:
         """Plan, rank and execute `request`; PushError when it cannot be done."""
         started = time.perf_counter()
         ctx = self._start(request)
+        self.last_records = ctx.records  # also what a failed multi-step request executed before it failed
         if request.goal_xy is None:
             u = direction_xy(request.direction_deg)
             target = ctx.T_world_O[:2, 3] + request.distance_m * u
@@ -155,7 +156,6 @@ class PushPipeline:
             final = judge_push(self._first_start(ctx), target, ctx.records[-1].step.result.final_object_pose)
         else:
             final = self._multi_step(ctx)
-        self.last_records = ctx.records
         first = ctx.records[0].step
         ctx.timings["total"] = time.perf_counter() - started
         return PushResponse(request_id=request.id, success=final.success, chosen_pose=first.chosen_pose,
