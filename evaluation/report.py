@@ -68,8 +68,9 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     total = wall_time_s + _earlier_wall_time(directory)
     meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
             "machine": machine(), "quick": quick}
-    header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min summed over the invocations "
-              f"that finished (the last one {wall_time_s / 60:.1f} min)\n- machine: {meta['machine']}\n"
+    resumed = f" summed over the invocations that ran (this one {wall_time_s / 60:.1f} min)" if total - wall_time_s >= 1 else ""
+    header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
+              f"- machine: {meta['machine']}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
               + "\n")
     atomic_write_text(directory / REPORT_FILE, header + body_markdown)
@@ -93,7 +94,7 @@ def write_index(out: str | os.PathLike) -> Path:
         summary = json.loads(summary_path.read_text())
         name = summary_path.parent.name
         report = (summary_path.parent / REPORT_FILE).read_text()
-        body = report.split("\n\n", 1)[1] if "\n\n" in report else ""
+        body = report.split("\n\n", 2)[-1]  # the report without its title and header bullets
         sections.append(f"## [{summary.get('title', name)}]({name}/{REPORT_FILE})\n\n"
                         f"- command: `{summary.get('command', '?')}`\n"
                         f"- wall time: {summary.get('wall_time_s', 0) / 60:.1f} min\n"
