@@ -77,10 +77,13 @@ class ArmIK:
             early_stopping_any_converged=False, early_stopping_no_improvement=None,
             enforce_joint_limits=True, lr=0.5)
         # One seed, replaced before every solve: `track` starts each waypoint from the previous solution.
-        self._tracker = pk.PseudoInverseIK(
+        # pytorch_kinematics' limit enforcement runs 10 extra iterations on every solve (most of a
+        # waypoint's time); the tracker skips it and only a waypoint that leaves the limits is re-solved with it.
+        self._trackers = {enforce: pk.PseudoInverseIK(
             self.arm.serial_chain(), pos_tolerance=position_tolerance_m / 2, rot_tolerance=rotation_tolerance_rad / 2,
             retry_configs=self.arm.home[None].clone(), joint_limits=limits, max_iterations=2 * max_iterations,
-            early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=True, lr=1.0)
+            early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=enforce, lr=1.0)
+            for enforce in (False, True)}
 
     def _seed_configs(self, num_seeds: int, seed: int) -> torch.Tensor:
         generator = torch.Generator().manual_seed(seed)
@@ -169,9 +172,7 @@ class ArmIK:
         q = torch.as_tensor(np.asarray(q_start, dtype=np.float64), dtype=torch.float32).reshape(1, self.arm.dof)
         solutions = []
         for target in targets:
-            self._tracker.initial_config = q
-            solution = self._tracker.solve(pk.Transform3d(matrix=torch.as_tensor(target[None], dtype=torch.float32)))
-            q = solution.solutions[:, 0].clone()
+            q = self._track_step(q, pk.Transform3d(matrix=torch.as_tensor(target[None], dtype=torch.float32)))
             solutions.append(q[0])
         q_all = torch.stack(solutions)
         pos_err, rot_err = self._errors(q_all, targets)
@@ -179,6 +180,16 @@ class ArmIK:
         success = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
         return IKResult(q=q_all.double().numpy(), success=success, position_error_m=pos_err,
                         rotation_error_rad=rot_err)
+
+    def _track_step(self, q: torch.Tensor, target: pk.Transform3d) -> torch.Tensor:
+        """IK for one waypoint from q [1,dof]; limits enforced only when the plain solution leaves them."""
+        for enforce in (False, True):
+            tracker = self._trackers[enforce]
+            tracker.initial_config = q
+            solution = tracker.solve(target).solutions[:, 0].clone()
+            if bool(self.arm.within_limits(solution).all()):
+                break
+        return solution
 
     def _errors(self, q: torch.Tensor, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         reached = self.arm.flange_pose(q.to(torch.float32)).double().numpy()
