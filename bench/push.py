@@ -2,9 +2,10 @@
 
     python bench/push.py --json      # last line: one JSON object
 
-An embedded router and the workers the request needs (planner, validator, robot bridge, and the
-sampler when a checkpoint exists) run in this process as threads; each request goes through the
-push client exactly as `gd2p push` sends it. K = 200 candidate poses from the diffusion sampler
+The system runs as `gd2p up` brings it up (`deploy.launcher`: an embedded router and one process
+per service, one validator per core unless `--validators`); each request goes through the push
+client exactly as `gd2p push` sends it, one at a time (the next once the previous storyboard is
+rendered). Start-up is not timed. K = 200 candidate poses from the diffusion sampler
 (method "gd2p") when an Allegro checkpoint is at the default path, else the fixed spatula pose
 (method "fixed", one candidate) — the JSON says which. Stages (from the response's timings):
 sampling, ik (batched IK + collision screen), prescreen (floating-hand pushes of the best-aligned
@@ -16,19 +17,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
-import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.bus import BusConfig, live_workers, open_session, run_worker  # noqa: E402
+from deploy.launcher import Launcher, free_loopback_endpoint  # noqa: E402
+from shared.bus import BusConfig  # noqa: E402
 from shared.messages import ObjectRef, PushRequest  # noqa: E402
 from shared.push_client import PushFailed, push  # noqa: E402
 
@@ -37,38 +37,30 @@ DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 
 STAGES = ("sampling", "ik", "prescreen", "planning", "rollouts", "execution")
 
 
-def start_system(endpoint: str, record_dir: str, with_sampler: bool, stop: threading.Event,
-                 threads: list[threading.Thread]) -> tuple[BusConfig, zenoh.Session]:
-    """Open an embedded router and start the workers (threads in `threads`); (client config, router)."""
+def start_system(record_dir: str, validators: int | None) -> tuple[Launcher, BusConfig]:
+    """The system as `gd2p up` brings it up (router + one process per service); (launcher, client config)."""
+    launcher = Launcher(validators=validators, listen=free_loopback_endpoint(), record_dir=record_dir)
+    launcher.start()
+    try:
+        launcher.wait_ready(120.0)
+    except BaseException:
+        launcher.stop()
+        raise
+    return launcher, BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=5000)
 
-    from services.planner import service as planner
-    from services.robot_bridge import service as bridge
-    from services.sampler import service as sampler
-    from services.validator import service as validator
 
-    router = zenoh.Config()
-    router.insert_json5("mode", json.dumps("router"))
-    router.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    router.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(router)
-    cfg = BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000)
-    targets = [(bridge.run, (cfg, "bench-bridge", stop), {}),
-               (run_worker, (validator.SERVICE, validator.handlers(), cfg, "bench-validator"), {"stop": stop}),
-               (planner.run, (cfg, "bench-planner", stop, record_dir), {})]
-    if with_sampler:
-        targets.append((run_worker, (sampler.SERVICE, sampler.handlers(), cfg, "bench-sampler"), {"stop": stop}))
-    for target, args, kwargs in targets:
-        thread = threading.Thread(target=target, args=args, kwargs=kwargs, daemon=True)
-        thread.start()
-        threads.append(thread)
-    wanted = {"planner", "validator", "robot_bridge"} | ({"sampler"} if with_sampler else set())
-    with open_session(cfg) as client:
-        deadline = time.monotonic() + 60.0
-        while not all(live_workers(client).get(s) for s in wanted):
-            if time.monotonic() > deadline:
-                raise RuntimeError("the workers did not register within 60 s")
-            time.sleep(0.2)
-    return cfg, session
+def wait_for_storyboard(recording_path: str | None, timeout_s: float = 60.0) -> None:
+    """Until the planner has rendered the request's storyboard (after answering, on its own thread).
+
+    Each request is then timed alone: back to back, the previous storyboard's rendering shares the
+    planner's CPU and adds about 0.5 s to the next request's IK and planning stages.
+    """
+    if recording_path is None:
+        return
+    png = Path(recording_path).with_suffix(".png")
+    deadline = time.monotonic() + timeout_s
+    while not png.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -81,17 +73,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--k", type=int, default=200)
     parser.add_argument("--method", choices=("auto", "gd2p", "fixed"), default="auto")
     parser.add_argument("--record-dir", default="/tmp/gd2p-bench-push")
+    parser.add_argument("--validators", type=int, default=None,
+                        help="validator processes (default: one per core, as `gd2p up`)")
     args = parser.parse_args(argv)
-    torch.set_num_threads(1)
     from services.sampler.checkpoint import default_checkpoint_path
-    from tests.conftest import free_port
 
     method = args.method
     if method == "auto":
         method = "gd2p" if default_checkpoint_path("allegro").is_file() else "fixed"
-    stop = threading.Event()
-    threads: list[threading.Thread] = []
-    cfg, router = start_system(f"tcp/127.0.0.1:{free_port()}", args.record_dir, method == "gd2p", stop, threads)
+    launcher, cfg = start_system(args.record_dir, args.validators)
     rows = []
     try:
         for object_id in OBJECTS:
@@ -110,17 +100,16 @@ def main(argv: list[str] | None = None) -> int:
                            "message": exc.message[:200]}
                 row["total_s"] = round(time.perf_counter() - started, 3)
                 rows.append(row)
+                if "stages_s" in row:
+                    wait_for_storyboard(response.recording_path)
                 if not args.json:
                     print(json.dumps(row))
     finally:
-        stop.set()
-        for thread in threads:
-            thread.join(timeout=15.0)
-        router.close()
+        launcher.stop()
     served = [r for r in rows if "stages_s" in r]
     totals = [r["total_s"] for r in served]
     summary = {
-        "method": method, "k": args.k if method == "gd2p" else 1, "requests": len(rows),
+        "method": method, "validators": args.validators or os.cpu_count(), "k": args.k if method == "gd2p" else 1, "requests": len(rows),
         "success": sum(r["success"] for r in rows), "success_rate": round(sum(r["success"] for r in rows) / len(rows), 3),
         "infeasible": sum(r.get("error") == "infeasible" for r in rows),
         "latency_s": {"p50": percentile(totals, 50), "p95": percentile(totals, 95), "target_p50": 3.0},

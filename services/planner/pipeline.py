@@ -61,7 +61,7 @@ from shared.push_outcome import judge_push, object_pose, pose_matrix
 from shared.robot_limits import LimitViolation, RobotLimits
 from shared.sim.robot_scene import RobotScene
 
-PRESCREEN_CHUNK = 8  # poses per floating-hand validation job: 24 poses spread over a farm of 2-3 workers
+PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers
 DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base: sideways pushes reach well; pulls toward the robot need
 # the object nearer (at 0.50 m most pull poses have no IK solution; at 0.40 m all three evaluation directions plan)
 

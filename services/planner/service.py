@@ -179,7 +179,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     """Serve the planner until SIGTERM/SIGINT or `stop`."""
     import torch
 
-    torch.set_num_threads(1)
+    # Batched IK (the request's "ik" stage) runs while the validators wait for work: every core helps.
+    torch.set_num_threads(os.cpu_count() or 1)
     from shared.bus import default_worker_id
 
     worker_id = worker_id or default_worker_id()
