@@ -76,7 +76,9 @@ def candidate_rollouts(object_id: str, direction_deg: float, n_poses: int, max_p
             job = ValidationJob(object=ObjectRef(library_id=object_id), hand="allegro", poses=poses_d[index][None],
                                 with_arm=True, arm="panda", plan=plan, frame=frame)
             result = rollout(job, DEFAULT_PARAMS)
-            rows.append({"l_goal": float(result.goal_error_m.to_numpy()[0]),
+            rows.append({"l_goal": ranking.goal_cost(float(result.goal_error_m.to_numpy()[0]),
+                                                     float(result.rotation_deg.to_numpy()[0]),
+                                                     float(result.max_tilt_deg.to_numpy()[0])),
                          "l_coll": float(result.collision_cost.to_numpy()[0]), "l_dir": float(l_dir[index]),
                          "success": bool(result.success.to_numpy()[0])})
     return rows

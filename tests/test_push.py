@@ -199,3 +199,61 @@ def test_a_push_that_tips_the_object_over_is_judged_toppled_and_failed():
     upright[:3, 3] = (0.5, 0.22, 0.04)
     result = judge_push(start, np.array([0.5, 0.2]), object_pose(upright))
     assert result.success and result.position_error_m == pytest.approx(0.02)
+
+
+def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss():
+    from services.planner.ranking import goal_cost, predicts_success, score
+
+    rotated_but_close = score(goal_cost(0.01, rotation_deg=60.0, max_tilt_deg=5.0), 0.0, -1.0)
+    toppled_but_close = score(goal_cost(0.01, rotation_deg=20.0, max_tilt_deg=80.0), 0.0, -1.0)
+    upright_5cm_off = score(goal_cost(0.05, rotation_deg=10.0, max_tilt_deg=2.0), 0.0, -1.0)
+    assert upright_5cm_off.v < rotated_but_close.v and upright_5cm_off.v < toppled_but_close.v
+    assert not predicts_success(rotated_but_close) and not predicts_success(upright_5cm_off)
+    assert predicts_success(score(goal_cost(0.02, rotation_deg=30.0, max_tilt_deg=3.0), 1.0, 0.0))
+
+
+def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranked_with_the_first():
+    """Rollouts of the first round all 'miss' (overridden); the pipeline plans a second round and picks from both."""
+    from evaluation.local_system import LocalRobot, rollouts
+    from services.planner.pipeline import PipelineSettings, PushPipeline, PushServices
+    from shared.fixed_poses import spatula_pose
+    from shared.frames import frame_transform, invert_transform, poses_d_to_world
+    from shared.hands import load_hand
+    from shared.messages import NDArray, SampleResponse
+    from shared.objects import load_object
+
+    hand, box = load_hand("allegro"), load_object(BOX)
+    T_world_O = np.eye(4)
+    T_world_O[:3, 3] = (0.5, 0.0, 0.0)
+    T_world_O = T_world_O @ box.T_D_O()
+
+    def sample(request):  # spatula poses behind the box, shifted sideways by up to 2 cm
+        T_world_D = frame_transform(request.frame)
+        T_D_O = invert_transform(T_world_D) @ T_world_O
+        base = spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
+        poses = np.repeat(base[None], 8, axis=0)
+        poses[:, 1] += np.linspace(-0.02, 0.02, 8)
+        return SampleResponse(request_id=request.id, hand=request.hand, poses_d=poses,
+                              poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
+
+    calls = []
+
+    def rollouts_first_round_missing(jobs):
+        results = rollouts(jobs)
+        calls.append(len(jobs))
+        if len(calls) == 1:  # every plan of the first round "misses by 10 cm"
+            results = [r.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) for r in results]
+        return results
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=sample, rollouts=rollouts_first_round_missing, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
+    try:
+        response = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
+                                            direction_deg=90.0, k=8))
+    finally:
+        pipeline.close()
+        robot.close()
+    assert calls == [2, 2]  # two rounds of two rolled-out plans
+    assert response.score.l_goal < 0.1  # the executed plan is one of the second round's
+    assert response.success

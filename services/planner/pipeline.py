@@ -3,8 +3,9 @@
 One push: candidate hand poses (in the direction frame D) from a pose source -> world frame ->
 `MotionPlanner.screen` (batched arm IK + collision check of each pre-contact configuration) ->
 `plan_push` for the most promising feasible poses until `max_plans` plans exist -> an arm rollout of
-each plan in simulation (validator farm) -> V = α L_goal + β L_coll + γ L_dir (`ranking.py`) -> the
-best plan is executed by the robot bridge, and the object pose it observes afterwards is judged.
+each plan in simulation (validator farm) -> V = α L_goal + β L_coll + γ L_dir (`ranking.py`); when
+no rollout met the success criterion, one more round of plans and rollouts -> the best plan is
+executed by the robot bridge, and the object pose it observes afterwards is judged.
 
 Pose sources (`PushRequest.method`), so that methods can be compared on the same pipeline:
 - "gd2p": K poses from the diffusion sampler service;
@@ -99,7 +100,10 @@ class PipelineSettings:
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
     prescreen: int = 24  # feasible poses pushed by a floating hand before planning (0: off); see _prescreened
-    max_plan_attempts: int = 10  # poses planned per push before giving up
+    max_plan_attempts: int = 10  # poses planned per round before giving up
+    # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
+    # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
+    max_plan_rounds: int = 2
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
     weights: ranking.Weights = ranking.Weights()
 
@@ -239,15 +243,16 @@ class PushPipeline:
             order = self._planning_order(ctx, feasible, l_dir)
             if request.ranking and self.settings.prescreen > 0:
                 order = self._prescreened(ctx, order, poses_d, frame, distance_m)
-            started = time.perf_counter()
-            plans = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, screen.q, u, distance_m)
-            ctx.time("planning", time.perf_counter() - started)
             if request.ranking:
-                ranked = self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
+                ranked = self._plan_and_rank(ctx, planner, order, T_world_hand, q_hands, screen.q, u, distance_m,
+                                             poses_d, l_dir, frame)
                 started = time.perf_counter()
                 (index, plan), score = self._with_way_back(ctx, planner, ranked, distance_m * np.append(u, 0.0))
                 ctx.time("planning", time.perf_counter() - started)
             else:
+                started = time.perf_counter()
+                plans, _ = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, screen.q, u, distance_m)
+                ctx.time("planning", time.perf_counter() - started)
                 (index, plan), score = plans[0], None
         self._execute(ctx, plan, poses_d[index], poses_world[index], score, T_world_O, u, distance_m)
 
@@ -307,18 +312,45 @@ class PushPipeline:
         passed = tested[success][np.argsort(error[success], kind="stable")]
         return np.concatenate([passed, tested[~success], order[len(tested):]])
 
+    def _plan_and_rank(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
+                       q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray, distance_m: float, poses_d: np.ndarray,
+                       l_dir: np.ndarray, frame: DirectionFrame) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
+        """Ranked plans, best first: rounds of `max_plans` plans rolled out until one is predicted to succeed."""
+        ranked: list[tuple[tuple[int, Plan], ScoreTerms]] = []
+        failures: Counter = Counter()
+        for _ in range(self.settings.max_plan_rounds):
+            started = time.perf_counter()
+            try:
+                plans, used = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, q_pre, u, distance_m,
+                                                    failures)
+            except PushError:
+                if ranked:  # a later round found nothing new: rank what the earlier rounds found
+                    break
+                raise
+            finally:
+                ctx.time("planning", time.perf_counter() - started)
+            ranked += self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
+            ranked = [ranked[i] for i in ranking.order([terms for _, terms in ranked])]
+            order = order[used:]
+            if ranking.predicts_success(ranked[0][1]) or order.size == 0:
+                break
+        return ranked
+
     def _plan_candidates(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
-                         q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray,
-                         distance_m: float) -> list[tuple[int, Plan]]:
-        """[(pose index, plan)] for up to `max_plans` poses, in `order` (one plan when not ranking).
+                         q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray, distance_m: float,
+                         failures: Counter | None = None) -> tuple[list[tuple[int, Plan]], int]:
+        """[(pose index, plan)] for up to `max_plans` poses taken in `order` (one plan when not ranking),
+        and how many poses of `order` were tried.
 
         Plans to be ranked end above the pushed object: only the executed one needs the way back
         (`_with_way_back`), which saves an RRTConnect per ranked plan.
         """
         wanted = self.settings.max_plans if ctx.request.ranking else 1
         q_arm_start, q_hand_start = self._robot_start(ctx, planner)
-        plans, failures = [], Counter()
+        plans, failures = [], Counter() if failures is None else failures
+        used = 0
         for index in order[: self.settings.max_plan_attempts]:
+            used += 1
             plan = self._plan_within_limits(ctx, planner, failures, T_world_hand[index], q_hands[index],
                                             np.append(u, 0.0), distance_m, q_arm_start, q_hand_start, q_pre[index])
             if plan is None:
@@ -330,7 +362,7 @@ class PushPipeline:
             tried = sum(failures.values())
             raise PushError("infeasible", f"no collision-free arm plan for any of the {tried} feasible pose(s) tried ("
                             + ", ".join(f"{n}× {reason}" for reason, n in failures.most_common()) + ")")
-        return plans
+        return plans, used
 
     def _plan_within_limits(self, ctx: _Request, planner: MotionPlanner, failures: Counter, T_world_hand, q_hand,
                             direction, distance_m, q_arm_start, q_hand_start, q_pre) -> Plan | None:
@@ -429,8 +461,10 @@ class PushPipeline:
             if isinstance(result, Exception):
                 errors.append(str(result))
                 continue
-            terms = ranking.score(float(result.goal_error_m.to_numpy()[0]), float(result.collision_cost.to_numpy()[0]),
-                                  float(l_dir[index]), self.settings.weights)
+            l_goal = ranking.goal_cost(float(result.goal_error_m.to_numpy()[0]), float(result.rotation_deg.to_numpy()[0]),
+                                       float(result.max_tilt_deg.to_numpy()[0]))
+            terms = ranking.score(l_goal, float(result.collision_cost.to_numpy()[0]), float(l_dir[index]),
+                                  self.settings.weights)
             scored.append(((index, plan), terms))
         if not scored:
             raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
