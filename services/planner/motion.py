@@ -113,7 +113,7 @@ class MotionPlanner:
         """Batched IK for K hand poses [K,4,4] (hand joints [K,16]), then a collision check of each solution.
 
         This discards what can never be executed (unreachable, or arm/hand into the table or an obstacle
-        at the pre-contact pose) in about a second for K = 200, before the per-pose `plan_push`.
+        at the pre-contact pose) in about half a second for K = 200, before the per-pose `plan_push`.
         """
         started = time.perf_counter()
         result = self.ik.solve_hand_poses(T_world_hand)

@@ -95,7 +95,7 @@ class PushServices:
 
 @dataclass(frozen=True)
 class PipelineSettings:
-    max_plans: int = 6  # feasible plans rolled out and ranked per push (3 missed the demo box; 6 costs ~+3 s)
+    max_plans: int = 6  # feasible plans rolled out and ranked per round (3 missed the demo box; 6 costs ~+1 s)
     # Multi-step: the object's path keeps this far from obstacles beyond its own footprint, room for the
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
@@ -289,7 +289,7 @@ class PushPipeline:
 
         The first `prescreen` poses of `order` are pushed by the validator's floating hand (about 0.1 s
         of CPU each, in chunks spread over the farm) in the request's frame; those that succeed are
-        planned first, closest to the target first. Planning (about 1 s a pose) and arm rollouts are
+        planned first, closest to the target first. Planning (about 0.2 s a pose) and arm rollouts are
         then spent where the pose itself is known to push well: without it, most of the few plans that
         can be afforded come from poses that fail (measured in `evaluation/`).
         """
