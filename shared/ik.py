@@ -168,27 +168,54 @@ class ArmIK:
         Meant for Cartesian segments: staying on one IK branch keeps the joint motion continuous. The
         caller checks the joint steps (a branch switch shows up as a jump).
         """
-        targets = self.flange_targets(T_world_hand)
-        q = torch.as_tensor(np.asarray(q_start, dtype=np.float64), dtype=torch.float32).reshape(1, self.arm.dof)
-        solutions = []
-        for target in targets:
-            q = self._track_step(q, pk.Transform3d(matrix=torch.as_tensor(target[None], dtype=torch.float32)))
-            solutions.append(q[0])
-        q_all = torch.stack(solutions)
-        pos_err, rot_err = self._errors(q_all, targets)
-        inside = self.arm.within_limits(q_all).numpy()
-        success = (pos_err < self.position_tolerance_m) & (rot_err < self.rotation_tolerance_rad) & inside
-        return IKResult(q=q_all.double().numpy(), success=success, position_error_m=pos_err,
-                        rotation_error_rad=rot_err)
+        paths = _check_transforms(T_world_hand)[None]
+        result = self.track_many(paths, np.asarray(q_start, dtype=np.float64).reshape(1, -1))
+        return IKResult(q=result.q[0], success=result.success[0], position_error_m=result.position_error_m[0],
+                        rotation_error_rad=result.rotation_error_rad[0])
+
+    def track_many(self, T_world_hand: np.ndarray, q_start: np.ndarray) -> IKResult:
+        """`track` for K paths at once: hand poses [K,N,4,4] from arm joints [K,dof] -> fields [K,N(,dof)].
+
+        Waypoint n of every path is solved in one batch from each path's solution at n - 1, so a
+        planner can check K straight lines for the cost of about one. A path stops at its first
+        waypoint that fails (the rest of it is reported failed, its q held): an unreachable waypoint
+        costs the solver's every iteration, and every waypoint after it would too.
+        """
+        paths = np.asarray(T_world_hand, dtype=np.float64)
+        if paths.ndim != 4 or paths.shape[2:] != (4, 4):
+            raise IKError(f"paths must be [K,N,4,4], got shape {paths.shape}")
+        k, n = paths.shape[:2]
+        targets = self.flange_targets(paths.reshape(-1, 4, 4)).reshape(k, n, 4, 4)
+        q = torch.as_tensor(np.asarray(q_start, dtype=np.float64), dtype=torch.float32).reshape(k, self.arm.dof)
+        q_all = np.repeat(q.double().numpy()[:, None], n, axis=1)
+        success = np.zeros((k, n), dtype=bool)
+        pos_err, rot_err = np.full((k, n), np.inf), np.full((k, n), np.inf)
+        alive = np.arange(k)
+        for step in range(n):
+            if alive.size == 0:
+                break
+            step_targets = targets[alive, step]
+            q_alive = self._track_step(q[alive], pk.Transform3d(matrix=torch.as_tensor(step_targets, dtype=torch.float32)))
+            q[alive] = q_alive
+            p_err, r_err = self._errors(q_alive, step_targets)
+            ok = (p_err < self.position_tolerance_m) & (r_err < self.rotation_tolerance_rad) & \
+                self.arm.within_limits(q_alive).numpy()
+            q_all[alive, step:] = q_alive.double().numpy()[:, None]
+            pos_err[alive, step], rot_err[alive, step], success[alive, step] = p_err, r_err, ok
+            alive = alive[ok]
+        return IKResult(q=q_all, success=success, position_error_m=pos_err, rotation_error_rad=rot_err)
 
     def _track_step(self, q: torch.Tensor, target: pk.Transform3d) -> torch.Tensor:
-        """IK for one waypoint from q [1,dof]; limits enforced only when the plain solution leaves them."""
-        for enforce in (False, True):
-            tracker = self._trackers[enforce]
-            tracker.initial_config = q
-            solution = tracker.solve(target).solutions[:, 0].clone()
-            if bool(self.arm.within_limits(solution).all()):
-                break
+        """IK for one waypoint per row from q [K,dof]; limits enforced only for rows whose plain solution leaves them."""
+        free = self._trackers[False]
+        free.initial_config = q
+        solution = free.solve(target).solutions[:, 0].clone()
+        outside = ~self.arm.within_limits(solution)
+        if bool(outside.any()):
+            enforced = self._trackers[True]
+            enforced.initial_config = q[outside]
+            rows = torch.nonzero(outside).flatten()
+            solution[rows] = enforced.solve(_select(target, rows)).solutions[:, 0]
         return solution
 
     def _errors(self, q: torch.Tensor, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,6 +228,10 @@ class ArmIK:
         flange = self.arm.flange_pose(torch.as_tensor(q, dtype=torch.float32)).double().numpy()
         out = self.T_world_base @ flange @ self.T_flange_hand
         return out[0] if out.shape[0] == 1 else out
+
+
+def _select(transforms: pk.Transform3d, rows: torch.Tensor) -> pk.Transform3d:
+    return pk.Transform3d(matrix=transforms.get_matrix()[rows])
 
 
 def pose_errors(reached: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

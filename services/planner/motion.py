@@ -9,16 +9,18 @@ collision check of each pre-contact configuration). Then, per pose, `plan_push`:
 
 1. shape the hand: at the start configuration the fingers move to the pose's joint angles;
 2. approach: OMPL RRTConnect in arm joint space from the start (home) to the configuration that
-   puts the hand `standoff_m` behind (against the push direction) and `approach_lift_m` above the
-   pre-contact pose, with the PyBullet scene (`shared.sim.robot_scene`) as the state validity
-   checker, then OMPL's path simplification; then two straight Cartesian lines: down, and in along
-   the push direction to the pre-contact pose. Free-space motion keeps `clearance_m` from
-   everything; the last few centimetres near the table and the object cannot, so they are straight
-   lines (where the hand goes is known), checked with a small contact tolerance instead;
+   puts the hand a standoff behind (against the push direction) and a lift above the pre-contact
+   pose (the first workable pair of `approaches`), with the PyBullet scene
+   (`shared.sim.robot_scene`) as the state validity checker, then OMPL's path simplification; then
+   two straight Cartesian lines: down, and in along the push direction to the pre-contact pose.
+   Free-space motion keeps `clearance_m` from everything; the last few centimetres near the table
+   and the object cannot, so they are straight lines (where the hand goes is known), checked with a
+   small contact tolerance instead;
 3. push: the hand base moves in a straight line along +x of the direction frame D for the push
-   distance, IK solved along the line from the previous solution, joint continuity checked;
+   distance, IK solved along the line from the previous solution, joint continuity checked, the
+   object checked where the push has carried it;
 4. retreat: straight back against the push direction (away from the pushed object), up by
-   `approach_lift_m`, then RRTConnect back to the start configuration, around the object placed
+   `retreat_lift_m`, then RRTConnect back to the start configuration, around the object placed
    where the push should leave it.
 
 Joint-space motions are timed rest-to-rest per simplified-path edge with a quintic profile whose
@@ -57,9 +59,14 @@ class PlanningError(RuntimeError):
 
 @dataclass(frozen=True)
 class MotionSettings:
-    standoff_m: float = 0.05  # the hand comes down this far behind the pre-contact pose ...
-    approach_lift_m: float = 0.05  # ... from this high above it, then moves straight in along the push
+    # The hand comes down from `lift` above a point `standoff` behind the pre-contact pose (against the
+    # push), then moves straight in: (standoff, lift) pairs in m, tried in order until one works.
+    # 5 cm / 5 cm first. Fingers reaching around the object still overlap it 5 cm behind: 12 cm behind
+    # clears them. Pulls on the far side of the object can leave the arm no reach further out: then
+    # straight down.
+    approaches: tuple[tuple[float, float], ...] = ((0.05, 0.05), (0.12, 0.05), (0.0, 0.06))
     retreat_m: float = 0.05  # back off against the push direction, lift, then RRTConnect back to the start
+    retreat_lift_m: float = 0.05
     cartesian_step_m: float = 0.01  # IK waypoint spacing along straight-line segments
     push_speed_mps: float = 0.10  # the validator's push speed (DESIGN.md §6)
     velocity_scale: float = 0.5  # joint-space motion at this fraction of the velocity limits
@@ -109,11 +116,14 @@ class MotionPlanner:
 
     # ------------------------------------------------------------------------------------ screen
 
-    def screen(self, T_world_hand: np.ndarray, q_hands: np.ndarray) -> ScreenResult:
+    def screen(self, T_world_hand: np.ndarray, q_hands: np.ndarray, push: np.ndarray | None = None) -> ScreenResult:
         """Batched IK for K hand poses [K,4,4] (hand joints [K,16]), then a collision check of each solution.
 
         This discards what can never be executed (unreachable, or arm/hand into the table or an obstacle
         at the pre-contact pose) in about half a second for K = 200, before the per-pose `plan_push`.
+        With `push` (the push's displacement in the world, m) the straight push line is tracked from
+        each collision-free solution too, all poses in one batch, as `plan_push` would track it: a
+        pull far across the workspace often starts reachable and runs out of reach.
         """
         started = time.perf_counter()
         result = self.ik.solve_hand_poses(T_world_hand)
@@ -127,7 +137,34 @@ class MotionPlanner:
             hits = self.scene.collisions(q, q_hand, clearance_m=-self.settings.contact_tolerance_m,
                                          allow_hand_object=True, first_only=True)
             reasons.append(f"pre-contact pose in collision: {hits[0]}" if hits else "")
+        if push is not None:
+            self._screen_push_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), result.q,
+                                    np.asarray(push, dtype=np.float64), reasons)
         return ScreenResult(q=result.q, feasible=np.array([not r for r in reasons]), reasons=reasons)
+
+    def _screen_push_lines(self, T_world_hand: np.ndarray, q: np.ndarray, push: np.ndarray, reasons: list[str]) -> None:
+        """Mark (in `reasons`) the still-feasible poses whose push line the arm cannot follow."""
+        rows = [i for i, r in enumerate(reasons) if not r]
+        if not rows:
+            return
+        started = time.perf_counter()
+        paths = np.stack([self._line_targets(T_world_hand[i], push) for i in rows])
+        tracked = self.ik.track_many(paths, q[rows])
+        self.stats.ik_s += time.perf_counter() - started
+        steps = np.abs(np.diff(np.concatenate([q[rows][:, None], tracked.q], axis=1), axis=1)).max(axis=2)
+        for i, reached, jumps in zip(rows, tracked.success, steps):
+            if not reached.all():
+                reasons[i] = "push runs out of reach"
+            elif jumps.max() > self.settings.max_joint_step_rad:
+                reasons[i] = "push needs a joint jump"
+
+    def _line_targets(self, T_start: np.ndarray, displacement: np.ndarray) -> np.ndarray:
+        """Hand poses [n,4,4] every `cartesian_step_m` along a straight line by `displacement`, the start excluded."""
+        steps = max(1, math.ceil(np.linalg.norm(displacement) / self.settings.cartesian_step_m))
+        fractions = np.arange(1, steps + 1) / steps
+        targets = np.repeat(np.asarray(T_start, dtype=np.float64)[None], steps, axis=0)
+        targets[:, :3, 3] += fractions[:, None] * displacement
+        return targets
 
     # ------------------------------------------------------------------------------------- push
 
@@ -198,15 +235,26 @@ class MotionPlanner:
 
     def _approach_line(self, q_pre: np.ndarray, T_pre: np.ndarray, direction: np.ndarray,
                        q_hand: np.ndarray) -> np.ndarray:
-        """Joint waypoints down from above the standoff, then in along the push to the pre-contact pose."""
-        s = self.settings
+        """Joint waypoints down from above a standoff, then in along the push to the pre-contact pose,
+        for the first of `MotionSettings.approaches` that is reachable and collision-free."""
+        first_error: PlanningError | None = None
+        for standoff_m, lift_m in self.settings.approaches:
+            try:
+                return self._approach_via(q_pre, T_pre, standoff_m * direction, lift_m, q_hand)
+            except PlanningError as exc:
+                first_error = first_error or exc
+        assert first_error is not None, "MotionSettings.approaches is empty"
+        raise first_error
+
+    def _approach_via(self, q_pre: np.ndarray, T_pre: np.ndarray, standoff: np.ndarray, lift_m: float,
+                      q_hand: np.ndarray) -> np.ndarray:
+        """Down by `lift_m` above the point `standoff` (world) behind the pre-contact pose, then in to it."""
         # Solved in reverse, from the pre-contact configuration: back against the push, then up.
-        forward = self._cartesian(q_pre, T_pre, -s.standoff_m * direction, q_hand, "approach")[::-1]
-        T_standoff = _translated(T_pre, -s.standoff_m * direction)
-        down = self._cartesian(forward[0], T_standoff, np.array([0.0, 0.0, s.approach_lift_m]), q_hand,
-                               "approach")[::-1]
+        forward = self._cartesian(q_pre, T_pre, -standoff, q_hand, "approach")[::-1] if standoff.any() else q_pre[None]
+        T_standoff = _translated(T_pre, -standoff)
+        down = self._cartesian(forward[0], T_standoff, np.array([0.0, 0.0, lift_m]), q_hand, "approach")[::-1]
         self._require_free(down[0], q_hand, "approach configuration in collision",
-                           f"the hand {s.standoff_m:.2f} m behind and {s.approach_lift_m:.2f} m above "
+                           f"the hand {np.linalg.norm(standoff):.2f} m behind and {lift_m:.2f} m above "
                            "the pre-contact pose")
         return np.concatenate([down, forward[1:]])
 
@@ -215,22 +263,32 @@ class MotionPlanner:
         s = self.settings
         back = self._cartesian(q_end, T_end, -s.retreat_m * direction, q_hand, "retreat")
         T_back = _translated(T_end, -s.retreat_m * direction)
-        up = self._cartesian(back[-1], T_back, np.array([0.0, 0.0, s.approach_lift_m]), q_hand, "retreat")
+        up = self._cartesian(back[-1], T_back, np.array([0.0, 0.0, s.retreat_lift_m]), q_hand, "retreat")
         return np.concatenate([back, up[1:]])
 
     @contextlib.contextmanager
     def _object_moved(self, offset: np.ndarray):
         """Temporarily shift the scene's object by `offset` (world), e.g. to where a push leaves it."""
+        with self._movable_object() as move:
+            move(offset)
+            yield
+
+    @contextlib.contextmanager
+    def _movable_object(self):
+        """A function that shifts the scene's object by an offset (world) from where it is; restored after."""
         body = self.scene.object
         if body is None:
-            yield
+            yield lambda offset: None
             return
         original = body.pose()
-        moved = original.copy()
-        moved[:3, 3] += offset
-        body.reset_pose(moved)
+
+        def move(offset: np.ndarray) -> None:
+            moved = original.copy()
+            moved[:3, 3] += offset
+            body.reset_pose(moved)
+
         try:
-            yield
+            yield move
         finally:
             body.reset_pose(original)
 
@@ -264,9 +322,11 @@ class MotionPlanner:
                 if hits:
                     raise PlanningError("pre-contact pose in collision", ", ".join(str(h) for h in hits[:3]))
                 approach_line = self._approach_line(q_pre, T_world_hand, direction, q_hand)
-                push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push")
+                push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push",
+                                            carry_object=True)
                 T_push_end = _translated(T_world_hand, distance_m * direction)
-                back_off = self._back_off(push_line[-1], T_push_end, direction, q_hand)
+                with self._object_moved(distance_m * direction):  # where the push leaves it
+                    back_off = self._back_off(push_line[-1], T_push_end, direction, q_hand)
                 return q_pre, approach_line, push_line, back_off
             except PlanningError as exc:
                 first_error = first_error or exc
@@ -338,18 +398,21 @@ class MotionPlanner:
     # --------------------------------------------------------------------------------- Cartesian
 
     def _cartesian(self, q_start: np.ndarray, T_start: np.ndarray, displacement: np.ndarray, q_hand: np.ndarray,
-                   label: str) -> np.ndarray:
+                   label: str, carry_object: bool = False) -> np.ndarray:
         """Joint waypoints [n, dof] moving the hand base in a straight line by `displacement` (world).
 
         The first row is `q_start`. Hand-object contact is allowed (that is the push); table contact
-        up to `contact_tolerance_m`; obstacles, arm-object and arm-hand contacts are not.
+        up to `contact_tolerance_m`; obstacles, arm-object and arm-hand contacts are not. With
+        `carry_object` (the push) each waypoint is checked with the object moved as far as the hand:
+        the object goes ahead of the hand, so the wrist following it through where the object stood
+        is no collision (with the object left standing, 7 of 10 pushes of a flat box were rejected
+        for the Panda's link 7 sweeping through it).
         """
         s = self.settings
         started = time.perf_counter()
-        steps = max(1, math.ceil(np.linalg.norm(displacement) / s.cartesian_step_m))
+        targets = self._line_targets(T_start, displacement)
+        steps = len(targets)
         fractions = np.arange(1, steps + 1) / steps
-        targets = np.repeat(np.asarray(T_start, dtype=np.float64)[None], steps, axis=0)
-        targets[:, :3, 3] += fractions[:, None] * displacement
         result = self.ik.track(targets, q_start)
         self.stats.cartesian_s += time.perf_counter() - started
         if not result.success.all():
@@ -365,10 +428,13 @@ class MotionPlanner:
             bad = int(jumps.argmax())
             raise PlanningError("discontinuous joint motion", f"{label} segment: a joint jumps "
                                 f"{jumps[bad]:.2f} rad between Cartesian waypoints {bad} and {bad + 1}")
-        for row in q:
-            hits = self.scene.collisions(row, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
-            if hits:
-                raise PlanningError(f"{label} segment in collision", ", ".join(str(h) for h in hits[:3]))
+        carried = np.concatenate([[0.0], fractions if carry_object else np.zeros(steps)])[:, None] * displacement
+        with self._movable_object() as move_object:
+            for row, offset in zip(q, carried):
+                move_object(offset)
+                hits = self.scene.collisions(row, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
+                if hits:
+                    raise PlanningError(f"{label} segment in collision", ", ".join(str(h) for h in hits[:3]))
         return q
 
     def _limit_note(self, q: np.ndarray) -> str:
