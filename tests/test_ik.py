@@ -60,6 +60,22 @@ def test_tracks_a_straight_line_continuously(ik):
     assert steps.max() < 0.1  # no branch switch between 1 cm waypoints
 
 
+def test_tracks_many_lines_at_once_as_each_alone_and_stops_a_line_at_its_first_unreachable_waypoint(ik):
+    starts = np.stack([ik.arm.home.double().numpy(), ik.arm.home.double().numpy() + 0.2])
+    lines = np.repeat(ik.hand_pose(starts)[:, None], 20, axis=1)
+    lines[0, :, 1, 3] += np.linspace(0.01, 0.20, 20)  # 20 cm sideways
+    lines[1, :, 0, 3] += np.linspace(0.05, 1.00, 20)  # 1 m forward: out of reach part-way
+    together = ik.track_many(lines, starts)
+    for i in range(2):
+        alone = ik.track(lines[i], starts[i])
+        assert (together.success[i] == alone.success).all()
+        reached = alone.success
+        assert np.allclose(together.q[i][reached], alone.q[reached], atol=1e-4)
+    assert together.success[0].all()
+    first_miss = int(np.argmin(together.success[1]))
+    assert 0 < first_miss < 19 and not together.success[1, first_miss:].any()
+
+
 def test_rejects_malformed_targets(ik):
     with pytest.raises(IKError, match="K,4,4"):
         ik.solve_hand_poses(np.eye(3))

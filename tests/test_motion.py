@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.planner.motion import MotionPlanner, PlanningError, time_parameterise
+from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
 from services.robot_bridge.limits import RobotLimits
 from services.validator.fixed_poses import spatula_pose
@@ -145,6 +145,48 @@ def test_screening_keeps_reachable_free_poses_and_says_why_the_others_fail(box, 
     assert result.reasons[0] == ""
     assert result.reasons[1].startswith("pre-contact pose in collision") and "table" in result.reasons[1]
     assert result.reasons[2] == "no IK solution"
+
+
+def test_screening_with_the_push_rejects_a_pose_whose_push_runs_out_of_reach(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    poses, hands = T_world_hand[None], q_hand[None]
+    assert planner.screen(poses, hands, push=0.15 * direction).feasible.tolist() == [True]
+    result = planner.screen(poses, hands, push=1.5 * direction)  # 1.5 m: past the Panda's reach
+    assert result.feasible.tolist() == [False]
+    assert result.reasons == ["push runs out of reach"]
+
+
+def test_push_segment_is_checked_with_the_object_where_the_push_has_carried_it(box, scene, planner, monkeypatch):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    start = scene.object.pose()[:3, 3].copy()
+    carried = []
+    check = scene.collisions
+
+    def recording(*args, **kwargs):
+        carried.append(np.dot(scene.object.pose()[:3, 3] - start, direction))
+        return check(*args, **kwargs)
+
+    monkeypatch.setattr(scene, "collisions", recording)
+    q_pre = planner.ik.solve_hand_poses(T_world_hand).q[0]
+    line = planner._cartesian(q_pre, T_world_hand, 0.15 * direction, q_hand, "push", carry_object=True)
+    assert len(carried) == len(line) == 16  # the start and 15 waypoints 1 cm apart
+    assert np.allclose(carried, np.linspace(0.0, 0.15, 16), atol=1e-6)
+    assert np.allclose(scene.object.pose()[:3, 3], start, atol=1e-9)  # put back afterwards
+
+
+def test_approaches_are_tried_in_order_until_one_works(box, scene):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    unreachable = (5.0, 0.05)  # 5 m behind the object
+    fallback = MotionPlanner(scene, settings=MotionSettings(approaches=(unreachable, (0.05, 0.05))))
+    plan = fallback.plan_push(T_world_hand, q_hand, direction, 0.15, return_home=False)
+    assert [s.label for s in plan.segments] == ["approach", "push", "retreat"]
+    only_unreachable = MotionPlanner(scene, settings=MotionSettings(approaches=(unreachable,)))
+    with pytest.raises(PlanningError) as error:
+        only_unreachable.plan_push(T_world_hand, q_hand, direction, 0.15, return_home=False)
+    assert error.value.reason == "no IK solution" and "approach segment" in error.value.detail
 
 
 def test_target_inside_the_table_is_infeasible_with_a_clear_reason(box, planner):
