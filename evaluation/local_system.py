@@ -12,6 +12,7 @@ bus bridge reports robot contacts only); multi-step evaluation needs both.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import pybullet as pb
@@ -85,15 +86,14 @@ class LocalRobot:
         self._executors.clear()
 
 
-def rollouts(jobs: list[ValidationJob]) -> list[ValidationResult | Exception]:
-    """The validator farm's arm rollouts, one after another in this process."""
-    results: list[ValidationResult | Exception] = []
-    for job in jobs:
-        try:
-            results.append(validate(job))
-        except ServiceError as exc:
-            results.append(exc)
-    return results
+def validate_here(job: ValidationJob) -> Future:
+    """The validator farm's job, run in this process before returning (the future is already done)."""
+    future: Future = Future()
+    try:
+        future.set_result(validate(job))
+    except ServiceError as exc:
+        future.set_exception(exc)
+    return future
 
 
 def sampler_source(service: SamplerService) -> PoseSource:
@@ -120,7 +120,7 @@ class LocalSystem:
     def pipeline(self, source_name: str, source: PoseSource | None = None) -> PushPipeline:
         """The pipeline whose pose source is `source` (default: the sampler service)."""
         if source_name not in self._pipelines:
-            services = PushServices(sample=source or sampler_source(self.sampler), rollouts=rollouts,
+            services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)
             self._pipelines[source_name] = PushPipeline(services, self.settings)
         return self._pipelines[source_name]

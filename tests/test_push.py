@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+from concurrent.futures import Future
 from pathlib import Path
 
 import numpy as np
@@ -214,7 +215,7 @@ def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss
 
 def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranked_with_the_first():
     """Rollouts of the first round all 'miss' (overridden); the pipeline plans a second round and picks from both."""
-    from evaluation.local_system import LocalRobot, rollouts
+    from evaluation.local_system import LocalRobot, validate_here
     from services.planner.pipeline import PipelineSettings, PushPipeline, PushServices
     from shared.fixed_poses import spatula_pose
     from shared.frames import frame_transform, invert_transform, poses_d_to_world
@@ -238,15 +239,17 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
 
     calls = []
 
-    def rollouts_first_round_missing(jobs):
-        results = rollouts(jobs)
-        calls.append(len(jobs))
-        if len(calls) == 1:  # every plan of the first round "misses by 10 cm"
-            results = [r.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) for r in results]
-        return results
+    def first_round_missing(job):
+        future = validate_here(job)
+        calls.append(1)
+        if len(calls) <= 2:  # both plans of the first round "miss by 10 cm"
+            missed: Future = Future()
+            missed.set_result(future.result().model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}))
+            return missed
+        return future
 
     robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=sample, rollouts=rollouts_first_round_missing, execute=robot.execute),
+    pipeline = PushPipeline(PushServices(sample=sample, validate=first_round_missing, execute=robot.execute),
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
         response = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
@@ -254,6 +257,6 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
     finally:
         pipeline.close()
         robot.close()
-    assert calls == [2, 2]  # two rounds of two rolled-out plans
+    assert len(calls) == 4  # two rounds of two rolled-out plans
     assert response.score.l_goal < 0.1  # the executed plan is one of the second round's
     assert response.success

@@ -30,6 +30,7 @@ import math
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,7 +91,10 @@ class PushServices:
     """How the pipeline reaches the other services."""
 
     sample: Callable[[SampleRequest], SampleResponse]
-    rollouts: Callable[[list[ValidationJob]], list[ValidationResult | Exception]]
+    # A validation job (floating-hand pushes or an arm rollout) sent to the validator farm; the future
+    # holds its result, or the error that stopped it. Sending returns at once: plans are rolled out
+    # on the farm while the next ones are planned.
+    validate: Callable[[ValidationJob], Future]
     execute: Callable[[Plan, SimWorld | None], Execution]
 
 
@@ -106,6 +110,7 @@ class PipelineSettings:
     # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
     max_plan_rounds: int = 2
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
+    validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
 
 
@@ -324,7 +329,7 @@ class PushPipeline:
         jobs = [ValidationJob(object=request.object, hand=request.hand, poses=poses_d[chunk], frame=frame,
                               push_distance_m=distance_m, seed=request.seed) for chunk in chunks]
         started = time.perf_counter()
-        results = self.services.rollouts(jobs)
+        results = _results([self.services.validate(job) for job in jobs], self.settings.validation_timeout_s)
         ctx.time("prescreen", time.perf_counter() - started)
         success = np.zeros(len(tested), dtype=bool)
         error = np.full(len(tested), np.inf)
@@ -340,21 +345,30 @@ class PushPipeline:
     def _plan_and_rank(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
                        q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray, distance_m: float, poses_d: np.ndarray,
                        l_dir: np.ndarray, frame: DirectionFrame) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
-        """Ranked plans, best first: rounds of `max_plans` plans rolled out until one is predicted to succeed."""
+        """Ranked plans, best first: rounds of `max_plans` plans rolled out until one is predicted to succeed.
+
+        Each plan's arm rollout is sent to the validator farm as soon as the plan exists, so the farm
+        rolls out while the planner plans the next pose; "rollouts" times only the wait after planning.
+        """
         ranked: list[tuple[tuple[int, Plan], ScoreTerms]] = []
         failures: Counter = Counter()
         for _ in range(self.settings.max_plan_rounds):
+            rollouts: list[Future] = []
+
+            def roll_out(index: int, plan: Plan) -> None:
+                rollouts.append(self.services.validate(self._rollout_job(ctx, plan, poses_d[index], frame, distance_m)))
+
             started = time.perf_counter()
             try:
                 plans, used = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, q_pre, u, distance_m,
-                                                    failures)
+                                                    failures, on_plan=roll_out)
             except PushError:
                 if ranked:  # a later round found nothing new: rank what the earlier rounds found
                     break
                 raise
             finally:
                 ctx.time("planning", time.perf_counter() - started)
-            ranked += self._rank(ctx, plans, poses_d, l_dir, frame, distance_m)
+            ranked += self._rank(ctx, plans, rollouts, l_dir)
             ranked = [ranked[i] for i in ranking.order([terms for _, terms in ranked])]
             order = order[used:]
             if ranking.predicts_success(ranked[0][1]) or order.size == 0:
@@ -363,9 +377,10 @@ class PushPipeline:
 
     def _plan_candidates(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
                          q_hands: np.ndarray, q_pre: np.ndarray, u: np.ndarray, distance_m: float,
-                         failures: Counter | None = None) -> tuple[list[tuple[int, Plan]], int]:
+                         failures: Counter | None = None,
+                         on_plan: Callable[[int, Plan], None] | None = None) -> tuple[list[tuple[int, Plan]], int]:
         """[(pose index, plan)] for up to `max_plans` poses taken in `order` (one plan when not ranking),
-        and how many poses of `order` were tried.
+        and how many poses of `order` were tried; `on_plan(index, plan)` is called as each plan is made.
 
         Plans to be ranked end above the pushed object: only the executed one needs the way back
         (`_with_way_back`), which saves an RRTConnect per ranked plan.
@@ -381,6 +396,8 @@ class PushPipeline:
             if plan is None:
                 continue
             plans.append((int(index), plan))
+            if on_plan is not None:
+                on_plan(int(index), plan)
             if len(plans) == wanted:
                 break
         if not plans:
@@ -470,16 +487,18 @@ class PushPipeline:
         raise PushError("infeasible", f"no way back to the start for any of the {len(ranked)} ranked plan(s) ("
                         + ", ".join(f"{n}× {reason}" for reason, n in failures.most_common()) + ")")
 
-    def _rank(self, ctx: _Request, plans: list[tuple[int, Plan]], poses_d: np.ndarray, l_dir: np.ndarray, frame: DirectionFrame,
-              distance_m: float) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
-        """Roll every plan out with the arm and score it; the plans from best (lowest V) to worst."""
+    def _rollout_job(self, ctx: _Request, plan: Plan, pose_d: np.ndarray, frame: DirectionFrame,
+                     distance_m: float) -> ValidationJob:
         request = ctx.request
-        jobs = [ValidationJob(object=request.object, hand=request.hand, poses=poses_d[index][None],
-                              push_distance_m=distance_m, with_arm=True, arm=request.arm, plan=plan, frame=frame,
-                              obstacles=request.obstacles, seed=request.seed)
-                for index, plan in plans]
+        return ValidationJob(object=request.object, hand=request.hand, poses=pose_d[None], push_distance_m=distance_m,
+                             with_arm=True, arm=request.arm, plan=plan, frame=frame, obstacles=request.obstacles,
+                             seed=request.seed)
+
+    def _rank(self, ctx: _Request, plans: list[tuple[int, Plan]], rollouts: list[Future],
+              l_dir: np.ndarray) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
+        """Score every plan by its arm rollout (`rollouts[i]` is plan i's); the plans from best (lowest V) to worst."""
         started = time.perf_counter()
-        results = self.services.rollouts(jobs)
+        results = _results(rollouts, self.settings.validation_timeout_s)
         ctx.time("rollouts", time.perf_counter() - started)
         scored, errors = [], []
         for (index, plan), result in zip(plans, results):
@@ -516,6 +535,19 @@ class PushPipeline:
         ctx.records.append(StepRecord(step, T_world_O, execution, world))
         ctx.T_world_O = pose_matrix(state.object_pose)
         ctx.q_robot = state.positions.to_numpy().astype(np.float64)
+
+
+def _results(futures: list[Future], timeout_s: float) -> list[ValidationResult | Exception]:
+    """Each future's result, or the exception it ended with (one failed job does not fail the others);
+    a job unfinished after `timeout_s` counts as a TimeoutError."""
+    wait(futures, timeout=timeout_s)
+    results: list[ValidationResult | Exception] = []
+    for future in futures:
+        try:
+            results.append(future.result(timeout=0))
+        except Exception as exc:  # noqa: BLE001 - reported with the job's other failures
+            results.append(exc)
+    return results
 
 
 def _no_feasible_pose_message(reasons: list[str]) -> str:

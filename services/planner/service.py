@@ -18,7 +18,7 @@ import logging
 import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import zenoh
@@ -74,7 +74,7 @@ class BusServices:
         self.validator.close()
 
     def services(self) -> PushServices:
-        return PushServices(sample=self.sample, rollouts=self.rollouts, execute=self.execute)
+        return PushServices(sample=self.sample, validate=self.validate, execute=self.execute)
 
     def sample(self, request: SampleRequest) -> SampleResponse:
         try:
@@ -84,18 +84,24 @@ class BusServices:
         except (DispatchError, TimeoutError) as exc:
             raise PushError("unavailable", f"no sampler answered: {exc}") from exc
 
-    def rollouts(self, jobs: list[ValidationJob]) -> list[ValidationResult | Exception]:
-        futures = [self.validator.submit(job) for job in jobs]
-        wait(futures, timeout=ROLLOUT_TIMEOUT_S * 2)
-        results: list[ValidationResult | Exception] = []
-        for future in futures:
+    def validate(self, job: ValidationJob) -> Future:
+        """Send `job` to the validator farm; the future's result is the ValidationResult (a RemoteError
+        when the validator refused it, the Dispatcher's error when none answered)."""
+        outcome: Future = Future()
+
+        def settle(reply: Future) -> None:
             try:
-                reply = future.result(timeout=0)
-            except Exception as exc:  # DispatchError, TimeoutError: reported with the other failures
-                results.append(exc)
-                continue
-            results.append(RemoteError(reply) if isinstance(reply, ErrorReply) else reply)
-        return results
+                result = reply.result()
+            except Exception as exc:  # noqa: BLE001 - DispatchError, TimeoutError: the caller reports them
+                outcome.set_exception(exc)
+                return
+            if isinstance(result, ErrorReply):
+                outcome.set_exception(RemoteError(result))
+            else:
+                outcome.set_result(result)
+
+        self.validator.submit(job).add_done_callback(settle)
+        return outcome
 
     def execute(self, plan: Plan, world: SimWorld | None) -> Execution:
         command = ExecutionCommand(plan=plan, lease_token=self.lease_key, realtime_factor=REALTIME_FACTOR, world=world)
