@@ -37,6 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="a cylinder obstacle on the table (repeatable)")
     parser.add_argument("--k", type=int, default=200, help="candidate hand poses sampled (default %(default)s)")
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
+                        help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
     parser.add_argument("--no-ranking", action="store_true", help="execute a random feasible plan (ablation)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds to wait for the planner")
@@ -67,7 +69,8 @@ def build_request(args: argparse.Namespace):
     return PushRequest(object=ref, object_pose=pose, direction_deg=args.direction_deg,
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
-                       k=args.k, ranking=not args.no_ranking, seed=args.seed, method=args.method)
+                       k=args.k, ranking=not args.no_ranking, seed=args.seed, method=args.method,
+                       sampler=args.sampler)
 
 
 def run_push(args: argparse.Namespace) -> int:

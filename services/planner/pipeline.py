@@ -272,7 +272,7 @@ class PushPipeline:
             except FixedPoseError as exc:
                 raise PushError("bad_request", str(exc)) from exc
         else:
-            sampler = "nearest" if request.method == "nearest" else "ddpm"
+            sampler = "nearest" if request.method == "nearest" else request.sampler
             reply = self.services.sample(SampleRequest(object=request.object, hand=request.hand, frame=frame,
                                                        k=request.k, sampler=sampler, seed=request.seed + len(ctx.records)))
             poses = reply.poses_d.to_numpy().astype(np.float64)
