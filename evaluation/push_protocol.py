@@ -141,6 +141,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record.update(outcome="success" if response.success else "failure", success=bool(response.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
+        if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
+            record["predicted_l_goal"] = round(response.score.l_goal, 4)
     record["seconds"] = round(time.perf_counter() - started, 2)
     return record
 
