@@ -530,13 +530,15 @@ class ValidationResult(PushOutcomes, Message):
     augmented: AugmentedOutcomes | None = None
     goal_error_m: FloatVector | None = None  # arm rollouts: L_goal
     collision_cost: FloatVector | None = None  # arm rollouts: L_coll
+    obstacle_contact: BoolVector | None = None  # arm rollouts: the robot or the pushed object touched an obstacle
     final_object_poses: list[ObjectPose] | None = None  # arm rollouts: object pose after the push
     elapsed_s: NonNegFloat = 0.0
 
     @model_validator(mode="after")
     def _consistent_rows(self) -> "ValidationResult":
         n = self._outcome_rows("ValidationResult")
-        _require_rows("ValidationResult", n, goal_error_m=self.goal_error_m, collision_cost=self.collision_cost)
+        _require_rows("ValidationResult", n, goal_error_m=self.goal_error_m, collision_cost=self.collision_cost,
+                      obstacle_contact=self.obstacle_contact)
         if self.final_object_poses is not None and len(self.final_object_poses) != n:
             raise ValueError(f"ValidationResult: final_object_poses has {len(self.final_object_poses)} entries but there are {n} poses")
         return self

@@ -213,14 +213,15 @@ def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss
     assert predicts_success(score(goal_cost(0.02, rotation_deg=30.0, max_tilt_deg=3.0), 1.0, 0.0))
 
 
-def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranked_with_the_first():
-    """Rollouts of the first round all 'miss' (overridden); the pipeline plans a second round and picks from both."""
+def _push_with_altered_rollouts(alter, settings=None):
+    """A push of the box by spatula poses (8, shifted sideways by up to 2 cm) on an in-process system
+    whose i-th arm rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PipelineSettings, PushPipeline, PushServices
+    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
     from shared.fixed_poses import spatula_pose
     from shared.frames import frame_transform, invert_transform, poses_d_to_world
     from shared.hands import load_hand
-    from shared.messages import NDArray, SampleResponse
+    from shared.messages import SampleResponse
     from shared.objects import load_object
 
     hand, box = load_hand("allegro"), load_object(BOX)
@@ -228,7 +229,7 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
     T_world_O[:3, 3] = (0.5, 0.0, 0.0)
     T_world_O = T_world_O @ box.T_D_O()
 
-    def sample(request):  # spatula poses behind the box, shifted sideways by up to 2 cm
+    def sample(request):
         T_world_D = frame_transform(request.frame)
         T_D_O = invert_transform(T_world_D) @ T_world_O
         base = spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
@@ -237,26 +238,56 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
         return SampleResponse(request_id=request.id, hand=request.hand, poses_d=poses,
                               poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
-    calls = []
+    rollouts = []
 
-    def first_round_missing(job):
-        future = validate_here(job)
-        calls.append(1)
-        if len(calls) <= 2:  # both plans of the first round "miss by 10 cm"
-            missed: Future = Future()
-            missed.set_result(future.result().model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}))
-            return missed
-        return future
+    def validate(job):
+        altered: Future = Future()
+        altered.set_result(alter(len(rollouts), validate_here(job).result()))
+        rollouts.append(job)
+        return altered
 
     robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=sample, validate=first_round_missing, execute=robot.execute),
-                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
+    pipeline = PushPipeline(PushServices(sample=sample, validate=validate, execute=robot.execute),
+                            settings or PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
-        response = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
-                                            direction_deg=90.0, k=8))
+        return pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
+                                        direction_deg=90.0, k=8)), len(rollouts)
+    except PushError as exc:
+        return exc, len(rollouts)
     finally:
         pipeline.close()
         robot.close()
-    assert len(calls) == 4  # two rounds of two rolled-out plans
+
+
+def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranked_with_the_first():
+    """Rollouts of the first round all 'miss' (overridden); the pipeline plans a second round and picks from both."""
+    from shared.messages import NDArray
+
+    def first_round_missing(i, result):  # both plans of the first round "miss by 10 cm"
+        return result.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) if i < 2 else result
+
+    response, rollouts = _push_with_altered_rollouts(first_round_missing)
+    assert rollouts == 4  # two rounds of two rolled-out plans
     assert response.score.l_goal < 0.1  # the executed plan is one of the second round's
     assert response.success
+
+
+def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
+    from services.planner.pipeline import PushError
+    from shared.messages import NDArray
+
+    def touching(result):
+        return result.model_copy(update={"obstacle_contact": NDArray.from_numpy(np.ones(1, dtype=bool))})
+
+    # The first round's two plans touch (and roll out best: 0 error): a second round is planned and one of it runs.
+    def first_round_touching(i, result):
+        if i >= 2:
+            return result
+        return touching(result).model_copy(update={"goal_error_m": NDArray.from_numpy(np.zeros(1))})
+
+    response, rollouts = _push_with_altered_rollouts(first_round_touching)
+    assert rollouts == 4 and response.success and response.score.l_goal > 0.0
+    # Every plan touches: nothing is executed, and the error says why.
+    error, rollouts = _push_with_altered_rollouts(lambda i, result: touching(result))
+    assert isinstance(error, PushError) and error.code == "infeasible"
+    assert rollouts == 4 and "touch an obstacle" in error.message

@@ -1,11 +1,14 @@
 """The push request algorithm (the paper's deployment loop), independent of Zenoh.
 
 One push: candidate hand poses (in the direction frame D) from a pose source -> world frame ->
-`MotionPlanner.screen` (batched arm IK + collision check of each pre-contact configuration) ->
-`plan_push` for the most promising feasible poses until `max_plans` plans exist -> an arm rollout of
-each plan in simulation (validator farm) -> V = α L_goal + β L_coll + γ L_dir (`ranking.py`); when
-no rollout met the success criterion, one more round of plans and rollouts -> the best plan is
-executed by the robot bridge, and the object pose it observes afterwards is judged.
+`MotionPlanner.screen` (batched arm IK, collision check of each pre-contact configuration, the push
+line's reachability), in chunks along the order in which poses would be tried -> floating-hand
+pushes of the first feasible ones (prescreen) -> `plan_push` for the most promising feasible poses
+until `max_plans` plans exist, each plan's arm rollout in simulation (validator farm) running while
+the next is planned -> V = α L_goal + β L_coll + γ L_dir (`ranking.py`; plans whose rollout touches
+an obstacle are never executed); when no rollout met the success criterion, one more round of plans
+and rollouts -> the best plan is executed by the robot bridge, and the object pose it observes
+afterwards is judged.
 
 Pose sources (`PushRequest.method`), so that methods can be compared on the same pipeline:
 - "gd2p": K poses from the diffusion sampler service;
@@ -352,6 +355,7 @@ class PushPipeline:
         """
         ranked: list[tuple[tuple[int, Plan], ScoreTerms]] = []
         failures: Counter = Counter()
+        rolled_out = 0
         for _ in range(self.settings.max_plan_rounds):
             rollouts: list[Future] = []
 
@@ -363,16 +367,20 @@ class PushPipeline:
                 plans, used = self._plan_candidates(ctx, planner, order, T_world_hand, q_hands, q_pre, u, distance_m,
                                                     failures, on_plan=roll_out)
             except PushError:
-                if ranked:  # a later round found nothing new: rank what the earlier rounds found
+                if ranked or rolled_out:  # a later round found nothing new: rank what the earlier rounds found
                     break
                 raise
             finally:
                 ctx.time("planning", time.perf_counter() - started)
+            rolled_out += len(plans)
             ranked += self._rank(ctx, plans, rollouts, l_dir)
-            ranked = [ranked[i] for i in ranking.order([terms for _, terms in ranked])]
+            ranked = [ranked[i] for i in ranking.order([terms for _, terms in ranked])] if ranked else []
             order = order[used:]
-            if ranking.predicts_success(ranked[0][1]) or order.size == 0:
+            if (ranked and ranking.predicts_success(ranked[0][1])) or order.size == 0:
                 break
+        if not ranked:
+            raise PushError("infeasible", f"each of the {rolled_out} rolled-out plan(s) made the robot or the object "
+                            "touch an obstacle")
         return ranked
 
     def _plan_candidates(self, ctx: _Request, planner: MotionPlanner, order: np.ndarray, T_world_hand: np.ndarray,
@@ -496,7 +504,11 @@ class PushPipeline:
 
     def _rank(self, ctx: _Request, plans: list[tuple[int, Plan]], rollouts: list[Future],
               l_dir: np.ndarray) -> list[tuple[tuple[int, Plan], ScoreTerms]]:
-        """Score every plan by its arm rollout (`rollouts[i]` is plan i's); the plans from best (lowest V) to worst."""
+        """Score every plan by its arm rollout (`rollouts[i]` is plan i's); the plans from best (lowest V) to worst.
+
+        A plan whose rollout made the robot or the object touch an obstacle is left out: it is never
+        executed, whatever its score (the obstacles are there to be avoided, and may be fragile).
+        """
         started = time.perf_counter()
         results = _results(rollouts, self.settings.validation_timeout_s)
         ctx.time("rollouts", time.perf_counter() - started)
@@ -505,14 +517,16 @@ class PushPipeline:
             if isinstance(result, Exception):
                 errors.append(str(result))
                 continue
+            if result.obstacle_contact is not None and bool(result.obstacle_contact.to_numpy()[0]):
+                continue
             l_goal = ranking.goal_cost(float(result.goal_error_m.to_numpy()[0]), float(result.rotation_deg.to_numpy()[0]),
                                        float(result.max_tilt_deg.to_numpy()[0]))
             terms = ranking.score(l_goal, float(result.collision_cost.to_numpy()[0]), float(l_dir[index]),
                                   self.settings.weights)
             scored.append(((index, plan), terms))
-        if not scored:
+        if errors and len(errors) == len(plans):
             raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
-        return [scored[i] for i in ranking.order([terms for _, terms in scored])]
+        return [scored[i] for i in ranking.order([terms for _, terms in scored])] if scored else []
 
     def _execute(self, ctx: _Request, plan: Plan, pose_d: np.ndarray, pose_world: np.ndarray,
                  score: ScoreTerms | None, T_world_O: np.ndarray, u: np.ndarray, distance_m: float) -> None:

@@ -9,6 +9,8 @@ law as the simulated robot (`shared.sim.plan_runner`). Measured:
   plus `push_distance_m` along the push direction;
 - L_coll: 1 if the robot touched anything besides the object with the hand (table, an obstacle,
   the object with an arm link) during the rollout, else 0 — the paper's definition;
+- obstacle contact: whether the robot or the pushed object touched an obstacle (the planner never
+  executes such a plan);
 - the usual push outcomes (success within 3 cm and 45°, not toppled; tilt; hand-object contact
   kept through at least 80% of the push segment; hand-table contact).
 
@@ -70,6 +72,7 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
         scene.clear_environment()
     result = judge_push(T_world_O, target_xy, final)
     collided = bool(run.collisions)
+    touched_obstacle = run.object_obstacle_contact or any(other.startswith("obstacle") for _, other in run.collisions)
     arrays = {
         "success": np.array([result.success]),
         "position_error_m": np.array([result.position_error_m]),
@@ -80,7 +83,8 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
         "initial_penetration_m": np.array([penetration]),
     }
     return ValidationResult(job_id=job.id, hand=job.hand, object_id=obj.id, goal_error_m=np.array([result.position_error_m]),
-                            collision_cost=np.array([float(collided)]), final_object_poses=[final],
+                            collision_cost=np.array([float(collided)]), obstacle_contact=np.array([touched_obstacle]),
+                            final_object_poses=[final],
                             elapsed_s=time.perf_counter() - started, **arrays)
 
 

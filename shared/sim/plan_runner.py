@@ -32,6 +32,7 @@ class PlanRun:
     final_q: np.ndarray | None = None
     push_contact_fraction: float = 0.0  # of the "push" segment's physics steps with hand-object contact
     max_tilt_deg: float = 0.0  # how far the object's up axis leaned at worst
+    object_obstacle_contact: bool = False  # the object touched an obstacle
 
 
 def robot_efforts(scene: RobotScene) -> np.ndarray:
@@ -89,6 +90,9 @@ def run_plan(scene: RobotScene, plan: Plan, efforts: np.ndarray, time_step_s: fl
             run.collisions.setdefault((contact.robot_link, contact.other), step * time_step_s)
         if scene.object is not None:
             min_up = min(min_up, float(scene.object.pose()[:3, :3][2] @ up_in_object))
+            run.object_obstacle_contact = run.object_obstacle_contact or any(
+                pb.getContactPoints(scene.object.id, obstacle.id, physicsClientId=scene.client)
+                for obstacle in scene.obstacles)
             if push_window[0] <= t <= push_window[1]:
                 push_steps += 1
                 touching = pb.getContactPoints(scene.robot_id, scene.object.id, physicsClientId=scene.client)
