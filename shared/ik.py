@@ -116,22 +116,26 @@ class ArmIK:
                         position_error_m=pos_err[rows, best], rotation_error_rad=rot_err[rows, best])
 
     def distinct_solutions(self, T_world_hand: np.ndarray, prefer: np.ndarray | None = None,
-                           min_difference_rad: float = 0.2) -> np.ndarray:
-        """Every converged solution [n, dof] for one hand pose, best first, no two closer than `min_difference_rad`.
+                           min_difference_rad: float = 0.2, limit: int | None = None) -> list[np.ndarray]:
+        """Per hand pose of `T_world_hand` [K,4,4] (or one [4,4]): its converged solutions [n, dof], best
+        first, no two closer than `min_difference_rad`, at most `limit` of them (n = 0: unreachable).
 
-        A planner that finds the best solution's Cartesian segment blocked (a joint runs into its stop)
-        tries the next: they differ in elbow / wrist configuration, not only in the last digits.
+        When the best solution is blocked (the elbow in an obstacle, a joint running into its stop along
+        the push) the next may not be: they differ in elbow / wrist configuration, not in the last digits.
         """
         targets = self.flange_targets(T_world_hand)
-        if len(targets) != 1:
-            raise IKError(f"distinct_solutions takes one hand pose, got {len(targets)}")
         q, converged, pos_err, rot_err = self._solve_all_seeds(targets)
-        order = np.argsort(self._scores(q, converged, pos_err, rot_err, prefer)[0])
-        kept: list[np.ndarray] = []
-        for candidate in q[0, order][converged[0, order]]:
-            if all(np.abs(candidate - other).max() >= min_difference_rad for other in kept):
-                kept.append(candidate)
-        return np.array(kept).reshape(-1, self.arm.dof)
+        order = np.argsort(self._scores(q, converged, pos_err, rot_err, prefer), axis=1)
+        solutions = []
+        for q_k, converged_k, order_k in zip(q, converged, order):
+            kept: list[np.ndarray] = []
+            for candidate in q_k[order_k][converged_k[order_k]]:
+                if len(kept) == limit:
+                    break
+                if all(np.abs(candidate - other).max() >= min_difference_rad for other in kept):
+                    kept.append(candidate)
+            solutions.append(np.array(kept).reshape(-1, self.arm.dof))
+        return solutions
 
     def _solve_all_seeds(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Solutions [K, seeds, dof], converged [K, seeds], position and rotation errors [K, seeds]."""

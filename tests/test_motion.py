@@ -147,6 +147,24 @@ def test_screening_keeps_reachable_free_poses_and_says_why_the_others_fail(box, 
     assert result.reasons[2] == "no IK solution"
 
 
+def test_screening_falls_back_to_the_next_ik_solution_when_the_best_one_collides(box, planner, monkeypatch):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    options = planner.ik.distinct_solutions(T_world_hand, limit=planner.settings.max_ik_candidates)[0]
+    assert len(options) >= 2
+    real_collisions = planner.scene.collisions
+
+    def elbow_of_the_best_in_an_obstacle(q, *args, **kwargs):  # as if an obstacle stood where its elbow is
+        return ["panda_link4 vs obstacle 0"] if np.allclose(q, options[0]) else real_collisions(q, *args, **kwargs)
+
+    monkeypatch.setattr(planner.scene, "collisions", elbow_of_the_best_in_an_obstacle)
+    result = planner.screen(T_world_hand[None], q_hand[None])
+    assert result.feasible.tolist() == [True]
+    assert np.allclose(result.q[0], options[1])
+    monkeypatch.setattr(planner.scene, "collisions", lambda *args, **kwargs: ["panda_link4 vs obstacle 0"])
+    result = planner.screen(T_world_hand[None], q_hand[None])
+    assert result.reasons == ["pre-contact pose in collision: panda_link4 vs obstacle 0"]
+
+
 def test_screening_with_the_push_rejects_a_pose_whose_push_runs_out_of_reach(box, planner):
     T_world_hand, q_hand = spatula_pre_contact(box)
     direction = push_frame()[:3, 0]
@@ -224,6 +242,13 @@ def test_rrt_star_object_path_goes_around_a_circular_obstacle():
     assert np.allclose(pushes[0][0], start) and np.allclose(pushes[-1][1], goal)
 
 
+def test_object_path_is_the_same_for_the_same_seed_whatever_ran_before():
+    args = ((0.5, -0.3), (0.5, 0.3), [(0.5, 0.0, 0.08)])
+    first = plan_object_path(*args, object_radius_m=0.05, seed=3).waypoints
+    plan_object_path(*args, object_radius_m=0.05, seed=4)  # draws from OMPL's random numbers in between
+    assert np.array_equal(plan_object_path(*args, object_radius_m=0.05, seed=3).waypoints, first)
+
+
 def test_object_path_refuses_a_goal_inside_an_obstacle():
     with pytest.raises(PlanningError) as error:
         plan_object_path((0.5, -0.3), (0.5, 0.02), [(0.5, 0.0, 0.08)], object_radius_m=0.05)
@@ -242,7 +267,7 @@ def test_multi_step_pushes_replan_from_the_observed_position_until_the_goal():
         return from_xy + 0.9 * step + 0.01 * right
 
     result = push_along_path(start, goal, [obstacle], imperfect_push, object_radius_m=object_radius,
-                             max_push_m=0.2, goal_tolerance_m=0.03, max_steps=12, planning_time_s=0.2)
+                             max_push_m=0.2, goal_tolerance_m=0.03, max_steps=12)
     assert result.success, result.message
     assert np.linalg.norm(result.positions[-1] - goal) <= 0.03
     assert all(np.linalg.norm(b - a) <= 0.2 + 1e-9 for a, b in pushes)

@@ -45,7 +45,18 @@ from shared.messages import Plan, PlanSegment
 from shared.sim.robot_scene import RobotScene
 
 ou.setLogLevel(ou.LogLevel.LOG_ERROR)
-ou.RNG.setSeed(1)  # once per process, before any planner samples: OMPL ignores later seeds
+
+
+def seed_ompl(seed: int) -> None:
+    """Seed the RNGs OMPL creates next (the state sampler's, the planner's): the same problem and seed
+    plan the same path, whatever was planned before in this process.
+
+    OMPL logs an error when re-seeding after its first random number, yet re-seeding works (its seed
+    generator restarts; measured), so the log is silenced for the call. Process-wide: one plan at a time.
+    """
+    ou.setLogLevel(ou.LogLevel.LOG_NONE)
+    ou.RNG.setSeed(seed % (2**31 - 1) + 1)  # OMPL ignores seed 0
+    ou.setLogLevel(ou.LogLevel.LOG_ERROR)
 
 
 class PlanningError(RuntimeError):
@@ -76,6 +87,7 @@ class MotionSettings:
     clearance_m: float = 0.005  # free-space motion keeps this distance from table, object, obstacles
     contact_tolerance_m: float = 0.003  # Cartesian segments: the hand may graze the table by this much
     planning_time_s: float = 5.0  # RRTConnect time limit
+    seed: int = 0  # every RRTConnect call starts from this OMPL seed: the same request plans the same arm paths
     check_resolution_rad: float = 0.01  # joint-space collision-check step (max joint change)
     sample_dt_s: float = 0.02  # waypoint spacing of timed joint-space motions
 
@@ -117,7 +129,8 @@ class MotionPlanner:
     # ------------------------------------------------------------------------------------ screen
 
     def screen(self, T_world_hand: np.ndarray, q_hands: np.ndarray, push: np.ndarray | None = None) -> ScreenResult:
-        """Batched IK for K hand poses [K,4,4] (hand joints [K,16]), then a collision check of each solution.
+        """Batched IK for K hand poses [K,4,4] (hand joints [K,16]), then a collision check of each pose's
+        distinct solutions, best first, until one is free (the elbow of the best may be in an obstacle).
 
         This discards what can never be executed (unreachable, or arm/hand into the table or an obstacle
         at the pre-contact pose) in about half a second for K = 200, before the per-pose `plan_push`.
@@ -126,21 +139,32 @@ class MotionPlanner:
         pull far across the workspace often starts reachable and runs out of reach.
         """
         started = time.perf_counter()
-        result = self.ik.solve_hand_poses(T_world_hand)
+        options = self.ik.distinct_solutions(T_world_hand, limit=self.settings.max_ik_candidates)
         self.stats.ik_s += time.perf_counter() - started
-        q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(result), -1)
+        q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(options), -1)
+        q = np.repeat(self.arm.home.double().numpy()[None], len(options), axis=0)
         reasons = []
-        for q, q_hand, reached in zip(result.q, q_hands, result.success):
-            if not reached:
-                reasons.append("no IK solution")
-                continue
+        for k, (options_k, q_hand) in enumerate(zip(options, q_hands)):
+            q[k], reason = self._first_collision_free(options_k, q_hand)
+            reasons.append(reason)
+        if push is not None:
+            self._screen_push_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), q,
+                                    np.asarray(push, dtype=np.float64), reasons)
+        return ScreenResult(q=q, feasible=np.array([not r for r in reasons]), reasons=reasons)
+
+    def _first_collision_free(self, options: np.ndarray, q_hand: np.ndarray) -> tuple[np.ndarray, str]:
+        """The first IK solution among `options` [n, dof] whose arm and hand touch nothing but the object
+        (`""`), else the best one and why it is infeasible."""
+        if len(options) == 0:
+            return self.arm.home.double().numpy(), "no IK solution"
+        first_hit = None
+        for q in options:
             hits = self.scene.collisions(q, q_hand, clearance_m=-self.settings.contact_tolerance_m,
                                          allow_hand_object=True, first_only=True)
-            reasons.append(f"pre-contact pose in collision: {hits[0]}" if hits else "")
-        if push is not None:
-            self._screen_push_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), result.q,
-                                    np.asarray(push, dtype=np.float64), reasons)
-        return ScreenResult(q=result.q, feasible=np.array([not r for r in reasons]), reasons=reasons)
+            if not hits:
+                return q, ""
+            first_hit = first_hit or hits[0]
+        return options[0], f"pre-contact pose in collision: {first_hit}"
 
     def _screen_push_lines(self, T_world_hand: np.ndarray, q: np.ndarray, push: np.ndarray, reasons: list[str]) -> None:
         """Mark (in `reasons`) the still-feasible poses whose push line the arm cannot follow."""
@@ -297,7 +321,7 @@ class MotionPlanner:
         if q_pre_contact is not None:
             return np.asarray(q_pre_contact, dtype=np.float64).reshape(1, -1)
         started = time.perf_counter()
-        solutions = self.ik.distinct_solutions(T_world_hand)[: self.settings.max_ik_candidates]
+        solutions = self.ik.distinct_solutions(T_world_hand, limit=self.settings.max_ik_candidates)[0]
         self.stats.ik_s += time.perf_counter() - started
         if len(solutions) == 0:
             best = self.ik.solve_hand_poses(T_world_hand)
@@ -356,6 +380,7 @@ class MotionPlanner:
         space.setBounds(bounds)
         # OMPL checks an edge every `fraction × maximum extent` in joint-space Euclidean distance.
         space.setLongestValidSegmentFraction(s.check_resolution_rad / space.getMaximumExtent())
+        seed_ompl(s.seed)
         setup = og.SimpleSetup(space)
         scene, clearance = self.scene, s.clearance_m
         if q_hand is not None:

@@ -210,7 +210,8 @@ class PushPipeline:
         try:
             outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles, push,
                                       object_radius_m=self._footprint_radius(ctx.obj), max_push_m=request.distance_m,
-                                      margin_m=self.settings.obstacle_margin_m, max_steps=request.max_steps)
+                                      margin_m=self.settings.obstacle_margin_m, max_steps=request.max_steps,
+                                      seed=request.seed)
         except PlanningError as exc:
             if ctx.records:  # the object moved, then got stuck: report how far it got
                 raise PushError("infeasible", f"after {len(ctx.records)} push(es): {exc}") from exc
@@ -566,7 +567,9 @@ def _results(futures: list[Future], timeout_s: float) -> list[ValidationResult |
 
 def _no_feasible_pose_message(reasons: list[str]) -> str:
     counts = Counter(r.split(":")[0] for r in reasons if r)
-    summary = ", ".join(f"{n}× {reason}" for reason, n in counts.most_common())
+    example = {r.split(":")[0]: r.split(":", 1)[1].strip() for r in reversed(reasons) if ":" in r}
+    summary = ", ".join(f"{n}× {reason}" + (f" (e.g. {example[reason]})" if reason in example else "")
+                        for reason, n in counts.most_common())
     hint = ""
     if counts.get("no IK solution", 0) == len(reasons):
         hint = " — the object is probably out of the arm's reach"
