@@ -10,6 +10,7 @@ import json
 import os
 import platform
 import shlex
+import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,6 +41,16 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores{memory}, no GPU used, {platform.system()} {platform.release()}, Python {platform.python_version()}"
 
 
+def code_version() -> str:
+    """The git commit the results came from (`-dirty` with uncommitted changes), or "unknown" outside git."""
+    try:
+        done = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
+                              capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return done.stdout.strip() if done.returncode == 0 and done.stdout.strip() else "unknown"
+
+
 def command_line() -> str:
     """The command as the user typed it (`gd2p eval ...`)."""
     argv = list(sys.argv)
@@ -67,10 +78,10 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     directory.mkdir(parents=True, exist_ok=True)
     total = wall_time_s + _earlier_wall_time(directory)
     meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
-            "machine": machine(), "quick": quick}
+            "machine": machine(), "code": code_version(), "quick": quick}
     resumed = f" summed over the invocations that ran (this one {wall_time_s / 60:.1f} min)" if total - wall_time_s >= 1 else ""
     header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
-              f"- machine: {meta['machine']}\n"
+              f"- machine: {meta['machine']}\n- code: {meta['code']}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
               + "\n")
     atomic_write_text(directory / REPORT_FILE, header + body_markdown)
@@ -98,7 +109,8 @@ def write_index(out: str | os.PathLike) -> Path:
         sections.append(f"## [{summary.get('title', name)}]({name}/{REPORT_FILE})\n\n"
                         f"- command: `{summary.get('command', '?')}`\n"
                         f"- wall time: {summary.get('wall_time_s', 0) / 60:.1f} min\n"
-                        f"- machine: {summary.get('machine', '?')}\n\n{body.strip()}\n")
+                        f"- machine: {summary.get('machine', '?')}\n"
+                        f"- code: {summary.get('code', 'not recorded')}\n\n{body.strip()}\n")
     text = ("# Evaluation results\n\nReproduced in simulation by `gd2p eval` (see `gd2p eval --help`). Each section "
             "is copied from its experiment's report; the JSON beside each report has every figure.\n\n"
             + "\n".join(sections))

@@ -95,5 +95,6 @@ def test_reports_and_index(tmp_path):
     write_experiment(tmp_path / "methods", "Methods", table, {"success": 0.8}, wall_time_s=90.0, quick=True)
     summary = json.loads((tmp_path / "methods" / "summary.json").read_text())
     assert summary["success"] == 0.8 and summary["quick"] and "cores" in summary["machine"]
+    assert summary["code"] not in ("", "unknown")  # the commit these results came from (tests run in the checkout)
     index = write_index(tmp_path).read_text()
     assert "[Methods](methods/report.md)" in index and "| GD2P | 0.81 |" in index
