@@ -143,7 +143,7 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
         ["scenario", "object", "trial", "outcome", "goal error (m)", "pushes", "obstacle contact", "note"],
         [[r["scenario"], r["object_id"], r["trial"], r["outcome"], _fmt(r.get("goal_error_m")), r.get("pushes", ""),
           ", ".join(r.get("robot_obstacle_contact") or []) + (" object" if r.get("object_obstacle_contact") else ""),
-          r.get("message", "")[:120]] for r in records])
+          r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
     return write_experiment(directory, TITLE, body, {"success_rate": rate, "runs": len(records), "settings": settings},
                             time.perf_counter() - started, quick)
 
