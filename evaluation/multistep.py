@@ -28,6 +28,7 @@ from shared.objects import load_object
 from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M, object_pose, pose_matrix
 
 TITLE = "Multi-step pushing around an obstacle (Allegro + Panda)"
+PLOT_FILE = "object_paths.png"
 MAX_PUSH_M = 0.15  # longest single push along the path
 MAX_STEPS = 6
 
@@ -89,11 +90,12 @@ def run_one(run: Run) -> dict[str, Any]:
     system.robot.contacts.reset()
     started = time.perf_counter()
     record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial}
+    pipeline, the_request = system.pipeline("sampler"), request(run)
     try:
-        response = system.pipeline("sampler").run(request(run))
+        response = pipeline.run(the_request)
     except PushError as exc:
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
-                      error_code=exc.code, message=exc.message[:300], pushes=len(system.pipeline("sampler").last_records))
+                      error_code=exc.code, message=exc.message[:300], pushes=len(pipeline.last_records))
     except Exception as exc:  # recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:
@@ -105,8 +107,15 @@ def run_one(run: Run) -> dict[str, Any]:
                       toppled=response.result.toppled, rotation_deg=response.result.rotation_deg,
                       pushes=len(response.steps), robot_obstacle_contact=sorted(contacts.robot_obstacle),
                       object_obstacle_contact=contacts.object_obstacle)
+    record["path_xy"] = _object_path(the_request, pipeline.last_records)
     record["seconds"] = round(time.perf_counter() - started, 2)
     return record
+
+
+def _object_path(the_request: PushRequest, steps) -> list[list[float]]:
+    """The object's centre (x, y) at the start and after every executed push (also of a failed request)."""
+    poses = [the_request.object_pose] + [s.step.result.final_object_pose for s in steps]
+    return [[round(float(v), 4) for v in pose_matrix(p)[:2, 3]] for p in poses]
 
 
 def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
@@ -139,6 +148,8 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
             f"obstacle.\n\n**Success: {rate:.0%}** ({sum(r['success'] for r in records)}/{len(records)}).\n\n")
     body += markdown_table(["scenario", "start → goal (m)", "obstacle", "success", "median goal error (m)",
                             "median pushes", "obstacle contacts", "no plan / error"], rows)
+    _plot(records, scenarios, directory / PLOT_FILE)
+    body += f"\n![object paths around the obstacle]({PLOT_FILE})\n"
     body += "\n### Every run\n\n" + markdown_table(
         ["scenario", "object", "trial", "outcome", "goal error (m)", "pushes", "obstacle contact", "note"],
         [[r["scenario"], r["object_id"], r["trial"], r["outcome"], _fmt(r.get("goal_error_m")), r.get("pushes", ""),
@@ -146,6 +157,34 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
           r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
     return write_experiment(directory, TITLE, body, {"success_rate": rate, "runs": len(records), "settings": settings},
                             time.perf_counter() - started, quick)
+
+
+def _plot(records: list[dict[str, Any]], scenarios, path: Path) -> None:
+    """Top-down, one panel per scenario: the obstacle, the goal's tolerance, every run's object path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(scenarios), figsize=(4 * len(scenarios), 4.4), squeeze=False)
+    for ax, scenario in zip(axes[0], scenarios):
+        ox, oy, radius = scenario.obstacle
+        ax.add_patch(plt.Circle((ox, oy), radius, color="0.4"))
+        ax.add_patch(plt.Circle(scenario.goal_xy, SUCCESS_POSITION_TOLERANCE_M, fill=False, ls="--", color="tab:green"))
+        ax.plot(*scenario.start_xy, "ks", ms=5)
+        for r in (r for r in records if r["scenario"] == scenario.name and r.get("path_xy")):
+            xy = np.asarray(r["path_xy"])
+            ax.plot(xy[:, 0], xy[:, 1], "-o", ms=3, lw=1.2, alpha=0.8, color="tab:blue" if r["success"] else "tab:red")
+        ax.set_title(f"{scenario.name}: {sum(r['success'] for r in records if r['scenario'] == scenario.name)}/"
+                     f"{sum(r['scenario'] == scenario.name for r in records)} (blue success, red failure)", fontsize=9)
+        ax.set_xlim(0.30, 0.75)
+        ax.set_ylim(-0.30, 0.30)
+        ax.set_aspect("equal")
+        ax.set_xlabel("world x (m), away from the robot")
+        ax.set_ylabel("world y (m)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def _median(values) -> str:
