@@ -51,6 +51,9 @@ def code_version() -> str:
     return done.stdout.strip() if done.returncode == 0 and done.stdout.strip() else "unknown"
 
 
+CODE_AT_START = code_version()  # what this process loaded: a commit made while a long run goes on is not its code
+
+
 def command_line() -> str:
     """The command as the user typed it (`gd2p eval ...`)."""
     argv = list(sys.argv)
@@ -78,7 +81,7 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     directory.mkdir(parents=True, exist_ok=True)
     total = wall_time_s + _earlier_wall_time(directory)
     meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
-            "machine": machine(), "code": code_version(), "quick": quick}
+            "machine": machine(), "code": CODE_AT_START, "quick": quick}
     resumed = f" summed over the invocations that ran (this one {wall_time_s / 60:.1f} min)" if total - wall_time_s >= 1 else ""
     header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
               f"- machine: {meta['machine']}\n- code: {meta['code']}\n"

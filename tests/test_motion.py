@@ -12,7 +12,7 @@ from services.validator.fixed_poses import spatula_pose
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
 from shared.hands import load_hand
 from shared.objects import load_object, write_object_urdf
-from shared.sim.robot_scene import RobotScene
+from shared.sim.robot_scene import Collision, RobotScene
 
 torch.set_num_threads(1)
 
@@ -152,17 +152,31 @@ def test_screening_falls_back_to_the_next_ik_solution_when_the_best_one_collides
     options = planner.ik.distinct_solutions(T_world_hand, limit=planner.settings.max_ik_candidates)[0]
     assert len(options) >= 2
     real_collisions = planner.scene.collisions
+    elbow_hit = Collision("panda_link4", "obstacle 0", -0.02)
 
     def elbow_of_the_best_in_an_obstacle(q, *args, **kwargs):  # as if an obstacle stood where its elbow is
-        return ["panda_link4 vs obstacle 0"] if np.allclose(q, options[0]) else real_collisions(q, *args, **kwargs)
+        return [elbow_hit] if np.allclose(q, options[0]) else real_collisions(q, *args, **kwargs)
 
     monkeypatch.setattr(planner.scene, "collisions", elbow_of_the_best_in_an_obstacle)
     result = planner.screen(T_world_hand[None], q_hand[None])
     assert result.feasible.tolist() == [True]
     assert np.allclose(result.q[0], options[1])
-    monkeypatch.setattr(planner.scene, "collisions", lambda *args, **kwargs: ["panda_link4 vs obstacle 0"])
+    monkeypatch.setattr(planner.scene, "collisions", lambda *args, **kwargs: [elbow_hit])
     result = planner.screen(T_world_hand[None], q_hand[None])
-    assert result.reasons == ["pre-contact pose in collision: panda_link4 vs obstacle 0"]
+    assert result.reasons == [f"pre-contact pose in collision: {elbow_hit}"]
+
+
+def test_screening_does_not_retry_ik_when_the_hand_itself_collides(box, planner, monkeypatch):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    calls = []
+
+    def palm_in_the_table(q, *args, **kwargs):
+        calls.append(q)
+        return [Collision("link_0.0", "table", -0.02)]
+
+    monkeypatch.setattr(planner.scene, "collisions", palm_in_the_table)
+    result = planner.screen(T_world_hand[None], q_hand[None])
+    assert result.feasible.tolist() == [False] and len(calls) == 1  # another arm solution moves no hand link
 
 
 def test_screening_with_the_push_rejects_a_pose_whose_push_runs_out_of_reach(box, planner):

@@ -125,6 +125,8 @@ class MotionPlanner:
         self.upper = self.arm.joint_upper.double().numpy()
         self.velocity_limits = self.arm.velocity_limits.double().numpy()
         self.stats = PlanStats()
+        self._hand_links = {scene.link_names[j] for j in scene.hand_links}
+        self._robot_links = set(scene.link_names.values())
 
     # ------------------------------------------------------------------------------------ screen
 
@@ -164,6 +166,8 @@ class MotionPlanner:
             if not hits:
                 return q, ""
             first_hit = first_hit or hits[0]
+            if hits[0].robot_link in self._hand_links and hits[0].other not in self._robot_links:
+                break  # the hand itself is in the table or an obstacle: the same for every arm solution
         return options[0], f"pre-contact pose in collision: {first_hit}"
 
     def _screen_push_lines(self, T_world_hand: np.ndarray, q: np.ndarray, push: np.ndarray, reasons: list[str]) -> None:
