@@ -15,8 +15,6 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
-import pybullet as pb
-
 from services.planner.pipeline import Execution, PipelineSettings, PushError, PushPipeline, PushServices
 from services.robot_bridge.service import reset_world
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
@@ -72,13 +70,8 @@ class LocalRobot:
 
     def _watch_object(self, backend: SimBackend) -> None:
         """Called at the state rate during execution: does the object touch an obstacle?"""
-        scene = backend.scene
-        if scene is None or scene.object is None or self.contacts.object_obstacle:
-            return
-        for obstacle in scene.obstacles:
-            if pb.getContactPoints(scene.object.id, obstacle.id, physicsClientId=scene.client):
-                self.contacts.object_obstacle = True
-                return
+        if backend.scene is not None and not self.contacts.object_obstacle:
+            self.contacts.object_obstacle = backend.scene.object_touches_obstacle()
 
     def close(self) -> None:
         for executor in self._executors.values():

@@ -144,11 +144,9 @@ class MotionPlanner:
         options = self.ik.distinct_solutions(T_world_hand, limit=self.settings.max_ik_candidates)
         self.stats.ik_s += time.perf_counter() - started
         q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(options), -1)
-        q = np.repeat(self.arm.home.double().numpy()[None], len(options), axis=0)
-        reasons = []
-        for k, (options_k, q_hand) in enumerate(zip(options, q_hands)):
-            q[k], reason = self._first_collision_free(options_k, q_hand)
-            reasons.append(reason)
+        chosen = [self._first_collision_free(options_k, q_hand) for options_k, q_hand in zip(options, q_hands)]
+        q = np.array([q_k for q_k, _ in chosen]).reshape(len(options), self.arm.dof)
+        reasons = [reason for _, reason in chosen]
         if push is not None:
             self._screen_push_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), q,
                                     np.asarray(push, dtype=np.float64), reasons)

@@ -90,9 +90,7 @@ def run_plan(scene: RobotScene, plan: Plan, efforts: np.ndarray, time_step_s: fl
             run.collisions.setdefault((contact.robot_link, contact.other), step * time_step_s)
         if scene.object is not None:
             min_up = min(min_up, float(scene.object.pose()[:3, :3][2] @ up_in_object))
-            run.object_obstacle_contact = run.object_obstacle_contact or any(
-                pb.getContactPoints(scene.object.id, obstacle.id, physicsClientId=scene.client)
-                for obstacle in scene.obstacles)
+            run.object_obstacle_contact = run.object_obstacle_contact or scene.object_touches_obstacle()
             if push_window[0] <= t <= push_window[1]:
                 push_steps += 1
                 touching = pb.getContactPoints(scene.robot_id, scene.object.id, physicsClientId=scene.client)

@@ -226,6 +226,11 @@ class RobotScene:
             found += [Collision(self.link_names[link], name, d) for link, d in sorted(deepest.items())]
         return found
 
+    def object_touches_obstacle(self) -> bool:
+        """Whether the object touched an obstacle in the last physics step (false without an object)."""
+        return self.object is not None and any(
+            pb.getContactPoints(self.object.id, obstacle.id, physicsClientId=self.client) for obstacle in self.obstacles)
+
     def is_collision_free(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None, *,
                           clearance_m: float = 0.0, allow_hand_object: bool = False) -> bool:
         return not self.collisions(q_arm, q_hand, clearance_m=clearance_m, allow_hand_object=allow_hand_object,
