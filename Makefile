@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench chaos clean
 
 install: $(STAMP)
 
@@ -22,8 +22,12 @@ demo: install
 test: install
 	$(BIN)/python -m pytest -q
 
+# Break the system on purpose (workers, router, leases, e-stop) and print what a user would feel (docs/safety.md).
+chaos: install
+	$(BIN)/python bench/chaos.py --json
+
 bench: install
-	for b in bench/*.py; do $(BIN)/python $$b --json || exit 1; done
+	for b in bench/*.py; do [ $$b = bench/chaos.py ] || $(BIN)/python $$b --json || exit 1; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info

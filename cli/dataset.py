@@ -22,9 +22,13 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from cli.args import FlagError, non_negative_int, positive_int, validate_fields
+
 BUILD_WORKER_TIMEOUT_S = 180.0
 GENERATION_TIMEOUT_S = 3600.0  # one GenerationJob of a few hundred candidates on a busy core
 VALIDATION_TIMEOUT_S = 1800.0
+# GenerationJob fields each build round sends (the generator service's limits), by flag.
+GENERATION_FLAGS = {"batch_size": "--per-object", "iterations": "--iterations", "hand": "--hand"}
 
 
 def _default_generators() -> int:
@@ -47,17 +51,17 @@ def _register_build(commands: argparse._SubParsersAction) -> None:
     build.add_argument("--allow-split", action="store_true",
                        help="allow a split other than train (evaluation data; never train on it)")
     build.add_argument("--hand", required=True, choices=("allegro", "leap"))
-    build.add_argument("--per-object", type=int, required=True, help="generator candidates per object (and round)")
+    build.add_argument("--per-object", type=positive_int, required=True, help="generator candidates per object (and round)")
     which = build.add_mutually_exclusive_group()
-    which.add_argument("--objects", type=int, default=None, help="the first N objects of the split (fixed order)")
+    which.add_argument("--objects", type=positive_int, default=None, help="the first N objects of the split (fixed order)")
     which.add_argument("--object-ids", nargs="+", default=None, help="explicit library ids")
     build.add_argument("--seed", type=int, default=0, help="build seed; each object's seeds derive from it and its id")
-    build.add_argument("--iterations", type=int, default=None, help="generator iterations (default: the generator's)")
-    build.add_argument("--min-poses", type=int, default=0,
+    build.add_argument("--iterations", type=positive_int, default=None, help="generator iterations (default: the generator's)")
+    build.add_argument("--min-poses", type=non_negative_int, default=0,
                        help="run further rounds while an object has fewer stored poses than this (default 0)")
-    build.add_argument("--max-rounds", type=int, default=1, help="at most this many rounds per object (default 1)")
-    build.add_argument("--workers", type=int, default=1, help="validator processes to start (default 1; ignored with --connect)")
-    build.add_argument("--generators", type=int, default=_default_generators(),
+    build.add_argument("--max-rounds", type=positive_int, default=1, help="at most this many rounds per object (default 1)")
+    build.add_argument("--workers", type=positive_int, default=1, help="validator processes to start (default 1; ignored with --connect)")
+    build.add_argument("--generators", type=positive_int, default=_default_generators(),
                        help="generator processes to start (default: one per core; ignored with --connect)")
     build.add_argument("--connect", default=None, help="router of a running system (e.g. tcp/127.0.0.1:7447)")
     build.add_argument("--out", type=Path, required=True, help="store directory (created, or resumed)")
@@ -80,11 +84,14 @@ def run_build(args: argparse.Namespace) -> int:
     from shared.dataset_store import DatasetStore, StoreError
 
     try:
+        check_build_flags(args)
+    except FlagError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    try:
         settings = BuildSettings(hand=args.hand, split=args.split, per_object=args.per_object, seed=args.seed,
                                  iterations=args.iterations, min_poses=args.min_poses, max_rounds=args.max_rounds)
         objects = select_objects(args.split, args.objects, args.object_ids, allow_split=args.allow_split)
-        if args.generators < 1 or args.workers < 1:
-            raise BuildError("--generators and --workers must be >= 1")
         store = DatasetStore.create_or_resume(args.out, settings.parameters())
     except (BuildError, StoreError, ValueError) as exc:
         print(f"gd2p dataset build: error: {exc}", file=sys.stderr)
@@ -98,6 +105,14 @@ def run_build(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
         store.close()
+
+
+def check_build_flags(args: argparse.Namespace) -> None:
+    """FlagError (naming the flags) unless every job the build will send is within the services' limits."""
+    from shared.messages import GenerationJob
+
+    validate_fields(GenerationJob, {"batch_size": args.per_object, "iterations": args.iterations, "hand": args.hand},
+                    GENERATION_FLAGS, command="dataset build")
 
 
 def _raise_keyboard_interrupt(signum, frame) -> None:

@@ -14,9 +14,12 @@ import math
 import sys
 from pathlib import Path
 
+from cli.args import FlagError, finite_float, non_negative_int, positive_int, validate_fields
 from shared.atomic import atomic_write_text
 
 HANDS = ("allegro", "leap")
+# GenerationJob fields (the generator service's limits) checked for this command, by flag.
+JOB_FLAGS = {"seed": "--seed", "iterations": "--iterations", "contacts_per_pose": "--contacts"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,27 +27,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--object", required=True, metavar="ID_OR_MESH", help="library id or mesh file (metres)")
     parser.add_argument("--hand", required=True, choices=HANDS)
-    parser.add_argument("--n", type=int, required=True, help="number of poses")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--n", type=positive_int, required=True, help="number of poses")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--out", required=True, metavar="FILE.json")
-    parser.add_argument("--iterations", type=int, default=None, help="optimiser iterations (default: config)")
-    parser.add_argument("--contacts", type=int, default=None, help="contacts per pose (default: config)")
-    parser.add_argument("--batch-size", type=int, default=None, help="poses optimised together (default: config)")
+    parser.add_argument("--iterations", type=positive_int, default=None, help="optimiser iterations (default: config)")
+    parser.add_argument("--contacts", type=positive_int, default=None, help="contacts per pose (default: config)")
+    parser.add_argument("--batch-size", type=positive_int, default=None, help="poses optimised together (default: config)")
     parser.add_argument("--grasp-only", action="store_true", help="drop E_dir and E_arm (grasp-pose baseline)")
-    parser.add_argument("--resting-pose", type=int, default=None, metavar="INDEX",
+    parser.add_argument("--resting-pose", type=non_negative_int, default=None, metavar="INDEX",
                         help="which resting pose of the object (default: its default pose)")
-    parser.add_argument("--yaw-deg", type=float, default=0.0, help="object yaw about z in D (default 0)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: reproducible, and fastest "
+    parser.add_argument("--yaw-deg", type=finite_float, default=0.0, help="object yaw about z in D (default 0)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1: reproducible, and fastest "
                                                                "when other processes share the cores)")
     parser.add_argument("--plot", metavar="FILE.png", default=None, help="save energy-per-iteration curves")
     parser.set_defaults(func=run_generate)
 
 
 def run_generate(args: argparse.Namespace) -> int:
-    if args.n < 1:
-        return _fail(f"--n must be >= 1, got {args.n}")
-    if args.threads < 1:
-        return _fail(f"--threads must be >= 1, got {args.threads}")
+    from shared.messages import GenerationJob
+
+    try:
+        validate_fields(GenerationJob, {"seed": args.seed, "iterations": args.iterations, "contacts_per_pose": args.contacts},
+                        JOB_FLAGS, command="generate")
+    except FlagError as exc:
+        print(exc, file=sys.stderr)
+        return 2
     import torch
     from tqdm import tqdm
 

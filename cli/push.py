@@ -4,9 +4,15 @@
     gd2p push --object mug.obj --position 0.5 0.1 --yaw 30 --goal 0.5 -0.3 --obstacle 0.5 -0.1 0.05
     gd2p push --object proc-box-013 --direction-deg 180 --method fixed --no-ranking
 
-Prints the result (or, with --json, the PushResponse as JSON); exit code 0 on a successful push,
-1 on a push that ran but missed, 2 when the request could not be served (infeasible, bad object,
-no planner).
+Prints the result (or, with --json, the PushResponse as JSON). Exit codes:
+  0  the push succeeded
+  1  the push ran but missed the target
+  2  the request could not be served (infeasible, bad object, no planner running, timed out)
+  3  outcome unknown: the connection was lost while the request was served (look before retrying)
+  130 interrupted (Ctrl-C): the request is cancelled, and the robot stops if it was moving
+
+Ctrl-C, a timeout or a lost connection cancel the request: the client's lease disappears, the
+planner stops sampling and planning, and the robot bridge stops the motion (docs/safety.md).
 """
 from __future__ import annotations
 
@@ -18,30 +24,37 @@ from pathlib import Path
 CONNECT_TIMEOUT_MS = 3000
 
 
+# PushRequest fields -> the flags that set them (errors name what the user typed).
+FLAGS = {"object": "--object", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
+         "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
+         "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler"}
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from cli.args import finite_float, non_negative_int, positive_float, positive_int
     from shared.bus import BusConfig
 
     parser = subparsers.add_parser("push", help="push or pull an object with the robot (needs `gd2p up`)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--object", required=True, help="library object id or mesh file (.obj .stl .ply .glb)")
-    parser.add_argument("--position", nargs=2, type=float, metavar=("X", "Y"), default=None,
+    parser.add_argument("--position", nargs=2, type=finite_float, metavar=("X", "Y"), default=None,
                         help="object position on the table in the world, m (default: 0.55 0 in front of the robot)")
-    parser.add_argument("--yaw", type=float, default=0.0, help="object yaw about world z, degrees (with --position)")
+    parser.add_argument("--yaw", type=finite_float, default=0.0, help="object yaw about world z, degrees (with --position)")
     target = parser.add_mutually_exclusive_group(required=True)
-    target.add_argument("--direction-deg", type=float, help="push direction in the world, degrees (0 = away from the robot)")
-    target.add_argument("--goal", nargs=2, type=float, metavar=("X", "Y"), help="goal point: multi-step pushes around obstacles")
-    parser.add_argument("--distance", type=float, default=0.20, help="push distance (with --goal: longest single push), m")
+    target.add_argument("--direction-deg", type=finite_float, help="push direction in the world, degrees (0 = away from the robot)")
+    target.add_argument("--goal", nargs=2, type=finite_float, metavar=("X", "Y"), help="goal point: multi-step pushes around obstacles")
+    parser.add_argument("--distance", type=positive_float, default=0.20, help="push distance (with --goal: longest single push), m")
     parser.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     parser.add_argument("--arm", choices=("panda", "xarm7"), default=None, help="default: panda for allegro, xarm7 for leap")
-    parser.add_argument("--obstacle", nargs=3, type=float, action="append", default=[], metavar=("X", "Y", "R"),
+    parser.add_argument("--obstacle", nargs=3, type=finite_float, action="append", default=[], metavar=("X", "Y", "R"),
                         help="a cylinder obstacle on the table (repeatable)")
-    parser.add_argument("--k", type=int, default=200, help="candidate hand poses sampled (default %(default)s)")
+    parser.add_argument("--k", type=positive_int, default=200, help="candidate hand poses sampled (default %(default)s)")
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
     parser.add_argument("--no-ranking", action="store_true", help="execute a random feasible plan (ablation)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--timeout", type=float, default=600.0, help="seconds to wait for the planner")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_push)
@@ -76,23 +89,29 @@ def build_request(args: argparse.Namespace):
 def run_push(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
+    from cli.args import describe_validation_error
     from shared.bus import BusConfig
     from shared.bus.errors import BusError
     from shared.objects import ObjectLoadError
-    from shared.push_client import PushFailed, push
+    from shared.push_client import PushFailed, PushOutcomeUnknown, push
 
     try:
         request = build_request(args)
-    except (ValueError, ValidationError, ObjectLoadError) as exc:
+    except ValidationError as exc:
+        print(describe_validation_error(exc, FLAGS, command="push"), file=sys.stderr)
+        return 2
+    except (ValueError, ObjectLoadError) as exc:
         print(f"gd2p push: bad request: {exc}", file=sys.stderr)
         return 2
     try:
         response = push(request, BusConfig.from_args(args, connect_timeout_ms=CONNECT_TIMEOUT_MS), args.timeout)
+    except KeyboardInterrupt:
+        return _failed(args, "cancelled", "interrupted: the request is cancelled and the robot stops if it was moving",
+                       130)
+    except PushOutcomeUnknown as exc:
+        return _failed(args, exc.code, exc.message, 3)
     except PushFailed as exc:
-        if args.json:
-            print(json.dumps({"error": exc.code, "message": exc.message}))
-        print(f"gd2p push: {exc.code}: {exc.message}", file=sys.stderr)
-        return 2
+        return _failed(args, exc.code, exc.message, 2)
     except BusError as exc:
         print(f"gd2p push: {exc} (is `gd2p up` running?)", file=sys.stderr)
         return 2
@@ -101,6 +120,13 @@ def run_push(args: argparse.Namespace) -> int:
     else:
         print(describe(response))
     return 0 if response.success else 1
+
+
+def _failed(args: argparse.Namespace, code: str, message: str, exit_code: int) -> int:
+    if args.json:
+        print(json.dumps({"error": code, "message": message}))
+    print(f"gd2p push: {code.replace('_', ' ')}: {message}", file=sys.stderr)
+    return exit_code
 
 
 def response_json(response) -> dict:

@@ -7,6 +7,7 @@ import os
 import sys
 import time
 
+from cli.args import non_negative_float
 from shared.recording import Record, RecordingError, read_records, replay
 
 CLI_CONNECT_TIMEOUT_MS = 5000
@@ -17,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("replay", help="republish an MCAP recording on the bus", description=__doc__)
     parser.add_argument("files", nargs="+", metavar="FILE.mcap", help="recording(s), replayed one after the other")
-    parser.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 = as fast as possible (default %(default)s)")
+    parser.add_argument("--rate", type=non_negative_float, default=1.0, help="speed factor; 0 = as fast as possible (default %(default)s)")
     parser.add_argument("--keys", default="gd2p/**", metavar="KEYEXPR", help="replay only samples whose key matches (default %(default)s)")
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_replay)

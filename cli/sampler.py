@@ -35,6 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
+from cli.args import (FlagError, finite_float, float_range, non_negative_int, positive_float, positive_int,
+                      validate_fields)
+
+# SampleRequest fields (the sampler service's limits) this command checks, by flag.
+SAMPLE_FLAGS = {"k": "--n", "steps": "--steps", "seed": "--seed", "sampler": "--sampler"}
+
 
 class SamplerCliError(ValueError):
     """A bad command-line input for train / sample."""
@@ -53,23 +59,23 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--dataset", required=True, type=Path, help="dataset store directory (Parquet shards + manifest)")
     parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
     parser.add_argument("--out", required=True, type=Path, help="checkpoint file to write (e.g. ckpt/allegro.pt)")
-    parser.add_argument("--fraction", type=float, default=1.0, help="train on this fraction of the training objects (default 1)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--fraction", type=float_range(0.0, 1.0, low_open=True), default=1.0, help="train on this fraction of the training objects (default 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     budget = parser.add_mutually_exclusive_group()
-    budget.add_argument("--steps", type=int, default=None, help="optimiser steps in all (default 20000)")
-    budget.add_argument("--epochs", type=float, default=None, help="passes over the training poses instead of --steps")
-    parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--lr", type=float, default=1e-4)
-    parser.add_argument("--warmup-steps", type=int, default=500)
-    parser.add_argument("--val-fraction", type=float, default=0.1, help="objects held out for the validation loss")
-    parser.add_argument("--hidden-dim", type=int, default=256, help="width of the residual FiLM blocks")
-    parser.add_argument("--num-blocks", type=int, default=4)
-    parser.add_argument("--object-dim", type=int, default=128, help="the BPS is compressed to this before FiLM")
-    parser.add_argument("--val-every", type=int, default=500, help="steps between validation losses")
-    parser.add_argument("--checkpoint-every", type=int, default=1000, help="steps between saved training states")
+    budget.add_argument("--steps", type=positive_int, default=None, help="optimiser steps in all (default 20000)")
+    budget.add_argument("--epochs", type=positive_float, default=None, help="passes over the training poses instead of --steps")
+    parser.add_argument("--batch-size", type=positive_int, default=256)
+    parser.add_argument("--lr", type=positive_float, default=1e-4)
+    parser.add_argument("--warmup-steps", type=non_negative_int, default=500)
+    parser.add_argument("--val-fraction", type=float_range(0.0, 1.0, high_open=True), default=0.1, help="objects held out for the validation loss")
+    parser.add_argument("--hidden-dim", type=positive_int, default=256, help="width of the residual FiLM blocks")
+    parser.add_argument("--num-blocks", type=positive_int, default=4)
+    parser.add_argument("--object-dim", type=positive_int, default=128, help="the BPS is compressed to this before FiLM")
+    parser.add_argument("--val-every", type=positive_int, default=500, help="steps between validation losses")
+    parser.add_argument("--checkpoint-every", type=positive_int, default=1000, help="steps between saved training states")
     parser.add_argument("--half", action="store_true", help="ship fp16 weights (half the file size)")
     parser.add_argument("--device", default="auto", help="auto (GPU if present), cpu, cuda, cuda:N")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch CPU threads (default 1: extra threads stall on a shared machine, DESIGN.md §6)")
     parser.add_argument("--restart", action="store_true", help="ignore a saved training state and start over")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -150,25 +156,29 @@ def _register_sample(subparsers: argparse._SubParsersAction) -> None:
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--object", required=True, help="library id (e.g. proc-box-001) or a mesh file in metres")
     parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
-    parser.add_argument("--n", type=int, default=200, help="number of poses (1..1000, default 200)")
+    parser.add_argument("--n", type=positive_int, default=200, help="number of poses (1..1000, default 200)")
     parser.add_argument("--sampler", choices=("ddpm", "ddim", "nearest"), default="ddpm",
                         help="DDPM-100 (paper), DDIM fast path, or the nearest-neighbour baseline")
-    parser.add_argument("--steps", type=int, default=None, help="DDIM steps (default 10)")
+    parser.add_argument("--steps", type=positive_int, default=None, help="DDIM steps (default 10)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint file (default: $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped one)")
     parser.add_argument("--nn-index", type=Path, default=None,
                         help="with --sampler nearest: index file (default: $GD2P_SAMPLER_NN_INDEX_<HAND> or the shipped one)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--direction-deg", type=float, default=0.0, help="push direction in the world (default 0 = +x)")
+    parser.add_argument("--seed", type=non_negative_int, default=0)
+    parser.add_argument("--direction-deg", type=finite_float, default=0.0, help="push direction in the world (default 0 = +x)")
     parser.add_argument("--validate", action="store_true", help="push every pose in simulation and count successes")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1)")
     parser.add_argument("--json", action="store_true", help="print the JSON result on stdout")
     parser.set_defaults(func=run_sample)
 
 
 def run_sample(args: argparse.Namespace) -> int:
     try:
+        check_sample_flags(args)
         report = _sample(args)
+    except FlagError as exc:
+        print(exc, file=sys.stderr)
+        return 2
     except SamplerCliError as exc:
         print(f"gd2p sample: error: {exc}", file=sys.stderr)
         return 2
@@ -177,6 +187,14 @@ def run_sample(args: argparse.Namespace) -> int:
     else:
         _print_summary(report)
     return 0
+
+
+def check_sample_flags(args: argparse.Namespace) -> None:
+    """FlagError (naming the flags) unless the options are within the sampler service's limits (SampleRequest)."""
+    from shared.messages import SampleRequest
+
+    validate_fields(SampleRequest, {"k": args.n, "steps": args.steps, "seed": args.seed, "sampler": args.sampler},
+                    SAMPLE_FLAGS, command="sample")
 
 
 def _sample(args: argparse.Namespace) -> dict:

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cli.args import finite_float, float_range
+
 FIXED_POSES = ("spatula",)
 SUCCESS_TOLERANCE_M = 0.03  # the paper's success radius, drawn around the target
 MULTI_POSE_ALPHA = 0.75  # several hands: see-through so the object stays visible
@@ -41,8 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--index", type=int, help="draw only this pose of the file (0-based)")
     parser.add_argument("--max-poses", type=int, default=8, help="draw at most this many poses (default 8)")
     parser.add_argument("--candidates", action="store_true", help="also draw the hands' contact candidates")
-    parser.add_argument("--direction-deg", type=float, default=0.0, help="push direction in the world, degrees (default 0)")
-    parser.add_argument("--distance", type=float, default=0.20, help="push distance drawn, metres (default 0.20)")
+    parser.add_argument("--direction-deg", type=finite_float, default=0.0, help="push direction in the world, degrees (default 0)")
+    parser.add_argument("--distance", type=float_range(0.0, 1.0, low_open=True), default=0.20, help="push distance drawn, metres (default 0.20)")
     parser.add_argument("--resting-pose", type=int, help="the object's resting pose index (default: its default pose)")
     parser.add_argument("--views", default="iso,side,top", help="comma-separated views: iso, side, top, front, back")
     parser.add_argument("--size", default="480x360", help="pixels per view, WIDTHxHEIGHT (default 480x360)")

@@ -192,11 +192,14 @@ def run_up(args: argparse.Namespace) -> int:
         print(f"all {len(launcher.children())} workers registered in {time.monotonic() - t0:.1f} s\n")
         print(launcher.table())
         print(f"\nrouter: {launcher.listen}   recordings: {launcher.record_dir}   logs: {launcher.log_dir}")
-        tools = f"--connect {launcher.endpoint}"
+        tools = scale = f"--connect {launcher.endpoint}"
         if launcher.secure is not None:
+            # The operator's everyday tools join as "cli"; only the "operator" identity may scale.
             tools += f" --zenoh-config {launcher.secure.client_config('cli')}"
-            print(f"secure profile: mTLS + access control from {launcher.secure.directory}")
-        print(f"status: gd2p status {tools}   scale: python deploy/scale_validators.py N {tools}")
+            scale += f" --zenoh-config {launcher.secure.client_config('operator')}"
+            print(f"secure profile: mTLS + access control from {launcher.secure.directory} "
+                  f"(CA key in {launcher.secure.ca_dir}: keep it offline)")
+        print(f"status: gd2p status {tools}   scale: python deploy/scale_validators.py N {scale}")
         print("Ctrl-C (or SIGTERM) stops everything.", flush=True)
         while True:
             time.sleep(3600)  # the launcher's threads supervise; a signal ends the wait

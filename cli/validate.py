@@ -18,7 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from cli.args import FlagError, non_negative_int, positive_float, positive_int, validate_fields
+
 FIXED_POSES = ("spatula",)
+# Fields of the validator's messages (ValidationJob, PhysicsSettings) this command checks, by flag.
+JOB_FLAGS = {"push_distance_m": "--distance", "seed": "--seed"}
+PHYSICS_FLAGS = {"solver_iterations": "--solver-iterations", "time_step_s": "--time-step"}
 PROGRESS_MIN_EPISODES = 10
 
 
@@ -35,19 +40,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--poses", type=Path, help='JSON file {"poses": [{"pose": [25 floats in D]}, ...]}')
     source.add_argument("--fixed-pose", choices=FIXED_POSES, help="a built-in pose (the paper's fixed-hand baseline)")
-    parser.add_argument("--trials", type=int, default=1, help="pushes per pose; >= 2 adds placement noise (default 1)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the placement noise and augmentation (default 0)")
+    parser.add_argument("--trials", type=positive_int, default=1, help="pushes per pose; >= 2 adds placement noise (default 1)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the placement noise and augmentation (default 0)")
     parser.add_argument("--augment", action="store_true", help="also push 10 Halton perturbations of each success")
-    parser.add_argument("--distance", type=float, default=0.20, help="push distance in metres (default 0.20)")
-    parser.add_argument("--solver-iterations", type=int, default=None, help="override the measured default")
-    parser.add_argument("--time-step", type=float, default=None, help="seconds; override the measured default")
+    parser.add_argument("--distance", type=positive_float, default=0.20, help="push distance in metres (default 0.20)")
+    parser.add_argument("--solver-iterations", type=positive_int, default=None, help="override the measured default")
+    parser.add_argument("--time-step", type=positive_float, default=None, help="seconds; override the measured default")
     parser.add_argument("--json", action="store_true", help='print {"results": [...]} on stdout')
     parser.set_defaults(func=run_validate)
 
 
 def run_validate(args: argparse.Namespace) -> int:
     try:
+        check_flags(args)
         report = _validate(args)
+    except FlagError as exc:
+        print(exc, file=sys.stderr)
+        return 2
     except ValidateInputError as exc:
         print(f"gd2p validate: error: {exc}", file=sys.stderr)
         return 2
@@ -66,12 +75,6 @@ def _validate(args: argparse.Namespace) -> dict:
     from shared.objects import ObjectLoadError, load_object
     from shared.sim import PhysicsParams, c_stdout_to_stderr
 
-    if args.trials < 1:
-        raise ValidateInputError(f"--trials must be >= 1, got {args.trials}")
-    if not 0.0 < args.distance <= 1.0:
-        raise ValidateInputError(f"--distance must be in (0, 1] m, got {args.distance}")
-    if args.seed < 0:
-        raise ValidateInputError(f"--seed must be >= 0, got {args.seed}")
     params = _params(PhysicsParams(), args)
     with c_stdout_to_stderr():  # PyBullet and V-HACD print on file descriptor 1
         try:
@@ -118,17 +121,28 @@ def read_poses(path: Path) -> np.ndarray:
     return np.stack(poses)
 
 
+def check_flags(args: argparse.Namespace) -> None:
+    """FlagError (naming the flags) unless the options are within the validator service's limits."""
+    from shared.messages import PhysicsSettings, ValidationJob
+
+    problems = []
+    for model, values, flags in ((ValidationJob, {"push_distance_m": args.distance, "seed": args.seed}, JOB_FLAGS),
+                                 (PhysicsSettings, _physics_changes(args), PHYSICS_FLAGS)):
+        try:
+            validate_fields(model, values, flags, command="validate")
+        except FlagError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise FlagError("\n".join(problems))
+
+
+def _physics_changes(args: argparse.Namespace) -> dict:
+    return {name: value for name, value in (("solver_iterations", args.solver_iterations), ("time_step_s", args.time_step))
+            if value is not None}
+
+
 def _params(defaults, args: argparse.Namespace):
-    changes = {}
-    if args.solver_iterations is not None:
-        if not 1 <= args.solver_iterations <= 1000:
-            raise ValidateInputError(f"--solver-iterations must be in [1, 1000], got {args.solver_iterations}")
-        changes["solver_iterations"] = args.solver_iterations
-    if args.time_step is not None:
-        if not 0.0 < args.time_step <= 0.1:
-            raise ValidateInputError(f"--time-step must be in (0, 0.1] s, got {args.time_step}")
-        changes["time_step_s"] = args.time_step
-    return dataclasses.replace(defaults, **changes)
+    return dataclasses.replace(defaults, **_physics_changes(args))
 
 
 def _result(outcome, pose_index: int, trial: int) -> dict:

@@ -11,7 +11,11 @@ Each service runs as `python -m services.<name> --mode client --connect <router>
 started through `deploy.child_guard` so that no worker outlives the launcher. A crashed service is
 restarted with exponential backoff. The launcher also serves `gd2p/launcher/control`: a
 `ScaleRequest` brings a scalable service to exactly N workers and is answered with a `ScaleReply`
-(what `deploy/scale_validators.py` uses against a running `gd2p up`).
+(what `deploy/scale_validators.py` uses against a running `gd2p up`). A request above the service's
+configured maximum (`scale_limits`: by default 4 validators per core and max(2, cores) of every other
+scalable service; `GD2P_MAX_SCALE="validator=16,planner=3"` or `Launcher(max_scale=...)` changes it)
+is refused with ErrorReply "bad_request" naming the limit; ScaleRequest's own bound (1024) stays the
+hard cap. Under the secure profile only the "operator" identity may reach the control key.
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,16 +37,19 @@ from pathlib import Path
 import zenoh
 
 from shared.bus import DEFAULT_ROUTER_ENDPOINT, BusConfig, BusError, RemoteError, live_workers, open_session
+from shared.bus.interfaces import LAUNCHER_CONTROL_KEY as CONTROL_KEY  # the control key, as the registry spells it
+from shared.bus.interfaces import SERVICES  # the services the launcher runs, in start order
 from shared.codec import CodecError, decode, encode
 from shared.messages import ErrorReply, Message, ScaleReply, ScaleRequest
 
 log = logging.getLogger("gd2p.launcher")
 
-SERVICES: tuple[str, ...] = ("generator", "validator", "sampler", "planner", "robot_bridge", "recorder")
 # Stateless job servers behind the dispatcher. The robot bridge (one robot) and the recorder
 # (one recording) are singletons.
 SCALABLE: frozenset[str] = frozenset({"generator", "validator", "sampler", "planner"})
-CONTROL_KEY = "gd2p/launcher/control"
+MAX_SCALE_ENV = "GD2P_MAX_SCALE"  # e.g. "validator=16,planner=3": the most workers a scale request may ask for
+# ScaleRequest's own bound on `count`: no configured maximum may exceed it.
+SCALE_HARD_CAP: int = next(m.le for m in ScaleRequest.model_fields["count"].metadata if hasattr(m, "le"))
 
 STOP_TIMEOUT_S = 10.0
 _POLL_S = 0.2
@@ -87,6 +95,50 @@ class ChildExit:
     def describe(self) -> str:
         tail = self.log_tail.strip() or "(no output)"
         return f"{self.service} ({self.worker_id}) exited with code {self.returncode}; last output:\n{tail}"
+
+
+def default_scale_limits(cpus: int | None = None) -> dict[str, int]:
+    """The most workers of each scalable service a scale request may ask for on a machine with `cpus`
+    cores: 4 validators per core (rollouts are short and mostly wait), max(2, cores) of the others
+    (each generator, sampler or planner process can keep a core busy). 2 cores: 8 validators, 2 of the rest."""
+    cpus = max(1, cpus or os.cpu_count() or 1)
+    return {svc: 4 * cpus if svc == "validator" else max(2, cpus) for svc in sorted(SCALABLE)}
+
+
+def parse_scale_limits(text: str) -> dict[str, int]:
+    """'validator=16,planner=3' -> {'validator': 16, 'planner': 3}; LaunchError naming what is wrong."""
+    limits: dict[str, int] = {}
+    for item in (part.strip() for part in text.split(",")):
+        if not item:
+            continue
+        service, sep, value = item.partition("=")
+        service = service.strip()
+        if not sep or service not in SCALABLE:
+            raise LaunchError(f"bad scale limit {item!r}: expected SERVICE=N with SERVICE one of "
+                              f"{', '.join(sorted(SCALABLE))}")
+        try:
+            count = int(value)
+        except ValueError:
+            raise LaunchError(f"bad scale limit {item!r}: {value.strip()!r} is not an integer") from None
+        if not 0 <= count <= SCALE_HARD_CAP:
+            raise LaunchError(f"bad scale limit {item!r}: the maximum must be between 0 and {SCALE_HARD_CAP}")
+        limits[service] = count
+    return limits
+
+
+def scale_limits(overrides: Mapping[str, int] | None = None, environ: Mapping[str, str] | None = None,
+                 cpus: int | None = None) -> dict[str, int]:
+    """Per scalable service, the most workers a scale request may ask for: the defaults
+    (`default_scale_limits`), then `GD2P_MAX_SCALE` from `environ`, then `overrides`."""
+    env = os.environ if environ is None else environ
+    limits = default_scale_limits(cpus)
+    try:
+        limits.update(parse_scale_limits(env.get(MAX_SCALE_ENV, "")))
+    except LaunchError as exc:
+        raise LaunchError(f"{MAX_SCALE_ENV}: {exc}") from None
+    if overrides:
+        limits.update(parse_scale_limits(",".join(f"{svc}={n}" for svc, n in overrides.items())))
+    return limits
 
 
 def client_endpoint(listen: str) -> str:
@@ -140,10 +192,15 @@ class Launcher:
         log_dir: str | os.PathLike | None = None,
         restart: bool = True,
         secure_dir: str | os.PathLike | None = None,
+        max_scale: Mapping[str, int] | None = None,
     ):
-        n_validators = (os.cpu_count() or 1) if validators is None else validators
+        # The most workers per scalable service (defaults, GD2P_MAX_SCALE, then `max_scale`).
+        self.max_scale = scale_limits(max_scale)
+        n_validators = min(os.cpu_count() or 1, self.max_scale["validator"]) if validators is None else validators
         if n_validators < 0:
             raise LaunchError(f"the number of validators must be >= 0, got {n_validators}")
+        if (refusal := self.scale_refusal("validator", n_validators)) is not None:
+            raise LaunchError(refusal)
         self.listen = listen
         self.endpoint = client_endpoint(listen)
         self.record_dir = Path(record_dir).resolve()
@@ -287,12 +344,23 @@ class Launcher:
         return "\n".join("  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip() for row in rows)
 
     # ------------------------------------------------------------------ scaling
-    def scale(self, service: str, count: int, ready_timeout: float = 60.0) -> ScaleReply:
-        """Bring `service` to exactly `count` processes; new ones are registered on return."""
+    def scale_refusal(self, service: str, count: int) -> str | None:
+        """Why `service` may not be brought to `count` workers (None if it may)."""
         if service not in SCALABLE:
-            raise LaunchError(f"cannot scale {service!r}: scalable services are {', '.join(sorted(SCALABLE))}")
+            return f"cannot scale {service!r}: scalable services are {', '.join(sorted(SCALABLE))}"
         if count < 0:
-            raise LaunchError(f"cannot scale {service} to {count}: the count must be >= 0")
+            return f"cannot scale {service} to {count}: the count must be >= 0"
+        limit = self.max_scale[service]
+        if count > limit:
+            return (f"cannot scale {service} to {count}: the maximum on this launcher is {limit} "
+                    f"(set {MAX_SCALE_ENV}=\"{service}=N\" when starting `gd2p up` to change it)")
+        return None
+
+    def scale(self, service: str, count: int, ready_timeout: float = 60.0) -> ScaleReply:
+        """Bring `service` to exactly `count` processes; new ones are registered on return.
+        LaunchError if the service is not scalable or `count` is negative or above `max_scale`."""
+        if (refusal := self.scale_refusal(service, count)) is not None:
+            raise LaunchError(refusal)
         with self._scale_lock:
             if self._stopping.is_set():
                 raise LaunchError("launcher is stopping")
@@ -419,9 +487,8 @@ class Launcher:
         def refuse(code: str, message: str) -> ErrorReply:
             return ErrorReply(code=code, message=message, service="launcher", id=request.id, request_type="ScaleRequest")
 
-        if request.service not in SCALABLE:
-            return refuse("bad_request", f"cannot scale {request.service!r}: scalable services are "
-                                         f"{', '.join(sorted(SCALABLE))}")
+        if (refusal := self.scale_refusal(request.service, request.count)) is not None:
+            return refuse("bad_request", refusal)
         if self._stopping.is_set():
             return refuse("unavailable", "the launcher is stopping")
         try:

@@ -4,7 +4,10 @@
     python deploy/scale_validators.py N --compose                          # the docker compose system
 
 Local: sends a `ScaleRequest` to the launcher's control key (`gd2p/launcher/control`); the
-launcher starts or stops validator processes and answers once the new ones have registered.
+launcher starts or stops validator processes and answers once the new ones have registered. It
+refuses N above its configured maximum (8 validators on 2 cores by default; `GD2P_MAX_SCALE` when
+starting `gd2p up`). Under `gd2p up --secure` only the operator identity reaches the control key:
+add `--zenoh-config gd2p-secure/client-operator.json5` (the "cli" certificate gets no answer).
 Compose: runs `docker compose -f deploy/docker-compose.yml up -d --no-recreate --scale validator=N`.
 Validators on other machines join the same farm by connecting to the router themselves
 (`python -m services.validator --connect tcp/<router-host>:7447`); they are not counted here.

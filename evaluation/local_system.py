@@ -11,10 +11,12 @@ bus bridge reports robot contacts only); multi-step evaluation needs both.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
+from services.planner.cancellation import Cancellation
 from services.planner.pipeline import Execution, PipelineSettings, PushError, PushPipeline, PushServices
 from services.robot_bridge.service import reset_world
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
@@ -60,11 +62,16 @@ class LocalRobot:
             self._executors[key] = SimExecutor(backend)
         return self._executors[key]
 
-    def execute(self, plan: Plan, world: SimWorld | None) -> Execution:
+    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None) -> Execution:
         executor = self.executor(plan.arm, plan.hand)
         if world is not None:
             reset_world(executor.backend, world)
-        state: ExecutionState = executor.execute(plan, REALTIME_FACTOR)
+        stop = threading.Event()
+        unregister = cancel.on_cancel(stop.set) if cancel is not None else (lambda: None)
+        try:
+            state: ExecutionState = executor.execute(plan, REALTIME_FACTOR, stop=stop)
+        finally:
+            unregister()
         self.contacts.robot_obstacle.update(link for link, other in executor.backend.collisions if other.startswith("obstacle"))
         return Execution(final=state)
 

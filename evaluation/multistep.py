@@ -91,14 +91,17 @@ def run_one(run: Run) -> dict[str, Any]:
     started = time.perf_counter()
     record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial}
     pipeline, the_request = system.pipeline("sampler"), request(run)
+    executed = []  # the executed pushes' records, also of a request that failed after some
     try:
-        response = pipeline.run(the_request)
+        outcome = pipeline.run(the_request)
     except PushError as exc:
+        executed = exc.records
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
-                      error_code=exc.code, message=exc.message[:300], pushes=len(pipeline.last_records))
+                      error_code=exc.code, message=exc.message[:300], pushes=len(executed))
     except Exception as exc:  # recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:
+        response, executed = outcome.response, outcome.records
         final = pose_matrix(response.result.final_object_pose)
         error = float(np.linalg.norm(final[:2, 3] - np.asarray(run.scenario.goal_xy)))
         contacts = system.robot.contacts
@@ -107,7 +110,7 @@ def run_one(run: Run) -> dict[str, Any]:
                       toppled=response.result.toppled, rotation_deg=response.result.rotation_deg,
                       pushes=len(response.steps), robot_obstacle_contact=sorted(contacts.robot_obstacle),
                       object_obstacle_contact=contacts.object_obstacle)
-    record["path_xy"] = _object_path(the_request, pipeline.last_records)
+    record["path_xy"] = _object_path(the_request, executed)
     record["seconds"] = round(time.perf_counter() - started, 2)
     return record
 

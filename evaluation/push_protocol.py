@@ -130,7 +130,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     pipeline = _system.pipeline(episode.method if source is not None else "sampler", source)
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed}
     try:
-        response = pipeline.run(push_request(episode))
+        response = pipeline.run(push_request(episode)).response
     except PushError as exc:
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
                       error_code=exc.code, message=exc.message[:300])

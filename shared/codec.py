@@ -4,6 +4,9 @@ Wire format: the msgpack encoding of `model.model_dump(mode="python")` (bytes st
 Zenoh encoding string `application/msgpack;<ModelName>`. Any payload that cannot be turned
 into the expected model raises `CodecError` with a message naming the problem; services turn
 that into an `ErrorReply(code="bad_request")`.
+
+Size bound: a payload larger than its type's `MAX_PAYLOAD_BYTES` (shared/messages.py) is refused
+before it is unpacked; `check_payload_size` lets a receiver refuse it before even copying it.
 """
 from __future__ import annotations
 
@@ -12,7 +15,7 @@ from typing import TypeVar
 import msgpack
 from pydantic import ValidationError
 
-from shared.messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
+from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, MESSAGE_TYPES, SCHEMA_VERSION, Message
 
 ENCODING_PREFIX = "application/msgpack;"
 M = TypeVar("M", bound=Message)
@@ -34,6 +37,20 @@ def model_name_from_encoding(encoding: str | None) -> str | None:
     if not encoding.startswith(ENCODING_PREFIX):
         return None
     return encoding[len(ENCODING_PREFIX):] or None
+
+
+def payload_limit(encoding: str | None, expected: type[Message] | None = None) -> int:
+    """The most bytes a payload of this encoding (else of `expected`) may have."""
+    cls = MESSAGE_TYPES.get(model_name_from_encoding(encoding) or "") or expected
+    return cls.MAX_PAYLOAD_BYTES if cls is not None else DEFAULT_MAX_PAYLOAD_BYTES
+
+
+def check_payload_size(size: int, encoding: str | None, expected: type[Message] | None = None) -> None:
+    """Raise CodecError naming the size and the limit when a payload is too large to accept."""
+    limit = payload_limit(encoding, expected)
+    if size > limit:
+        what = model_name_from_encoding(encoding) or (expected.__name__ if expected else "message")
+        raise CodecError(f"{what} payload of {size} bytes exceeds the limit of {limit} bytes ({limit / 2**20:g} MiB)")
 
 
 def encode(msg: Message) -> tuple[bytes, str]:
@@ -62,6 +79,7 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str | None = None,
         cls = expected
     else:
         raise CodecError("cannot decode: no message type in the encoding and none expected")
+    check_payload_size(len(payload), encoding, cls)
     try:
         obj = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types

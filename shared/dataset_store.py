@@ -6,7 +6,7 @@ Written by the data engine (`gd2p dataset build`), read by the sampler's trainin
 Layout of a store directory:
 
     manifest.json              what the store holds (below); the only file a reader trusts
-    shards/<object_id>.parquet the successful poses of one object (raw and augmented)
+    shards/<object_id>-<sha256 prefix>.parquet   the successful poses of one object (raw and augmented)
 
 Columns of a shard (the first five are the reader contract of `services.sampler.dataset`):
 
@@ -25,11 +25,20 @@ Columns of a shard (the first five are the reader contract of `services.sampler.
     solver_iterations, time_step_s, push_speed_mps, push_distance_m, code_version
 
 Atomicity: one shard per finished object (the unit of work). A shard is written to a temporary
-file, fsynced and renamed into place; then the manifest - which lists the shard with its row
-count and sha256 and marks the object done - is replaced the same way. A crash at any point
-leaves either the old manifest (the object is redone on resume; its shard is rewritten with the
-same content, since every object's result is a function of the build seed and its id) or the new
-one. Readers only follow the manifest, so a half-written or orphaned file is never visible.
+file, fsynced and renamed into place under a name of its own content (so it never replaces a file
+the manifest lists); then the manifest - which lists the shard with its row count and sha256 and
+marks the object done - is replaced the same way, and only then is the object's previous shard
+deleted. A crash at any point leaves either the old manifest (the object is redone on resume; the
+orphaned shard is deleted when a build next opens the store) or the new one, and whichever is on
+disk describes exactly the files it lists. Readers only follow the manifest, so a half-written or
+orphaned file is never visible.
+
+Content hash: `content_hash` in the manifest is the hash of exactly the rows its shards hold, or
+null while a build is in progress. Each shard commit sets it to null in the same atomic manifest
+write that changes the shard list (recomputing it per object would read the whole store each
+time); `record_run`, at the end of every build run (finished or interrupted), computes and stores
+it. So a build killed between two runs leaves `"content_hash": null`, never a hash of other
+content; `recorded_content_hash()` returns it and `verify()` checks it.
 """
 from __future__ import annotations
 
@@ -123,6 +132,7 @@ class DatasetStore:
             store = cls.open(directory)
             store._check_same_build(parameters)
             store._lock_for_writing()
+            store._remove_orphans()
             return store
         if directory.exists() and any(p.name not in (SHARD_DIR, LOCK_NAME) for p in directory.iterdir()):
             raise StoreError(f"{directory}: exists and is not a pose store; choose an empty or new directory")
@@ -143,6 +153,15 @@ class DatasetStore:
             handle.close()
             raise StoreError(f"{self.directory}: another build is writing this store right now") from None
         self._lock_handle = handle  # held until this object (or the process) goes away
+
+    def _remove_orphans(self) -> None:
+        """Delete shard files the manifest does not list (left by a build killed mid-commit); needs the lock."""
+        listed = {self.directory / s["path"] for s in self.manifest["shards"]}
+        shard_dir = self.directory / SHARD_DIR
+        if shard_dir.is_dir():
+            for path in shard_dir.iterdir():
+                if path.is_file() and path not in listed:
+                    path.unlink(missing_ok=True)
 
     def close(self) -> None:
         """Release the writer lock (also released when the process exits)."""
@@ -170,6 +189,10 @@ class DatasetStore:
         return {oid: ObjectStatus(oid, dict(entry["counts"]), entry.get("shard"), int(entry.get("rows", 0)))
                 for oid, entry in self.manifest["objects"].items() if entry.get("status") == "done"}
 
+    def recorded_content_hash(self) -> str | None:
+        """The manifest's content hash: the hash of the stored rows, or None while a build is in progress."""
+        return self.manifest.get("content_hash")
+
     def shard_paths(self) -> list[Path]:
         return [self.directory / s["path"] for s in self.manifest["shards"]]
 
@@ -181,13 +204,18 @@ class DatasetStore:
         return pa.concat_tables(tables, promote_options="default")
 
     def verify(self) -> None:
-        """Raise StoreError if a listed shard is missing or its bytes differ from the manifest."""
+        """Raise StoreError if a listed shard is missing or its bytes differ from the manifest, or if the
+        manifest's content hash (when it has one) is not the hash of the stored rows."""
         for entry in self.manifest["shards"]:
             path = self.directory / entry["path"]
             if not path.is_file():
                 raise StoreError(f"{path}: listed in the manifest but missing")
             if _sha256_file(path) != entry["sha256"]:
                 raise StoreError(f"{path}: content differs from the manifest's sha256 (modified or corrupt)")
+        recorded = self.recorded_content_hash()
+        if recorded is not None and recorded != self.content_hash():
+            raise StoreError(f"{self.directory / MANIFEST_NAME}: content_hash {recorded[:16]}... is not the hash of "
+                             "the stored rows (stale or modified); rerun the build command to refresh it")
 
     # ------------------------------------------------------------------ writing
     def write_object(self, object_id: str, rows: pa.Table, stats: Mapping[str, Any]) -> ObjectStatus:
@@ -202,13 +230,16 @@ class DatasetStore:
         if rows.num_rows and set(rows.column("object_id").unique().to_pylist()) != {object_id}:
             raise StoreError(f"{object_id}: rows of other objects given: {rows.column('object_id').unique().to_pylist()}")
         shard = None
+        previous = {s["path"] for s in self.manifest["shards"] if s.get("object_id") == object_id}
         self.manifest["shards"] = [s for s in self.manifest["shards"] if s.get("object_id") != object_id]
         if rows.num_rows:
-            shard = f"{SHARD_DIR}/{_SAFE_NAME.sub('_', object_id)}.parquet"
             data = table_to_parquet_bytes(rows)
+            sha256 = hashlib.sha256(data).hexdigest()
+            # Named by its content: never overwrites a shard the manifest on disk lists.
+            shard = f"{SHARD_DIR}/{_SAFE_NAME.sub('_', object_id)}-{sha256[:16]}.parquet"
             atomic_write_bytes(self.directory / shard, data, durable=True)
             self.manifest["shards"].append({"path": shard, "object_id": object_id, "rows": rows.num_rows,
-                                            "sha256": hashlib.sha256(data).hexdigest()})
+                                            "sha256": sha256})
             self.manifest["shards"].sort(key=lambda s: s["object_id"])
         counts = {k: int(stats[k]) for k in COUNT_KEYS}
         extra = {k: v for k, v in stats.items() if k not in COUNT_KEYS}
@@ -216,7 +247,10 @@ class DatasetStore:
                                                "rows": rows.num_rows, **extra}
         self.manifest["objects"] = dict(sorted(self.manifest["objects"].items()))
         self.manifest["totals"] = _totals(self.manifest["objects"])
+        self.manifest["content_hash"] = None  # in progress: set again by record_run
         self._save()
+        for old in previous - {shard}:  # no longer listed by the manifest on disk
+            (self.directory / old).unlink(missing_ok=True)
         return ObjectStatus(object_id, counts, shard, rows.num_rows)
 
     def record_run(self, run: Mapping[str, Any]) -> None:

@@ -8,6 +8,8 @@ Conventions
 - Every model is registered by class name in `MESSAGE_TYPES`; the codec looks types up there.
   Value types nested inside messages (`ObjectRef`, `ObjectPose`, `ScoreTerms`, ...) derive from
   `Value`: they carry no id and are not sent on their own.
+- Each message type has `MAX_PAYLOAD_BYTES` (16 MiB by default, 64 MiB for batch results): the
+  codec refuses a bigger payload before decoding it. A job's pose batch holds at most MAX_BATCH_POSES.
 - Hand poses are 25-d vectors `[p(3), r6(6), q(16)]` of the hand base in the direction frame D
   (DESIGN.md §2) unless a field name says `_world`. Units: metres, seconds, degrees where the
   field name says `_deg`.
@@ -36,6 +38,16 @@ SCHEMA_VERSION = 1
 MESSAGE_TYPES: dict[str, type["Message"]] = {}
 
 POSE_DIM = 25  # [p(3), r6(6), q(16)]
+# The most poses one job carries: a generation batch, and the data engine validates one batch per
+# ValidationJob (the planner sends 1-6 a job). 4096 poses are 0.8 MB as float64.
+MAX_BATCH_POSES = 4096
+# The largest encoded payload of a message (the codec and workers refuse bigger ones before decoding):
+# room for the biggest legitimate request (a 4096-pose batch and an uploaded mesh of a few MB).
+DEFAULT_MAX_PAYLOAD_BYTES = 16 * 2**20
+# Results of a full batch (poses, per-term energies and histories, augmented copies) may be larger.
+MAX_RESULT_PAYLOAD_BYTES = 64 * 2**20
+# A library object id (rnd-042, pb-mug, proc-box-017, mesh-<hash>): never a path.
+LIBRARY_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]*$"
 HANDS: tuple[str, ...] = ("allegro", "leap")
 ARMS: tuple[str, ...] = ("panda", "xarm7")
 HAND_ARM_PAIRS: frozenset[tuple[str, str]] = frozenset({("allegro", "panda"), ("leap", "xarm7")})
@@ -60,6 +72,8 @@ class Message(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=False)
     schema_version: int = SCHEMA_VERSION
     id: str = Field(default_factory=new_id, min_length=1, max_length=128)
+
+    MAX_PAYLOAD_BYTES: ClassVar[int] = DEFAULT_MAX_PAYLOAD_BYTES
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -132,6 +146,7 @@ def array_of(
     dtypes: tuple[str, ...] = FLOAT_DTYPES,
     *,
     min_rows: int = 0,
+    max_rows: int | None = None,
     finite: bool = True,
 ) -> AfterValidator:
     """A pydantic validator constraining an NDArray's shape (None = any size), dtype and values."""
@@ -143,6 +158,8 @@ def array_of(
             raise ValueError(f"array shape must be {_format_shape(shape)}, got {a.shape}")
         if a.shape and a.shape[0] < min_rows:
             raise ValueError(f"array needs at least {min_rows} row(s), got shape {a.shape}")
+        if max_rows is not None and a.shape and a.shape[0] > max_rows:
+            raise ValueError(f"array has {a.shape[0]} rows; at most {max_rows} are accepted")
         if finite and a.dtype in FLOAT_DTYPES and not np.isfinite(a.to_numpy()).all():
             raise ValueError("array contains NaN or infinity")
         return a
@@ -152,6 +169,8 @@ def array_of(
 
 PoseBatch = Annotated[NDArray, array_of((None, POSE_DIM), min_rows=1)]
 """[N >= 1, 25] hand poses."""
+JobPoseBatch = Annotated[NDArray, array_of((None, POSE_DIM), min_rows=1, max_rows=MAX_BATCH_POSES)]
+"""[1 <= N <= MAX_BATCH_POSES, 25] hand poses of one job."""
 PoseArray = Annotated[NDArray, array_of((None, POSE_DIM))]
 """[N >= 0, 25] hand poses (may be empty)."""
 Pose = Annotated[NDArray, array_of((POSE_DIM,))]
@@ -209,7 +228,7 @@ class ErrorReply(Message):
     """What a service answers instead of a result when a request cannot be served.
 
     `code` is machine-readable: bad_request (malformed / unknown payload), not_implemented,
-    infeasible, internal, timeout, unavailable.
+    infeasible, internal, timeout, unavailable, cancelled (the caller gave up: its lease was lost).
     """
 
     code: str
@@ -217,7 +236,8 @@ class ErrorReply(Message):
     request_type: str | None = None
     service: str | None = None
 
-    CODES: ClassVar[tuple[str, ...]] = ("bad_request", "not_implemented", "infeasible", "internal", "timeout", "unavailable")
+    CODES: ClassVar[tuple[str, ...]] = ("bad_request", "not_implemented", "infeasible", "internal", "timeout", "unavailable",
+                                         "cancelled")
 
 
 class HealthQuery(Message):
@@ -276,10 +296,17 @@ class MeshBlob(Value):
 class ObjectRef(Value):
     """An object: exactly one of a library id, a mesh file, or a point cloud (metres)."""
 
-    library_id: str | None = Field(default=None, min_length=1)
+    library_id: str | None = Field(default=None, min_length=1, max_length=128, pattern=LIBRARY_ID_PATTERN)
     mesh: MeshBlob | None = None
     point_cloud: PointCloud | None = None
     scale: PositiveFloat | None = None
+
+    @field_validator("library_id")
+    @classmethod
+    def _not_a_path(cls, v: str | None) -> str | None:
+        if v is not None and ".." in v:
+            raise ValueError(f"library_id must be a library object id, not a path; got {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _exactly_one_source(self) -> "ObjectRef":
@@ -355,7 +382,7 @@ class GenerationJob(Message):
 
     object: ObjectRef
     hand: Hand
-    batch_size: int = Field(ge=1, le=4096)
+    batch_size: int = Field(ge=1, le=MAX_BATCH_POSES)
     seed: Seed = 0
     iterations: int | None = Field(default=None, ge=1, le=100_000)
     contacts_per_pose: int | None = Field(default=None, ge=1, le=64)
@@ -374,6 +401,8 @@ class GenerationResult(Message):
     max_penetration_m: FloatVector
     elapsed_s: NonNegFloat
     energy_history: dict[str, FloatVector] = Field(default_factory=dict)  # batch-mean per iteration
+
+    MAX_PAYLOAD_BYTES: ClassVar[int] = MAX_RESULT_PAYLOAD_BYTES
 
     @model_validator(mode="after")
     def _consistent_rows(self) -> "GenerationResult":
@@ -448,7 +477,7 @@ class ValidationJob(Message):
 
     object: ObjectRef
     hand: Hand
-    poses: PoseBatch
+    poses: JobPoseBatch
     seed: Seed = 0
     push_distance_m: PositiveFloat = Field(default=0.20, le=1.0)
     settings: PhysicsSettings | None = None
@@ -534,6 +563,8 @@ class ValidationResult(PushOutcomes, Message):
     final_object_poses: list[ObjectPose] | None = None  # arm rollouts: object pose after the push
     elapsed_s: NonNegFloat = 0.0
 
+    MAX_PAYLOAD_BYTES: ClassVar[int] = MAX_RESULT_PAYLOAD_BYTES
+
     @model_validator(mode="after")
     def _consistent_rows(self) -> "ValidationResult":
         n = self._outcome_rows("ValidationResult")
@@ -611,6 +642,9 @@ class PushRequest(Message):
     # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (0.7 s
     # less per push on 2 cores; its poses validate as often: results/sampler-quality).
     sampler: DiffusionSampler = "ddpm"
+    # The client's lease (`gd2p/lease/client/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
+    # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.
+    client_lease: str | None = Field(default=None, min_length=1, max_length=256)
 
     @model_validator(mode="after")
     def _target_and_robot(self) -> "PushRequest":

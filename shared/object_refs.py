@@ -1,32 +1,76 @@
-"""ObjectRef -> ObjectModel, for every service that simulates, plans around or samples for an object."""
+"""ObjectRef -> ObjectModel, for every service that simulates, plans around or samples for an object.
+
+A library id is loaded as an id only (`load_library_object`: never a path, whatever it looks like).
+An uploaded mesh joins the upload cache (`<cache>/objects/uploads/<sha256>.<format>`, named by its
+content) only once it loaded: it is written and loaded in a private temporary directory first, so
+a mesh that fails to load (ObjectLoadError) leaves nothing behind.
+"""
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
-from shared.atomic import atomic_write_bytes
 from shared.messages import MeshBlob, ObjectRef
 from shared.objects import ObjectLoadError, ObjectModel, load_object
 from shared.objects.cache import cache_root
+from shared.objects.model import load_library_object
+
+
+def _upload_path(mesh: MeshBlob) -> Path:
+    return cache_root() / "uploads" / f"{mesh.sha256}.{mesh.format}"
 
 
 def uploaded_mesh_path(mesh: MeshBlob) -> Path:
-    """The cached file of an uploaded mesh (written once, named by its content hash)."""
-    path = cache_root() / "uploads" / f"{mesh.sha256}.{mesh.format}"
+    """The cached file of an uploaded mesh that loads (written once, named by its content hash).
+
+    Raises ObjectLoadError (and keeps no file) when the mesh does not load.
+    """
+    path = _upload_path(mesh)
     if not path.is_file():
-        atomic_write_bytes(path, mesh.data)
+        _admit_upload(mesh, path)
     return path
+
+
+def load_uploaded_mesh(mesh: MeshBlob) -> ObjectModel:
+    """The ObjectModel of an uploaded mesh; ObjectLoadError (and no cached file) for a bad one."""
+    path = uploaded_mesh_path(mesh)
+    try:
+        return load_object(path)
+    except ObjectLoadError:
+        path.unlink(missing_ok=True)  # e.g. a file cached before uploads were checked
+        raise
+
+
+def _admit_upload(mesh: MeshBlob, path: Path) -> None:
+    """Load the mesh from a temporary directory beside `path`; move it to `path` only if it loaded."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".upload-") as staging:
+        staged = Path(staging) / path.name
+        staged.write_bytes(mesh.data)
+        try:
+            load_object(staged)  # computes and caches the geometry
+        except ObjectLoadError as exc:  # name the upload, not the temporary file
+            raise ObjectLoadError(str(exc).replace(str(staged), _upload_label(mesh))) from None
+        os.replace(staged, path)
+
+
+def _upload_label(mesh: MeshBlob) -> str:
+    content = f"{mesh.sha256[:12]}.{mesh.format}"
+    return f"uploaded mesh {mesh.name} ({content})" if mesh.name else f"uploaded mesh {content}"
 
 
 def load_object_ref(ref: ObjectRef) -> ObjectModel:
     """The library object or uploaded mesh of `ref`.
 
-    Raises ObjectLoadError for point clouds and scaled objects (no mesh to simulate) and bad meshes.
+    Raises ObjectLoadError for point clouds and scaled objects (no mesh to simulate), unknown ids
+    and bad meshes.
     """
     if ref.point_cloud is not None:
         raise ObjectLoadError(f"object {ref.object_id}: a point cloud has no mesh to plan around or simulate")
     if ref.scale is not None and ref.scale != 1.0:
         raise ObjectLoadError(f"object {ref.object_id}: scaled objects are not supported")
     if ref.library_id is not None:
-        return load_object(ref.library_id)
+        return load_library_object(ref.library_id)
     assert ref.mesh is not None
-    return load_object(uploaded_mesh_path(ref.mesh))
+    return load_uploaded_mesh(ref.mesh)

@@ -10,10 +10,16 @@ File layout (what the recorder writes and `gd2p replay` reads):
 - zstd-compressed chunks; log_time = receive time, publish_time = the sample's Zenoh timestamp if
   it had one, else the receive time (both ns since the Unix epoch).
 
+A file whose writer died (SIGKILL, power loss) has no summary or footer, and `make_reader` cannot
+open it. `recover_mcap` reads such a file front to back, record by record, keeps every complete
+chunk (CRC-checked) and writes what it holds as a new, complete MCAP; messages of the torn last
+chunk, and those the writer still held in memory, are lost. `is_complete_mcap` tells the two apart.
+
 This module knows nothing of Zenoh sessions; it only moves bytes.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import time
@@ -23,10 +29,14 @@ from functools import lru_cache
 from typing import IO, Any
 
 from mcap.decoder import DecoderFactory
+from mcap.exceptions import InvalidMagic
 from mcap.reader import make_reader
-from mcap.records import Schema
+from mcap.records import Attachment, Channel, Header, Metadata, Schema
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from shared.atomic import atomic_writer
 from shared.codec import decode, encode, model_name_from_encoding
 from shared.messages import MESSAGE_TYPES, Message
 
@@ -190,6 +200,103 @@ def read_records(path: str) -> Iterator[Record]:
             raise
         except Exception as exc:  # the mcap package raises several unrelated types on a bad file
             raise RecordingError(f"{path} is not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+
+
+# ----------------------------------------------------------------------------- recovery
+@dataclass(frozen=True)
+class Recovery:
+    """What `recover_mcap` kept of a file: messages, channels, and why reading stopped."""
+
+    messages: int
+    channels: int
+    complete: bool  # the source had its footer (nothing was lost)
+    stopped_by: str | None  # the error that ended the read of a cut file, None if complete
+
+
+class _ExactReads:
+    """A file whose `read(n)` returns exactly n bytes or raises: a cut record is an error, never short data."""
+
+    def __init__(self, stream: IO[bytes]):
+        self._stream = stream
+
+    def read(self, size: int = -1) -> bytes:
+        data = self._stream.read(size)
+        if size is not None and size >= 0 and len(data) != size:
+            raise EOFError(f"file ends inside a record (wanted {size} bytes, {len(data)} left)")
+        return data
+
+
+def is_complete_mcap(path: str | os.PathLike) -> bool:
+    """True if the file opens with `make_reader` (magic, footer and summary all readable)."""
+    try:
+        with open(path, "rb") as stream:
+            make_reader(stream).get_summary()
+    except Exception:  # the mcap package raises several unrelated types on a bad file
+        return False
+    return True
+
+
+def recover_mcap(source: str | os.PathLike, destination: str | os.PathLike, *,
+                 chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> Recovery:
+    """Copy every complete record of a (possibly cut) MCAP file into a new, complete MCAP file.
+
+    Reads `source` sequentially without its summary; reading stops at the first record that is cut
+    or fails its CRC. Schemas, channels (with their metadata), messages (times, sequence numbers),
+    metadata and attachments keep their content; the header's profile and library are kept. The
+    destination is written to a temporary file, fsynced and renamed, so it is whole or absent.
+    A file cut before its first record gives an empty recording. Raises RecordingError if `source`
+    cannot be opened or does not start with the MCAP magic.
+    """
+    try:
+        stream = open(source, "rb")
+    except OSError as exc:
+        raise RecordingError(f"cannot open recording {source}: {exc.strerror}") from None
+    with stream:
+        records = StreamReader(_ExactReads(stream), validate_crcs=True).records  # type: ignore[arg-type]
+        first: object = None
+        try:
+            first = next(records)
+        except (EOFError, StopIteration):  # cut before its first record: an empty recording
+            records = iter(())
+        except InvalidMagic as exc:
+            raise RecordingError(f"{source} is not an MCAP file ({exc})") from None
+        except Exception as exc:
+            raise RecordingError(f"{source}: no readable MCAP record ({type(exc).__name__}: {exc})") from None
+        header = first if isinstance(first, Header) else Header(profile="", library=LIBRARY)
+        with atomic_writer(destination, "wb", durable=True) as out:
+            writer = Writer(out, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+            writer.start(profile=header.profile, library=header.library)
+            schema_ids: dict[int, int] = {0: 0}
+            channel_ids: dict[int, int] = {}
+            messages = 0
+            stopped_by: str | None = None
+            records = itertools.chain([] if first is None or isinstance(first, Header) else [first], records)
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    break
+                except Exception as exc:  # a cut or corrupt record: everything before it is kept
+                    stopped_by = f"{type(exc).__name__}: {exc}"
+                    break
+                if isinstance(record, Schema):
+                    if record.id not in schema_ids:
+                        schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+                elif isinstance(record, Channel):
+                    if record.id not in channel_ids and record.schema_id in schema_ids:
+                        channel_ids[record.id] = writer.register_channel(
+                            record.topic, record.message_encoding, schema_ids[record.schema_id], dict(record.metadata))
+                elif isinstance(record, McapMessage):
+                    channel = channel_ids.get(record.channel_id)
+                    if channel is not None:
+                        writer.add_message(channel, record.log_time, record.data, record.publish_time, record.sequence)
+                        messages += 1
+                elif isinstance(record, Metadata):
+                    writer.add_metadata(record.name, dict(record.metadata))
+                elif isinstance(record, Attachment):
+                    writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
+            writer.finish()
+    return Recovery(messages=messages, channels=len(channel_ids), complete=stopped_by is None, stopped_by=stopped_by)
 
 
 class MessageDecoderFactory(DecoderFactory):

@@ -12,6 +12,7 @@ import threading
 import time
 
 from shared.bus import BusConfig, ServiceError, run_worker
+from shared.bus.worker import check_deadline
 from shared.messages import Message
 
 SERVICE = "bustest"
@@ -20,10 +21,12 @@ REPO_DIR = os.path.dirname(TESTS_DIR)
 
 
 class BusTestJob(Message):
-    """Echo `text` after `sleep_s`; `fail` makes the handler raise (value picks how)."""
+    """Echo `text` after `sleep_s` (and `spin_s`, checking the job's deadline every 10 ms); `fail`
+    makes the handler raise (value picks how)."""
 
     text: str = ""
     sleep_s: float = 0.0
+    spin_s: float = 0.0
     fail: str | None = None  # None | "service" | "crash"
 
 
@@ -58,6 +61,7 @@ def make_handler(worker_id: str):
             if job.fail == "crash":
                 raise ZeroDivisionError("asked to crash")
             time.sleep(job.sleep_s)
+            spin(job.spin_s)
             return BusTestResult(text=job.text, worker_id=worker_id, pid=os.getpid(),
                                  concurrent=concurrent, max_concurrent=counter.max)
         finally:
@@ -65,6 +69,14 @@ def make_handler(worker_id: str):
                 counter.now -= 1
 
     return handle
+
+
+def spin(seconds: float) -> None:
+    """Work for `seconds` as a long cooperative job does: in steps, checking the deadline between them."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        check_deadline()
+        time.sleep(0.01)
 
 
 def serve(endpoint: str, worker_id: str, concurrency: int = 1, service: str = SERVICE) -> None:

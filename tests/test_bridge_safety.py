@@ -21,9 +21,11 @@ import zenoh  # noqa: E402
 
 from services.robot_bridge.adapters.leap import LeapBackend  # noqa: E402
 from services.robot_bridge.adapters.xarm import XArmBackend  # noqa: E402
+from services.robot_bridge.backend import MotionStopped  # noqa: E402
 from services.robot_bridge.devsim import dynamixel as dx  # noqa: E402
 from services.robot_bridge.devsim.dynamixel import DynamixelBus  # noqa: E402
 from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api  # noqa: E402
+from services.robot_bridge import safety  # noqa: E402
 from services.robot_bridge.safety import (  # noqa: E402
     ESTOP_KEY,
     LEAP_LIMITS,
@@ -32,15 +34,16 @@ from services.robot_bridge.safety import (  # noqa: E402
     EStopLatch,
     SafeExecutor,
     SafetyRefusal,
-    check_lease_key,
-    lease_alive,
-    lease_key,
+    check_command_lease,
 )
+from shared.bus.keys import alive_key  # noqa: E402
+from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present  # noqa: E402
 from shared.codec import encode  # noqa: E402
-from shared.messages import EStop, ExecutionCommand, Plan  # noqa: E402
+from shared.messages import EStop, ErrorReply, ExecutionCommand, Plan  # noqa: E402
 
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
-LEASE = "gd2p/lease/planner-test"
+LEASE = lease_key("planner", "planner-test.1")
+STOP_BOUND_S = 0.5  # the target is 0.2 s; slack for a loaded 2-core CI machine
 
 
 def client(endpoint: str) -> zenoh.Session:
@@ -54,8 +57,10 @@ def client(endpoint: str) -> zenoh.Session:
 class Robot:
     """xArm7 + LEAP hand stand-ins, connected, behind a SafeExecutor."""
 
-    def __init__(self, endpoint: str, current_limit_ma: float = 550.0):
+    def __init__(self, endpoint: str, current_limit_ma: float = 550.0, watchdog: bool = False):
         self.session = client(endpoint)
+        self.probe = client(endpoint) if watchdog else None  # the router watchdog's second session
+        self.watchdog = RouterWatchdog(self.session, self.probe, "bridge-test") if watchdog else None
         self.controller = FakeXArmController(initial_rad=XARM_HOME)
         self.bus = DynamixelBus(motor_ids=range(16))
         self.arm = XArmBackend("192.168.1.201", api_factory=lambda ip: fake_xarm_api(self.controller, ip))
@@ -65,8 +70,25 @@ class Robot:
         self.published: list = []  # ExecutionStates published while executing
         self.executor = SafeExecutor(self.session, "xarm7", "leap",
                                      [Device(self.arm, XARM7_LIMITS), Device(self.hand, LEAP_LIMITS)],
-                                     publish=self.published.append)
+                                     publish=self.published.append, watchdog=self.watchdog)
         self._connected_at = (len(self.controller.commands), len(self.bus.instructions))
+        self.stopped_at: dict[str, float] = {}  # device -> time.monotonic() its execute() ended in MotionStopped
+        for backend in (self.arm, self.hand):
+            backend.execute = self._timed(backend.name, backend.execute)
+
+    def _timed(self, name: str, execute):
+        def timed(*args, **kwargs):
+            try:
+                return execute(*args, **kwargs)
+            except MotionStopped:
+                self.stopped_at.setdefault(name, time.monotonic())
+                raise
+        return timed
+
+    def halt_latency(self, fault_at: float) -> float:
+        """From the fault to the moment the last device had halted."""
+        assert set(self.stopped_at) == {self.arm.name, self.hand.name}, self.stopped_at
+        return max(self.stopped_at.values()) - fault_at
 
     def moved(self) -> bool:
         """Any motion command reached either device since connect."""
@@ -76,6 +98,9 @@ class Robot:
 
     def close(self) -> None:
         self.executor.close()
+        if self.watchdog is not None:
+            self.watchdog.close()
+            self.probe.close()
         self.arm.disconnect()
         self.hand.disconnect()
         self.bus.close()
@@ -113,7 +138,7 @@ def command(p: Plan, lease: str = LEASE, realtime_factor: float = 1.0) -> Execut
 
 def wait_for_lease(session: zenoh.Session, present: bool = True, timeout: float = 3.0) -> None:
     deadline = time.monotonic() + timeout
-    while lease_alive(session, LEASE, 0.5) != present:
+    while lease_alive(session, LEASE, 0.2) != present:
         assert time.monotonic() < deadline, f"lease presence never became {present}"
         time.sleep(0.05)
 
@@ -166,8 +191,8 @@ def test_a_plan_outside_the_limits_is_refused_before_anything_moves(robot, plann
 def test_an_effort_cap_above_the_device_limit_is_refused(zenoh_router, planner):
     robot = Robot(zenoh_router, current_limit_ma=900.0)  # LEAP limit: 550 mA
     try:
-        with pytest.raises(SafetyRefusal, match="900 mA, above its limit 550 mA"):
-            robot.executor.check(command(plan(hand_goal=np.full(16, 0.1))))
+        state = robot.executor.execute(command(plan(hand_goal=np.full(16, 0.1))))
+        assert state.status == "refused" and "900 mA, above its limit 550 mA" in state.message
         assert not robot.moved()
     finally:
         robot.close()
@@ -190,12 +215,27 @@ def test_a_measured_effort_over_its_limit_stops_every_device_and_latches(robot, 
 
 
 # ------------------------------------------------------------------------------------------ lease
-def test_lease_tokens_must_be_concrete_keys():
-    for bad in ("gd2p/lease/*", "gd2p/**", "", "gd2p//x", "gd2p/lease/$*a"):
+def test_a_command_lease_must_be_a_planner_lease_key():
+    for bad in ("gd2p/lease/planner/*", "gd2p/lease/**", "", "gd2p/lease/planner//x", "gd2p/lease/planner/$*a",
+                "gd2p/lease/planner-test", "gd2p/lease/planner/a/b", "gd2p/lease/client/c-1", "gd2p/alive/recorder/r1"):
         with pytest.raises(SafetyRefusal, match="lease"):
-            check_lease_key(bad)
-    assert check_lease_key(LEASE) == LEASE
-    assert lease_key("planner-test") == LEASE
+            check_command_lease(bad)
+    assert check_command_lease(LEASE) == LEASE == "gd2p/lease/planner/planner-test.1"
+
+
+@pytest.mark.parametrize("key", ["gd2p/lease/client/c-1", alive_key("recorder", "rec-1"), "gd2p/lease/planner-test"])
+def test_a_live_token_that_is_not_a_planner_lease_commands_nothing(robot, zenoh_router, key):
+    other = client(zenoh_router)  # e.g. the recorder's session, or a client's lease: alive, but no planner lease
+    try:
+        token = other.liveliness().declare_token(key)
+        assert lease_present(robot.session, key, 1.0)  # the token is there ...
+        state = robot.executor.execute(command(plan(XARM_HOME + 0.1), lease=key))  # ... and commands nothing
+        token.undeclare()
+    finally:
+        other.close()
+    assert state.status == "refused" and state.message.startswith("lease:"), state.message
+    assert "gd2p/lease/planner/<holder>" in state.message
+    assert not robot.moved()
 
 
 def test_a_command_whose_lease_is_not_alive_is_refused(robot):
@@ -217,14 +257,22 @@ def test_a_command_arriving_after_the_lease_is_lost_is_refused(robot, planner):
 def test_losing_the_lease_mid_execution_stops_the_motion(robot, zenoh_router):
     commander = client(zenoh_router)
     token = commander.liveliness().declare_token(LEASE)
+    fault_at: list[float] = []
+
+    def leave() -> None:  # the commander's process goes away
+        fault_at.append(time.monotonic())
+        commander.close()
+
     try:
         wait_for_lease(robot.session)
         goal = XARM_HOME + 0.8
-        threading.Timer(0.5, commander.close).start()  # the commander's process goes away
-        t0 = time.monotonic()
+        threading.Timer(0.5, leave).start()
         state = robot.executor.execute(command(plan(goal, duration_s=3.0, steps=10)))
-        assert state.status == "stopped" and "lease" in state.message, state.message
-        assert time.monotonic() - t0 < 2.0  # stopped well before the 3 s plan would have ended
+        latency = robot.halt_latency(fault_at[0])
+        print(f"commander left -> xArm + LEAP halted: {latency * 1000:.0f} ms")
+        assert state.status == "stopped" and f"lease {LEASE!r} lost" in state.message, state.message
+        assert "s after the loss was noticed" in state.message
+        assert latency <= STOP_BOUND_S
         assert np.max(np.abs(robot.controller.positions - goal)) > 0.3  # it did not get there
         assert ("set_state", 4) in robot.controller.commands  # the controller was told to stop
         assert robot.controller.state == 0  # and made ready again: a lost lease is no fault
@@ -232,6 +280,80 @@ def test_losing_the_lease_mid_execution_stops_the_motion(robot, zenoh_router):
         del token
         if not commander.is_closed():
             commander.close()
+
+
+def test_the_motion_stops_when_the_executor_loses_its_router():
+    from conftest import free_port, router_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(router_config(endpoint))
+    robot = Robot(endpoint)
+    commander = client(endpoint)
+    fault_at: list[float] = []
+
+    def router_dies() -> None:
+        fault_at.append(time.monotonic())
+        router.close()
+
+    try:
+        token = commander.liveliness().declare_token(LEASE)  # noqa: F841 - held until the router goes
+        wait_for_lease(robot.session)
+        goal = XARM_HOME + 0.8
+        threading.Timer(0.5, router_dies).start()
+        state = robot.executor.execute(command(plan(goal, duration_s=3.0, steps=10)))
+        latency = robot.halt_latency(fault_at[0])
+        print(f"router closed -> xArm + LEAP halted: {latency * 1000:.0f} ms")
+    finally:
+        robot.close()
+        commander.close()
+        if not router.is_closed():
+            router.close()
+    assert state.status == "stopped" and f"lease {LEASE!r} lost" in state.message, state.message
+    assert latency <= STOP_BOUND_S
+    assert np.max(np.abs(robot.controller.positions - goal)) > 0.3
+
+
+def test_the_motion_stops_when_the_router_hangs():
+    """A router that stops forwarding without closing its links (SIGSTOP): the executor's RouterWatchdog notices."""
+    import signal
+    import subprocess
+    import sys
+
+    from conftest import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    code = ("import time; from conftest import router_config; import zenoh; "
+            f"s = zenoh.open(router_config({endpoint!r})); print('up', flush=True); time.sleep(120)")
+    router = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              cwd=os.path.dirname(os.path.abspath(__file__)))
+    robot = commander = None
+    fault_at: list[float] = []
+
+    def router_hangs() -> None:
+        fault_at.append(time.monotonic())
+        router.send_signal(signal.SIGSTOP)
+
+    try:
+        assert router.stdout.readline().strip() == "up"
+        robot = Robot(endpoint, watchdog=True)
+        commander = client(endpoint)
+        token = commander.liveliness().declare_token(LEASE)  # noqa: F841 - held throughout
+        wait_for_lease(robot.session)
+        goal = XARM_HOME + 0.8
+        threading.Timer(0.5, router_hangs).start()
+        state = robot.executor.execute(command(plan(goal, duration_s=3.0, steps=10)))
+        latency = robot.halt_latency(fault_at[0])
+        print(f"router hung -> xArm + LEAP halted: {latency * 1000:.0f} ms")
+    finally:
+        router.send_signal(signal.SIGCONT)
+        router.kill()
+        router.wait(timeout=10)
+        for thing in (robot, commander):
+            if thing is not None:
+                thing.close()
+    assert state.status == "stopped" and "router forwarded nothing" in state.message, state.message
+    assert latency <= STOP_BOUND_S
+    assert np.max(np.abs(robot.controller.positions - goal)) > 0.3
 
 
 # ------------------------------------------------------------------------------------------ e-stop
@@ -258,9 +380,43 @@ def test_an_estop_message_stops_every_backend_at_once_and_latches(robot, planner
     assert again.status == "done", again.message
 
 
-def test_an_undecodable_message_on_the_estop_key_still_stops(robot, planner):
+ESTOP_PAYLOADS = {
+    "empty": (b"", None),
+    "garbage": (b"\xff\x00garbage", "application/msgpack;EStop"),
+    "wrong encoding": (b"STOP", "text/plain"),
+    "ErrorReply": encode(ErrorReply(code="internal", message="not a stop")),
+    "Plan": encode(plan()),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(ESTOP_PAYLOADS))
+def test_anything_on_the_estop_key_stops_every_device_mid_motion(robot, planner, kind):
+    session, _ = planner
+    wait_for_lease(robot.session)
+    payload, encoding = ESTOP_PAYLOADS[kind]
+    fault_at: list[float] = []
+
+    def publish() -> None:
+        fault_at.append(time.monotonic())
+        session.put(ESTOP_KEY, payload, encoding=encoding)
+
+    threading.Timer(0.4, publish).start()
+    arm_goal = XARM_HOME + 0.8
+    state = robot.executor.execute(command(plan(arm_goal, np.full(16, 1.0), duration_s=3.0, steps=10)))
+    latency = robot.halt_latency(fault_at[0])
+    print(f"e-stop ({kind}) -> xArm + LEAP halted: {latency * 1000:.0f} ms")
+    assert state.status == "stopped" and state.message.startswith("e-stop: "), state.message
+    assert latency <= STOP_BOUND_S
+    assert robot.controller.state == 4  # xArm: stop state
+    assert np.max(np.abs(robot.controller.positions - arm_goal)) > 0.3
+    assert robot.executor.estop.triggered.is_set() and "e-stop key" in robot.executor.estop.reason()
+
+
+def test_the_estop_stops_before_it_decodes_and_whatever_decoding_does(robot, planner, monkeypatch):
+    """The stop has started before the payload is even decoded, and a decoder that blows up changes nothing."""
     session, _ = planner
     stopped = threading.Event()
+    seen_by_decode: list[bool] = []
 
     class Recorder:
         name, joint_names = "probe", ()
@@ -268,13 +424,23 @@ def test_an_undecodable_message_on_the_estop_key_still_stops(robot, planner):
         def stop(self):
             stopped.set()
 
+    def exploding_decode(*_args, **_kwargs):
+        seen_by_decode.append(stopped.wait(1.0))  # an implementation that decodes first never gets here stopped
+        raise RuntimeError("decoder crashed")
+
+    monkeypatch.setattr(safety, "decode", exploding_decode)
     latch = EStopLatch(robot.session, [Recorder()])
     try:
         time.sleep(0.2)
         session.put(ESTOP_KEY, b"STOP")
-        assert stopped.wait(2.0) and latch.triggered.is_set()
+        assert stopped.wait(2.0) and latch.triggered.wait(1.0)
+        deadline = time.monotonic() + 2.0
+        while latch.last is None and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         latch.close()
+    assert seen_by_decode and all(seen_by_decode)  # this latch's decode, and the robot executor's own latch's
+    assert "RuntimeError: decoder crashed" in latch.reason()
 
 
 def test_gd2p_bridge_estop_publishes_an_estop(zenoh_router):

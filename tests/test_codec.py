@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from shared import messages as m
-from shared.codec import CodecError, decode, encode, encoding_for
+from shared.codec import CodecError, check_payload_size, decode, encode, encoding_for, payload_limit
 
 # --- strategies --------------------------------------------------------------------------------
 
@@ -53,8 +53,9 @@ mesh_blobs = st.builds(
     format=st.sampled_from(m.MESH_FORMATS),
     name=st.none() | text,
 )
+library_ids = st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,23}", fullmatch=True).filter(lambda i: ".." not in i)
 object_refs = st.one_of(
-    st.builds(m.ObjectRef, library_id=text, scale=st.none() | positive),
+    st.builds(m.ObjectRef, library_id=library_ids, scale=st.none() | positive),
     st.builds(m.ObjectRef, mesh=mesh_blobs, scale=st.none() | positive),
     st.builds(m.ObjectRef, point_cloud=rows.flatmap(lambda n: float_array((n, 3)))),
 )
@@ -397,6 +398,28 @@ def test_mesh_hash_mismatch_is_named():
 def test_encode_rejects_non_messages():
     with pytest.raises(CodecError, match="only encode"):
         encode({"id": "x"})  # type: ignore[arg-type]
+
+
+def test_oversized_payload_is_refused_before_unpacking(monkeypatch):
+    def unpack(*args, **kwargs):
+        raise AssertionError("an oversized payload was unpacked")
+
+    limit = m.DEFAULT_MAX_PAYLOAD_BYTES
+    big = b"\x00" * (limit + 1)
+    monkeypatch.setattr("shared.codec.msgpack.unpackb", unpack)
+    with pytest.raises(CodecError, match=f"ValidationJob payload of {limit + 1} bytes exceeds the limit of {limit} bytes"):
+        decode(big, encoding_for(m.ValidationJob))
+    with pytest.raises(CodecError, match="exceeds the limit"):
+        decode(big, None, expected=m.SampleRequest)
+
+
+def test_payload_limits_per_message_type():
+    assert payload_limit(encoding_for(m.ValidationJob)) == payload_limit(encoding_for(m.PushRequest)) == 16 * 2**20
+    assert payload_limit(encoding_for(m.ValidationResult)) == payload_limit(encoding_for(m.GenerationResult)) == 64 * 2**20
+    assert payload_limit("application/msgpack;NoSuchModel") == payload_limit(None) == 16 * 2**20
+    check_payload_size(64 * 2**20, encoding_for(m.ValidationResult))  # a full batch result still decodes
+    with pytest.raises(CodecError, match="PushRequest payload of 16777217 bytes"):
+        check_payload_size(16 * 2**20 + 1, encoding_for(m.PushRequest))
 
 
 def test_codec_error_is_a_value_error_for_callers_that_catch_broadly():

@@ -2,15 +2,17 @@
 
 Parses deploy/docker-compose.yml and the Dockerfile and checks them against the package: every
 service command is an importable `python -m` module, every healthcheck is a real `gd2p` command,
-the router image matches the installed Zenoh, validators scale, recordings persist.
+the router image matches the installed Zenoh, validators scale, recordings persist. The secure
+override (deploy/secure/docker-compose.secure.yml) gives each container only its own identity's key.
 """
 from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import json
 import importlib.util
 import re
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import pytest
 import yaml
@@ -19,9 +21,12 @@ import zenoh
 import cli.main
 import cli.system
 from deploy import scale_validators
+from shared.bus.config import ENV_CONFIG
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = ROOT / "deploy" / "docker-compose.yml"
+SECURE_OVERRIDE = ROOT / "deploy" / "secure" / "docker-compose.secure.yml"
+SECURE_SOURCE = "${GD2P_SECURE_DIR:-./secure/generated}/"
 SERVICES = ("generator", "validator", "sampler", "planner", "robot_bridge", "recorder")
 
 
@@ -118,3 +123,51 @@ def test_compose_scaling_without_docker_fails_clearly(monkeypatch, capsys):
     monkeypatch.setattr(scale_validators.shutil, "which", lambda name: None)
     assert scale_validators.main(["2", "--compose"]) == 1
     assert "docker" in capsys.readouterr().err
+
+
+def secure_mounts(service: dict) -> dict[str, str]:
+    """{file name under /secure: source} of a secure-override service's read-only bind mounts."""
+    mounts = {}
+    for volume in service["volumes"]:
+        source, target, mode = re.fullmatch(r"(.+?):(/[^:]*)(?::(\w+))?", volume).groups()
+        if not (target.startswith("/secure") or source.startswith(SECURE_SOURCE.split(":")[0])):
+            continue
+        assert mode == "ro", f"{volume} is not read-only"
+        assert source == SECURE_SOURCE + PurePosixPath(target).name, f"{volume} mounts another file than it names"
+        assert PurePosixPath(target).parent == PurePosixPath("/secure"), volume
+        mounts[PurePosixPath(target).name] = source
+    return mounts
+
+
+def test_each_secure_container_mounts_only_its_own_identity(tmp_path):
+    """Only ca.pem + that identity's certificate, key and config; the router only its own; never ca.key.
+    And the configs `python -m deploy.secure --mounted-at /secure` writes read only mounted files."""
+    from deploy.secure import prepare
+    from deploy.secure import profile as acl
+
+    override = yaml.safe_load(SECURE_OVERRIDE.read_text())
+    assert set(override["services"]) == {"router", *SERVICES}
+    generated = prepare(tmp_path / "generated", ["tls/0.0.0.0:7447"], connect=["tls/router:7447"],
+                        mounted_at="/secure")
+    written = {p.name for p in generated.directory.iterdir()}
+    assert "ca.key" not in written
+    for name, service in override["services"].items():
+        mounts = secure_mounts(service)
+        config_name = "router.json5" if name == "router" else f"client-{name}.json5"
+        assert set(mounts) == {"ca.pem", f"{name}.pem", f"{name}.key", config_name}, name
+        assert set(mounts) <= written, f"{name} mounts files `python -m deploy.secure` does not write"
+        if name == "router":
+            assert service["command"] == ["-c", f"/secure/{config_name}"]
+            side = "listen"
+        else:
+            command = service["command"]
+            assert command[command.index("--zenoh-config") + 1] == f"/secure/{config_name}"
+            assert service["environment"][ENV_CONFIG] == f"/secure/{config_name}"  # the healthcheck's identity
+            # ... which may health-query its own workers (`gd2p health --service NAME --this-host`)
+            assert acl.allowed(name, "ingress", "query", f"gd2p/{name}/worker/*/job")
+            assert acl.allowed(name, "egress", "reply", f"gd2p/{name}/worker/{name}-1/job")
+            side = "connect"
+        config = zenoh.Config.from_file(str(generated.directory / config_name))
+        read = {json.loads(config.get_json(f"transport/link/tls/{field}"))
+                for field in ("root_ca_certificate", f"{side}_certificate", f"{side}_private_key")}
+        assert read == {f"/secure/{name}.pem", f"/secure/{name}.key", "/secure/ca.pem"}, name

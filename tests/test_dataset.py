@@ -91,6 +91,84 @@ def test_store_content_hash_ignores_row_and_shard_order(tmp_path):
     assert b.rows().num_rows == 7
 
 
+def _manifest_on_disk(directory: Path) -> dict:
+    return json.loads((directory / MANIFEST_NAME).read_text())
+
+
+def _assert_manifest_describes_the_shards(directory: Path) -> None:
+    """The manifest on disk either claims no content hash (build in progress) or the hash of its shards' rows;
+    every shard it lists has the bytes it names."""
+    manifest = _manifest_on_disk(directory)
+    store = DatasetStore.open(directory)
+    store.verify()
+    assert manifest["content_hash"] is None or manifest["content_hash"] == store.content_hash()
+
+
+def test_manifest_never_claims_a_content_hash_for_other_content_after_a_kill(tmp_path):
+    out = tmp_path / "ds"
+    store = DatasetStore.create_or_resume(out, PARAMETERS)
+    store.record_run({"wall_s": 0.0})
+    assert store.manifest["content_hash"] == store.content_hash()  # a finished run: the hash of what is stored
+    store.write_object(OBJECTS[0], synthetic_rows(OBJECTS[0], 5), counts(5))
+    store.write_object(OBJECTS[1], synthetic_rows(OBJECTS[1], 3), counts(3))
+    # The build is killed here (after two shard commits, before the run's end): nothing more is written.
+    on_disk = _manifest_on_disk(out)
+    assert on_disk["content_hash"] is None, "an in-progress manifest must not claim a hash (here: the empty store's)"
+    assert DatasetStore.open(out).recorded_content_hash() is None
+    _assert_manifest_describes_the_shards(out)
+
+    store.close()
+    resumed = DatasetStore.create_or_resume(out, PARAMETERS)
+    resumed.record_run({"wall_s": 0.0})  # the next run ends: the hash is back, and right
+    assert _manifest_on_disk(out)["content_hash"] == resumed.content_hash() == DatasetStore.open(out).content_hash()
+    _assert_manifest_describes_the_shards(out)
+
+
+def test_a_kill_between_rewriting_a_shard_and_the_manifest_update_leaves_a_consistent_store(tmp_path, monkeypatch):
+    out = tmp_path / "ds"
+    store = DatasetStore.create_or_resume(out, PARAMETERS)
+    store.write_object(OBJECTS[0], synthetic_rows(OBJECTS[0], 5), counts(5))
+    store.record_run({"wall_s": 0.0})
+    finished = _manifest_on_disk(out)
+
+    real_replace = os.replace
+
+    def killed_before_the_manifest(src, dst):
+        if Path(dst).name == MANIFEST_NAME:
+            raise KeyboardInterrupt("killed")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", killed_before_the_manifest)
+    with pytest.raises(KeyboardInterrupt):  # the object is rewritten with other rows; the shard lands, the manifest not
+        store.write_object(OBJECTS[0], synthetic_rows(OBJECTS[0], 5).slice(0, 2), counts(2))
+    monkeypatch.setattr(os, "replace", real_replace)
+
+    assert _manifest_on_disk(out) == finished
+    _assert_manifest_describes_the_shards(out)  # the listed shard still holds the 5 rows the manifest names
+    assert DatasetStore.open(out).rows().num_rows == 5
+    store.close()
+    resumed = DatasetStore.create_or_resume(out, PARAMETERS)  # a resume deletes the orphaned shard
+    assert sorted(p.name for p in (out / "shards").iterdir()) == [Path(s["path"]).name for s in finished["shards"]]
+    resumed.write_object(OBJECTS[0], synthetic_rows(OBJECTS[0], 5).slice(0, 2), counts(2))
+    resumed.record_run({"wall_s": 0.0})
+    assert len(list((out / "shards").iterdir())) == 1  # the replaced shard is gone once the manifest moved on
+    _assert_manifest_describes_the_shards(out)
+    assert DatasetStore.open(out).rows().num_rows == 2
+
+
+def test_verify_rejects_a_manifest_whose_content_hash_does_not_match_its_rows(tmp_path):
+    out = tmp_path / "ds"
+    store = DatasetStore.create_or_resume(out, PARAMETERS)
+    store.write_object(OBJECTS[0], synthetic_rows(OBJECTS[0], 4), counts(4))
+    store.record_run({"wall_s": 0.0})
+    DatasetStore.open(out).verify()
+    manifest = _manifest_on_disk(out)
+    manifest["content_hash"] = "0" * 64  # e.g. a store written by a build before this fix, killed mid-run
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest))
+    with pytest.raises(StoreError, match="content_hash .* is not the hash of the stored rows"):
+        DatasetStore.open(out).verify()
+
+
 def test_resuming_with_other_build_parameters_or_while_another_build_writes_is_refused(tmp_path):
     writer = DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
     with pytest.raises(StoreError, match="another build is writing"):

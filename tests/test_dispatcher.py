@@ -8,8 +8,8 @@ from collections import Counter
 import pytest
 
 import bus_test_workers as tw
-from shared.bus import BusConfig, DispatchError, Dispatcher, RemoteError, open_session
-from shared.messages import ErrorReply
+from shared.bus import BusConfig, BusError, DispatchError, Dispatcher, RemoteError, alive_key, job_key, open_session
+from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -71,9 +71,22 @@ def test_submit_is_idempotent_by_job_id(session, two_workers):
         first = dispatcher.submit(job)
         assert dispatcher.submit(job) is first  # in flight
         result = first.result(10)
-        assert dispatcher.submit(tw.BusTestJob(id=job.id, text="same")) is first  # recently completed
+        assert dispatcher.submit(tw.BusTestJob(id=job.id, text="same", sleep_s=0.05)) is first  # recently completed
         assert result.id == job.id
         assert dispatcher.stats()[result.worker_id]["answered"] >= 1
+        assert sum(w["dispatched"] for w in dispatcher.stats().values()) == 1
+
+
+def test_a_different_job_under_a_known_id_is_refused(session, two_workers):
+    with Dispatcher(session, tw.SERVICE, timeout_s=10) as dispatcher:
+        dispatcher.wait_for_workers(1, timeout=10)
+        job = tw.BusTestJob(text="mine", sleep_s=0.3)
+        first = dispatcher.submit(job)
+        with pytest.raises(BusError, match=f"job id {job.id} was reused for a different job"):
+            dispatcher.submit(tw.BusTestJob(id=job.id, text="theirs"))  # in flight
+        assert first.result(10).text == "mine"
+        with pytest.raises(BusError, match="reused for a different job"):
+            dispatcher.submit(tw.BusTestJob(id=job.id, text="theirs"))  # recently completed
         assert sum(w["dispatched"] for w in dispatcher.stats().values()) == 1
 
 
@@ -85,17 +98,52 @@ def test_remote_errors_surface_as_remote_error(session, two_workers):
         assert info.value.code == "infeasible"
 
 
-def test_timed_out_job_is_retried_then_fails_clearly(session, two_workers):
-    with Dispatcher(session, tw.SERVICE, timeout_s=0.3, max_attempts=2) as dispatcher:
-        dispatcher.wait_for_workers(2, timeout=10)
-        slow = tw.BusTestJob(text="slow", sleep_s=1.5)
-        with pytest.raises(DispatchError, match=rf"BusTestJob {slow.id}: no result from a bustest worker after 2 attempt") as info:
+@pytest.fixture()
+def hung_worker(session):
+    """A worker of service "bustest-hung" that takes queries and never answers (a hung process)."""
+    service, worker_id = "bustest-hung", "hung-1"
+    held: list = []  # queries kept unanswered (a dropped query would end without a reply)
+    queryable = session.declare_queryable(job_key(service, worker_id), held.append, complete=True)
+    token = session.liveliness().declare_token(alive_key(service, worker_id))
+    yield service, held
+    token.undeclare()
+    queryable.undeclare()
+
+
+def test_an_unanswered_job_is_retried_then_fails_clearly(session, hung_worker):
+    service, held = hung_worker
+    with Dispatcher(session, service, timeout_s=0.3, max_attempts=2) as dispatcher:
+        dispatcher.wait_for_workers(1, timeout=10)
+        slow = tw.BusTestJob(text="slow")
+        with pytest.raises(DispatchError, match=rf"BusTestJob {slow.id}: no result from a {service} worker after 2 attempt") as info:
             dispatcher.call(slow, timeout=10)
         assert info.value.code == "timeout"
         assert "did not answer" in str(info.value)
+        assert len(held) == 2
         # map() reports the same failure as an ErrorReply instead of aborting the batch.
-        [reply] = list(dispatcher.map([tw.BusTestJob(text="slow2", sleep_s=1.5)]))
+        [reply] = list(dispatcher.map([tw.BusTestJob(text="slow2")]))
         assert isinstance(reply, ErrorReply) and reply.code == "timeout"
+
+
+def test_a_job_past_its_deadline_is_answered_once_not_redispatched(session, two_workers):
+    with Dispatcher(session, tw.SERVICE, timeout_s=2.0, max_attempts=3) as dispatcher:
+        dispatcher.wait_for_workers(2, timeout=10)
+        started = time.monotonic()
+        with pytest.raises(RemoteError, match="did not finish within its deadline of 1.8 s") as info:
+            dispatcher.call(tw.BusTestJob(text="endless", spin_s=30), timeout=10)
+        assert info.value.code == "timeout"
+        assert time.monotonic() - started < 3.0  # the worker answered before the query timed out
+        assert sum(w["dispatched"] for w in dispatcher.stats().values()) == 1  # final: no other worker tried it
+
+
+def test_an_oversized_job_is_refused_once_not_redispatched(session, two_workers):
+    with Dispatcher(session, tw.SERVICE, timeout_s=20, max_attempts=3) as dispatcher:
+        dispatcher.wait_for_workers(2, timeout=10)
+        oversized = tw.BusTestJob(text="x" * (DEFAULT_MAX_PAYLOAD_BYTES + 1))
+        with pytest.raises(RemoteError, match="exceeds the limit") as info:
+            dispatcher.call(oversized, timeout=30)
+        assert info.value.code == "bad_request"
+        assert sum(w["dispatched"] for w in dispatcher.stats().values()) == 1
 
 
 def test_closing_fails_pending_jobs_and_waiting_is_bounded(session):

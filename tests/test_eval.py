@@ -98,3 +98,28 @@ def test_reports_and_index(tmp_path):
     assert summary["code"] not in ("", "unknown")  # the commit these results came from (tests run in the checkout)
     index = write_index(tmp_path).read_text()
     assert "[Methods](methods/report.md)" in index and "| GD2P | 0.81 |" in index
+
+
+def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object_got(monkeypatch):
+    """The failed request's PushError carries the executed pushes: their count and the object's path are recorded."""
+    from types import SimpleNamespace
+
+    from evaluation import multistep
+    from evaluation.local_system import Contacts
+    from services.planner.pipeline import PushError
+    from shared.messages import ObjectPose
+
+    moved = [SimpleNamespace(step=SimpleNamespace(result=SimpleNamespace(final_object_pose=ObjectPose(position=p))))
+             for p in [(0.45, 0.0, 0.04), (0.47, 0.1, 0.04)]]
+
+    class StuckPipeline:
+        def run(self, request):
+            raise PushError("infeasible", "push 3, ... after 2 push(es): no plan", records=moved)
+
+    system = SimpleNamespace(robot=SimpleNamespace(contacts=Contacts()), pipeline=lambda _name: StuckPipeline())
+    monkeypatch.setattr(protocol, "_system", system)
+    run = multistep.Run(multistep.SCENARIOS[0], "proc-cylinder-001", 0)
+    record = multistep.run_one(run)
+    assert record["outcome"] == "infeasible" and record["pushes"] == 2 and not record["success"]
+    start = pose_matrix(multistep.request(run).object_pose)[:2, 3]
+    assert record["path_xy"] == [[round(float(v), 4) for v in start], [0.45, 0.0], [0.47, 0.1]]

@@ -18,7 +18,16 @@ import pytest
 
 import cli.system
 from deploy import scale_validators
-from deploy.launcher import SERVICES, LaunchError, Launcher, free_loopback_endpoint, request_scale
+from deploy.launcher import (
+    MAX_SCALE_ENV,
+    SERVICES,
+    LaunchError,
+    Launcher,
+    default_scale_limits,
+    free_loopback_endpoint,
+    request_scale,
+    scale_limits,
+)
 from shared.bus import BusConfig, Dispatcher, RemoteError, live_workers, open_session
 from shared.messages import GenerationJob, ObjectRef
 
@@ -55,7 +64,8 @@ def alive(pid: int) -> bool:
 @pytest.fixture(scope="module")
 def launcher(tmp_path_factory):
     root = tmp_path_factory.mktemp("launcher")
-    system = Launcher(validators=1, listen=free_loopback_endpoint(), record_dir=root / "rec", log_dir=root / "logs")
+    system = Launcher(validators=1, listen=free_loopback_endpoint(), record_dir=root / "rec", log_dir=root / "logs",
+                      max_scale={"validator": 2})
     system.start()
     try:
         system.wait_ready(60)
@@ -110,6 +120,17 @@ def test_scale_validators_up_and_down_through_the_control_key(launcher, client, 
     assert "validators: 1" in capsys.readouterr().out
     eventually(lambda: len(live_workers(client, "validator").get("validator", [])) == 1, what="1 validator")
     assert len(launcher.expected_workers()["validator"]) == 1
+
+
+def test_a_scale_request_above_the_maximum_is_refused_clearly(launcher, client):
+    before = launcher.expected_workers()["validator"]
+    for count in (3, 1024):  # the configured maximum is 2; ScaleRequest's own bound is 1024
+        with pytest.raises(RemoteError) as caught:
+            request_scale(client, "validator", count)
+        assert caught.value.code == "bad_request"
+        assert f"cannot scale validator to {count}: the maximum on this launcher is 2" in caught.value.message
+        assert MAX_SCALE_ENV in caught.value.message
+    assert launcher.expected_workers()["validator"] == before
 
 
 def test_singletons_cannot_be_scaled(client):
@@ -179,3 +200,20 @@ def test_gd2p_up_stops_everything_on_sigterm(tmp_path):
         if up.poll() is None:
             up.kill()
             up.wait()
+
+
+def test_scale_limits_follow_the_cores_and_are_configurable(monkeypatch, tmp_path):
+    assert default_scale_limits(2) == {"generator": 2, "planner": 2, "sampler": 2, "validator": 8}
+    assert default_scale_limits(1)["validator"] == 4 and default_scale_limits(8)["planner"] == 8
+    from_env = scale_limits(environ={MAX_SCALE_ENV: "validator=16, planner=3"}, cpus=2)
+    assert from_env == {"generator": 2, "planner": 3, "sampler": 2, "validator": 16}
+    assert scale_limits({"validator": 1}, environ={MAX_SCALE_ENV: "validator=16"}, cpus=2)["validator"] == 1
+    for bad in ("robot_bridge=2", "validator", "validator=many", "validator=-1", "validator=1025"):
+        with pytest.raises(LaunchError, match=MAX_SCALE_ENV):
+            scale_limits(environ={MAX_SCALE_ENV: bad}, cpus=2)
+    with pytest.raises(LaunchError, match="the maximum on this launcher is 2"):
+        Launcher(validators=3, max_scale={"validator": 2}, log_dir=tmp_path / "logs")
+    monkeypatch.setenv(MAX_SCALE_ENV, "validator=1")
+    system = Launcher(log_dir=tmp_path / "logs")  # default: one validator per core, within the maximum
+    assert system.max_scale["validator"] == 1 and system.initial_counts["validator"] == 1
+    assert system.scale_refusal("validator", 1) is None and "maximum" in system.scale_refusal("validator", 2)

@@ -44,6 +44,18 @@ def test_object_ref_needs_exactly_one_source():
         m.ObjectRef(library_id="box", mesh=blob)
 
 
+@pytest.mark.parametrize("bad", ["../../etc/passwd", "/tmp/x.obj", "proc-box-000/../x", "a..b", "mesh-../../x",
+                                 "dir\\x.obj", ".hidden", "", "x" * 129])
+def test_library_id_is_an_id_never_a_path(bad):
+    with pytest.raises(ValidationError, match="library_id"):
+        m.ObjectRef(library_id=bad)
+
+
+def test_library_ids_of_every_kind_are_accepted():
+    for good in ("rnd-042", "pb-cube-small", "proc-box-017", "mesh-0123456789ab", "box", "obj.v2_1"):
+        assert m.ObjectRef(library_id=good).object_id == good
+
+
 def test_object_ids_are_stable_content_ids():
     blob = m.MeshBlob.from_bytes(b"v 0 0 0\n", "obj")
     assert m.ObjectRef(mesh=blob).object_id == f"mesh:{blob.sha256[:16]}"
@@ -136,6 +148,15 @@ def test_wrong_pose_width():
         m.ValidationJob(object=BOX, hand="allegro", poses=_poses(3, 24))
     with pytest.raises(ValidationError, match="at least 1 row"):
         m.ValidationJob(object=BOX, hand="allegro", poses=_poses(0))
+
+
+def test_validation_job_pose_count_is_bounded():
+    job = m.ValidationJob(object=BOX, hand="allegro", poses=_poses(m.MAX_BATCH_POSES))
+    assert job.poses.shape == [m.MAX_BATCH_POSES, 25]
+    with pytest.raises(ValidationError, match=f"{m.MAX_BATCH_POSES + 1} rows; at most {m.MAX_BATCH_POSES}"):
+        m.ValidationJob(object=BOX, hand="allegro", poses=_poses(m.MAX_BATCH_POSES + 1))
+    with pytest.raises(ValidationError, match="less than or equal to 4096"):
+        m.GenerationJob(object=BOX, hand="allegro", batch_size=m.MAX_BATCH_POSES + 1)
 
 
 def test_generation_job_batch_bounds():

@@ -28,6 +28,10 @@ from shared.objects import (
     split_of,
     write_object_urdf,
 )
+from shared.messages import MeshBlob, ObjectRef
+from shared.object_refs import load_object_ref, uploaded_mesh_path
+from shared.objects.cache import cache_root
+from shared.objects.model import load_library_object
 from shared.objects.procedural import procedural_spec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -255,6 +259,46 @@ def test_sdf_cache_is_hit_on_second_load(cache, tmp_path, monkeypatch):
     np.testing.assert_array_equal(second.sdf.values, values)
     assert second.provenance == {"geometry": "cache", "sdf": "cache"}
     assert load_object(first.id, sdf_resolution=20, cache_dir=cache).mesh_hash == first.mesh_hash  # by content id
+
+
+# ----------------------------------------------------------------------------- objects named by the bus
+def _pebble(path: Path) -> Path:
+    trimesh.creation.icosphere(subdivisions=2, radius=0.04).export(path)
+    return path
+
+
+def test_a_library_id_is_never_read_as_a_path(cache, tmp_path, monkeypatch):
+    monkeypatch.setenv("GD2P_CACHE_DIR", str(cache))
+    pebble = _pebble(tmp_path / "x.obj")
+    monkeypatch.chdir(tmp_path)  # relative names resolve here: "x.obj" names a loadable mesh
+    mesh_id = load_object(pebble, cache_dir=cache).id  # local callers may still load a file by path
+    for bad in ("../../etc/passwd", "/tmp/x.obj", str(pebble), "x.obj", "proc-box-000/../x", "proc-box-000/../x.obj"):
+        with pytest.raises(UnknownObjectError):
+            load_library_object(bad, cache_dir=cache)
+        with pytest.raises(UnknownObjectError):  # what services load (the message's own check is bypassed here)
+            load_object_ref(ObjectRef.model_construct(library_id=bad))
+    assert load_library_object("proc-box-001", cache_dir=cache).id == "proc-box-001"
+    assert load_object_ref(ObjectRef(library_id=mesh_id)).id == mesh_id  # a mesh loaded before, by its id
+
+
+def test_a_rejected_upload_leaves_nothing_in_the_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("GD2P_CACHE_DIR", str(tmp_path / "cache"))
+    sheet = MeshBlob.from_bytes(b"v 0 0 0\nv 0.1 0 0\nv 0.1 0.1 0\nv 0 0.1 0\nf 1 2 3\nf 1 3 4\n", "obj")
+    with pytest.raises(ObjectLoadError, match="encloses no volume"):
+        load_object_ref(ObjectRef(mesh=sheet))
+    with pytest.raises(ObjectLoadError, match="encloses no volume"):
+        uploaded_mesh_path(sheet)  # what the sampler caches
+    assert [p for p in (tmp_path / "cache").rglob("*") if p.is_file()] == []
+    stale = cache_root() / "uploads" / f"{sheet.sha256}.obj"  # cached before uploads were checked
+    stale.parent.mkdir(parents=True, exist_ok=True)
+    stale.write_bytes(sheet.data)
+    with pytest.raises(ObjectLoadError):
+        load_object_ref(ObjectRef(mesh=sheet))
+    assert not stale.exists()
+    good = MeshBlob.from_file(str(_pebble(tmp_path / "pebble.obj")))
+    obj = load_object_ref(ObjectRef(mesh=good))
+    assert obj.source_path == uploaded_mesh_path(good) and obj.source_path.read_bytes() == good.data
+    assert [p.name for p in (cache_root() / "uploads").iterdir()] == [f"{good.sha256}.obj"]
 
 
 # ----------------------------------------------------------------------------- physics

@@ -213,31 +213,41 @@ def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss
     assert predicts_success(score(goal_cost(0.02, rotation_deg=30.0, max_tilt_deg=3.0), 1.0, 0.0))
 
 
-def _push_with_altered_rollouts(alter, settings=None):
-    """A push of the box by spatula poses (8, shifted sideways by up to 2 cm) on an in-process system
-    whose i-th arm rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
-    from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
+def _box_at(x: float, y: float) -> np.ndarray:
+    """T_world_O of the box resting at (x, y)."""
+    from shared.objects import load_object
+
+    T_world_O = np.eye(4)
+    T_world_O[:3, 3] = (x, y, 0.0)
+    return T_world_O @ load_object(BOX).T_D_O()
+
+
+def _spatula_poses(request):
+    """A pose source of 8 spatula poses behind the box (shifted sideways by up to 2 cm) in the request's frame."""
     from shared.fixed_poses import spatula_pose
     from shared.frames import frame_transform, invert_transform, poses_d_to_world
     from shared.hands import load_hand
     from shared.messages import SampleResponse
     from shared.objects import load_object
+    from shared.push_outcome import pose_matrix
 
     hand, box = load_hand("allegro"), load_object(BOX)
-    T_world_O = np.eye(4)
-    T_world_O[:3, 3] = (0.5, 0.0, 0.0)
-    T_world_O = T_world_O @ box.T_D_O()
+    T_world_D = frame_transform(request.frame)
+    T_D_O = invert_transform(T_world_D) @ pose_matrix(request.frame.object_pose)
+    base = spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
+    poses = np.repeat(base[None], 8, axis=0)
+    poses[:, 1] += np.linspace(-0.02, 0.02, 8)
+    return SampleResponse(request_id=request.id, hand=request.hand, poses_d=poses,
+                          poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
-    def sample(request):
-        T_world_D = frame_transform(request.frame)
-        T_D_O = invert_transform(T_world_D) @ T_world_O
-        base = spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
-        poses = np.repeat(base[None], 8, axis=0)
-        poses[:, 1] += np.linspace(-0.02, 0.02, 8)
-        return SampleResponse(request_id=request.id, hand=request.hand, poses_d=poses,
-                              poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
+def _push_with_altered_rollouts(alter, settings=None):
+    """A push of the box by spatula poses (`_spatula_poses`) on an in-process system whose i-th arm
+    rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
+
+    T_world_O = _box_at(0.5, 0.0)
     rollouts = []
 
     def validate(job):
@@ -247,11 +257,13 @@ def _push_with_altered_rollouts(alter, settings=None):
         return altered
 
     robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=sample, validate=validate, execute=robot.execute),
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate, execute=robot.execute),
                             settings or PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
-        return pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
-                                        direction_deg=90.0, k=8)), len(rollouts)
+        outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
+                                           direction_deg=90.0, k=8))
+        assert [r.step for r in outcome.records] == outcome.response.steps
+        return outcome.response, len(rollouts)
     except PushError as exc:
         return exc, len(rollouts)
     finally:
@@ -291,3 +303,182 @@ def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
     error, rollouts = _push_with_altered_rollouts(lambda i, result: touching(result))
     assert isinstance(error, PushError) and error.code == "infeasible"
     assert rollouts == 4 and "touch an obstacle" in error.message
+
+
+def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_once():
+    """The one retry helper of arm plans and their ways back (`stages.within_limits`)."""
+    from collections import Counter
+
+    from services.planner.motion import PlanningError
+    from services.planner.stages import within_limits
+    from shared.robot_limits import LimitViolation
+
+    class Limits:  # the first `broken` plans leave the workspace
+        def __init__(self, broken):
+            self.broken = broken
+
+        def check_plan(self, plan):
+            if plan < self.broken:
+                raise LimitViolation("workspace", "hand", 1.0, "outside the box")
+
+    def counter():
+        made = []
+        return made, lambda: made.append(len(made)) or made[-1]
+
+    made, make = counter()
+    failures = Counter()
+    assert within_limits(make, Limits(2), 3, failures, "plan") == 2 and len(made) == 3
+    assert failures == {"plan breaks the robot's workspace limit": 2}
+    made, make = counter()
+    assert within_limits(make, Limits(5), 3, failures, "way back") is None and len(made) == 3
+    assert failures["way back breaks the robot's workspace limit"] == 3
+
+    def unplannable():
+        made.append(0)
+        raise PlanningError("no path", "RRTConnect timed out")
+
+    made = []
+    assert within_limits(unplannable, Limits(0), 3, failures, "plan") is None and len(made) == 1
+    assert failures["no path"] == 1
+
+
+def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
+    """The second push's pose source fails: the PushError carries the first push's record."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
+
+    samples = []
+
+    def sample_once(request):
+        samples.append(request)
+        if len(samples) > 1:
+            raise PushError("unavailable", "sampler: gone")
+        return _spatula_poses(request)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=sample_once, validate=validate_here, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
+    start = _box_at(0.5, 0.12)
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start), goal_xy=(0.5, -0.12),
+                          distance_m=0.13, k=8)
+    try:
+        with pytest.raises(PushError) as failure:
+            pipeline.run(request)
+    finally:
+        pipeline.close()
+        robot.close()
+    assert failure.value.code == "unavailable" and "after 1 push(es)" in failure.value.message
+    [record] = failure.value.records
+    assert np.allclose(record.T_world_O_start, start) and record.world is not None
+    assert record.step.result.final_object_pose.position[1] < 0.05  # it moved toward the goal
+
+
+# ------------------------------------------------------------------------------- cancellation
+
+
+def _push_cancelled_when(system, drop_when, lease: str):
+    """Send a leased push request; call `drop_when(state)` on each robot state and drop the client's lease
+    the first time it is true. Returns (reply, robot states as (monotonic time, state), time of the drop)."""
+    from shared.bus import Dispatcher
+    from shared.bus.keys import ROBOT_STATE_KEY
+    from shared.codec import decode
+
+    cfg, _ = system
+    states: list = []
+    drop = threading.Event()
+    with open_session(cfg) as session:
+        token = session.liveliness().declare_token(lease)
+
+        def on_state(sample):
+            state = decode(sample.payload.to_bytes(), str(sample.encoding))
+            states.append((time.monotonic(), state))
+            if drop_when(state):
+                drop.set()
+
+        subscriber = session.declare_subscriber(ROBOT_STATE_KEY, on_state)
+        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", client_lease=lease)
+        with Dispatcher(session, "planner", timeout_s=240.0, max_attempts=1) as planner:
+            future = planner.submit(request)
+            dropped_at = None
+            if drop.wait(120.0):
+                token.undeclare()  # what Ctrl-C, a crash or a lost connection does to the client's token
+                dropped_at = time.monotonic()
+            reply = future.result(240.0)
+        subscriber.undeclare()
+    return reply, states, dropped_at
+
+
+def test_a_client_that_gives_up_mid_motion_cancels_the_push_and_the_robot_stops(system):
+    from shared.bus.lease import lease_key
+    from shared.messages import ErrorReply
+
+    reply, states, dropped_at = _push_cancelled_when(system, lambda s: s.status == "executing",
+                                                     lease_key("client", "gives-up-mid-motion"))
+    assert dropped_at is not None, "the robot never started moving"
+    assert isinstance(reply, ErrorReply) and reply.code == "cancelled", reply
+    ends = [(t, s) for t, s in states if s.status != "executing" and t > dropped_at]
+    assert ends and ends[0][1].status == "stopped", [s.status for _, s in ends]
+    stop_latency = ends[0][0] - dropped_at
+    assert stop_latency < 1.0, f"the robot stopped {stop_latency:.2f} s after the client left"
+    moving_after = [t for t, s in states if s.status == "executing" and t > ends[0][0]]
+    assert not moving_after, "the robot kept moving after it reported stopped"
+
+
+def test_a_request_whose_client_is_already_gone_never_moves_the_robot(system):
+    from shared.bus.lease import lease_key
+    from shared.messages import ErrorReply
+
+    cfg, _ = system
+    gone = lease_key("client", "already-gone")  # nobody holds it
+    with open_session(cfg) as session:
+        from shared.bus import Dispatcher
+        from shared.bus.keys import ROBOT_STATE_KEY
+
+        moved = []
+        subscriber = session.declare_subscriber(ROBOT_STATE_KEY, lambda sample: moved.append(sample))
+        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", client_lease=gone)
+        with Dispatcher(session, "planner", timeout_s=120.0, max_attempts=1) as planner:
+            reply = planner.submit(request).result(120.0)
+        subscriber.undeclare()
+    assert isinstance(reply, ErrorReply) and reply.code == "cancelled", reply
+    assert not moved
+
+
+def test_a_client_lease_of_another_role_is_a_bad_request(system):
+    from shared.bus.errors import RemoteError
+
+    cfg, _ = system
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed",
+                          client_lease="gd2p/alive/recorder/r1")
+    with open_session(cfg) as session:
+        from shared.bus import Dispatcher
+
+        with Dispatcher(session, "planner", timeout_s=60.0, max_attempts=1) as planner:
+            with pytest.raises(RemoteError) as failure:
+                planner.call(request, timeout=60.0)
+    assert failure.value.code == "bad_request" and "lease" in failure.value.message
+
+
+def test_gd2p_push_without_a_planner_says_none_is_running(zenoh_router, capsys):
+    from cli.main import main
+
+    code = main(["push", "--object", BOX, "--direction-deg", "90", "--method", "fixed", "--connect", zenoh_router])
+    err = capsys.readouterr().err
+    assert code == 2 and "unavailable" in err and "no planner is running" in err and "600" not in err
+
+
+@pytest.mark.parametrize("flags, says", [
+    (["--position", "nan", "0"], "argument --position: must be a finite number"),
+    (["--yaw", "inf", "--position", "0.5", "0"], "argument --yaw: must be a finite number"),
+    (["--k", "0"], "argument --k: must be >= 1"),
+    (["--distance", "5"], "gd2p push: --distance: must be <= 1"),
+])
+def test_gd2p_push_names_the_flag_of_a_bad_value_without_a_traceback(flags, says, capsys):
+    from cli.main import main
+
+    try:
+        code = main(["push", "--object", BOX, "--direction-deg", "90", *flags, "--connect", "tcp/127.0.0.1:9"])
+    except SystemExit as exit_:  # argparse's usage error
+        code = exit_.code
+    err = capsys.readouterr().err
+    assert code == 2 and says in err and "Traceback" not in err, err

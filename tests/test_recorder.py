@@ -9,16 +9,18 @@ import subprocess
 import sys
 import threading
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from services.recorder.recorder import RecorderError, RotatingRecorder
+from services.recorder.recorder import RecorderError, RotatingRecorder, recover_unfinished
 from shared import messages as m
 from shared.codec import CodecError, decode, encode
-from shared.recording import MessageDecoderFactory, McapWriter, Record, RecordingError, read_records, replay
+from shared.recording import (MessageDecoderFactory, McapWriter, Record, RecordingError, is_complete_mcap, read_records,
+                              recover_mcap, replay)
 
 REPO = Path(__file__).resolve().parents[1]
 RAW_ENCODING = "text/plain"
@@ -105,6 +107,16 @@ def test_bad_record_dir_and_size(tmp_path):
         RotatingRecorder(tmp_path, max_file_bytes=0)
 
 
+@pytest.mark.parametrize("value", ["inf", "nan", "0", "-1"])
+def test_max_file_size_must_be_a_finite_positive_number(value, capsys):
+    from services.recorder.__main__ import build_parser
+
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args(["--record-dir", "x", "--max-file-mb", value])
+    assert exit_info.value.code == 2
+    assert f"argument --max-file-mb: must be a positive number of megabytes, got {value}" in capsys.readouterr().err
+
+
 def test_unreadable_recording_is_a_clear_error(tmp_path):
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"definitely not mcap")
@@ -131,6 +143,107 @@ def test_replay_honours_timing_scaled_by_rate():
     assert sleeps == []
     with pytest.raises(ValueError, match="rate must be >= 0"):
         replay(iter(records), lambda r: None, rate=-1)
+
+
+def _write_chunked(path: Path, msgs, chunk_bytes: int = 4096) -> list:
+    """A complete recording of `msgs` (log time = index + 1); returns its chunk indexes in file order."""
+    with McapWriter(str(path), chunk_bytes=chunk_bytes) as w:
+        for i, (key, msg) in enumerate(msgs):
+            w.write(key, *encode(msg), log_time_ns=i + 1, publish_time_ns=10_000 + i)
+    with open(path, "rb") as f:
+        return sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
+def _cut_mid_chunk(complete: Path, chunks: list, k: int) -> tuple[bytes, int]:
+    """The bytes of `complete` up to the middle of chunk k (no summary, no footer), and how many
+    messages the chunks before it hold (log times 1..n)."""
+    cut = chunks[k].chunk_start_offset + chunks[k].chunk_length // 2
+    return complete.read_bytes()[:cut], chunks[k - 1].message_end_time
+
+
+def _reader_messages(path: Path) -> list[tuple[str, int, int, bytes]]:
+    with open(path, "rb") as f:
+        return [(c.topic, m.log_time, m.publish_time, m.data) for _, c, m in make_reader(f).iter_messages()]
+
+
+def test_a_cut_recording_is_recovered_when_the_recorder_starts(tmp_path, caplog):
+    msgs = _messages(600)
+    complete = tmp_path / "complete.mcap"
+    chunks = _write_chunked(complete, msgs)
+    assert len(chunks) >= 6
+    expected = _reader_messages(complete)
+
+    record_dir = tmp_path / "rec"
+    record_dir.mkdir()
+    # What a SIGKILL leaves: the `.part` of the file being written, cut in the middle of a chunk.
+    data, kept = _cut_mid_chunk(complete, chunks, len(chunks) // 2)
+    (record_dir / "gd2p-20250101T000000Z-0003.mcap.part").write_bytes(data)
+    # A finished name without its footer (e.g. a power loss after the rename) is repaired in place.
+    data_b, kept_b = _cut_mid_chunk(complete, chunks, 2)
+    (record_dir / "gd2p-20250101T000000Z-0002.mcap").write_bytes(data_b)
+    (record_dir / "gd2p-20250101T000000Z-0004.mcap.part").write_bytes(b"")  # killed before the header was flushed
+    (record_dir / "gd2p-20250101T000000Z-0005.mcap.part").write_bytes(b"not an mcap file at all")
+    with pytest.raises(Exception):
+        _reader_messages(record_dir / "gd2p-20250101T000000Z-0003.mcap.part")  # the reason for all this
+
+    with caplog.at_level("INFO", logger="gd2p.recorder"):
+        recorder = RotatingRecorder(record_dir, max_file_bytes=1 << 20)  # what `python -m services.recorder` does first
+    recorder.close()
+
+    recovered = {r.source.name: r for r in recorder.recovered}
+    assert recovered["gd2p-20250101T000000Z-0003.mcap.part"].messages == kept
+    assert recovered["gd2p-20250101T000000Z-0002.mcap"].messages == kept_b
+    assert 0 < kept_b < kept < len(msgs)
+    assert f"recovered {kept} messages" in caplog.text
+    assert _reader_messages(record_dir / "gd2p-20250101T000000Z-0003.mcap") == expected[:kept]
+    assert _reader_messages(record_dir / "gd2p-20250101T000000Z-0002.mcap") == expected[:kept_b]
+    # Schemas, channel metadata and encodings survive: the records decode to the very messages written.
+    records = list(read_records(str(record_dir / "gd2p-20250101T000000Z-0003.mcap")))
+    assert [(r.key, r.decode()) for r in records] == msgs[:kept]
+    channels, schemas = _channels_and_schemas(record_dir / "gd2p-20250101T000000Z-0003.mcap")
+    assert {schemas[c.schema_id].name for c in channels.values()} == {"PushRequest", "ValidationJob", "EStop", "ScaleReply"}
+    # Nothing unfinished is left: the empty part is gone, the foreign one is set aside, not deleted.
+    assert sorted(p.name for p in record_dir.iterdir()) == [
+        "gd2p-20250101T000000Z-0002.mcap", "gd2p-20250101T000000Z-0003.mcap",
+        "gd2p-20250101T000000Z-0005.mcap.part.unrecoverable"]
+    assert recover_unfinished(record_dir) == []  # a second start has nothing to do
+
+
+def test_recover_mcap_keeps_a_complete_file_whole_and_skips_a_corrupt_chunk(tmp_path):
+    msgs = _messages(300)
+    complete = tmp_path / "complete.mcap"
+    chunks = _write_chunked(complete, msgs)
+    result = recover_mcap(complete, tmp_path / "copy.mcap")
+    assert (result.messages, result.complete) == (len(msgs), True)
+    assert _reader_messages(tmp_path / "copy.mcap") == _reader_messages(complete)
+    # A chunk whose bytes were damaged (CRC mismatch) ends the recovery: only whole chunks before it are kept.
+    data = bytearray(complete.read_bytes())
+    damaged = chunks[3].chunk_start_offset + chunks[3].chunk_length - 20
+    data[damaged] ^= 0xFF
+    (tmp_path / "damaged.mcap").write_bytes(bytes(data))
+    result = recover_mcap(tmp_path / "damaged.mcap", tmp_path / "fixed.mcap")
+    assert not result.complete and result.messages == chunks[2].message_end_time
+    assert _reader_messages(tmp_path / "fixed.mcap") == _reader_messages(complete)[:result.messages]
+    assert is_complete_mcap(tmp_path / "fixed.mcap")
+    (tmp_path / "foreign").write_bytes(b"0123456789abcdef")
+    with pytest.raises(RecordingError, match="not an MCAP file"):
+        recover_mcap(tmp_path / "foreign", tmp_path / "out.mcap")
+    assert not (tmp_path / "out.mcap").exists()
+
+
+def test_a_starting_recorder_leaves_a_live_recorders_file_alone_and_never_reuses_its_names(tmp_path):
+    started = datetime(2025, 1, 1, tzinfo=timezone.utc)
+    first = RotatingRecorder(tmp_path, max_file_bytes=1 << 20, started_at=started)
+    first.record("gd2p/test/a", b"one", RAW_ENCODING, log_time_ns=1)
+    part = first._part(first.current_path)
+    assert part.exists()
+    second = RotatingRecorder(tmp_path, max_file_bytes=1 << 20, started_at=started)  # same second, same prefix
+    assert second.recovered == [] and part.exists(), "a file its writer still holds is not recovered"
+    second.record("gd2p/test/b", b"two", RAW_ENCODING, log_time_ns=2)
+    assert second.current_path != first.current_path
+    first_files, second_files = first.close(), second.close()
+    assert [r.payload for r in read_records(str(first_files[0]))] == [b"one"]
+    assert [r.payload for r in read_records(str(second_files[0]))] == [b"two"]
 
 
 # --- over the bus ------------------------------------------------------------------------------------
@@ -197,6 +310,60 @@ def test_recorder_process_records_everything_published_before_sigterm(zenoh_rout
     assert names == {"PushRequest", "ValidationJob", "EStop", "ScaleReply"}
     # The recorder is a worker like every other: its status heartbeat was recorded too.
     assert any(r.key == f"gd2p/status/recorder/{worker_id}" for f in files for r in read_records(str(f)))
+
+
+def _start_recorder(endpoint: str, record_dir: Path, worker_id: str, *extra: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "services.recorder", "--connect", endpoint, "--record-dir", str(record_dir),
+           "--worker-id", worker_id, *extra]
+    return subprocess.Popen(cmd, cwd=REPO, env=os.environ | {"PYTHONPATH": str(REPO)},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+
+
+def test_a_sigkilled_recorders_file_is_recovered_by_the_next_start(zenoh_router, tmp_path):
+    # 1 MB files: chunks of 128 kB; 1 kB random payloads, so a few chunks reach the disk before the kill.
+    proc = _start_recorder(zenoh_router, tmp_path, "rec-kill", "--max-file-mb", "1")
+    payloads = [os.urandom(1024) for _ in range(600)]
+    try:
+        with _session(zenoh_router) as session:
+            _wait_for(lambda: _token_alive(session, "gd2p/alive/recorder/rec-kill"), 30, "the recorder's liveliness token")
+            import zenoh
+
+            # BLOCK, not the default DROP: every payload reaches the recorder, so what it wrote is a prefix of them.
+            publisher = session.declare_publisher("gd2p/test/raw", congestion_control=zenoh.CongestionControl.BLOCK)
+            _wait_for(lambda: publisher.matching_status.matching, 10, "the recorder's subscription")
+            for payload in payloads:
+                publisher.put(payload, encoding=RAW_ENCODING)
+            parts = lambda: list(tmp_path.glob("*.mcap.part"))  # noqa: E731
+            _wait_for(lambda: parts() and parts()[0].stat().st_size > 3 * 128 * 1024, 30, "three chunks on disk")
+            publisher.undeclare()
+        proc.kill()  # SIGKILL: no drain, no footer
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    [part] = list(tmp_path.glob("*.mcap.part"))
+    with pytest.raises(Exception):
+        list(read_records(str(part)))  # unreadable as it is
+
+    again = _start_recorder(zenoh_router, tmp_path, "rec-again")
+    try:
+        with _session(zenoh_router) as session:
+            _wait_for(lambda: _token_alive(session, "gd2p/alive/recorder/rec-again"), 30, "the restarted recorder")
+        again.send_signal(signal.SIGTERM)
+        output, _ = again.communicate(timeout=30)
+    finally:
+        if again.poll() is None:
+            again.kill()
+            again.wait()
+    assert again.returncode == 0, output.decode(errors="replace")
+    assert not list(tmp_path.glob("*.part")) and not list(tmp_path.glob("*.unrecoverable"))
+    recovered = tmp_path / part.name[: -len(".part")]
+    recorded = [r.payload for r in read_records(str(recovered)) if r.key == "gd2p/test/raw"]  # make_reader opens it
+    assert len(recorded) >= 300, "at least the three chunks on disk (128 kB each) are recovered"
+    assert recorded == payloads[:len(recorded)], "the messages before the cut, in order, bit-exact"
+    log = output.decode(errors="replace")
+    assert f"recovered {sum(1 for _ in read_records(str(recovered)))} messages" in log and recovered.name in log
 
 
 def test_replay_republishes_a_recording(zenoh_router, tmp_path):

@@ -1,12 +1,21 @@
-"""Who may command the robot: a router with mutual TLS and access control (deploy/secure).
+"""Who may do what on the bus: a router with mutual TLS and per-identity access control (deploy/secure).
 
 A real bridge stack sits behind the command key: a SafeExecutor driving an xArm7 (fake controller at
 the SDK boundary) + LEAP hand (Protocol 2.0 responder on a pty). Only the planner's certificate gets a
 command through; another authenticated identity's command is dropped at the router; a session without
-a client certificate cannot even connect. The ordinary bus and the e-stop stay open to everyone.
+a client certificate cannot even connect.
+
+Every other key space has an owner too (deploy/secure/profile.py): an attacker holding a valid
+non-planner certificate cannot announce itself as a planner or answer a push, forge robot state,
+worker status or a lease, nor reach the launcher's control key; the legitimate flows (the planner
+dispatching to samplers and validators, the operator's tools calling the planner, heartbeats seen by
+observers, the e-stop from anyone) still work. The certificate set keeps the CA key out of the
+directory the processes read, and every key of shared/bus/keys.py has an owner in the rules.
 """
 from __future__ import annotations
 
+import contextlib
+import stat
 import threading
 import time
 
@@ -19,7 +28,10 @@ pytest.importorskip("dynamixel_sdk")
 
 import zenoh  # noqa: E402
 
-from deploy.secure import prepare  # noqa: E402
+from deploy.launcher import SERVICES, LaunchError, Launcher, request_scale  # noqa: E402
+from deploy.secure import CertificateError, prepare  # noqa: E402
+from deploy.secure import profile as acl  # noqa: E402
+from deploy.secure.certs import IDENTITIES, generate  # noqa: E402
 from services.robot_bridge.adapters.leap import LeapBackend  # noqa: E402
 from services.robot_bridge.adapters.xarm import XArmBackend  # noqa: E402
 from services.robot_bridge.devsim.dynamixel import DynamixelBus  # noqa: E402
@@ -32,8 +44,21 @@ from services.robot_bridge.safety import (  # noqa: E402
     Device,
     SafeExecutor,
 )
+from shared.bus import Dispatcher, RemoteError, ServiceError, Worker, health, live_workers  # noqa: E402
+from shared.bus import keys  # noqa: E402
+from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key  # noqa: E402
 from shared.codec import decode, encode  # noqa: E402
-from shared.messages import EStop, ExecutionCommand, ExecutionState, Plan  # noqa: E402
+from shared.messages import (  # noqa: E402
+    EStop,
+    ExecutionCommand,
+    ExecutionState,
+    HealthQuery,
+    ObjectRef,
+    Plan,
+    PushRequest,
+    ScaleReply,
+    WorkerStatus,
+)
 from conftest import free_port  # noqa: E402
 
 HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
@@ -114,10 +139,10 @@ def test_the_planner_identity_makes_the_robot_move(secure, bridge):
     profile, _ = secure
     controller, _, received = bridge
     with session_as(profile, "planner") as planner:
-        lease = planner.liveliness().declare_token("gd2p/lease/planner-1")  # dropping the token undeclares it
+        lease = planner.liveliness().declare_token(lease_key("planner", "planner-1"))
         time.sleep(0.3)
         before = servo_commands(controller)
-        command = command_from_here(controller, "gd2p/lease/planner-1")
+        command = command_from_here(controller, lease_key("planner", "planner-1"))
         states = send(planner, command)
         planner.put(COMMAND_KEY, b"from-planner")
         time.sleep(0.3)
@@ -131,9 +156,9 @@ def test_the_lease_is_watched_through_the_access_rules(secure, bridge):
     profile, _ = secure
     controller, _, _ = bridge
     with session_as(profile, "planner") as planner:
-        lease = planner.liveliness().declare_token("gd2p/lease/planner-2")
+        lease = planner.liveliness().declare_token(lease_key("planner", "planner-2"))
         time.sleep(0.3)
-        command = command_from_here(controller, "gd2p/lease/planner-2", duration_s=3.0)  # loses its lease on the way
+        command = command_from_here(controller, lease_key("planner", "planner-2"), duration_s=3.0)  # loses its lease on the way
         threading.Timer(0.6, lease.undeclare).start()
         t0 = time.monotonic()
         states = send(planner, command, timeout=6.0)
@@ -145,10 +170,10 @@ def test_another_identity_cannot_command_the_robot(secure, bridge):
     profile, _ = secure
     controller, _, received = bridge
     with session_as(profile, "validator") as intruder:
-        lease = intruder.liveliness().declare_token("gd2p/lease/validator-1")
+        lease = intruder.liveliness().declare_token(lease_key("planner", "validator-1"))
         time.sleep(0.3)
         before = servo_commands(controller)
-        command = command_from_here(controller, "gd2p/lease/validator-1")
+        command = command_from_here(controller, lease_key("planner", "validator-1"))
         assert send(intruder, command, timeout=1.5) == []  # the router drops the query: no reply at all
         intruder.put(COMMAND_KEY, b"from-validator")  # nor does a put get through
         time.sleep(0.3)
@@ -174,27 +199,401 @@ def test_a_session_without_a_client_certificate_cannot_connect(secure):
         zenoh.open(plain)
 
 
-def test_the_ordinary_bus_and_the_estop_stay_open_to_every_identity(secure, bridge):
+# ------------------------------------------------------------------------------ helpers of the ACL tests
+def tokens(session: zenoh.Session, pattern: str, timeout: float = 1.5) -> set[str]:
+    """The liveliness tokens the router reports on `pattern` to this session."""
+    return {str(r.ok.key_expr) for r in session.liveliness().get(pattern, timeout=timeout) if r.ok is not None}
+
+
+class Collector:
+    """Every key published on `pattern` that reaches `session` (a subscriber, as an observer has)."""
+
+    def __init__(self, session: zenoh.Session, pattern: str):
+        self.keys: list[str] = []
+        self._subscriber = session.declare_subscriber(pattern, lambda sample: self.keys.append(str(sample.key_expr)))
+
+    def wait_for(self, key: str, timeout: float = 2.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while key not in self.keys and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return key in self.keys
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+@contextlib.contextmanager
+def serving(session: zenoh.Session, service: str, worker_id: str, handlers=None):
+    """A real `Worker` of `service` on `session` (token, queryable, status heartbeat) for the block."""
+    worker = Worker(service, handlers or {}, session=session, worker_id=worker_id, status_period_s=0.2,
+                    drain_timeout_s=1.0)
+    thread = threading.Thread(target=worker.run, name=f"test-{worker_id}", daemon=True)
+    thread.start()
+    try:
+        yield worker
+    finally:
+        worker.stop()
+        thread.join(timeout=5.0)
+
+
+def push_request() -> PushRequest:
+    return PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, distance_m=0.2)
+
+
+def planner_refuses(request: PushRequest):
+    raise ServiceError("infeasible", "the real planner answered")
+
+
+# ------------------------------------------------------------------------------ attacks and legitimate flows
+def test_only_the_planner_identity_can_announce_a_planner_and_answer_a_push(secure):
+    """A validator certificate declaring a planner token and worker queryable (and a catch-all queryable)
+    gets no query: a push-style call from cli finds no planner; the real planner then answers it."""
+    profile, _ = secure
+    forged_queries: list[str] = []
+
+    def forge(query: zenoh.Query) -> None:
+        forged_queries.append(str(query.key_expr))
+        query.reply(query.key_expr, b"SUCCESS")
+
+    with session_as(profile, "validator") as intruder, session_as(profile, "cli") as operator:
+        token = intruder.liveliness().declare_token(keys.alive_key("planner", "forged-1"))
+        forged = intruder.declare_queryable(keys.job_key("planner", "forged-1"), forge)
+        catch_all = intruder.declare_queryable("gd2p/**", forge)
+        time.sleep(0.4)
+        assert tokens(operator, keys.alive_pattern("planner")) == set()
+        payload, encoding = encode(push_request())
+        direct = [r for r in operator.get(keys.job_key("planner", "forged-1"), payload=payload, encoding=encoding,
+                                          timeout=1.0) if r.ok is not None]
+        assert direct == []
+        with Dispatcher(operator, "planner", timeout_s=1.0, max_attempts=1) as planners:
+            with pytest.raises(TimeoutError):
+                planners.call(push_request(), timeout=1.5)  # no live planner at all: nothing to forge a reply
+        assert forged_queries == []
+
+        with session_as(profile, "planner") as planner, serving(planner, "planner", "planner-1",
+                                                                {PushRequest: planner_refuses}):
+            with Dispatcher(operator, "planner", timeout_s=5.0, max_attempts=1) as planners:
+                with pytest.raises(RemoteError) as answered:
+                    planners.call(push_request(), timeout=10.0)
+                assert planners.live() == ["planner-1"]
+        assert answered.value.code == "infeasible" and answered.value.message == "the real planner answered"
+        assert forged_queries == []
+        catch_all.undeclare()
+        forged.undeclare()
+        token.undeclare()
+
+
+def test_the_planner_dispatches_to_samplers_and_validators_and_only_callers_reach_a_worker(secure):
+    profile, _ = secure
+    with session_as(profile, "sampler") as sampler, session_as(profile, "validator") as validator, \
+            session_as(profile, "planner") as planner, session_as(profile, "generator") as generator, \
+            serving(sampler, "sampler", "sampler-1"), serving(validator, "validator", "validator-1"):
+        for service in ("sampler", "validator"):
+            with Dispatcher(planner, service, timeout_s=5.0) as workers:
+                status = workers.call(HealthQuery(), timeout=10.0)
+            assert isinstance(status, WorkerStatus) and status.worker_id == f"{service}-1"
+        # A worker asks itself (its container healthcheck runs under its own identity).
+        assert [s.worker_id for s in health(sampler, "sampler", timeout=2.0)] == ["sampler-1"]
+        # Not a caller of the sampler: the validator and the generator get nothing from it.
+        assert health(validator, "sampler", timeout=1.0) == []
+        assert health(generator, "sampler", timeout=1.0) == []
+        assert health(generator, "validator", timeout=1.0) == []
+
+
+def test_each_service_heartbeat_and_token_reach_observers_and_nobody_forges_them(secure):
+    profile, _ = secure
+    with contextlib.ExitStack() as stack:
+        observer = stack.enter_context(session_as(profile, "cli"))
+        statuses = Collector(observer, "gd2p/status/**")
+        for service in SERVICES:
+            stack.enter_context(serving(stack.enter_context(session_as(profile, service)), service, f"{service}-t"))
+        intruder = stack.enter_context(session_as(profile, "validator"))
+        intruder_token = intruder.liveliness().declare_token(keys.alive_key("planner", "fake"))
+        for service in SERVICES:
+            assert statuses.wait_for(keys.status_key(service, f"{service}-t")), service
+        intruder.put(keys.status_key("planner", "fake"), b"forged")
+        intruder.put(keys.status_key("robot_bridge", "fake"), b"forged")
+        time.sleep(0.5)
+        live = live_workers(observer, timeout=2.0)
+        statuses.close()
+        intruder_token.undeclare()
+    assert {svc: ids for svc, ids in live.items()} == {svc: [f"{svc}-t"] for svc in SERVICES}
+    assert not any(key.endswith("/fake") for key in statuses.keys)
+
+
+def test_robot_state_is_published_by_the_robot_bridge_only(secure):
+    profile, _ = secure
+    with session_as(profile, "planner") as planner, session_as(profile, "validator") as validator, \
+            session_as(profile, "cli") as operator, session_as(profile, "robot_bridge") as bridge_session, \
+            session_as(profile, "recorder") as recorder:
+        states = Collector(recorder, keys.ROBOT_STATE_KEY)  # an observer of the robot's state
+        time.sleep(0.3)
+        for forger in (validator, operator, planner):
+            forger.put(keys.ROBOT_STATE_KEY, b"forged")
+        time.sleep(0.5)
+        assert states.keys == []
+        bridge_session.put(keys.ROBOT_STATE_KEY, b"real")
+        assert states.wait_for(keys.ROBOT_STATE_KEY)
+        states.close()
+    assert states.keys == [keys.ROBOT_STATE_KEY]
+
+
+def test_a_lease_token_is_declared_only_by_the_identity_of_its_role(secure):
+    profile, _ = secure
+    with session_as(profile, "planner") as planner, session_as(profile, "cli") as operator, \
+            session_as(profile, "validator") as validator, session_as(profile, "robot_bridge") as bridge_session:
+        forged = [validator.liveliness().declare_token(lease_key("planner", "validator-1")),
+                  operator.liveliness().declare_token(lease_key("planner", "cli-1")),
+                  validator.liveliness().declare_token(lease_key("client", "validator-1")),
+                  planner.liveliness().declare_token(lease_key("client", "planner-1"))]
+        real = [planner.liveliness().declare_token(lease_key("planner", "planner-1")),
+                operator.liveliness().declare_token(lease_key("client", "cli-1"))]
+        time.sleep(0.4)
+        # The bridge checks the planner's lease; the planner watches the push client's.
+        assert lease_alive(bridge_session, lease_key("planner", "planner-1"))
+        assert lease_alive(planner, lease_key("client", "cli-1"))
+        for key in (lease_key("planner", "validator-1"), lease_key("planner", "cli-1")):
+            assert not lease_alive(bridge_session, key, timeout_s=0.5), key
+        assert not lease_alive(planner, lease_key("client", "validator-1"), timeout_s=0.5)
+        # (a session sees its own tokens without the router: ask another session about the planner's)
+        assert not lease_alive(bridge_session, lease_key("client", "planner-1"), timeout_s=0.5)
+        assert tokens(bridge_session, "gd2p/lease/**") == {lease_key("planner", "planner-1"), lease_key("client", "cli-1")}
+        for token in forged + real:
+            token.undeclare()
+
+
+def test_the_estop_stays_open_to_every_identity(secure, bridge):
     profile, _ = secure
     _, executor, _ = bridge
-    with session_as(profile, "validator") as validator, session_as(profile, "cli") as operator:
-        token = validator.liveliness().declare_token("gd2p/alive/validator/v-1")
-        got = threading.Event()
-        subscriber = operator.declare_subscriber("gd2p/status/validator/*", lambda sample: got.set())
+    for identity in ("cli", "validator"):
+        with session_as(profile, identity) as anyone:
+            time.sleep(0.2)
+            payload, encoding = encode(EStop(reason=f"secure e-stop from {identity}", issued_by=identity))
+            anyone.put(ESTOP_KEY, payload, encoding=encoding)  # stopping must never need the planner
+            deadline = time.monotonic() + 2.0
+            while not executor.estop.triggered.is_set() and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert executor.estop.triggered.is_set() and executor.estop.last.reason == f"secure e-stop from {identity}"
+        executor.estop.reset()
+
+
+def test_only_the_operator_identity_reaches_the_launcher_control_key(secure):
+    """A launcher joining as a client (CN launcher) serves the control key; only CN operator's scale
+    request reaches it: cli, validator and planner certificates get no answer at all."""
+    profile, _ = secure
+    served: list[str] = []
+
+    def serve(query: zenoh.Query) -> None:
+        with query:
+            served.append(query.payload.to_bytes().decode(errors="replace"))
+            payload, encoding = encode(ScaleReply(service="planner", count=0))
+            query.reply(query.key_expr, payload, encoding=encoding)
+
+    with session_as(profile, "launcher") as launcher_session:
+        control = launcher_session.declare_queryable("gd2p/launcher/control", serve)
         time.sleep(0.3)
-        alive = [str(r.ok.key_expr) for r in operator.liveliness().get("gd2p/alive/**", timeout=2.0) if r.ok]
-        assert "gd2p/alive/validator/v-1" in alive
-        validator.put("gd2p/status/validator/v-1", b"ready")
-        assert got.wait(2.0)
-        subscriber.undeclare()
-        token.undeclare()
-        payload, encoding = encode(EStop(reason="secure e-stop test", issued_by="cli"))
-        operator.put(ESTOP_KEY, payload, encoding=encoding)  # any identity may stop the robot
-        deadline = time.monotonic() + 2.0
-        while not executor.estop.triggered.is_set() and time.monotonic() < deadline:
-            time.sleep(0.05)
-    assert executor.estop.triggered.is_set() and executor.estop.last.reason == "secure e-stop test"
-    executor.estop.reset()
+        for identity in ("cli", "validator", "planner"):
+            with session_as(profile, identity) as intruder:
+                with pytest.raises(LaunchError, match="no launcher answered"):
+                    request_scale(intruder, "planner", 0, timeout=1.0)
+        assert served == []
+        with session_as(profile, "operator") as operator:
+            assert request_scale(operator, "planner", 0, timeout=5.0).count == 0
+        assert len(served) == 1
+        control.undeclare()
+
+
+def test_gd2p_up_secure_serves_scaling_to_the_operator_only_and_within_its_limit(tmp_path):
+    """The local launcher's own router (it serves the control key itself) under the secure profile."""
+    launcher = Launcher(validators=0, listen=f"tls/localhost:{free_port()}", record_dir=tmp_path / "rec",
+                        log_dir=tmp_path / "logs", secure_dir=tmp_path / "secure", max_scale={"planner": 1})
+    launcher.initial_counts = {}  # no service processes: only the router and its control key
+    launcher.start()
+    try:
+        with session_as(launcher.secure, "cli") as operator_tools:
+            with pytest.raises(LaunchError, match="no launcher answered"):
+                request_scale(operator_tools, "planner", 0, timeout=1.5)
+        with session_as(launcher.secure, "operator") as operator:
+            assert request_scale(operator, "planner", 0, timeout=10.0).count == 0
+            with pytest.raises(RemoteError) as refused:
+                request_scale(operator, "planner", 2, timeout=10.0)
+        assert refused.value.code == "bad_request" and "maximum on this launcher is 1" in refused.value.message
+        assert launcher.children() == []
+    finally:
+        launcher.stop()
+
+
+# ------------------------------------------------------------------------------ the rules, offline
+ALL = frozenset(IDENTITIES)
+# Who may query each service's worker keys (jobs and health queries): the spec the rules must meet.
+QUERIERS = {
+    "planner": {"planner", "cli"},
+    "generator": {"generator", "cli"},
+    "validator": {"validator", "planner", "cli"},
+    "sampler": {"sampler", "planner", "cli"},
+    "robot_bridge": {"robot_bridge", "cli"},
+    "recorder": {"recorder", "cli"},
+}
+HELPERS = {"check_chunk", "parse_alive_key"}  # names of shared/bus/keys.py that make no key
+
+
+def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[str]]]]:
+    """Name in shared/bus/keys.py -> (flow, message, key, identities the router must allow) rows."""
+    w = acl.WORKER_IDENTITIES
+    sample_rows = [("ingress", "declare_subscriber", keys.ALL_KEYS, ALL)]
+    return {
+        "PREFIX": [("ingress", m, f"{keys.PREFIX}/unowned/key", frozenset())
+                   for m in ("put", "declare_queryable", "reply", "query", "liveliness_token")],
+        "ALL_KEYS": sample_rows + [("ingress", "declare_liveliness_subscriber", keys.ALL_KEYS, ALL),
+                                   ("ingress", "liveliness_query", keys.ALL_KEYS, ALL),
+                                   ("egress", "put", keys.ALL_KEYS, ALL),
+                                   ("ingress", "put", keys.ALL_KEYS, frozenset())],
+        "ALIVE_PREFIX": [("ingress", "liveliness_token", f"{keys.ALIVE_PREFIX}/**", frozenset())],
+        "alive_key": [("ingress", "liveliness_token", keys.alive_key(s, "w-1"), frozenset({s})) for s in w],
+        "alive_pattern": [("ingress", "liveliness_query", keys.alive_pattern(s), ALL) for s in (*w, None)]
+                         + [("ingress", "declare_liveliness_subscriber", keys.alive_pattern(s), ALL) for s in w],
+        "job_key": [row for s in w for row in (
+            ("ingress", "declare_queryable", keys.job_key(s, "w-1"), frozenset({s})),
+            ("ingress", "reply", keys.job_key(s, "w-1"), frozenset({s})),
+            ("egress", "query", keys.job_key(s, "w-1"), frozenset({s})),
+            ("ingress", "query", keys.job_key(s, "w-1"), frozenset(QUERIERS[s])),
+            ("egress", "reply", keys.job_key(s, "w-1"), frozenset(QUERIERS[s])),
+            ("ingress", "query", f"{keys.PREFIX}/{s}/worker/*/job", frozenset(QUERIERS[s])),  # gd2p health
+        )],
+        "STATUS_PREFIX": [("ingress", "put", f"{keys.STATUS_PREFIX}/**", frozenset())],
+        "status_key": [("ingress", "put", keys.status_key(s, "w-1"), frozenset({s})) for s in w],
+        "status_pattern": [("ingress", "declare_subscriber", keys.status_pattern(s), ALL) for s in (*w, None)],
+        "ROBOT_COMMAND_KEY": [
+            ("ingress", "query", keys.ROBOT_COMMAND_KEY, frozenset({"planner"})),
+            ("ingress", "put", keys.ROBOT_COMMAND_KEY, frozenset({"planner", "robot_bridge"})),
+            ("egress", "query", keys.ROBOT_COMMAND_KEY, frozenset({"robot_bridge"})),
+            ("ingress", "declare_queryable", keys.ROBOT_COMMAND_KEY, frozenset({"robot_bridge"})),
+            ("ingress", "reply", keys.ROBOT_COMMAND_KEY, frozenset({"robot_bridge"})),
+            ("egress", "reply", keys.ROBOT_COMMAND_KEY, frozenset({"planner"})),
+        ],
+        "ROBOT_STATE_KEY": [("ingress", "put", keys.ROBOT_STATE_KEY, frozenset({"robot_bridge"})),
+                            ("ingress", "declare_subscriber", keys.ROBOT_STATE_KEY, ALL)],
+        "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
+                            ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
+        # Router watchdog beats (shared/bus/lease.py): open on purpose, see profile.OPEN_PUT_KEYS.
+        "WATCHDOG_PREFIX": [("ingress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
+                            ("ingress", "declare_subscriber", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
+                            ("ingress", "declare_queryable", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset()),
+                            ("ingress", "liveliness_token", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset())],
+        "LEASE_PREFIX": [("ingress", "liveliness_token", lease_key(role, "h-1"), frozenset({holder}))
+                         for role, holder in (("planner", "planner"), ("client", "cli"))]
+                        + [("ingress", "liveliness_token", f"{keys.LEASE_PREFIX}/h-1", frozenset()),
+                           ("ingress", "liveliness_query", lease_key("planner", "h-1"), ALL),
+                           ("ingress", "declare_liveliness_subscriber", lease_key("client", "h-1"), ALL)],
+    }
+
+
+def test_every_key_of_the_bus_has_an_owner_in_the_access_rules():
+    """Each key space of shared/bus/keys.py (plus the leases and the launcher's control key) is open
+    exactly to its owners: a new key must be added here and to profile.py, or this test fails; no
+    key is writable by everyone but the e-stop, and every concrete key has someone who may write it."""
+    from deploy.launcher import CONTROL_KEY
+
+    expectations = key_space_expectations()
+    defined = {name for name, value in vars(keys).items() if not name.startswith("_") and (
+        isinstance(value, str) or (callable(value) and getattr(value, "__module__", None) == keys.__name__))}
+    unknown = defined - set(expectations) - HELPERS
+    assert not unknown, (f"shared/bus/keys.py defines {sorted(unknown)}: give each an owner in "
+                         f"deploy/secure/profile.py and a row in key_space_expectations()")
+    assert set(acl.WORKER_IDENTITIES) == set(SERVICES) == set(QUERIERS)  # a new service needs its key spaces
+    assert set(acl.LEASE_HOLDERS) == set(LEASE_ROLES)  # a new lease role needs its holder
+    rows = [row for name in sorted(expectations) for row in expectations[name]]
+    rows += [("ingress", "query", CONTROL_KEY, frozenset({"operator"})),
+             ("egress", "reply", CONTROL_KEY, frozenset({"operator"})),
+             ("ingress", "declare_queryable", CONTROL_KEY, frozenset({"launcher"})),
+             ("egress", "query", CONTROL_KEY, frozenset({"launcher"}))]
+    wrong = {(flow, message, key): (sorted(acl.who_may(flow, message, key)), sorted(expected))
+             for flow, message, key, expected in rows if acl.who_may(flow, message, key) != expected}
+    assert not wrong, f"(flow, message, key): (allowed, expected): {wrong}"
+
+    producing = ("put", "delete", "declare_queryable", "reply", "liveliness_token", "query")
+    concrete = {key for _, _, key, _ in rows if "*" not in key and "/unowned/" not in key
+                and key != f"{keys.LEASE_PREFIX}/h-1"}
+    for key in concrete:
+        writers = set().union(*(acl.who_may("ingress", m, key) for m in producing))
+        assert writers, f"{key}: nobody may write, serve or query it (silently denied)"
+        open_put = any(zenoh.KeyExpr(o).includes(zenoh.KeyExpr(key)) for o in acl.OPEN_PUT_KEYS)
+        for message in producing:
+            if not (open_put and message == "put"):
+                assert acl.who_may("ingress", message, key) != ALL, f"{key}: everyone may {message} (silently open)"
+
+
+def test_the_router_config_carries_the_rules_zenoh_accepts(secure):
+    profile, _ = secure
+    config = zenoh.Config.from_file(str(profile.router_config))
+    assert config.get_json("access_control/default_permission") == '"deny"'
+    assert config.get_json("transport/link/tls/enable_mtls") == "true"
+    subjects = {s["id"]: s.get("cert_common_names") for s in acl.access_control()["subjects"]}
+    assert subjects[acl.EVERYONE] is None and all(subjects[i] == [i] for i in subjects if i != acl.EVERYONE)
+
+
+# ------------------------------------------------------------------------------ the certificate set
+def test_the_ca_key_is_kept_out_of_the_directory_the_processes_read(tmp_path, capsys):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    from deploy.secure.__main__ import main
+
+    out = tmp_path / "generated"
+    argv = ["--out", str(out), "--connect", "tls/router:7447", "--mounted-at", "/secure"]
+    assert main(argv) == 0
+    ca_key = tmp_path / "generated-ca" / "ca.key"
+    assert str(ca_key) in capsys.readouterr().out
+    assert not (out / "ca.key").exists() and ca_key.is_file()
+    assert stat.S_IMODE(ca_key.stat().st_mode) == 0o600 and stat.S_IMODE(ca_key.parent.stat().st_mode) == 0o700
+    ca_public = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes()).public_key()
+    assert serialization.load_pem_private_key(ca_key.read_bytes(), None).public_key() == ca_public
+    for key_file in out.glob("*.key"):  # every key in the directory is a leaf's, none is the CA's
+        assert serialization.load_pem_private_key(key_file.read_bytes(), None).public_key() != ca_public, key_file
+    assert {p.name for p in out.glob("*.key")} == {f"{i}.key" for i in (*IDENTITIES, "router")}
+
+    with pytest.raises(CertificateError, match="must not be kept in"):
+        generate(tmp_path / "inside", ca_dir=tmp_path / "inside" / "ca")
+    with pytest.raises(CertificateError, match="exists already"):  # never overwrite another set's CA key
+        generate(tmp_path / "other", ca_dir=ca_key.parent)
+    (out / "ca.key").write_bytes(ca_key.read_bytes())  # the old layout: CA key beside the certificates
+    with pytest.raises(CertificateError, match="must not sit in the directory"):
+        prepare(out, ["tls/0.0.0.0:7447"])
+    assert main(argv) == 1 and "must not sit in the directory" in capsys.readouterr().err
+
+
+def test_an_identity_added_later_is_issued_from_the_offline_ca(tmp_path):
+    from cryptography import x509
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    directory = tmp_path / "secure"
+    prepare(directory, ["tls/localhost:7447"])
+    for suffix in (".pem", ".key"):  # a set generated before the "operator" identity existed
+        (directory / f"operator{suffix}").unlink()
+    (directory / "client-operator.json5").unlink()
+    ca_dir = directory.with_name("secure-ca")
+    ca_dir.rename(tmp_path / "offline")
+    with pytest.raises(CertificateError, match="CA key"):
+        prepare(directory, ["tls/localhost:7447"])
+    (tmp_path / "offline").rename(ca_dir)
+    profile = prepare(directory, ["tls/localhost:7447"])
+    cert = x509.load_pem_x509_certificate((directory / "operator.pem").read_bytes())
+    ca = x509.load_pem_x509_certificate((directory / "ca.pem").read_bytes())
+    ca.public_key().verify(cert.signature, cert.tbs_certificate_bytes, ec.ECDSA(cert.signature_hash_algorithm))
+    assert cert.subject.get_attributes_for_oid(x509.NameOID.COMMON_NAME)[0].value == "operator"
+    assert profile.client_config("operator").is_file()
+
+
+def test_the_launcher_gives_each_service_only_its_own_identity(tmp_path):
+    launcher = Launcher(validators=0, listen=f"tls/localhost:{free_port()}", record_dir=tmp_path / "rec",
+                        log_dir=tmp_path / "logs", secure_dir=tmp_path / "secure")
+    for service in SERVICES:
+        command = launcher._command(service, f"{service}-1")
+        configs = [command[i + 1] for i, arg in enumerate(command) if arg == "--zenoh-config"]
+        assert configs == [str(launcher.secure.client_config(service))]
+        config = zenoh.Config.from_file(configs[0])
+        assert config.get_json("transport/link/tls/connect_certificate") == f'"{tmp_path / "secure" / service}.pem"'
+        assert config.get_json("transport/link/tls/connect_private_key") == f'"{tmp_path / "secure" / service}.key"'
 
 
 @pytest.mark.slow  # spawns every service process (~10 s on a loaded 2-core machine)
@@ -210,6 +609,9 @@ def test_gd2p_up_secure_brings_every_service_up_over_mutual_tls(tmp_path):
         assert all(workers[s] for s in ("planner", "robot_bridge", "recorder"))
         with session_as(launcher.secure, "cli") as operator:  # `gd2p status --zenoh-config .../client-cli.json5`
             alive = {str(r.ok.key_expr) for r in operator.liveliness().get("gd2p/alive/*/*", timeout=2.0) if r.ok}
+            # `gd2p health --service S`: every real service serves its worker key under its own identity
+            answered = {svc: [s.worker_id for s in health(operator, svc, timeout=5.0)] for svc in workers}
         assert "gd2p/alive/robot_bridge/robot_bridge-1" in alive
+        assert answered == {svc: ids for svc, ids in workers.items()}
     finally:
         launcher.stop()

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -12,11 +14,12 @@ from services.validator.fixed_poses import SPATULA_GAP_M, spatula_pose
 from services.validator.push import PushSimulator, table_object
 from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
-from shared.bus import ServiceError
+from shared.bus import BusConfig, ServiceError, Worker, job_key, live_workers, open_session
+from shared.bus.worker import timeout_attachment
 from shared.frames import make_transform, pose25_to_matrix
 from shared.hands import load_hand
 from shared.codec import decode, encode
-from shared.messages import DirectionFrame, ObjectRef, ValidationJob, ValidationResult
+from shared.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
 from shared.objects import load_object
 from shared.push_outcome import object_pose
 
@@ -196,3 +199,36 @@ def test_floating_job_places_the_object_as_its_frame_says():
         expected = sim.run(pose)
     assert expected.success and bool(framed.success.to_numpy()[0])
     assert framed.position_error_m.to_numpy()[0] == pytest.approx(expected.position_error_m, abs=1e-9)
+
+
+def test_a_job_past_its_deadline_stops_between_episodes(zenoh_router, box):
+    """A 300-pose job (about 30 s of pushes) whose caller waits 1.5 s: "timeout", and the worker is free at once."""
+    session = open_session(BusConfig(connect=[zenoh_router], connect_timeout_ms=5000))
+    worker = Worker("validator-deadline", {ValidationJob: validate}, worker_id="v-1", session=session)
+    thread = threading.Thread(target=worker.run)
+    thread.start()
+    key = job_key("validator-deadline", "v-1")
+
+    def call(job: ValidationJob, **options):
+        [reply] = list(session.get(key, payload=encode(job)[0], encoding=encode(job)[1], timeout=60, **options))
+        return decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+
+    try:
+        deadline = time.monotonic() + 10
+        while "v-1" not in live_workers(session, "validator-deadline").get("validator-deadline", []):
+            assert time.monotonic() < deadline, "the validator worker did not come up"
+            time.sleep(0.05)
+        spatula = spatula_pose(load_hand("allegro"), box.vertices_d)
+        warm = call(ValidationJob(object=ObjectRef(library_id=BOX_ID), hand="allegro", poses=spatula[None]))
+        assert isinstance(warm, ValidationResult) and warm.success.to_numpy().all()  # scene built, no deadline hit
+        big = ValidationJob(object=ObjectRef(library_id=BOX_ID), hand="allegro", poses=np.repeat(spatula[None], 300, 0))
+        started = time.monotonic()
+        answer = call(big, attachment=timeout_attachment(1.5))
+        assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
+        while worker.status().in_flight:  # the episode loop checks the deadline between pushes
+            assert time.monotonic() - started < 3.0, "the job kept its worker busy past its deadline"
+            time.sleep(0.02)
+    finally:
+        worker.stop()
+        thread.join(15)
+        session.close()

@@ -1,17 +1,33 @@
-"""Zenoh configs of the secure deployment profile: mutual TLS plus access control.
+"""Zenoh configs of the secure deployment profile: mutual TLS plus per-identity access control.
 
-Who may command the robot: the router accepts only TLS links whose client presents a certificate
-signed by the deployment CA (`enable_mtls`), and its access-control rules (default: deny) let
-- every authenticated identity use the ordinary bus keys (liveliness, status, worker jobs and health,
-  the launcher's control key, leases, each service's namespace, the bridge's state and e-stop keys)
-  and subscribe to `gd2p/**`;
-- only the planner's identity (certificate CN "planner") put or query `gd2p/robot_bridge/command/**`;
-- only the robot bridge's identity serve those keys (declare a queryable/subscriber, receive the
-  queries and puts, answer them).
-A session without a client certificate cannot open a link at all; a certificate with another CN
-gets its command dropped at the router, so it never reaches the bridge.
+The router accepts only TLS links whose client presents a certificate signed by the deployment CA
+(`enable_mtls`); the certificate's common name (CN) is the session's identity. Its access-control
+rules are default-deny, and each key space has an owner:
 
-The e-stop key stays open to every identity on purpose: stopping must never need the planner.
+- `gd2p/alive/S/**`, `gd2p/status/S/**`, `gd2p/S/**` (its worker keys `gd2p/S/worker/**` included):
+  only identity S declares liveliness tokens, publishes, declares queryables and replies there, and
+  only S is handed the queries sent there. S is one of SERVING_IDENTITIES (the six services and the
+  launcher). So the robot state (`gd2p/robot_bridge/state`) and the command replies come from the
+  bridge only, and nobody but a planner can announce itself as a planner or answer a push.
+- worker keys are queried only by the callers that really call S (CALLS: the planner calls the sampler
+  and validators; the operator's tools, CN "cli", call the planner, generator, validator and sampler
+  and health-query everyone) and by S itself (its container healthcheck asks its own worker).
+- `gd2p/robot_bridge/command/**`: only the planner queries (or puts); the bridge serves it.
+- `gd2p/lease/<role>/**` (shared/bus/lease.py): only the identity of that role declares the token
+  (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli).
+- `gd2p/launcher/**`: only CN "operator" queries it (scaling is host administration, kept apart from
+  the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
+- `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner);
+  so may it on `gd2p/watchdog/*` (router watchdog beats, see OPEN_PUT_KEYS).
+- every identity may subscribe, liveliness-subscribe and liveliness-query `gd2p/**` (observers: the
+  recorder, `gd2p status`, a dispatcher watching workers, the bridge watching a lease); the router
+  tells every session which subscribers, queryables and tokens exist and delivers every publication.
+
+`allowed(identity, flow, message, key)` evaluates the same rules the way Zenoh does (a rule applies
+when one of its key expressions includes the message's), for tests and for the README's table.
+A key outside every rule is dropped for everyone: a new key (shared/bus/keys.py) needs an owner here.
+The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS) come from the interface registry,
+shared/bus/interfaces.py; tests/test_interfaces.py checks every registry entry against these rules.
 """
 from __future__ import annotations
 
@@ -19,53 +35,127 @@ import json
 from pathlib import Path
 from typing import Any
 
-from deploy.secure.certs import ROUTER_IDENTITY, credentials
+import zenoh
 
-COMMAND_KEYS = "gd2p/robot_bridge/command/**"
+from deploy.secure.certs import IDENTITIES, ROUTER_IDENTITY, credentials
+from shared.bus import interfaces
+from shared.bus.keys import (
+    ALIVE_PREFIX,
+    ALL_KEYS,
+    LEASE_PREFIX,
+    PREFIX,
+    ROBOT_COMMAND_KEY,
+    STATUS_PREFIX,
+)
+
+COMMAND_KEYS = f"{ROBOT_COMMAND_KEY.rsplit('/', 1)[0]}/**"  # gd2p/robot_bridge/command/**
 COMMANDER_IDENTITY = "planner"
 BRIDGE_IDENTITY = "robot_bridge"
-# Keys every authenticated identity may use for every kind of message: the shared keys (liveliness,
-# status, leases, the launcher), each service's own namespace, and the bridge's worker/state/e-stop keys
-# (its worker key serves health queries; it executes commands only on COMMAND_KEYS). The default is
-# deny, so a key outside these (a new service's namespace) must be added here.
-BUS_KEYS: tuple[str, ...] = (
-    "gd2p/alive/**", "gd2p/status/**", "gd2p/lease/**", "gd2p/launcher/**", "gd2p/*/worker/**",
-    "gd2p/generator/**", "gd2p/validator/**", "gd2p/sampler/**", "gd2p/planner/**", "gd2p/recorder/**",
-    "gd2p/robot_bridge/state/**", "gd2p/robot_bridge/estop",
-)
-_ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
-                 "liveliness_token", "liveliness_query", "declare_liveliness_subscriber"]
+OPERATOR_IDENTITY = "operator"
+LAUNCHER_IDENTITY = "launcher"
+LAUNCHER_KEYS = f"{PREFIX}/{LAUNCHER_IDENTITY}/**"  # the launcher's control key gd2p/launcher/control
+# Processes that run workers: a liveliness token, a status heartbeat and a worker queryable each.
+WORKER_IDENTITIES: tuple[str, ...] = interfaces.SERVICES
+# Identities that own a namespace gd2p/<S>/** (plus gd2p/alive/<S>/** and gd2p/status/<S>/**).
+SERVING_IDENTITIES: tuple[str, ...] = (*WORKER_IDENTITIES, LAUNCHER_IDENTITY)
+# Who sends jobs or health queries to whose worker keys (besides each worker asking itself):
+# services/planner/service.py dispatches to sampler and validator; the operator's tools (gd2p push,
+# dataset build, health) reach the planner, generator and validator, and `gd2p health` every service.
+CALLS: dict[str, tuple[str, ...]] = interfaces.calls()
+# Lease role (gd2p/lease/<role>/<holder>, shared/bus/lease.py) -> the one identity that may hold it.
+LEASE_HOLDERS: dict[str, str] = dict(interfaces.LEASE_HOLDERS)
+# Keys every authenticated identity may put on: the e-stop (stopping must never need the planner) and
+# the router watchdogs' beats (shared/bus/lease.py RouterWatchdog: a process's probe session beats on
+# gd2p/watchdog/<name> to itself; a beat only shows that the router forwards to the subscriber, which
+# a beat from anyone else shows just as truly, so the key needs no owner).
+OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop, gd2p/watchdog/*
+
+MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+                             "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
+FLOWS: tuple[str, ...] = ("ingress", "egress")
+EVERYONE = "authenticated"  # the subject without a CN constraint: mTLS is mandatory, so every linked session
+
+
+def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+
+
+def _worker_keys(service: str) -> str:
+    return f"{PREFIX}/{service}/worker/**"
+
+
+def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
+    """subject (EVERYONE or an identity) -> the allow rules it gets."""
+    by_subject: dict[str, list[dict[str, Any]]] = {EVERYONE: [
+        # Observers: subscriptions and liveliness look-ups anywhere; the router may tell everyone what
+        # exists (declarations, tokens) and deliver every publication. None of it lets a session put,
+        # serve, query or reply anywhere: those are the owners' rules below.
+        _rule("observe", "ingress", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+              [ALL_KEYS]),
+        _rule("discover", "egress", ["put", "delete", "declare_subscriber", "declare_queryable", "liveliness_token",
+                                     "declare_liveliness_subscriber", "liveliness_query"], [ALL_KEYS]),
+        _rule("open-puts", "ingress", ["put"], list(OPEN_PUT_KEYS)),
+    ]}
+    for identity in IDENTITIES:
+        by_subject[identity] = []
+    for s in SERVING_IDENTITIES:
+        by_subject[s] += [
+            _rule(f"{s}-token", "ingress", ["liveliness_token"], [f"{ALIVE_PREFIX}/{s}/**"]),
+            _rule(f"{s}-status", "ingress", ["put", "delete"], [f"{STATUS_PREFIX}/{s}/**"]),
+            _rule(f"{s}-serve", "ingress", ["put", "delete", "declare_queryable", "reply"], [f"{PREFIX}/{s}/**"]),
+            _rule(f"{s}-receive-queries", "egress", ["query"], [f"{PREFIX}/{s}/**"]),
+        ]
+    for caller in IDENTITIES:
+        callees = [*CALLS.get(caller, ()), *((caller,) if caller in WORKER_IDENTITIES else ())]
+        if callees:
+            called = [_worker_keys(c) for c in dict.fromkeys(callees)]
+            by_subject[caller] += [_rule(f"{caller}-call", "ingress", ["query"], called),
+                                   _rule(f"{caller}-hear-replies", "egress", ["reply"], called)]
+    by_subject[COMMANDER_IDENTITY] += [
+        _rule("command-issue", "ingress", ["query", "put"], [COMMAND_KEYS]),
+        _rule("command-hear-replies", "egress", ["reply"], [COMMAND_KEYS]),
+    ]
+    for role, holder in LEASE_HOLDERS.items():
+        by_subject[holder].append(_rule(f"lease-{role}", "ingress", ["liveliness_token"], [f"{LEASE_PREFIX}/{role}/**"]))
+    by_subject[OPERATOR_IDENTITY] += [
+        _rule("launcher-control", "ingress", ["query"], [LAUNCHER_KEYS]),
+        _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),
+    ]
+    return by_subject
 
 
 def access_control() -> dict[str, Any]:
     """The router's `access_control` section (default deny; see the module docstring)."""
-    rules = [
-        {"id": "bus", "permission": "allow", "flows": ["ingress", "egress"], "messages": _ALL_MESSAGES,
-         "key_exprs": list(BUS_KEYS)},
-        # Observers (the recorder, `gd2p status`) subscribe to everything; a subscription moves nothing.
-        {"id": "observe", "permission": "allow", "flows": ["ingress", "egress"],
-         "messages": ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-         "key_exprs": ["gd2p/**"]},
-        {"id": "command-issue", "permission": "allow", "flows": ["ingress"], "messages": ["put", "query"],
-         "key_exprs": [COMMAND_KEYS]},
-        {"id": "command-reply-to-planner", "permission": "allow", "flows": ["egress"], "messages": ["reply"],
-         "key_exprs": [COMMAND_KEYS]},
-        {"id": "command-serve", "permission": "allow", "flows": ["ingress"],
-         "messages": ["declare_queryable", "declare_subscriber", "reply"], "key_exprs": [COMMAND_KEYS]},
-        {"id": "command-deliver-to-bridge", "permission": "allow", "flows": ["egress"], "messages": ["put", "query"],
-         "key_exprs": [COMMAND_KEYS]},
-    ]
-    subjects = [
-        {"id": "authenticated"},  # mTLS is mandatory, so every linked session is authenticated
-        {"id": "planner", "cert_common_names": [COMMANDER_IDENTITY]},
-        {"id": "robot_bridge", "cert_common_names": [BRIDGE_IDENTITY]},
-    ]
-    policies = [
-        {"id": "everyone", "rules": ["bus", "observe"], "subjects": ["authenticated"]},
-        {"id": "planner-commands", "rules": ["command-issue", "command-reply-to-planner"], "subjects": ["planner"]},
-        {"id": "bridge-serves", "rules": ["command-serve", "command-deliver-to-bridge"], "subjects": ["robot_bridge"]},
-    ]
+    rules: list[dict[str, Any]] = []
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for subject, subject_rules in _rules_by_subject().items():
+        if not subject_rules:
+            continue
+        rules += subject_rules
+        subjects.append({"id": subject} if subject == EVERYONE else {"id": subject, "cert_common_names": [subject]})
+        policies.append({"id": f"{subject}-may", "rules": [r["id"] for r in subject_rules], "subjects": [subject]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
+
+
+def allowed(identity: str, flow: str, message: str, key_expr: str) -> bool:
+    """Would the router let `identity`'s session do `message` on `key_expr` (its `flow`: "ingress" is
+    what the session sends, "egress" what the router hands it)? Zenoh's rule: some allow rule of a
+    subject matching the session has that flow and message and a key expression *including* `key_expr`."""
+    if flow not in FLOWS or message not in MESSAGES:
+        raise ValueError(f"unknown flow {flow!r} or message {message!r}")
+    if identity not in IDENTITIES:
+        raise ValueError(f"unknown identity {identity!r}; identities: {', '.join(IDENTITIES)}")
+    key = zenoh.KeyExpr(key_expr)
+    by_subject = _rules_by_subject()
+    return any(flow in rule["flows"] and message in rule["messages"]
+               and any(zenoh.KeyExpr(k).includes(key) for k in rule["key_exprs"])
+               for subject in (EVERYONE, identity) for rule in by_subject[subject])
+
+
+def who_may(flow: str, message: str, key_expr: str) -> frozenset[str]:
+    """The identities that `allowed` lets do `message` on `key_expr`."""
+    return frozenset(i for i in IDENTITIES if allowed(i, flow, message, key_expr))
 
 
 def _tls(cert_dir: Path, identity: str, listen: bool, mounted_at: str | None) -> dict[str, Any]:

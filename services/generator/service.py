@@ -3,7 +3,9 @@
 Placement convention on the bus: the object rests in its default resting pose with yaw 0 in D -
 the placement the validator's jobs use as well, so poses generated here validate as generated.
 Each job is deterministic for its seed (torch.Generator everywhere; one torch thread per worker
-process, DESIGN.md §6), so a re-dispatched job gives the same poses on any worker.
+process, DESIGN.md §6), so a re-dispatched job gives the same poses on any worker. The optimisation
+checks the job's deadline after every iteration (`shared.bus.worker.check_deadline`): a job past it
+ends with ErrorReply "timeout" and frees its worker.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from services.generator.init import InitialisationError
 from services.generator.scene import PushScene
 from services.generator.synthesis import GenerationError, GenerationOutput, generate
 from shared.bus import ServiceError
+from shared.bus.worker import check_deadline
 from shared.hands import load_hand
 from shared.messages import GenerationJob, GenerationResult, Message, ObjectRef
 from shared.object_refs import load_object_ref
@@ -70,7 +73,8 @@ def run_job(job: GenerationJob) -> GenerationResult:
     config = job_config(job)
     scene = scene_for(job.object, config)
     try:
-        output = generate(scene, load_hand(job.hand), job.batch_size, job.seed, config)
+        output = generate(scene, load_hand(job.hand), job.batch_size, job.seed, config,
+                          progress=lambda iterations: check_deadline())
     except (GenerationError, InitialisationError, ValueError) as exc:
         raise ServiceError("bad_request", f"generator: {exc}") from exc
     return to_result(job, output)

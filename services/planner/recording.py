@@ -24,8 +24,8 @@ import pybullet as pb
 import trimesh
 from foxglove import messages as fg
 
-from services.planner.pipeline import StepRecord
-from shared.messages import ExecutionState, PushRequest, PushResponse
+from services.planner.outcome import PushOutcome, StepRecord
+from shared.messages import ExecutionState, PushRequest
 from shared.objects import write_object_urdf
 from shared.object_refs import load_object_ref
 from shared.push_outcome import pose_matrix
@@ -44,9 +44,10 @@ OBSTACLE_RGBA = (0.80, 0.15, 0.15, 1.0)
 STORYBOARD_SUPERSAMPLE = 1
 
 
-def record_push(record_dir: Path, request: PushRequest, response: PushResponse, records: list[StepRecord],
-                scene: RobotScene, defer: Callable[[Callable[[], Path]], object] | None = None) -> Path:
-    """Write the MCAP and the storyboard PNG of a served request; returns the MCAP's path.
+def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, scene: RobotScene,
+                defer: Callable[[Callable[[], Path]], object] | None = None) -> Path:
+    """Write the MCAP and the storyboard PNG of a served request (`outcome`: its response and the
+    records of its executed pushes); returns the MCAP's path.
 
     `scene` is an empty robot scene of the request's arm and hand (forward kinematics; the object and
     obstacles are added to it here). `defer`, when given, is handed the storyboard's rendering (about
@@ -55,6 +56,7 @@ def record_push(record_dir: Path, request: PushRequest, response: PushResponse, 
     """
     record_dir.mkdir(parents=True, exist_ok=True)
     mcap_path = record_dir / f"push-{request.id[:16]}.mcap"
+    records = outcome.records
     obj = load_object_ref(request.object)
     scene.add_object(write_object_urdf(obj), records[0].T_world_O_start)
     scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
@@ -66,7 +68,7 @@ def record_push(record_dir: Path, request: PushRequest, response: PushResponse, 
             writer.write_message("gd2p/planner/plan", record.step.plan, start_ns)
             for state in record.execution.states + [record.execution.final]:
                 _write_state(writer, scene, state)
-        writer.write_message("gd2p/planner/response", response, time.time_ns())
+        writer.write_message("gd2p/planner/response", outcome.response, time.time_ns())
     render = storyboard(scene, records, obj.mesh, request.obstacles, mcap_path.with_suffix(".png"))
     if defer is None:
         render()

@@ -4,9 +4,14 @@ The algorithm is `pipeline.PushPipeline`; this module gives it its services over
 - sampling: `SampleRequest` through a Dispatcher to the sampler workers;
 - arm rollouts: `ValidationJob(with_arm=True)` through a Dispatcher to the validator farm, all plans
   of a push at once (they run in parallel on as many validator processes as there are);
-- execution: an `ExecutionCommand` queried on the robot bridge's command key, leased by this
-  worker's own liveliness token (`gd2p/lease/planner-<worker id>`), while the robot's
-  `ExecutionState` stream is collected for the recording.
+- execution: an `ExecutionCommand` queried on the robot bridge's command key under a lease of its
+  own (a liveliness token `gd2p/lease/planner/<worker id>.<command id>`, declared for that command
+  only), while the robot's `ExecutionState` stream is collected for the recording;
+- cancellation: a request that names its client's lease (`PushRequest.client_lease`) is watched
+  (`shared.bus.lease.LeaseMonitor`); when the lease is lost (Ctrl-C, a crashed client, a lost
+  router) the request is cancelled: sampling and planning stop at their next check, and a running
+  command's lease is dropped, which stops the robot (the bridge notices within its lease bound).
+  The reply is ErrorReply "cancelled".
 
 Each request is recorded (`recording.py`): an MCAP with Foxglove channels and the bus messages
 (written before the answer), and a PNG storyboard beside it (rendered just after), in `record_dir` (`--record-dir`, env GD2P_PUSH_RECORD_DIR, default
@@ -14,20 +19,24 @@ Each request is recorded (`recording.py`): an MCAP with Foxglove channels and th
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import zenoh
 
+from services.planner.cancellation import Cancellation, RequestCancelled
 from services.planner.pipeline import Execution, PushError, PushPipeline, PushServices
 from services.planner.recording import record_push
 from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, ServiceError, Worker, open_session
 from shared.bus.errors import DispatchError
-from shared.bus.keys import LEASE_PREFIX, ROBOT_COMMAND_KEY, ROBOT_STATE_KEY, check_chunk
+from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_STATE_KEY
+from shared.bus.lease import LeaseError, LeaseMonitor, lease_key, parse_lease_key
 from shared.codec import CodecError, decode, encode
 from shared.messages import (
     ErrorReply,
@@ -41,6 +50,7 @@ from shared.messages import (
     SimWorld,
     ValidationJob,
     ValidationResult,
+    new_id,
 )
 
 SERVICE = "planner"
@@ -61,15 +71,13 @@ class BusServices:
         self.session = session
         self.sampler = Dispatcher(session, "sampler", timeout_s=SAMPLE_TIMEOUT_S)
         self.validator = Dispatcher(session, "validator", timeout_s=ROLLOUT_TIMEOUT_S, max_in_flight_per_worker=1)
-        self.lease_key = f"{LEASE_PREFIX}/{check_chunk(SERVICE + '-' + worker_id, 'lease id')}"
-        self.lease = session.liveliness().declare_token(self.lease_key)
+        self.worker_id = worker_id
         self._states: dict[str, list[ExecutionState]] = {}
         self._lock = threading.Lock()
         self._subscriber = session.declare_subscriber(ROBOT_STATE_KEY, self._on_state)
 
     def close(self) -> None:
         self._subscriber.undeclare()
-        self.lease.undeclare()
         self.sampler.close()
         self.validator.close()
 
@@ -103,14 +111,19 @@ class BusServices:
         self.validator.submit(job).add_done_callback(settle)
         return outcome
 
-    def execute(self, plan: Plan, world: SimWorld | None) -> Execution:
-        command = ExecutionCommand(plan=plan, lease_token=self.lease_key, realtime_factor=REALTIME_FACTOR, world=world)
+    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation) -> Execution:
+        """Query the bridge with `plan` under a lease of this command alone; cancelling drops the lease."""
+        command_id = new_id()
+        command = ExecutionCommand(id=command_id, plan=plan, lease_token=lease_key(SERVICE, f"{self.worker_id}.{command_id}"),
+                                   realtime_factor=REALTIME_FACTOR, world=world)
         with self._lock:
             self._states[command.id] = []
         payload, encoding = encode(command)
         try:
-            replies = list(self.session.get(ROBOT_COMMAND_KEY, payload=payload, encoding=encoding,
-                                            timeout=EXECUTION_TIMEOUT_S))
+            # Declared on this session before the query: the router has the token when the command arrives.
+            with _held_lease(self.session, command.lease_token, cancel):
+                replies = list(self.session.get(ROBOT_COMMAND_KEY, payload=payload, encoding=encoding,
+                                                timeout=EXECUTION_TIMEOUT_S))
         finally:
             with self._lock:
                 states = self._states.pop(command.id)
@@ -125,6 +138,23 @@ class BusServices:
             raise PushError(reply.code if reply.code in ErrorReply.CODES else "internal", f"robot bridge: {reply.message}")
         return Execution(final=reply, states=states)
 
+    @contextlib.contextmanager
+    def watch_client(self, request: PushRequest, cancel: Cancellation) -> Iterator[None]:
+        """Cancel the request when its client's lease is lost (nothing to watch without one)."""
+        if request.client_lease is None:
+            yield
+            return
+        try:
+            role, _ = parse_lease_key(request.client_lease)
+        except LeaseError as exc:
+            raise ServiceError("bad_request", str(exc)) from exc
+        if role != "client":
+            raise ServiceError("bad_request", f"client_lease {request.client_lease!r} is not a client lease "
+                               f"({lease_key('client', '<id>')})")
+        with LeaseMonitor(self.session, request.client_lease,
+                          on_lost=lambda: cancel.cancel("the client gave up (its lease was lost)")):
+            yield
+
     def _on_state(self, sample: zenoh.Sample) -> None:  # zenoh callback: quick, never blocks
         try:
             state = decode(sample.payload.to_bytes(), str(sample.encoding), ExecutionState)
@@ -135,28 +165,64 @@ class BusServices:
                 self._states[state.command_id].append(state)
 
 
-class PlannerService:
-    """Serves PushRequests: runs the pipeline, records the request, answers."""
+def _no_watch(_request: PushRequest, _cancel: Cancellation) -> contextlib.AbstractContextManager:
+    return contextlib.nullcontext()
 
-    def __init__(self, services: PushServices, record_dir: str | os.PathLike | None = None):
+
+@contextlib.contextmanager
+def _held_lease(session: zenoh.Session, key: str, cancel: Cancellation) -> Iterator[None]:
+    """Hold a liveliness token on `key` until the block ends or `cancel` fires, whichever is first."""
+    token = session.liveliness().declare_token(key)
+    released = threading.Lock()
+
+    def release() -> None:
+        if released.acquire(blocking=False):
+            token.undeclare()
+
+    unregister = cancel.on_cancel(release)
+    try:
+        yield
+    finally:
+        unregister()
+        release()
+
+
+ClientWatch = Callable[[PushRequest, Cancellation], contextlib.AbstractContextManager]
+
+
+class PlannerService:
+    """Serves PushRequests: runs the pipeline, records the request, answers.
+
+    `watch_client(request, cancel)` is a context manager that cancels `cancel` when the request's
+    client gives up (the bus adapter's `BusServices.watch_client`; default: never).
+    """
+
+    def __init__(self, services: PushServices, record_dir: str | os.PathLike | None = None,
+                 watch_client: ClientWatch = _no_watch):
         self.pipeline = PushPipeline(services)
+        self.watch_client = watch_client
         self.record_dir = Path(record_dir or os.environ.get(RECORD_DIR_ENV, DEFAULT_RECORD_DIR)).resolve()
         self._lock = threading.Lock()  # one robot: one push request at a time
         # Storyboards are rendered after the answer, one at a time (they take about as long as a push).
         self._storyboards = ThreadPoolExecutor(max_workers=1, thread_name_prefix="planner-storyboard")
 
     def push(self, request: PushRequest) -> PushResponse:
-        """Plan, rank and execute a push of `request.object`; record it."""
-        with self._lock:
-            try:
-                response = self.pipeline.run(request)
-            except PushError as exc:
-                raise ServiceError(exc.code, exc.message) from exc
-            records = self.pipeline.last_records
+        """Plan, rank and execute a push of `request.object`; record it. ErrorReply "cancelled" when
+        the client gave up first."""
+        cancel = Cancellation()
+        try:
+            with self.watch_client(request, cancel), self._lock:
+                outcome = self.pipeline.run(request, cancel)
+        except PushError as exc:
+            raise ServiceError(exc.code, exc.message) from exc
+        except RequestCancelled as exc:
+            log.warning("push %s cancelled: %s", request.id, exc.reason)
+            raise ServiceError("cancelled", exc.reason) from exc
+        response = outcome.response
         started = time.perf_counter()
         try:
             with self.pipeline.scene(request.arm, request.hand) as scene:
-                path = record_push(self.record_dir, request, response, records, scene,
+                path = record_push(self.record_dir, request, outcome, scene,
                                    defer=lambda render: self._storyboards.submit(_render_logged, render))
         except OSError as exc:
             log.warning("could not record push %s: %s", request.id, exc)
@@ -198,7 +264,7 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     bus = service = None
     try:
         bus = BusServices(session, worker_id)
-        service = PlannerService(bus.services(), record_dir)
+        service = PlannerService(bus.services(), record_dir, watch_client=bus.watch_client)
         Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session).run()
     finally:
         if service is not None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -13,8 +14,11 @@ from shared.bus import BusConfig, BusError, open_session
 
 
 def _positive_mb(text: str) -> float:
-    value = float(text)
-    if not value > 0:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):  # nan and inf too
         raise argparse.ArgumentTypeError(f"must be a positive number of megabytes, got {text}")
     return value
 

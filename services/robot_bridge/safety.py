@@ -7,13 +7,19 @@
    flange and the hand base inside the workspace box along the densified path (`check_plan`). Here
    too: the plan must start where the robot is, and each device's configured effort cap (current /
    torque) must be inside its effort limit. A violation raises `SafetyRefusal` before anything moves.
-2. Lease: a command carries `lease_token`, the key of the commander's Zenoh liveliness token. A
-   command whose token is not alive is refused; while it executes the bridge watches the token, and
-   its disappearance (the commander crashed, lost the network or closed its session) stops motion.
-3. E-stop: an `EStop` message on `ESTOP_KEY` stops every backend at once and latches: commands are
-   refused until `EStopLatch.reset()` (an operator's deliberate action; `recover()` on each backend).
-   A measured effort over its limit during execution (a collision, a jam) is a protective stop that
-   latches the same way.
+2. Lease: a command carries `lease_token`, which must be a planner's lease key,
+   `gd2p/lease/planner/<holder>` (shared/bus/lease.py); any other key is refused, even one with a live
+   token behind it (another role's lease, a worker's `gd2p/alive/...` token, a wildcard).
+   `CommandLease` watches it with a `LeaseMonitor` from *before* the first check until the motion
+   ends: the lease must be confirmed held before anything moves, and its loss at any moment (the
+   commander dropped it, crashed or closed its session; this bridge lost its router; the bridge's
+   `RouterWatchdog` heard nothing through the router for its bound) stops motion. The final
+   state names the loss and how long the halt took after it was noticed.
+3. E-stop: anything published on `ESTOP_KEY` — a valid `EStop`, an empty payload, garbage, a wrong
+   encoding, another message type — starts stopping every backend *before* it is decoded or logged,
+   then latches: commands are refused until `EStopLatch.reset()` (an operator's deliberate action;
+   `recover()` on each backend). A measured effort over its limit during execution (a collision, a
+   jam) is a protective stop that latches the same way.
 
 `SafeExecutor` ties the three together for the hardware backends: `execute(ExecutionCommand)` ->
 `ExecutionState`. It is plain Python given a Zenoh session; the service adapts it to the bus.
@@ -46,15 +52,16 @@ from services.robot_bridge.limits import (
     WorkspaceBox,
     densify,
 )
-from shared.codec import CodecError, decode
-from shared.bus.keys import LEASE_PREFIX, ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
-from shared.messages import EStop, ExecutionCommand, ExecutionState, Plan
+from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
+from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, parse_lease_key
+from shared.codec import decode
+from shared.messages import EStop, ExecutionCommand, ExecutionState, Message, Plan
 
 log = logging.getLogger("gd2p.robot_bridge.safety")
 
 ESTOP_KEY = ROBOT_ESTOP_KEY
 COMMAND_KEY = ROBOT_COMMAND_KEY
-LEASE_PREFIX = LEASE_PREFIX  # commanders' liveliness tokens: gd2p/lease/<commander id>
+COMMAND_LEASE_ROLE = "planner"  # the only role whose lease may command motion
 
 
 class SafetyRefusal(BackendError):
@@ -189,93 +196,140 @@ def check_plan(limits: RobotLimits, plan: Plan, realtime_factor: float = 1.0) ->
 
 
 # ------------------------------------------------------------------------------------------ lease
-def lease_key(commander_id: str) -> str:
-    """Where a commander declares its lease token (the secure profile's ACL opens `gd2p/lease/**`)."""
-    return check_lease_key(f"{LEASE_PREFIX}/{commander_id}")
+def check_command_lease(key: str) -> str:
+    """`key` if it is a planner's lease key, `gd2p/lease/planner/<holder>`; SafetyRefusal("lease") otherwise.
 
-
-def check_lease_key(token: str) -> str:
-    """A lease token must be one concrete key (no wildcards: a pattern could match someone else's token)."""
-    if not token or any(c in token for c in "*$?#") or token.startswith("/") or token.endswith("/") or "//" in token:
-        raise SafetyRefusal("lease", f"lease token {token!r} is not a concrete key expression")
+    Nothing else may keep a command alive, even with a live token behind it: a worker's `gd2p/alive/...`
+    token, a client's lease, a wildcard. The key says nothing about who holds its token: Zenoh
+    consolidates tokens declared twice on one key, so the bridge cannot count holders. Binding the
+    lease to the planner is the secure profile's (only the planner's certificate may declare tokens
+    under `gd2p/lease/planner/**`) and the planner's (a fresh key per command).
+    """
     try:
-        zenoh.KeyExpr(token)
-    except zenoh.ZError as exc:
-        raise SafetyRefusal("lease", f"lease token {token!r} is not a valid key: {exc}") from None
-    return token
+        role, _ = parse_lease_key(key)
+    except LeaseError as exc:
+        raise SafetyRefusal("lease", f"{exc}; a command's lease must be "
+                            f"gd2p/lease/{COMMAND_LEASE_ROLE}/<holder>") from None
+    if role != COMMAND_LEASE_ROLE:
+        raise SafetyRefusal("lease", f"lease {key!r} is a {role} lease; only a {COMMAND_LEASE_ROLE} lease "
+                            f"(gd2p/lease/{COMMAND_LEASE_ROLE}/<holder>) may command motion")
+    return key
 
 
-def lease_alive(session: zenoh.Session, token: str, timeout_s: float = 1.0) -> bool:
-    """True if a liveliness token is currently declared on exactly `token`."""
-    check_lease_key(token)
-    for reply in session.liveliness().get(token, timeout=timeout_s):
-        if reply.ok is not None and str(reply.ok.key_expr) == token:
-            return True
-    return False
+class CommandLease:
+    """One command's lease, watched from before its first check until its motion ends (a context manager).
 
+    Construction refuses a key that is not a planner lease (`check_command_lease`); entering starts a
+    `LeaseMonitor` (with the bridge's `RouterWatchdog`, if any). From then on a loss sets `stop`, the
+    event every backend's execute() polls, and records when it was noticed. `require()` is the check
+    before motion: the lease must be confirmed held within `confirm_timeout_s` and not lost since.
+    """
 
-class LeaseWatch:
-    """Watch a liveliness token; `lost` is set when it disappears. Use as a context manager."""
+    def __init__(self, session: zenoh.Session, key: str, *, watchdog: RouterWatchdog | None = None,
+                 confirm_timeout_s: float = 1.0):
+        self.key = check_command_lease(key)
+        self.session, self.watchdog = session, watchdog
+        self.confirm_timeout_s = confirm_timeout_s
+        self.stop = threading.Event()
+        self.noticed_at: float | None = None  # time.monotonic() when the loss was noticed
+        self._monitor: LeaseMonitor | None = None
 
-    def __init__(self, session: zenoh.Session, token: str, on_lost: Callable[[], None] | None = None):
-        self.token = check_lease_key(token)
-        self.lost = threading.Event()
-        self._on_lost = on_lost
-        self._subscriber = session.liveliness().declare_subscriber(self.token, self._on_sample)
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:  # zenoh callback thread: set events only
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self.lost.set()
-            if self._on_lost is not None:
-                self._on_lost()
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-
-    def __enter__(self) -> "LeaseWatch":
+    def __enter__(self) -> "CommandLease":
+        self._monitor = LeaseMonitor(self.session, self.key, on_lost=self._on_lost, watchdog=self.watchdog)
         return self
 
     def __exit__(self, *exc) -> None:
-        self.close()
+        self._monitor.close()
+
+    def _on_lost(self) -> None:  # the monitor's thread: quick
+        self.noticed_at = time.monotonic()
+        self.stop.set()
+
+    @property
+    def lost(self) -> bool:
+        return self._monitor.lost.is_set()
+
+    @property
+    def reason(self) -> str:
+        return self._monitor.reason
+
+    def require(self) -> None:
+        """SafetyRefusal("lease") unless the lease is confirmed held and not lost."""
+        if not self._monitor.wait_confirmed(self.confirm_timeout_s) or self.lost:
+            why = self.reason or f"not confirmed held within {self.confirm_timeout_s:g} s"
+            raise SafetyRefusal("lease", f"lease {self.key!r} is not alive ({why}); the commander must hold "
+                                "its liveliness token there")
+
+    def stop_note(self, halted_at: float) -> str:
+        """The loss and how long the halt took after it was noticed (for the final state's message)."""
+        noticed = self.noticed_at if self.noticed_at is not None else halted_at
+        return f"{self.reason}; motion halted {max(0.0, halted_at - noticed):.3f} s after the loss was noticed"
 
 
 # ------------------------------------------------------------------------------------------ e-stop
 class EStopLatch:
-    """Subscribes to ESTOP_KEY; an EStop message stops every registered backend at once and latches.
+    """Subscribes to ESTOP_KEY: anything published there stops every registered backend, then latches.
 
-    Stopping runs on a thread of its own (never in Zenoh's callback); each backend's stop() is called
-    in parallel so one slow device does not delay the others.
+    The order matters: stopping starts first (a thread of its own that sets the latch, then calls
+    each backend's stop() in parallel, so one slow device does not delay the others, and never on
+    Zenoh's callback thread), the latch is set next, and only then is the sample decoded and
+    described — an empty payload, garbage, a wrong encoding or another message type stops the robot
+    just like a valid `EStop`.
     """
 
     def __init__(self, session: zenoh.Session, backends: Sequence[Backend]):
         self.backends = list(backends)
         self.triggered = threading.Event()
-        self.last: EStop | None = None
+        self.last: EStop | None = None  # what the latest stop said (set after the stop has started)
         self._subscriber = session.declare_subscriber(ESTOP_KEY, self._on_sample)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), str(sample.encoding), EStop)
-        except CodecError as exc:
-            # Anything on the e-stop key is treated as a stop: a malformed stop must still stop.
-            msg = EStop(reason=f"undecodable e-stop message ({exc})")
-        self.trigger(msg)
+    def _on_sample(self, sample: zenoh.Sample) -> None:  # zenoh callback: stop first, describe after
+        self._stop_and_latch()
+        self._describe(describe_estop(sample))
 
     def trigger(self, msg: EStop) -> None:
         """Stop every backend now and latch (also usable locally, e.g. from a hardware button)."""
-        self.last = msg
+        self._stop_and_latch()
+        self._describe(msg)
+
+    def _stop_and_latch(self) -> None:
+        backends = list(self.backends)
+
+        def stop() -> None:
+            self.triggered.set()  # before any backend stops: whoever sees a motion stopped sees the latch
+            stop_all(backends)
+
+        threading.Thread(target=stop, name="estop", daemon=True).start()
         self.triggered.set()
+
+    def _describe(self, msg: EStop) -> None:
+        self.last = msg
         log.warning("E-STOP: %s (issued by %s)", msg.reason, msg.issued_by or "unknown")
-        threading.Thread(target=stop_all, args=(self.backends,), name="estop", daemon=True).start()
+
+    def reason(self) -> str:
+        """What the latest stop said (generic while its message is still being decoded)."""
+        return self.last.reason if self.last is not None else "a message on the e-stop key"
 
     def reset(self) -> None:
         """Operator action: clear the latch and let each backend recover."""
         for backend in self.backends:
             backend.recover()
+        self.last = None
         self.triggered.clear()
 
     def close(self) -> None:
         self._subscriber.undeclare()
+
+
+def describe_estop(sample: zenoh.Sample) -> EStop:
+    """The EStop a sample on the e-stop key stands for; never raises (whatever arrived is a stop)."""
+    try:
+        msg: Message = decode(sample.payload.to_bytes(), str(sample.encoding), EStop)
+    except Exception as exc:  # noqa: BLE001 - a malformed stop is still a stop
+        return EStop(reason=f"undecodable message on the e-stop key ({type(exc).__name__}: {exc})")
+    if isinstance(msg, EStop):
+        return msg
+    return EStop(reason=f"a {type(msg).__name__} on the e-stop key (not an EStop): treated as a stop")
 
 
 def stop_all(backends: Sequence[Backend]) -> None:
@@ -284,7 +338,7 @@ def stop_all(backends: Sequence[Backend]) -> None:
         try:
             backend.stop()
         except Exception:  # a failing device must not prevent the others from stopping
-            log.exception("stopping %s failed", backend.name)
+            log.exception("stopping %s failed", getattr(backend, "name", backend))
 
     threads = [threading.Thread(target=stop_one, args=(b,), daemon=True) for b in backends]
     for thread in threads:
@@ -305,15 +359,18 @@ class Device:
 class SafeExecutor:
     """Executes ExecutionCommands for one arm + hand on hardware backends behind every check of this module.
 
-    While a plan runs it reads every device's state at `state_rate_hz`: efforts are checked against
-    the limits and, if `publish` is given, an ExecutionState ("executing") is published each tick.
-    Pass the service's `estop` latch to share it (its backends are added); otherwise one is created.
+    The command's lease is watched (`CommandLease`, with `watchdog` if given) from before the first
+    check until every device has stopped. While a plan runs it reads every device's state at
+    `state_rate_hz`: efforts are checked against the limits and, if `publish` is given, an
+    ExecutionState ("executing") is published each tick. Pass the service's `estop` latch to share it
+    (its backends are added); otherwise one is created.
     """
 
     def __init__(self, session: zenoh.Session, arm: str, hand: str, devices: Sequence[Device],
                  workspace: WorkspaceBox | None = DEFAULT_WORKSPACE, T_world_base: np.ndarray | None = None,
                  start_tolerance_rad: float = 0.05, lease_timeout_s: float = 1.0, state_rate_hz: float = 50.0,
-                 publish: Callable[[ExecutionState], None] | None = None, estop: EStopLatch | None = None):
+                 publish: Callable[[ExecutionState], None] | None = None, estop: EStopLatch | None = None,
+                 watchdog: RouterWatchdog | None = None):
         self.session = session
         self.arm, self.hand = arm, hand
         self.devices = list(devices)
@@ -325,6 +382,7 @@ class SafeExecutor:
         self.lease_timeout_s = lease_timeout_s
         self.state_period_s = 1.0 / state_rate_hz
         self.publish = publish
+        self.watchdog = watchdog
         self._owns_estop = estop is None
         self.estop = estop or EStopLatch(session, [])
         self.estop.backends.extend(d.backend for d in self.devices)
@@ -334,11 +392,12 @@ class SafeExecutor:
         if self._owns_estop:
             self.estop.close()
 
-    def check(self, command: ExecutionCommand) -> JointTrajectory:
-        """Every check that must pass before anything moves; returns the trajectory. Raises SafetyRefusal."""
+    def check(self, command: ExecutionCommand, lease: CommandLease) -> JointTrajectory:
+        """Every check that must pass before anything moves, the watched `lease` last; the trajectory.
+        Raises SafetyRefusal."""
         if self.estop.triggered.is_set():
-            reason = self.estop.last.reason if self.estop.last else "e-stop"
-            raise SafetyRefusal("estop", f"e-stop is latched ({reason}); reset it before commanding motion")
+            raise SafetyRefusal("estop", f"e-stop is latched ({self.estop.reason()}); reset it before commanding "
+                                "motion")
         plan = command.plan
         if (plan.arm, plan.hand) != (self.arm, self.hand):
             raise SafetyRefusal("plan", f"plan is for {plan.arm} + {plan.hand}; this bridge drives {self.arm} + {self.hand}")
@@ -351,9 +410,7 @@ class SafeExecutor:
             raise SafetyRefusal("plan", str(exc)) from None
         for device in self.devices:
             self._check_start(device.backend, trajectory)
-        if not lease_alive(self.session, check_lease_key(command.lease_token), self.lease_timeout_s):
-            raise SafetyRefusal("lease", f"lease {command.lease_token!r} is not alive: the commander holds no "
-                                f"liveliness token there")
+        lease.require()
         return trajectory
 
     def _check_start(self, backend: Backend, trajectory: JointTrajectory) -> None:
@@ -366,21 +423,23 @@ class SafeExecutor:
                                 f"the plan starts at {start[k]:.4f} rad (tolerance {self.start_tolerance_rad} rad)")
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
-        """Check, then run every device's part of the plan at once; stop all on lease loss, e-stop or effort."""
+        """Watch the lease, check, then run every device's part of the plan at once; stop all on lease
+        loss, e-stop or effort."""
         if not self._busy.acquire(blocking=False):
             return self._state(command, "refused", "busy: another command is executing")
         try:
-            try:
-                trajectory = self.check(command)
-            except SafetyRefusal as exc:
-                log.warning("refused command %s: %s", command.id, exc)
-                return self._state(command, "refused", str(exc))
-            return self._run(command, trajectory)
+            with CommandLease(self.session, command.lease_token, watchdog=self.watchdog,
+                              confirm_timeout_s=self.lease_timeout_s) as lease:
+                trajectory = self.check(command, lease)
+                return self._run(command, trajectory, lease)
+        except SafetyRefusal as exc:
+            log.warning("refused command %s: %s", command.id, exc)
+            return self._state(command, "refused", str(exc))
         finally:
             self._busy.release()
 
-    def _run(self, command: ExecutionCommand, trajectory: JointTrajectory) -> ExecutionState:
-        stop = threading.Event()
+    def _run(self, command: ExecutionCommand, trajectory: JointTrajectory, lease: CommandLease) -> ExecutionState:
+        stop = lease.stop  # set by a lease loss, and below by any other reason to stop
         reasons: list[str] = []
         reports: dict[str, ExecutionReport | BaseException] = {}
 
@@ -396,48 +455,46 @@ class SafeExecutor:
                     reasons.append(f"{device.backend.name}: {exc}")
                     stop.set()
 
-        with LeaseWatch(self.session, command.lease_token, on_lost=stop.set) as lease:
-            threads = [threading.Thread(target=run, args=(d,), name=f"exec-{d.backend.name}", daemon=True)
-                       for d in self.devices]
-            for thread in threads:
-                thread.start()
-            self._supervise(command, threads, stop, lease, reasons)
+        threads = [threading.Thread(target=run, args=(d,), name=f"exec-{d.backend.name}", daemon=True)
+                   for d in self.devices]
+        for thread in threads:
+            thread.start()
+        self._supervise(command, threads, lease, reasons)
         return self._outcome(command, reports, reasons)
 
-    def _supervise(self, command: ExecutionCommand, threads: list[threading.Thread], stop: threading.Event,
-                   lease: LeaseWatch, reasons: list[str]) -> None:
-        """Until every device is done, each state tick: stop all on lease loss, e-stop or an effort over
-        its limit, and publish the state."""
+    def _supervise(self, command: ExecutionCommand, threads: list[threading.Thread], lease: CommandLease,
+                   reasons: list[str]) -> None:
+        """Until every device is done, each state tick: stop all on lease loss, e-stop, an effort over its
+        limit or a failing device, and publish the state. Then put why it stopped first in `reasons`."""
         stopped = False
         next_tick = time.monotonic()
         while any(t.is_alive() for t in threads):
             states = self._read_states()
-            reason = self._stop_reason(lease) or self._protective_stop(states)
-            if (reason or stop.is_set()) and not stopped:
-                if reason:
-                    reasons.append(reason)
-                stop.set()  # a failing device (reason already recorded) halts the others too
+            if not stopped and (lease.stop.is_set() or self.estop.triggered.is_set() or self._protective_stop(states)):
+                lease.stop.set()  # a failing device (reason already recorded) halts the others too
                 stop_all([d.backend for d in self.devices])
                 stopped = True
             if self.publish is not None and states:
                 self.publish(self._state(command, "executing", "", states))
             next_tick += self.state_period_s
             time.sleep(max(0.0, next_tick - time.monotonic()))
-        if stop.is_set() and not reasons:  # the devices saw the stop before this loop did
-            reasons.append(self._stop_reason(lease) or "stopped")
-        if stop.is_set() and not self.estop.triggered.is_set():
+        if lease.stop.is_set():
+            reasons[:0] = self._stop_reasons(lease, time.monotonic()) or ([] if reasons else ["stopped"])
+        if lease.stop.is_set() and not self.estop.triggered.is_set():
             for device in self.devices:  # a lease-loss stop is no device fault: ready for the next lease
                 try:
                     device.backend.recover()
                 except BackendError as exc:
                     reasons.append(f"{device.backend.name}: recovery after the stop failed: {exc}")
 
-    def _stop_reason(self, lease: LeaseWatch) -> str | None:
-        if lease.lost.is_set():
-            return f"lease {lease.token!r} lost"
+    def _stop_reasons(self, lease: CommandLease, halted_at: float) -> list[str]:
+        """Why the motion stopped from outside: the e-stop, the lost lease (none for a device's own failure)."""
+        why = []
         if self.estop.triggered.is_set():
-            return f"e-stop: {self.estop.last.reason if self.estop.last else ''}"
-        return None
+            why.append(f"e-stop: {self.estop.reason()}")
+        if lease.lost:
+            why.append(lease.stop_note(halted_at))
+        return why
 
     def _protective_stop(self, states: Mapping[str, JointState]) -> str | None:
         """An effort over its limit (a collision, a jam) latches like an e-stop: an operator must look."""

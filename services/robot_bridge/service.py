@@ -5,12 +5,17 @@
   the reply is the final `ExecutionState`: status "done", "stopped" (e-stop or lost lease), or
   "refused" with a message naming the broken limit, joint and time. The worker's own job key does
   not execute commands (anyone on the bus may query it); it serves health queries and EStop.
-- The command's `lease_token` must be a live liveliness token of the commander; its loss stops the
-  motion (`safety.LeaseWatch`).
-- `EStop` (as a job, or published on `safety.ESTOP_KEY`) stops every robot at once and latches:
+- The command's `lease_token` must be a planner's lease, `gd2p/lease/planner/<holder>`, held by a live
+  liveliness token (`safety.CommandLease`). It is watched from before the first check until the
+  motion ends: a lease lost at any point — during the checks, the world reset or the motion; the
+  commander dropped it, or this bridge lost its router — refuses or stops the command, and the final
+  state names the loss and how long the halt took. With a `probe` session (what `run` opens), a
+  `RouterWatchdog` also notices a router that hangs without closing the link.
+- Anything published on `safety.ESTOP_KEY` (or an `EStop` job) stops every robot at once and latches:
   later commands are refused until the bridge restarts (the operator's deliberate action).
 - A command with a `world` first resets the simulation to it (object, obstacles, robot at home);
-  without one the plan runs in the world the previous command left (multi-step pushes).
+  without one the plan runs in the world the previous command left (multi-step pushes). A command
+  whose lease is lost during the reset is refused before anything moves.
 - While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the backend's state rate.
 
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
@@ -30,17 +35,16 @@ import zenoh
 
 from services.robot_bridge.safety import (
     COMMAND_KEY,
+    CommandLease,
     EStopLatch,
-    LeaseWatch,
     SafeExecutor,
     SafetyRefusal,
-    check_lease_key,
-    lease_alive,
 )
 from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
+from shared.bus.lease import RouterWatchdog
 from shared.codec import CodecError, decode, encode
 from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message, SimWorld
 from shared.object_refs import load_object_ref
@@ -54,13 +58,21 @@ log = logging.getLogger("gd2p.robot_bridge")
 
 
 class Bridge:
-    """One simulated robot per (arm, hand), built on first use, behind lease and e-stop checks."""
+    """One simulated robot per (arm, hand), built on first use, behind lease and e-stop checks.
 
-    def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0):
+    `probe`: a second session to the same router; with it a `RouterWatchdog` stops motion when the
+    router stops forwarding (hung, or a link that drops packets without closing). The caller keeps
+    both sessions.
+    """
+
+    def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0,
+                 probe: zenoh.Session | None = None):
         self.session = session
         self.publish = publish
         self.lease_timeout_s = lease_timeout_s
         self.estop_latch = EStopLatch(session, [])
+        self.watchdog = (RouterWatchdog(session, probe, f"{SERVICE}-{session.zid()}") if probe is not None
+                         else None)
         self._executors: dict[tuple[str, str], SimExecutor] = {}
         self._lock = threading.Lock()
         self.hardware: SafeExecutor | None = None  # set by `attach_hardware`; then no simulated robot is used
@@ -70,7 +82,8 @@ class Bridge:
         devices = spec.devices()
         connect_all(devices)
         self.hardware = SafeExecutor(self.session, spec.arm, spec.hand, devices, publish=self.publish,
-                                     estop=self.estop_latch)
+                                     estop=self.estop_latch, lease_timeout_s=self.lease_timeout_s,
+                                     watchdog=self.watchdog)
 
     def executor(self, arm: str, hand: str) -> SimExecutor:
         with self._lock:
@@ -82,38 +95,48 @@ class Bridge:
             return self._executors[(arm, hand)]
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
-        """Run `command.plan` if every check passes; the final state (or the refusal)."""
+        """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal)."""
         if self.hardware is not None:
             return self.hardware.execute(command)  # its own lease, e-stop, limit and workspace checks
         executor = self.executor(command.plan.arm, command.plan.hand)
         try:
-            self._check_command(command)
+            with CommandLease(self.session, command.lease_token, watchdog=self.watchdog,
+                              confirm_timeout_s=self.lease_timeout_s) as lease:
+                self._prepare(executor, command, lease)
+                state = executor.execute(command.plan, command.realtime_factor, command.id, lease.stop)
+                return self._finish(executor, state, lease, time.monotonic())
         except SafetyRefusal as exc:
             log.warning("refused command %s: %s", command.id, exc)
             return executor.backend.execution_state("refused", command.id, str(exc))
+
+    def _prepare(self, executor: SimExecutor, command: ExecutionCommand, lease: CommandLease) -> None:
+        """The checks before the world reset, the reset, and the lease again after it (SafetyRefusal)."""
+        if self.estop_latch.triggered.is_set():
+            raise SafetyRefusal("estop", f"e-stop is latched ({self.estop_latch.reason()}); restart the bridge "
+                                "to clear it")
+        lease.require()
         if command.world is not None:
             try:
                 reset_world(executor.backend, command.world)
             except ObjectLoadError as exc:
-                return executor.backend.execution_state("refused", command.id, f"world: {exc}")
-        stop = threading.Event()
-        with LeaseWatch(self.session, command.lease_token, on_lost=stop.set):
-            state = executor.execute(command.plan, command.realtime_factor, command.id, stop)
-        if state.status == "refused":
-            log.warning("refused command %s: %s", command.id, state.message)
-        elif state.status == "stopped" and not self.estop_latch.triggered.is_set():
-            executor.backend.recover()  # a lost lease is not a fault: ready for the next commander
-            state = state.model_copy(update={"message": f"lease {command.lease_token!r} lost; {state.message}"})
-        return state
+                raise SafetyRefusal("world", str(exc)) from None
+            lease.require()  # lost during the reset: nothing has moved yet
 
-    def _check_command(self, command: ExecutionCommand) -> None:
+    def _finish(self, executor: SimExecutor, state: ExecutionState, lease: CommandLease,
+                halted_at: float) -> ExecutionState:
+        """Name why a motion stopped (e-stop, lost lease) and make the robot ready after a lease loss."""
+        if state.status == "refused":
+            log.warning("refused command %s: %s", state.command_id, state.message)
+        if state.status != "stopped":
+            return state
+        why = []
         if self.estop_latch.triggered.is_set():
-            last = self.estop_latch.last
-            raise SafetyRefusal("estop", f"e-stop is latched ({last.reason if last else 'e-stop'}); restart the bridge "
-                                "to clear it")
-        if not lease_alive(self.session, check_lease_key(command.lease_token), self.lease_timeout_s):
-            raise SafetyRefusal("lease", f"lease {command.lease_token!r} is not alive: the commander holds no "
-                                "liveliness token there")
+            why.append(f"e-stop: {self.estop_latch.reason()}")
+        else:
+            executor.backend.recover()  # a lost lease is not a fault: ready for the next commander
+        if lease.lost:
+            why.append(lease.stop_note(halted_at))
+        return state.model_copy(update={"message": "; ".join([*why, state.message])})
 
     def estop(self, request: EStop) -> ExecutionState:
         """Stop every robot now and latch; the reply is the state of the first robot (if any)."""
@@ -128,6 +151,8 @@ class Bridge:
 
     def close(self) -> None:
         self.estop_latch.close()
+        if self.watchdog is not None:
+            self.watchdog.close()
         if self.hardware is not None:
             for device in self.hardware.devices:
                 device.backend.disconnect()
@@ -183,28 +208,34 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
 
     `hardware` (None = the simulated robot) is connected before the worker registers, so a bridge
     whose devices are absent fails at start with the device's error instead of announcing itself.
+    A client bridge opens a second session to its router, the probe of its `RouterWatchdog`.
     """
     try:
         session = open_session(cfg, stop=stop)
     except OpenCancelled:
         log.info("robot_bridge stopped before a router was reachable")
         return
-    bridge = None
+    bridge = probe = None
     try:
+        probe = open_session(cfg, stop=stop) if cfg.mode == "client" else None
         publisher = session.declare_publisher(STATE_KEY)
 
         def publish(state: ExecutionState) -> None:
             payload, encoding = encode(state)
             publisher.put(payload, encoding=encoding)
 
-        bridge = Bridge(session, publish)
+        bridge = Bridge(session, publish, probe=probe)
         if hardware is not None:
             bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()
         Worker(SERVICE, bridge.handlers(), cfg, worker_id, stop=stop, session=session).run()
         commands.undeclare()
         publisher.undeclare()
+    except OpenCancelled:
+        log.info("robot_bridge stopped while opening its watchdog session")
     finally:
         if bridge is not None:
             bridge.close()
+        if probe is not None:
+            probe.close()
         session.close()

@@ -16,8 +16,9 @@ and hand together — they share one physics world, stepped by one thread.
   are recorded in `collisions` (hand-object contact is the push) and named in the final message.
 
 `SimExecutor` runs a plan on it behind the limit checks of `limits.py` (joint positions, velocities,
-workspace box) and the start-configuration check; the bus service adds the lease and the e-stop
-(`safety.py`).
+workspace box) and the start-configuration check. The bus service (service.py) adds the lease and
+the e-stop (`safety.py`): its `CommandLease` sets the `stop` event passed to `SimExecutor.execute`
+when the lease is lost, and the e-stop calls `stop()`; either halts the robot within one physics step.
 """
 from __future__ import annotations
 
@@ -257,7 +258,10 @@ class SimExecutor:
 
     def execute(self, plan: Plan, realtime_factor: float = 1.0, command_id: str | None = None,
                 stop: threading.Event | None = None) -> ExecutionState:
-        """Check and run `plan`; the final state: "done", "stopped", "refused" or "error" with the reason."""
+        """Check and run `plan`; the final state: "done", "stopped", "refused" or "error" with the reason.
+
+        `stop` (e.g. the command's lease watch) set at any time, even before motion starts, ends it as "stopped".
+        """
         backend = self.backend
         if not self._busy.acquire(blocking=False):
             return backend.execution_state("refused", command_id, "busy: another plan is executing")

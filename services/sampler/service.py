@@ -10,8 +10,8 @@ batching thread and share network passes.
 given to `handlers`), loaded on first use; the reply holds the stored poses of the training frame
 nearest to the object in BPS space, and its `checkpoint_id` names the index file and that object.
 
-Objects: a library id, a mesh (written once to the object cache by its hash, as the validator
-does) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
+Objects: a library id (loaded as an id, never as a path), a mesh (cached by its hash once it
+loaded, as the validator does: shared/object_refs.py) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
 sampled for a scaled object could not be validated or executed on the same geometry.
 """
 from __future__ import annotations
@@ -27,7 +27,9 @@ from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeigh
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
 from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
-from shared.object_refs import uploaded_mesh_path
+from shared.object_refs import load_uploaded_mesh
+from shared.objects import ObjectLoadError
+from shared.objects.model import load_library_object
 
 SERVICE = "sampler"
 
@@ -114,13 +116,18 @@ class SamplerService:
 
 
 def object_input(ref: ObjectRef) -> ObjectInput:
-    """What PoseSampler.sample takes for an ObjectRef: an id, a cached mesh file, or a world point cloud."""
+    """What PoseSampler.sample takes for an ObjectRef: the loaded object, or a world point cloud.
+
+    SamplerInputError for an unknown id or a mesh that does not load."""
     if ref.scale is not None and ref.scale != 1.0:
         raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported by the sampler")
-    if ref.library_id is not None:
-        return ref.library_id
-    if ref.mesh is not None:
-        return uploaded_mesh_path(ref.mesh)
+    try:
+        if ref.library_id is not None:
+            return load_library_object(ref.library_id)
+        if ref.mesh is not None:
+            return load_uploaded_mesh(ref.mesh)
+    except ObjectLoadError as exc:
+        raise SamplerInputError(str(exc)) from exc
     assert ref.point_cloud is not None
     return ref.point_cloud.to_numpy().astype(np.float64)
 

@@ -7,6 +7,10 @@ job seed fixes the augmentation copies, so a job gives the same result on any wo
 
 Arm rollouts (`with_arm=True`, issue 6: a planned push played with the arm, for the planner's
 ranking) go to `rollout.rollout`.
+
+Deadline: a worker gives each job at most JOB_DEADLINE_S (less when its caller waits less); the
+floating-hand episode loop checks it between episodes (`shared.bus.worker.check_deadline`), so a job
+too big for its budget ends with ErrorReply "timeout" and frees its worker within one episode.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from services.validator.rollout import rollout
 from services.validator.push import PushInputError, PushOutcome, table_object
 from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
+from shared.bus.worker import check_deadline
 from shared.frames import object_yaw_in_d
 from shared.hands import load_hand
 from shared.messages import AugmentedOutcomes, Message, ObjectRef, PhysicsSettings, ValidationJob, ValidationResult
@@ -31,6 +36,10 @@ from shared.sim import PhysicsParams, SimError
 
 SERVICE = "validator"
 DEFAULT_PARAMS = PhysicsParams()
+# A data-engine job (32 candidates + 10 augmented copies of each success, about 0.1 s of CPU an
+# episode) takes under a minute, a planner job (1-6 poses) seconds: ten minutes is ample for any
+# legitimate job and bounds how long one job can hold a worker.
+JOB_DEADLINE_S = 600.0
 
 _local = threading.local()
 
@@ -73,10 +82,12 @@ def validate(job: ValidationJob) -> ValidationResult:
     obj = resolve_object(job.object)
     hand = load_hand(job.hand)
     yaw = 0.0 if job.frame is None else object_yaw_in_d(job.frame, obj.default_pose.rotation)
+    check_deadline()
     try:
         run = _validator().validate(
             table_object(obj, None, yaw), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
-            push_distance_m=job.push_distance_m, augment=job.augment, seed=job.seed)
+            push_distance_m=job.push_distance_m, augment=job.augment, seed=job.seed,
+            progress=lambda episodes: check_deadline())
     except (PushInputError, SimError) as exc:
         raise ServiceError("bad_request", f"validator: {exc}") from exc
     return to_result(job, obj.id, run, time.perf_counter() - started)

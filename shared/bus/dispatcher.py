@@ -5,12 +5,19 @@ Zenoh has no work queue, so the caller balances explicitly:
 - each job goes to the live worker with the fewest jobs in flight, addressed by its own key
   (`gd2p/<service>/worker/<id>/job`), never more than `max_in_flight_per_worker` at once; the rest
   wait in the dispatcher (back-pressure: `submit` blocks while `max_queued` jobs are unfinished);
-- a job whose worker's token is DELETEd, whose query ends without a reply, or that times out is
-  re-dispatched (preferably to another worker) up to `max_attempts`; then its future fails with
-  `DispatchError` naming the job, the service and the last failure;
-- job ids are idempotent: submitting an id that is in flight or recently finished returns the same
-  future; a reply that arrives after the job was already answered (by an earlier attempt) is dropped,
-  so every result reaches the caller exactly once;
+- each query tells the worker how long the dispatcher waits (`timeout_s`, as the query attachment):
+  the worker answers ErrorReply "timeout" just before that instead of working on for nobody;
+- every reply is final, ErrorReply included ("timeout" and "bad_request" too: a job too slow or too
+  big for one worker is so for all), except "unavailable" (the worker is shutting down), which is
+  re-dispatched without counting as an attempt;
+- a job whose worker's token is DELETEd, whose query ends without a reply, or that gets no reply
+  within `timeout_s` (a hung or unreachable worker) is re-dispatched (preferably to another worker) up
+  to `max_attempts`; then its future fails with `DispatchError` naming the job, the service and the
+  last failure;
+- job ids are idempotent: submitting the same job (same id, same content) while it is in flight or
+  recently finished returns the same future; submitting a different job under such an id raises
+  `BusError` (an id names one job); a reply that arrives after the job was already answered (by an
+  earlier attempt) is dropped, so every result reaches the caller exactly once;
 - while no worker is live, jobs wait (workers may come up later); bound the wait with
   `call(timeout=...)`, `map(timeout=...)` or `future.result(timeout)`.
 
@@ -33,6 +40,7 @@ import zenoh
 
 from shared.bus.errors import BusError, DispatchError, RemoteError
 from shared.bus.keys import alive_pattern, check_chunk, job_key, parse_alive_key
+from shared.bus.worker import payload_digest, timeout_attachment
 from shared.codec import CodecError, decode, encode
 from shared.messages import ErrorReply, Message
 
@@ -103,8 +111,9 @@ class Dispatcher:
         # Shared with submitters (guarded by _lock).
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # unfinished count fell / worker set changed
-        self._active: dict[str, Future] = {}
-        self._recent: OrderedDict[str, Future] = OrderedDict()
+        # job id -> (payload digest, future): unfinished jobs, and the last `remember_completed` finished.
+        self._active: dict[str, tuple[str, Future]] = {}
+        self._recent: OrderedDict[str, tuple[str, Future]] = OrderedDict()
         self._live_ids: list[str] = []
         self._closed = False
         # Owned by the dispatcher thread.
@@ -124,25 +133,34 @@ class Dispatcher:
         """Queue `job`; the future resolves to the worker's reply (an `ErrorReply` included).
 
         Blocks while `max_queued` jobs are unfinished. The future fails with `DispatchError` if no
-        worker answered after `max_attempts`, or if the dispatcher is closed first.
+        worker answered after `max_attempts`, or if the dispatcher is closed first. The same job
+        submitted again returns its first future; a different job with a known id raises `BusError`.
         """
         if not isinstance(job, Message):
             raise TypeError(f"jobs must be shared.messages.Message instances, got {type(job).__name__}")
         payload, encoding = encode(job)
+        digest = payload_digest(payload, encoding)
         with self._lock:
             while True:
                 if self._closed:
                     raise DispatchError("unavailable", f"the {self.service} dispatcher is closed", job.id)
                 existing = self._active.get(job.id) or self._recent.get(job.id)
                 if existing is not None:
-                    return existing
+                    return self._same_job(job, digest, *existing)
                 if len(self._active) < self.max_queued:
                     break
                 self._space.wait()
             future: Future = Future()
             future.set_running_or_notify_cancel()  # not cancellable: the job may already be running
-            self._active[job.id] = future
+            self._active[job.id] = (digest, future)
         self._events.put(("submit", _Job(job, payload, encoding, future)))
+        return future
+
+    def _same_job(self, job: Message, digest: str, known_digest: str, future: Future) -> Future:
+        """The future of an already submitted job; BusError when `job` only shares its id."""
+        if digest != known_digest:
+            raise BusError(f"job id {job.id} was reused for a different job: this {self.service} dispatcher already "
+                           f"has a job {job.id} with other content ({type(job).__name__} ids must name one job)")
         return future
 
     def call(self, job: Message, timeout: float | None = None) -> Message:
@@ -369,6 +387,7 @@ class Dispatcher:
             self._session.get(
                 worker.key, self._reply_handler(attempt), payload=job.payload, encoding=job.encoding,
                 timeout=self.timeout_s, consolidation=zenoh.ConsolidationMode.NONE,
+                attachment=timeout_attachment(self.timeout_s),
             )
         except zenoh.ZError as exc:
             self._settle(attempt)
@@ -416,8 +435,9 @@ class Dispatcher:
         job_id = job.msg.id
         self._jobs.pop(job_id, None)
         with self._lock:
-            self._active.pop(job_id, None)
-            self._recent[job_id] = job.future
+            entry = self._active.pop(job_id, None)
+            if entry is not None:  # None: the dispatcher is closing and failed it already
+                self._recent[job_id] = entry
             while len(self._recent) > self._remember:
                 self._recent.popitem(last=False)
             self._space.notify_all()
@@ -431,7 +451,7 @@ class Dispatcher:
         with self._lock:
             unfinished, self._active = self._active, {}
             self._space.notify_all()
-        for job_id, future in unfinished.items():
+        for job_id, (_, future) in unfinished.items():
             if not future.done():
                 job = self._jobs.get(job_id)
                 what = f"{type(job.msg).__name__} {job_id}" if job else f"job {job_id}"

@@ -1,12 +1,18 @@
-"""Every key expression the system uses, in one place.
+"""The key expressions of the bus, as constants and builders, so that each key is spelled once.
 
-    gd2p/alive/<service>/<worker_id>             liveliness token of a worker
-    gd2p/<service>/worker/<worker_id>/job        the worker's queryable (jobs and health queries)
-    gd2p/status/<service>/<worker_id>            WorkerStatus heartbeat (~2 s), captured by the recorder
-    gd2p/robot_bridge/command/execute            ExecutionCommand queries (only the planner may send them)
-    gd2p/robot_bridge/state                      ExecutionState stream of the robot
-    gd2p/robot_bridge/estop                      EStop: stop every robot backend
-    gd2p/lease/<commander id>                    a commander's liveliness token (the command's lease)
+    gd2p/alive/<service>/<worker_id>             liveliness token of a worker        alive_key, alive_pattern
+    gd2p/<service>/worker/<worker_id>/job        the worker's queryable              job_key
+    gd2p/status/<service>/<worker_id>            WorkerStatus heartbeat              status_key, status_pattern
+    gd2p/robot_bridge/command/execute            ExecutionCommand queries            ROBOT_COMMAND_KEY
+    gd2p/robot_bridge/state                      ExecutionState stream               ROBOT_STATE_KEY
+    gd2p/robot_bridge/estop                      EStop                               ROBOT_ESTOP_KEY
+    gd2p/lease/<role>/<holder>                   a lease token (lease.py)            LEASE_PREFIX
+    gd2p/watchdog/<name>                         router watchdog beats (lease.py)    WATCHDOG_PREFIX
+
+Which message travels on each key, who declares it and who calls it: the interface registry,
+shared/bus/interfaces.py, which builds its table from these. The one key outside the runtime, the
+launcher's control key `gd2p/launcher/control`, is spelled there (`LAUNCHER_CONTROL_KEY`);
+docs/interfaces.md is generated from the registry.
 """
 from __future__ import annotations
 
@@ -20,6 +26,7 @@ ROBOT_COMMAND_KEY = f"{PREFIX}/robot_bridge/command/execute"
 ROBOT_STATE_KEY = f"{PREFIX}/robot_bridge/state"
 ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
 LEASE_PREFIX = f"{PREFIX}/lease"
+WATCHDOG_PREFIX = f"{PREFIX}/watchdog"
 _FORBIDDEN = set("/*$?#")
 
 

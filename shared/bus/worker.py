@@ -5,15 +5,27 @@ queryable of its own (`gd2p/<service>/worker/<worker_id>/job`, so a dispatcher a
 one worker — Zenoh has no work queue), publishes a `WorkerStatus` heartbeat, and turns every
 failure into an `ErrorReply` instead of dying:
 
-- payload that does not decode (CodecError)  -> ErrorReply("bad_request", <what is wrong>)
+- payload over its type's MAX_PAYLOAD_BYTES      -> ErrorReply("bad_request", <size and limit>), not even copied
+- payload that does not decode (CodecError)     -> ErrorReply("bad_request", <what is wrong>)
 - a message type the service has no handler for -> ErrorReply("bad_request", "<svc> accepts X, Y ...")
-- handler raises ServiceError(code, msg)       -> ErrorReply(code, msg)
-- handler raises anything else                 -> ErrorReply("internal", repr(exc)); worker keeps going
-- HealthQuery                                  -> WorkerStatus, answered by the runtime itself
+- a known job id with a different payload       -> ErrorReply("bad_request", "job id ... was reused ...")
+- handler raises ServiceError(code, msg)        -> ErrorReply(code, msg)
+- handler raises anything else                  -> ErrorReply("internal", repr(exc)); worker keeps going
+- the job's deadline passes                     -> ErrorReply("timeout", ...) (see Deadlines)
+- HealthQuery                                   -> WorkerStatus, answered by the runtime itself
 
-Results are stamped with the job's id (so callers correlate them) and cached by job id: a job id
-sent again — e.g. re-dispatched after a timeout — gets the cached reply without recomputation, and
-a duplicate that arrives while the original still runs is answered when it finishes.
+Results are stamped with the job's id (so callers correlate them) and cached by job id together
+with the SHA-256 of the job's payload: the same job sent again — e.g. re-dispatched after its
+worker went quiet — gets the cached reply without recomputation, and a duplicate that arrives while
+the original still runs is answered when it finishes. A different job reusing a known id is refused.
+
+Deadlines: every job has a time budget from the moment it is received: the worker's
+`job_deadline_s`, shortened to just under the caller's own query timeout when the caller says it
+(the dispatcher sends it as the query attachment, `timeout_attachment`). When it passes, the worker
+answers the waiting callers with ErrorReply "timeout" (not cached: it says nothing about the job)
+and the job stops at its next `check_deadline()` — handlers of long jobs call it between steps
+(`current_deadline()` gives the deadline itself). A job still queued when its deadline passes never
+starts. A handler that never checks keeps its thread until it returns, and its result is dropped.
 
 SIGTERM / SIGINT (or the `stop` event): stop accepting (the liveliness token goes first; a query
 that still arrives gets ErrorReply "unavailable", which a dispatcher re-dispatches elsewhere), finish
@@ -22,7 +34,9 @@ undeclare, close the session. A worker still waiting for its router stops as wel
 """
 from __future__ import annotations
 
+import hashlib
 import logging
+import math
 import os
 import queue
 import signal
@@ -32,13 +46,15 @@ import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 
+import msgpack
 import zenoh
 
 from shared.bus.config import BusConfig, open_session
 from shared.bus.errors import OpenCancelled, ServiceError
 from shared.bus.keys import alive_key, check_chunk, job_key, status_key
-from shared.codec import CodecError, decode, encode
+from shared.codec import CodecError, check_payload_size, decode, encode
 from shared.messages import ErrorReply, HealthQuery, Message, WorkerStatus
 
 log = logging.getLogger("gd2p.bus.worker")
@@ -46,6 +62,65 @@ log = logging.getLogger("gd2p.bus.worker")
 Handler = Callable[[Message], Message]
 # Error codes that describe the request, not a passing condition: safe to replay from the cache.
 _CACHEABLE_ERRORS = frozenset({"bad_request", "not_implemented", "infeasible"})
+# A job's budget when neither the service nor the caller says less: the longest legitimate job of the
+# system (a data-engine GenerationJob of a few hundred candidates, cli/dataset.py) takes up to an hour.
+DEFAULT_JOB_DEADLINE_S = 3600.0
+# The worker answers "timeout" this long (at most a tenth of the budget) before the caller's query
+# times out, so the caller gets a final answer instead of re-dispatching the job to another worker.
+_REPLY_MARGIN_S = 0.5
+_TIMEOUT_KEY = "timeout_s"
+
+_current = threading.local()  # .run: the _Run the calling job thread executes
+
+
+@dataclass(eq=False)
+class _Run:
+    """One execution of a job: its payload digest, its deadline and the queries waiting for it."""
+
+    job: Message
+    digest: str
+    budget_s: float
+    deadline: float  # time.monotonic()
+    queries: list[zenoh.Query] = field(default_factory=list)
+    expired: bool = False  # the deadline passed and its callers were answered "timeout"
+
+
+def current_deadline() -> float | None:
+    """The `time.monotonic()` by which the job run by this thread must end; None outside a job."""
+    run = getattr(_current, "run", None)
+    return None if run is None else run.deadline
+
+
+def check_deadline() -> None:
+    """Raise ServiceError("timeout") once the job run by this thread is past its deadline.
+
+    Handlers of long jobs call it between steps; outside a worker job it does nothing.
+    """
+    run = getattr(_current, "run", None)
+    if run is not None and (run.expired or time.monotonic() >= run.deadline):
+        raise ServiceError("timeout", f"the job ran past its deadline of {run.budget_s:g} s")
+
+
+def timeout_attachment(timeout_s: float) -> bytes:
+    """The query attachment telling a worker how long the caller waits for the answer."""
+    return msgpack.packb({_TIMEOUT_KEY: float(timeout_s)})
+
+
+def caller_timeout_s(attachment: bytes | None) -> float | None:
+    """The caller's timeout from a query attachment; None when absent or malformed."""
+    try:
+        value = msgpack.unpackb(attachment, raw=False)[_TIMEOUT_KEY] if attachment else None
+    except Exception:  # not ours: ignore it
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
+    return float(value) if ok else None
+
+
+def payload_digest(payload: bytes, encoding: str | None) -> str:
+    """What identifies a job's content: SHA-256 over its encoding (message type) and payload bytes."""
+    digest = hashlib.sha256(f"{encoding}\0".encode())
+    digest.update(payload)
+    return digest.hexdigest()
 
 
 class _JobPool:
@@ -102,6 +177,7 @@ class Worker:
     `handlers` maps each accepted message type to a function returning the reply message; it may
     raise `ServiceError(code, message)`. Up to `concurrency` jobs run at once (in threads: handlers
     that release the GIL — torch, numpy, pybullet — overlap; others should scale with processes).
+    `job_deadline_s` bounds every job (see Deadlines in the module docstring).
     `session` lets a worker share an already open session (it is then not closed by the worker).
     """
 
@@ -119,9 +195,12 @@ class Worker:
         status_period_s: float = 2.0,
         result_cache_size: int = 1024,
         drain_timeout_s: float = 8.0,
+        job_deadline_s: float = DEFAULT_JOB_DEADLINE_S,
     ):
         if concurrency < 1:
             raise ValueError(f"concurrency must be >= 1, got {concurrency}")
+        if not job_deadline_s > 0:
+            raise ValueError(f"job_deadline_s must be positive, got {job_deadline_s}")
         for msg_type in handlers:
             if not (isinstance(msg_type, type) and issubclass(msg_type, Message)):
                 raise TypeError(f"handler keys must be Message subclasses, got {msg_type!r}")
@@ -134,12 +213,15 @@ class Worker:
         self.stop_event = stop or threading.Event()
         self.status_period_s = status_period_s
         self.drain_timeout_s = drain_timeout_s
+        self.job_deadline_s = job_deadline_s
         self._session = session
         self._lock = threading.Lock()
-        self._cache: OrderedDict[str, tuple[bytes, str]] = OrderedDict()
+        self._deadline_changed = threading.Condition(self._lock)
+        self._cache: OrderedDict[str, tuple[str, bytes, str]] = OrderedDict()  # job id -> (digest, reply, encoding)
         self._cache_size = result_cache_size
-        self._running: dict[str, list[zenoh.Query]] = {}  # job id -> queries waiting for its result
+        self._running: dict[str, _Run] = {}  # job id -> its execution (waiting queries, deadline)
         self._stopping = False
+        self._closed = False  # ends the deadline watcher
         self._started = time.monotonic()
         self._in_flight = 0
         self._jobs_done = 0
@@ -171,9 +253,13 @@ class Worker:
             log.info("%s worker %s stopped before a router was reachable", self.service, self.worker_id)
             return
         pool = _JobPool(self.concurrency, name=f"{self.service}-job")
+        self._closed = False
+        watcher = threading.Thread(target=self._watch_deadlines, name=f"{self.service}-deadlines", daemon=True)
+        watcher.start()
         try:
             self._serve(session, pool)
         finally:
+            self._close_watcher(watcher)
             pool.close()
             if self._session is None:
                 session.close()
@@ -209,13 +295,13 @@ class Worker:
     def _abandon_running(self) -> None:
         """Answer the jobs still running with "unavailable", so dispatchers re-dispatch them now."""
         with self._lock:
-            running, self._running = self._running, {}
+            abandoned = [self._expire(job_id, run) for job_id, run in list(self._running.items())]
         log.warning("%s worker %s abandons %d job(s) still running after %.1f s",
-                    self.service, self.worker_id, len(running), self.drain_timeout_s)
-        for job_id, queries in running.items():
+                    self.service, self.worker_id, len(abandoned), self.drain_timeout_s)
+        for job_id, run, queries in abandoned:
             for query in queries:
                 self._reply_error(query, "unavailable", f"{self.service} worker {self.worker_id} stopped before "
-                                  f"finishing job {job_id}")
+                                  f"finishing job {job_id}", job=run.job)
 
     def _publish_status(self, publisher: zenoh.Publisher) -> None:
         payload, encoding = encode(self.status())
@@ -236,10 +322,9 @@ class Worker:
         if self._stopping:
             self._reply_error(query, "unavailable", f"{self.service} worker {self.worker_id} is stopping")
             return
-        payload = query.payload.to_bytes() if query.payload is not None else b""
         encoding = str(query.encoding) if query.encoding is not None else None
         try:
-            msg = decode(payload, encoding)
+            msg, payload = self._decode(query, encoding)
         except CodecError as exc:
             self._reply_error(query, "bad_request", str(exc))
             return
@@ -253,33 +338,74 @@ class Worker:
                 job=msg,
             )
             return
-        with self._lock:
-            cached = self._cache.get(msg.id)
-            if cached is None:
-                waiting = self._running.get(msg.id)
-                if waiting is not None:  # same job already running: answer this query too when it ends
-                    waiting.append(query)
-                    return
-                self._running[msg.id] = [query]
-                self._in_flight += 1
-        if cached is not None:
-            self._reply(query, *cached)
-            return
-        pool.submit(self._execute, handler, msg)
+        run = _Run(msg, payload_digest(payload, encoding), *self._budget(query), queries=[query])
+        if self._admit(msg, run):
+            pool.submit(self._execute, handler, run)
 
-    def _execute(self, handler: Handler, job: Message) -> None:
-        payload, encoding, ok, cacheable = self._compute(handler, job)
+    @staticmethod
+    def _decode(query: zenoh.Query, encoding: str | None) -> tuple[Message, bytes]:
+        """(message, payload bytes); CodecError — for an oversized payload before it is even copied."""
+        check_payload_size(len(query.payload) if query.payload is not None else 0, encoding)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        return decode(payload, encoding), payload
+
+    def _budget(self, query: zenoh.Query) -> tuple[float, float]:
+        """(budget_s, deadline) of a job received now: `job_deadline_s`, or less if the caller waits less."""
+        budget = self.job_deadline_s
+        caller = caller_timeout_s(query.attachment.to_bytes() if query.attachment is not None else None)
+        if caller is not None:
+            budget = min(budget, caller - min(_REPLY_MARGIN_S, 0.1 * caller))
+        return budget, time.monotonic() + budget
+
+    def _admit(self, job: Message, run: _Run) -> bool:
+        """Register `run` as `job`'s execution; False when the job is answered or joined instead."""
+        [query] = run.queries
         with self._lock:
-            queries = self._running.pop(job.id, [])
+            cached, running = self._cache.get(job.id), self._running.get(job.id)
+            if cached is None and running is None:
+                self._running[job.id] = run
+                self._in_flight += 1
+                self._deadline_changed.notify()  # the deadline watcher may have to wake up sooner
+                return True
+            same = (cached[0] if cached is not None else running.digest) == run.digest
+            if same and cached is None:  # same job already running: answer this query too when it ends
+                running.queries.append(query)
+                return False
+        if not same:
+            self._reply_error(query, "bad_request", f"job id {job.id} was reused for a different job: this "
+                              f"{self.service} worker already has a job {job.id} with other content", job=job)
+        else:
+            self._reply(query, *cached[1:])
+        return False
+
+    def _execute(self, handler: Handler, run: _Run) -> None:
+        if run.expired:  # its deadline passed while it was queued: the callers have their answer
+            payload, encoding, ok, cacheable = b"", "", False, False
+        else:
+            _current.run = run  # for check_deadline()
+            try:
+                payload, encoding, ok, cacheable = self._compute(handler, run.job)
+            finally:
+                _current.run = None
+        job_id = run.job.id
+        with self._lock:
+            if self._running.get(job_id) is run:
+                del self._running[job_id]
+            queries = [] if run.expired else run.queries  # expired: its callers were answered already
+            ok, cacheable = ok and not run.expired, cacheable and not run.expired
             self._in_flight -= 1
             self._jobs_done += ok
             self._jobs_failed += not ok
             if cacheable:
-                self._cache[job.id] = (payload, encoding)
-                if len(self._cache) > self._cache_size:
-                    self._cache.popitem(last=False)
+                self._remember(job_id, run.digest, payload, encoding)
         for query in queries:
             self._reply(query, payload, encoding)
+
+    def _remember(self, job_id: str, digest: str, payload: bytes, encoding: str) -> None:
+        """Cache a reply (call with the lock held); the oldest entry goes when the cache is full."""
+        self._cache[job_id] = (digest, payload, encoding)
+        if len(self._cache) > self._cache_size:
+            self._cache.popitem(last=False)
 
     def _compute(self, handler: Handler, job: Message) -> tuple[bytes, str, bool, bool]:
         """Run the handler; returns (payload, encoding, succeeded, cacheable)."""
@@ -296,6 +422,42 @@ class Worker:
         except Exception as exc:
             log.exception("%s handler failed on %s %s", self.service, type(job).__name__, job.id)
             return (*encode(self._error("internal", repr(exc), job)), False, False)
+
+    # ------------------------------------------------------------------ deadlines
+    def _watch_deadlines(self) -> None:
+        """Answer "timeout" for every job whose deadline passed, as soon as it passes."""
+        while (expired := self._next_expired()) is not None:
+            for job_id, run, queries in expired:
+                log.warning("%s job %s passed its %.3g s deadline", self.service, job_id, run.budget_s)
+                for query in queries:
+                    self._reply_error(query, "timeout", f"{self.service} worker {self.worker_id}: job {job_id} "
+                                      f"did not finish within its deadline of {run.budget_s:g} s", job=run.job)
+
+    def _next_expired(self) -> list[tuple[str, _Run, list[zenoh.Query]]] | None:
+        """Wait until jobs pass their deadline and take them out; None once the worker has closed."""
+        with self._lock:
+            while not self._closed:
+                now = time.monotonic()
+                expired = [(job_id, run) for job_id, run in self._running.items() if run.deadline <= now]
+                if expired:
+                    return [self._expire(job_id, run) for job_id, run in expired]
+                soonest = min((run.deadline for run in self._running.values()), default=now + 1.0)
+                self._deadline_changed.wait(min(max(soonest - now, 0.001), 1.0))
+        return None
+
+    def _expire(self, job_id: str, run: _Run) -> tuple[str, _Run, list[zenoh.Query]]:
+        """Take a run out of the running jobs (lock held): its thread stops at its next check, its
+        result is neither sent nor cached; returns the queries the caller must answer."""
+        del self._running[job_id]
+        run.expired = True
+        queries, run.queries = run.queries, []
+        return job_id, run, queries
+
+    def _close_watcher(self, watcher: threading.Thread) -> None:
+        with self._lock:
+            self._closed = True
+            self._deadline_changed.notify_all()
+        watcher.join(timeout=5.0)
 
     # ------------------------------------------------------------------ replies
     def _error(self, code: str, message: str, job: Message | None = None) -> ErrorReply:
@@ -342,6 +504,6 @@ def run_worker(
 ) -> None:
     """Serve `service` with `handlers` until SIGTERM/SIGINT or `stop` is set (see `Worker`).
 
-    `options` go to `Worker` (status_period_s, result_cache_size, drain_timeout_s).
+    `options` go to `Worker` (status_period_s, result_cache_size, drain_timeout_s, job_deadline_s).
     """
     Worker(service, handlers, cfg, worker_id, concurrency, capabilities, stop, **options).run()

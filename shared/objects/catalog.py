@@ -7,6 +7,9 @@ Ids
 - `proc-<family>-<NNN>`: procedural shapes with exact meshes (procedural.py).
 - `mesh-<sha256[:12]>`: a user mesh file, named by its content.
 
+An id is never a path: `resolve_library_id` (what every id from the bus goes through) accepts the
+forms above only. `resolve_source` also takes a mesh file path, for local callers (CLI, benchmarks).
+
 Splits are fixed by id: the named pybullet objects and the first HELD_OUT_PER_FAMILY objects of
 each procedural family are always test (the everyday-like and 3D-printed-like evaluation sets of
 the paper's protocol); every other id falls in train / val / test 80 / 10 / 10 by a hash of the id.
@@ -103,16 +106,49 @@ def user_mesh_id(path: Path) -> str:
     return "mesh-" + hashlib.sha256(path.read_bytes()).hexdigest()[:12]
 
 
+def is_user_mesh_id(text: str) -> bool:
+    """`mesh-<sha256[:12]>`: the id of a user mesh file loaded before."""
+    return _MESH_ID_PATTERN.fullmatch(text) is not None
+
+
 def resolve_source(id_or_path: str | Path) -> ObjectSource:
-    """Map a library id or a mesh file path to its ObjectSource (UnknownObjectError otherwise)."""
+    """Map a library id or a mesh file path to its ObjectSource (UnknownObjectError otherwise).
+
+    A `Path`, or a string that is not a library id and looks like a file (a separator, a suffix, an
+    existing file), is read as a mesh file. Ids from the bus go through `resolve_library_id` instead.
+    """
     text = str(id_or_path)
-    if isinstance(id_or_path, Path) or "/" in text or "\\" in text or Path(text).suffix or Path(text).is_file():
-        path = Path(text).expanduser()
-        meshio.check_suffix(path)
-        if not path.is_file():
-            raise ObjectLoadError(f"{path}: no such file")
-        return ObjectSource(user_mesh_id(path), "mesh", "user", True, path)
-    match = _RND_PATTERN.match(text)
+    if isinstance(id_or_path, Path) or (not _is_library_id(text) and _looks_like_path(text)):
+        return _mesh_file_source(Path(text).expanduser())
+    try:
+        return resolve_library_id(text)
+    except UnknownObjectError as exc:
+        raise UnknownObjectError(f"{exc}, or a path to an OBJ/STL/PLY/GLB file") from None
+
+
+def _is_library_id(text: str) -> bool:
+    """One of the library's ids (a file of that name in the working directory does not shadow it)."""
+    return bool(_RND_PATTERN.fullmatch(text)) or (text.startswith("pb-") and text[3:] in PYBULLET_OBJECTS) \
+        or text in procedural_ids()
+
+
+def _looks_like_path(text: str) -> bool:
+    return "/" in text or "\\" in text or bool(Path(text).suffix) or Path(text).is_file()
+
+
+def _mesh_file_source(path: Path) -> ObjectSource:
+    meshio.check_suffix(path)
+    if not path.is_file():
+        raise ObjectLoadError(f"{path}: no such file")
+    return ObjectSource(user_mesh_id(path), "mesh", "user", True, path)
+
+
+def resolve_library_id(text: str) -> ObjectSource:
+    """The ObjectSource of a library id; never reads `text` as a path (UnknownObjectError otherwise).
+
+    `mesh-<hash>` ids are not library objects: `model.load_library_object` looks them up in the cache.
+    """
+    match = _RND_PATTERN.fullmatch(text)
     if text in EXCLUDED_RANDOM_URDFS:
         raise ObjectLoadError(f"{text}: excluded from the library: {EXCLUDED_RANDOM_URDFS[text]}")
     if match:
@@ -123,7 +159,7 @@ def resolve_source(id_or_path: str | Path) -> ObjectSource:
         return ObjectSource(text, "procedural", procedural_spec(text).family, True)
     raise UnknownObjectError(
         f"{text!r}: unknown object; expected rnd-000..rnd-{RANDOM_URDF_COUNT - 1}, pb-<{'|'.join(PYBULLET_OBJECTS)}>, "
-        f"proc-<family>-000..{PER_FAMILY - 1:03d}, or a path to an OBJ/STL/PLY/GLB file"
+        f"proc-<family>-000..{PER_FAMILY - 1:03d}, mesh-<hash> (a mesh loaded before)"
     )
 
 

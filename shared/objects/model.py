@@ -1,6 +1,7 @@
 """ObjectModel: everything the algorithms need about one object, loaded by id or mesh file.
 
-`load_object("proc-box-017")`, `load_object("pb-mug")`, `load_object("scan.ply")`.
+`load_object("proc-box-017")`, `load_object("pb-mug")`, `load_object("scan.ply")`; ids that come
+from elsewhere (a bus message) go through `load_library_object`, which never reads an id as a path.
 
 The expensive parts are cached on disk by a content hash of the source (file bytes, scale,
 procedural parameters) and the pipeline version: the cleaned mesh in the object frame O, mass
@@ -27,9 +28,11 @@ from .cache import cache_root, load_npz, save_npz
 from .catalog import (
     ObjectInfo,
     ObjectSource,
+    is_user_mesh_id,
     list_object_ids,
     procedural_info,
     read_source_mesh,
+    resolve_library_id,
     resolve_source,
     source_fingerprint,
     split_of,
@@ -259,13 +262,34 @@ def load_object(
     A `mesh-<hash>` id works for a mesh file loaded before on this machine (its cached geometry).
     Raises ObjectLoadError (naming the id or file and the problem) for anything unusable.
     """
+    if not isinstance(path_or_id, Path) and is_user_mesh_id(str(path_or_id)):
+        return load_library_object(str(path_or_id), density=density, sdf_resolution=sdf_resolution, cache_dir=cache_dir)
+    return _load_source(resolve_source(path_or_id), cache_root(cache_dir), density, sdf_resolution)
+
+
+def load_library_object(
+    object_id: str,
+    *,
+    density: float = DEFAULT_DENSITY,
+    sdf_resolution: int = DEFAULT_RESOLUTION,
+    cache_dir: str | Path | None = None,
+) -> ObjectModel:
+    """Load a library object, or a user mesh loaded before, by its id only: an id is never read as a
+    path, so one from the network cannot name a file. UnknownObjectError for anything else."""
+    root = cache_root(cache_dir)
+    if is_user_mesh_id(object_id):
+        return _load_known_mesh_id(object_id, root, _checked_density(density), sdf_resolution)
+    return _load_source(resolve_library_id(object_id), root, density, sdf_resolution)
+
+
+def _checked_density(density: float) -> float:
     if density <= 0:
         raise ValueError(f"density must be positive, got {density}")
-    root = cache_root(cache_dir)
-    text = str(path_or_id)
-    if text.startswith("mesh-") and not Path(text).suffix:
-        return _load_known_mesh_id(text, root, density, sdf_resolution)
-    source = resolve_source(path_or_id)
+    return density
+
+
+def _load_source(source: ObjectSource, root: Path, density: float, sdf_resolution: int) -> ObjectModel:
+    _checked_density(density)
     key = _object_key(source)
     directory = root / key
     arrays = load_npz(directory / "geometry.npz")

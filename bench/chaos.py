@@ -1,0 +1,385 @@
+"""Chaos suite: break the running system on purpose and measure what the user would feel.
+
+    python bench/chaos.py [--quick] [--json] [--only NAME ...]     (`make chaos`)
+
+Every scenario runs real processes on loopback (a router process, worker processes) or the real
+robot bridge with its simulated robot, breaks something mid-work, and prints its figures:
+- `worker_killed`:  SIGKILL one of two workers mid-batch      -> jobs lost, jobs answered twice
+- `worker_stalled`: SIGSTOP one of two workers mid-batch      -> jobs lost, the longest a job waited
+- `oversized_job`:  a 20 MB job beside normal ones             -> its answer, how long normal jobs waited
+- `lease_dropped`:  the commander's lease dropped mid-motion   -> stop latency, joint travel after the drop
+- `router_killed`:  the router SIGKILLed mid-motion            -> stop latency, joint travel after the kill
+- `router_hung`:    the router SIGSTOPped mid-motion           -> stop latency (the bridge's router watchdog;
+                    its target is the watchdog's own bound, 0.41 s: see RouterWatchdog)
+- `estop_garbage`:  malformed messages on the e-stop key       -> stop latency of each
+Targets (issue "a robot that stops when it should"): 0 jobs lost or duplicated; motion stops <= 0.2 s
+after the lease or the router is lost; no worker starved longer than its deadline. `--quick` (what
+CI runs through tests/test_chaos.py) uses smaller batches; CI also passes `--stop-target 0.5`, slack for a
+2-core machine busy with other tests (the figures it prints are the measurement; 0.2 s is the target). The last line printed is a JSON object
+with every figure and whether it met its target; the exit code is 1 if any target was missed.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+
+REPO_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if REPO_DIR not in sys.path:
+    sys.path.insert(0, REPO_DIR)
+
+import numpy as np  # noqa: E402
+
+from shared.bus import BusConfig, Dispatcher, open_session, run_worker  # noqa: E402
+from shared.bus.worker import check_deadline  # noqa: E402
+from shared.messages import ErrorReply, Message  # noqa: E402
+
+SERVICE = "chaos"
+STOP_TARGET_S = 0.2  # --stop-target
+
+
+class ChaosJob(Message):
+    """Work for `work_s` (checking the job's deadline every 10 ms) and echo `text`; `padding` makes it big."""
+
+    text: str = ""
+    work_s: float = 0.0
+    padding: bytes = b""
+
+
+class ChaosResult(Message):
+    """The echoed text and who served it."""
+
+    text: str
+    worker_id: str
+
+
+@dataclass
+class Figure:
+    scenario: str
+    figures: dict[str, float | int | str] = field(default_factory=dict)
+    targets: dict[str, bool] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return all(self.targets.values())
+
+
+# ------------------------------------------------------------------------------------------ processes
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def serve_router(endpoint: str) -> None:
+    import zenoh
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"router"')
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(cfg)
+    signal.sigwait({signal.SIGTERM, signal.SIGINT})
+    session.close()
+
+
+def serve_worker(endpoint: str, worker_id: str) -> None:
+    def handle(job: ChaosJob) -> ChaosResult:
+        end = time.monotonic() + job.work_s
+        while time.monotonic() < end:
+            check_deadline()
+            time.sleep(0.01)
+        return ChaosResult(text=job.text, worker_id=worker_id)
+
+    cfg = BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=-1)
+    run_worker(SERVICE, {ChaosJob: handle}, cfg, worker_id=worker_id)
+
+
+def spawn(role: str, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, os.path.abspath(__file__), f"--serve-{role}", *args],
+                            stderr=subprocess.DEVNULL)
+
+
+def end(procs: list[subprocess.Popen]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGCONT)
+            proc.kill()
+        proc.wait(timeout=10)
+
+
+@contextlib.contextmanager
+def router_process() -> Iterator[tuple[str, subprocess.Popen]]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = spawn("router", endpoint)
+    try:
+        time.sleep(1.0)
+        yield endpoint, proc
+    finally:
+        end([proc])
+
+
+def client(endpoint: str):
+    return open_session(BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+
+
+# ------------------------------------------------------------------------------------------ workers
+def _batch(endpoint: str, n_jobs: int, work_s: float, fault: Callable[[list[subprocess.Popen]], None],
+           timeout_s: float = 3.0) -> tuple[Counter, list[float], int]:
+    """Two workers, `n_jobs` jobs, `fault(workers)` once a third of them are done: (answers per job id,
+    each job's latency, jobs that failed)."""
+    workers = [spawn("worker", endpoint, f"w{i}") for i in range(2)]
+    answers: Counter = Counter()
+    latencies: list[float] = []
+    failed = 0
+    try:
+        with client(endpoint) as session, Dispatcher(session, SERVICE, timeout_s=timeout_s, max_attempts=3,
+                                                       max_in_flight_per_worker=2) as dispatcher:
+            dispatcher.wait_for_workers(2, timeout=30.0)
+            jobs = [ChaosJob(text=str(i), work_s=work_s) for i in range(n_jobs)]
+            started = time.monotonic()
+            for i, reply in enumerate(dispatcher.map(jobs, timeout=120.0)):
+                latencies.append(time.monotonic() - started)
+                if isinstance(reply, ErrorReply):
+                    failed += 1
+                else:
+                    answers[reply.id] += 1
+                if i == n_jobs // 3:
+                    fault(workers)
+    finally:
+        end(workers)
+    return answers, latencies, failed
+
+
+def worker_killed(quick: bool) -> Figure:
+    n = 30 if quick else 200
+    with router_process() as (endpoint, _):
+        answers, _, failed = _batch(endpoint, n, 0.05, lambda w: w[0].kill())
+    lost = n - len(answers) - failed
+    duplicated = sum(c - 1 for c in answers.values())
+    return Figure("worker_killed", {"jobs": n, "lost": lost + failed, "duplicated": duplicated},
+                  {"no job lost": lost + failed == 0, "no job duplicated": duplicated == 0})
+
+
+def worker_stalled(quick: bool) -> Figure:
+    n = 30 if quick else 200
+    timeout_s = 2.0
+    with router_process() as (endpoint, _):
+        answers, latencies, failed = _batch(endpoint, n, 0.05, lambda w: w[0].send_signal(signal.SIGSTOP), timeout_s)
+    gaps = np.diff([0.0, *latencies])
+    return Figure("worker_stalled", {"jobs": n, "lost": n - len(answers), "longest_wait_s": round(float(gaps.max()), 3),
+                                     "dispatch_timeout_s": timeout_s},
+                  {"no job lost": len(answers) == n and failed == 0,
+                   "no wait beyond the timeout": float(gaps.max()) <= timeout_s + 2.5})
+
+
+def oversized_job(quick: bool) -> Figure:
+    with router_process() as (endpoint, _):
+        workers = [spawn("worker", endpoint, "w0")]
+        try:
+            with client(endpoint) as session, Dispatcher(session, SERVICE, timeout_s=30.0) as dispatcher:
+                dispatcher.wait_for_workers(1, timeout=30.0)
+                started = time.monotonic()
+                big = dispatcher.submit(ChaosJob(text="big", padding=b"x" * 20_000_000))
+                normal = [dispatcher.submit(ChaosJob(text=str(i))) for i in range(5)]
+                waits = []
+                for future in normal:
+                    future.result(60.0)
+                    waits.append(time.monotonic() - started)
+                reply = big.result(60.0)
+        finally:
+            end(workers)
+    refused = isinstance(reply, ErrorReply) and reply.code == "bad_request"
+    return Figure("oversized_job", {"answer": reply.code if isinstance(reply, ErrorReply) else type(reply).__name__,
+                                    "normal_jobs_done_after_s": round(max(waits), 3)},
+                  {"refused as bad_request": refused, "normal jobs not starved": max(waits) < 5.0})
+
+
+# ------------------------------------------------------------------------------------------ motion
+@dataclass
+class Motion:
+    """A command running on a bridge in this process: when it ended, and joint 0 over time."""
+
+    state: object = None
+    ended_at: float | None = None
+    trace: list[tuple[float, float]] = field(default_factory=list)
+
+    def travel_after(self, t: float) -> float:
+        after = [q for when, q in self.trace if when >= t]
+        return float(max(after) - min(after)) if after else 0.0
+
+
+@contextlib.contextmanager
+def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, Callable[[], None]]]:
+    """A robot bridge (simulated Panda + Allegro) on `endpoint` executing a 4 s move of joint 0 under the
+    lease `lease_holder` holds; yields (bridge, motion, start)."""
+    from services.robot_bridge.service import Bridge
+    from shared.messages import ExecutionCommand, Plan
+
+    session, probe = client(endpoint), client(endpoint)
+    bridge = Bridge(session, probe=probe)  # as services/robot_bridge/service.run builds it: with its router watchdog
+    robot = bridge.executor("panda", "allegro").backend
+    start_q = robot.state().positions.copy()
+    goal = start_q.copy()
+    goal[0] += 0.8
+    alphas = np.linspace(0.0, 1.0, 80)[:, None]
+    plan = Plan(arm="panda", hand="allegro", joint_names=list(robot.joint_names),
+                positions=start_q + alphas * (goal - start_q), times_s=np.linspace(0.0, 4.0, 80))
+    command = ExecutionCommand(plan=plan, lease_token=lease_holder.key, realtime_factor=1.0)
+    motion = Motion()
+    sampling = threading.Event()
+
+    def run() -> None:
+        motion.state = bridge.execute(command)
+        motion.ended_at = time.monotonic()
+
+    def sample() -> None:
+        while not sampling.is_set():
+            motion.trace.append((time.monotonic(), float(robot.state().positions[0])))
+            time.sleep(0.01)
+
+    threads = [threading.Thread(target=run, daemon=True), threading.Thread(target=sample, daemon=True)]
+    try:
+        yield bridge, motion, lambda: [t.start() for t in threads]
+        threads[0].join(timeout=30.0)
+    finally:
+        sampling.set()
+        bridge.close()
+        for each in (probe, session):
+            with contextlib.suppress(Exception):
+                each.close()
+
+
+@dataclass
+class LeaseHolder:
+    key: str
+    token: object
+
+
+@contextlib.contextmanager
+def commander(endpoint: str) -> Iterator[LeaseHolder]:
+    from shared.bus.lease import lease_key
+
+    with client(endpoint) as session:
+        key = lease_key("planner", f"chaos.{os.getpid()}.{time.monotonic_ns()}")
+        yield LeaseHolder(key, session.liveliness().declare_token(key))
+
+
+def hung_router_target_s() -> float:
+    """What the bridge's router watchdog promises (shared/bus/lease.py), with 50 ms for the stop itself."""
+    from shared.bus.lease import CHECK_PERIOD_S, WATCHDOG_BOUND_S, WATCHDOG_PERIOD_S
+
+    return max(STOP_TARGET_S, WATCHDOG_BOUND_S + 2 * WATCHDOG_PERIOD_S + CHECK_PERIOD_S + 0.05)
+
+
+def _stop_figure(name: str, motion: Motion, fault_at: float, target: float | None = None) -> Figure:
+    status = getattr(motion.state, "status", "none")
+    latency = (motion.ended_at - fault_at) if motion.ended_at else float("inf")
+    target = STOP_TARGET_S if target is None else target
+    return Figure(name, {"status": status, "stop_latency_s": round(latency, 3),
+                         "joint0_travel_after_fault_rad": round(motion.travel_after(fault_at), 4),
+                         "message": getattr(motion.state, "message", "")[:160]},
+                  {"stopped": status == "stopped", f"within {target} s": latency <= target})
+
+
+def _motion_fault(name: str, fault: Callable[[subprocess.Popen, LeaseHolder], None],
+                  target: float | None = None) -> Figure:
+    with router_process() as (endpoint, router), commander(endpoint) as holder:
+        with moving_robot(endpoint, holder) as (_bridge, motion, start):
+            start()
+            time.sleep(1.0)
+            fault_at = time.monotonic()
+            fault(router, holder)
+        return _stop_figure(name, motion, fault_at, target)
+
+
+def lease_dropped(quick: bool) -> Figure:
+    return _motion_fault("lease_dropped", lambda _router, holder: holder.token.undeclare())
+
+
+def router_killed(quick: bool) -> Figure:
+    return _motion_fault("router_killed", lambda router, _holder: router.kill())
+
+
+def router_hung(quick: bool) -> Figure:
+    return _motion_fault("router_hung", lambda router, _holder: router.send_signal(signal.SIGSTOP), hung_router_target_s())
+
+
+def estop_garbage(quick: bool) -> Figure:
+    from shared.bus.keys import ROBOT_ESTOP_KEY
+    from shared.codec import encode
+    from shared.messages import ErrorReply as Wrong
+
+    payloads = {"empty": (b"", None), "garbage": (b"\xff\x00garbage", "application/msgpack;EStop"),
+                "wrong type": encode(Wrong(code="internal", message="not a stop"))}
+    if quick:
+        payloads.pop("empty")
+    figures, targets = {}, {}
+    for label, (payload, encoding) in payloads.items():
+        with router_process() as (endpoint, _), commander(endpoint) as holder, client(endpoint) as sender:
+            with moving_robot(endpoint, holder) as (_bridge, motion, start):
+                start()
+                time.sleep(1.0)
+                fault_at = time.monotonic()
+                sender.put(ROBOT_ESTOP_KEY, payload, encoding=encoding)
+            figure = _stop_figure(label, motion, fault_at)
+        figures[f"{label}: stop_latency_s"] = figure.figures["stop_latency_s"]
+        figures[f"{label}: status"] = figure.figures["status"]
+        targets[f"{label} stops"] = figure.ok
+    return Figure("estop_garbage", figures, targets)
+
+
+SCENARIOS: dict[str, Callable[[bool], Figure]] = {
+    f.__name__: f for f in (worker_killed, worker_stalled, oversized_job, lease_dropped, router_killed, router_hung,
+                            estop_garbage)
+}
+
+
+def run(names: list[str], quick: bool) -> list[Figure]:
+    results = []
+    for name in names:
+        started = time.monotonic()
+        figure = SCENARIOS[name](quick)
+        figure.figures["wall_s"] = round(time.monotonic() - started, 1)
+        print(f"{'ok  ' if figure.ok else 'MISS'} {name}: " + ", ".join(f"{k} {v}" for k, v in figure.figures.items()),
+              flush=True)
+        results.append(figure)
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    global STOP_TARGET_S
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="smaller batches (what CI runs)")
+    parser.add_argument("--json", action="store_true", help="end with one JSON line of every figure")
+    parser.add_argument("--only", nargs="+", choices=sorted(SCENARIOS), default=list(SCENARIOS))
+    parser.add_argument("--stop-target", type=float, default=STOP_TARGET_S,
+                        help="seconds within which motion must stop (default %(default)s)")
+    parser.add_argument("--serve-router", nargs=1, help=argparse.SUPPRESS)
+    parser.add_argument("--serve-worker", nargs=2, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.serve_router:
+        serve_router(*args.serve_router)
+        return 0
+    if args.serve_worker:
+        serve_worker(*args.serve_worker)
+        return 0
+    STOP_TARGET_S = args.stop_target
+    results = run(args.only, args.quick)
+    if args.json:
+        print(json.dumps({"quick": args.quick, "scenarios": [asdict(r) | {"ok": r.ok} for r in results]}))
+    return 0 if all(r.ok for r in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

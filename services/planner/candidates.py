@@ -1,0 +1,115 @@
+"""The data that flows between the planner's stages for one push (`stages.py`).
+
+`Push` (where the object is, which way and how far) -> `Candidates` (the pose source's K hand poses,
+in D and in the world) -> `Feasible` (the kinematically feasible ones in the order they are to be
+tried, with their pre-contact IK solutions) -> `CandidatePlan`s (an arm plan for a candidate) ->
+`RankedPlan`s (scored by their rollouts, best first) -> the executed `RankedPlan`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from services.planner import ranking
+from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
+from shared.hands import HandModel
+from shared.messages import DirectionFrame, Plan, ScoreTerms
+from shared.push_outcome import object_pose
+
+
+@dataclass(frozen=True)
+class Push:
+    """One straight push: the object at `T_world_O` moved `distance_m` along the horizontal unit `u` (world xy)."""
+
+    T_world_O: np.ndarray
+    u: np.ndarray
+    distance_m: float
+
+    @cached_property
+    def T_world_D(self) -> np.ndarray:
+        """The direction frame D: at the object, +x along the push."""
+        return direction_frame(self.T_world_O[:3, 3], self.u)
+
+    @cached_property
+    def frame(self) -> DirectionFrame:
+        """D as a message, for the sampler and the validator."""
+        return DirectionFrame(object_pose=object_pose(self.T_world_O),
+                              direction_xy=(float(self.u[0]), float(self.u[1])))
+
+    @property
+    def direction(self) -> np.ndarray:
+        """The push direction as a world 3-vector."""
+        return np.append(self.u, 0.0)
+
+    @property
+    def offset(self) -> np.ndarray:
+        """The push's displacement in the world (m)."""
+        return self.distance_m * self.direction
+
+    @property
+    def target_xy(self) -> np.ndarray:
+        """Where the object's centre should end (world xy)."""
+        return self.T_world_O[:2, 3] + self.distance_m * self.u
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """K candidate hand poses of one push: [K, 25] in D and in the world, their hand-base transforms
+    [K, 4, 4] and finger joints [K, n], and each pose's direction cost L_dir [K]."""
+
+    poses_d: np.ndarray
+    poses_world: np.ndarray
+    T_world_hand: np.ndarray
+    q_hands: np.ndarray
+    l_dir: np.ndarray
+
+    @classmethod
+    def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel) -> Candidates:
+        """The candidates for `poses_d` [K, 25], given in the push's frame D."""
+        poses_world = poses_d_to_world(poses_d, push.T_world_D)
+        T_world_hand, q_hands = pose25_to_matrix(poses_world)
+        return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d))
+
+    def __len__(self) -> int:
+        return len(self.poses_d)
+
+
+@dataclass(frozen=True)
+class Feasible:
+    """The kinematically feasible candidates (indices into `candidates`) in the order they are to be
+    tried, and the pre-contact IK solution of every screened candidate (`q_pre` [K, dof])."""
+
+    candidates: Candidates
+    order: np.ndarray
+    q_pre: np.ndarray
+
+    def reordered(self, order: np.ndarray) -> Feasible:
+        return dataclasses.replace(self, order=order)
+
+    def without_first(self, n: int) -> Feasible:
+        """The candidates after the first `n` of the order (those already tried)."""
+        return self.reordered(self.order[n:])
+
+
+@dataclass(frozen=True)
+class CandidatePlan:
+    """An arm plan for candidate `index`."""
+
+    index: int
+    plan: Plan
+
+    def ranked(self, score: ScoreTerms | None) -> RankedPlan:
+        return RankedPlan(self.index, self.plan, score)
+
+
+@dataclass(frozen=True)
+class RankedPlan:
+    """A plan chosen or ranked for execution: candidate `index`, its plan, and the score of its arm
+    rollout (None when the request is not ranked)."""
+
+    index: int
+    plan: Plan
+    score: ScoreTerms | None

@@ -1,0 +1,434 @@
+"""The stages of one push, each with one job; `pipeline.PushPipeline` runs them in this order.
+
+1. pose source (`candidate_poses`): K hand poses in D — the sampler service's, or the fixed spatula pose;
+2. IK and screening (`screen`): batched arm IK, collision check of each pre-contact configuration
+   and the push line's reachability, in chunks along the order in which poses would be tried;
+3. prescreen (`prescreen`): floating-hand pushes of the first feasible poses on the validator farm;
+   those that push well are tried first;
+4. planning (`ArmPlanning`): `plan_push` for poses in that order, each plan within the robot
+   bridge's limits (`within_limits`: a random path that breaks one is planned again);
+5. rollout (`rollout_job`): each plan's arm rollout, sent to the farm as soon as the plan exists;
+6. ranking (`rank`, and `plan_and_rank` for the rounds of planning, rollouts and ranking);
+   the best plan is then completed with its way back (`ArmPlanning.with_way_back`);
+7. execution (`execute`): the robot bridge runs the plan; the object pose it observes is judged.
+
+Every stage checks the request's `Cancellation` where it may take long (its loops, its waits for
+the farm, before and after the robot moves) and raises `RequestCancelled`.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.planner import ranking
+from services.planner.cancellation import Cancellation
+from services.planner.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
+from services.planner.motion import MotionPlanner, PlanningError
+from services.planner.outcome import Execution, PushError, StepRecord
+from shared.fixed_poses import FixedPoseError, spatula_pose
+from shared.frames import invert_transform
+from shared.hands import HandModel
+from shared.messages import (
+    Plan,
+    PushRequest,
+    PushStep,
+    SampleRequest,
+    SampleResponse,
+    SimWorld,
+    ValidationJob,
+    ValidationResult,
+)
+from shared.objects import ObjectModel
+from shared.push_outcome import judge_push, object_pose, pose_matrix
+from shared.robot_limits import LimitViolation, RobotLimits
+
+SCREEN_CHUNK = 50  # candidates per batched IK screen (`screen`)
+PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers
+
+Sample = Callable[[SampleRequest], SampleResponse]
+# A validation job (floating-hand pushes or an arm rollout) sent to the validator farm; the future
+# holds its result, or the error that stopped it.
+Validate = Callable[[ValidationJob], Future]
+Execute = Callable[[Plan, SimWorld | None, Cancellation], Execution]
+
+
+@dataclass(frozen=True)
+class PipelineSettings:
+    max_plans: int = 6  # feasible plans rolled out and ranked per round (3 missed the demo box; 6 costs ~+1 s)
+    # Multi-step: the object's path keeps this far from obstacles beyond its own footprint, room for the
+    # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
+    obstacle_margin_m: float = 0.08
+    prescreen: int = 24  # feasible poses pushed by a floating hand before planning (0: off); see `prescreen`
+    max_plan_attempts: int = 10  # poses planned per round before giving up
+    # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
+    # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
+    max_plan_rounds: int = 2
+    limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
+    validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
+    weights: ranking.Weights = ranking.Weights()
+
+    def feasible_needed(self, ranked: bool) -> int:
+        """How many feasible poses the stages after screening can use: screening stops there."""
+        return max(self.prescreen, self.max_plan_rounds * self.max_plan_attempts) if ranked else self.max_plan_attempts
+
+
+@dataclass
+class RequestState:
+    """Per-request state: the object, where it is now, the robot's joints now, timings, executed pushes."""
+
+    request: PushRequest
+    obj: ObjectModel
+    urdf: str
+    hand: HandModel
+    T_world_O: np.ndarray
+    cancel: Cancellation = field(default_factory=Cancellation)
+    q_robot: np.ndarray | None = None  # None: the bridge world is (re)set, robot at home, hand open
+    timings: dict[str, float] = field(default_factory=dict)
+    records: list[StepRecord] = field(default_factory=list)
+
+    def time(self, stage: str, seconds: float) -> None:
+        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+    @property
+    def seed(self) -> int:
+        """The seed of the current push's random choices (the request's, offset by the pushes made)."""
+        return self.request.seed + len(self.records)
+
+    def advance(self, record: StepRecord) -> None:
+        """After an executed push: record it; the object and the robot are where the bridge saw them."""
+        self.records.append(record)
+        state = record.execution.final
+        self.T_world_O = pose_matrix(state.object_pose)
+        self.q_robot = state.positions.to_numpy().astype(np.float64)
+
+
+# ------------------------------------------------------------------------------- 1. pose source
+
+
+def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidates:
+    """The request's pose source's candidates for `push` (`PushRequest.method`)."""
+    request = state.request
+    started = time.perf_counter()
+    if request.method == "fixed":
+        T_D_O = invert_transform(push.T_world_D) @ push.T_world_O
+        vertices_d = state.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
+        try:
+            poses_d = spatula_pose(state.hand, vertices_d)[None]
+        except FixedPoseError as exc:
+            raise PushError("bad_request", str(exc)) from exc
+    else:
+        sampler = "nearest" if request.method == "nearest" else request.sampler
+        reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
+                                     sampler=sampler, seed=state.seed))
+        poses_d = reply.poses_d.to_numpy().astype(np.float64)
+    state.time("sampling", time.perf_counter() - started)
+    state.cancel.check()
+    return Candidates.in_frame(poses_d, push, state.hand)
+
+
+# ------------------------------------------------------------------------------- 2. IK and screening
+
+
+def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, push: Push,
+           settings: PipelineSettings) -> Feasible:
+    """The kinematically feasible candidates in the order they would be tried, with their IK solutions.
+
+    Screened (`MotionPlanner.screen`: batched IK, collision check, push line) SCREEN_CHUNK at a time
+    along `priority` until there are as many feasible poses as the rest of the request can use
+    (`PipelineSettings.feasible_needed`): planning and prescreening only ever take the first of them,
+    so the result is that of screening all K, at a quarter of the IK time when the first chunk is enough.
+    """
+    started = time.perf_counter()
+    order = priority(state, candidates.l_dir)
+    needed = settings.feasible_needed(state.request.ranking)
+    q_pre = np.zeros((len(order), planner.arm.dof))
+    feasible: list[int] = []
+    reasons: list[str] = []
+    for start in range(0, len(order), SCREEN_CHUNK):
+        state.cancel.check()
+        chunk = order[start:start + SCREEN_CHUNK]
+        result = planner.screen(candidates.T_world_hand[chunk], candidates.q_hands[chunk], push=push.offset)
+        q_pre[chunk] = result.q
+        feasible += chunk[result.feasible].tolist()
+        reasons += result.reasons
+        if len(feasible) >= needed:
+            break
+    state.time("ik", time.perf_counter() - started)
+    if not feasible:
+        raise PushError("infeasible", no_feasible_pose_message(reasons))
+    return Feasible(candidates, np.array(feasible), q_pre)
+
+
+def priority(state: RequestState, l_dir: np.ndarray) -> np.ndarray:
+    """The order in which to consider the K candidates: best-aligned palms when ranking, random when not."""
+    if state.request.ranking:
+        return np.argsort(l_dir, kind="stable")
+    return np.random.default_rng(state.seed).permutation(len(l_dir))
+
+
+def no_feasible_pose_message(reasons: list[str]) -> str:
+    counts = Counter(r.split(":")[0] for r in reasons if r)
+    example = {r.split(":")[0]: r.split(":", 1)[1].strip() for r in reversed(reasons) if ":" in r}
+    summary = ", ".join(f"{n}× {reason}" + (f" (e.g. {example[reason]})" if reason in example else "")
+                        for reason, n in counts.most_common())
+    hint = ""
+    if counts.get("no IK solution", 0) == len(reasons):
+        hint = " — the object is probably out of the arm's reach"
+    return f"no kinematically feasible hand pose among {len(reasons)} candidate(s) ({summary}){hint}"
+
+
+# ------------------------------------------------------------------------------- 3. prescreen
+
+
+def prescreen(state: RequestState, feasible: Feasible, push: Push, validate: Validate,
+              settings: PipelineSettings) -> Feasible:
+    """`feasible` with the poses that push the object to the target with a floating hand first.
+
+    The first `settings.prescreen` poses of the order are pushed by the validator's floating hand
+    (about 0.1 s of CPU each, in chunks spread over the farm) in the push's frame; those that succeed
+    are planned first, closest to the target first. Planning (about 0.2 s a pose) and arm rollouts
+    are then spent where the pose itself is known to push well: without it, most of the few plans
+    that can be afforded come from poses that fail (measured in `evaluation/`).
+    """
+    request, order = state.request, feasible.order
+    tested = order[: settings.prescreen]
+    chunks = [c for c in np.array_split(tested, math.ceil(len(tested) / PRESCREEN_CHUNK)) if len(c)]
+    jobs = [ValidationJob(object=request.object, hand=request.hand, poses=feasible.candidates.poses_d[chunk],
+                          frame=push.frame, push_distance_m=push.distance_m, seed=request.seed) for chunk in chunks]
+    started = time.perf_counter()
+    results = wait_for_results([validate(job) for job in jobs], settings.validation_timeout_s, state.cancel)
+    state.time("prescreen", time.perf_counter() - started)
+    success = np.zeros(len(tested), dtype=bool)
+    error = np.full(len(tested), np.inf)
+    start = 0
+    for chunk, result in zip(chunks, results):
+        if not isinstance(result, Exception):  # an unavailable validator only loses the reordering
+            success[start:start + len(chunk)] = result.success.to_numpy()
+            error[start:start + len(chunk)] = result.position_error_m.to_numpy()
+        start += len(chunk)
+    passed = tested[success][np.argsort(error[success], kind="stable")]
+    return feasible.reordered(np.concatenate([passed, tested[~success], order[len(tested):]]))
+
+
+# ------------------------------------------------------------------------------- 4. planning
+
+
+def within_limits(make: Callable[[], Plan], limits: RobotLimits, attempts: int, failures: Counter,
+                  what: str) -> Plan | None:
+    """`make()`'s plan if the robot bridge will accept it (joint, velocity, workspace limits), else None.
+
+    RRTConnect paths are random: one that breaks a limit (e.g. swings the hand out of the workspace
+    box) is made again, `attempts` times in all. A PlanningError gives up at once. Each failure is
+    counted in `failures` by its reason ("<what> breaks the robot's <limit> limit" for limits).
+    """
+    for _ in range(attempts):
+        try:
+            plan = make()
+            limits.check_plan(plan)
+            return plan
+        except PlanningError as exc:
+            failures[exc.reason] += 1
+            return None
+        except LimitViolation as exc:
+            failures[f"{what} breaks the robot's {exc.limit} limit"] += 1
+    return None
+
+
+class ArmPlanning:
+    """Arm plans for one push's candidates, from where the robot is, within the robot's limits.
+
+    Plans to be ranked end above the pushed object (`plan_push(return_home=False)`): only the
+    executed one needs the way back (`with_way_back`), which saves an RRTConnect per ranked plan.
+    """
+
+    def __init__(self, state: RequestState, planner: MotionPlanner, push: Push, limits: RobotLimits,
+                 settings: PipelineSettings):
+        self.state, self.planner, self.push = state, planner, push
+        self.limits, self.settings = limits, settings
+        self.q_arm_start, self.q_hand_start = robot_start(state, planner)
+
+    def plans(self, feasible: Feasible, failures: Counter,
+              on_plan: Callable[[CandidatePlan], None] | None = None) -> tuple[list[CandidatePlan], int]:
+        """Plans for up to `max_plans` candidates taken in `feasible.order` (one plan when not ranking),
+        and how many candidates of the order were tried; `on_plan(plan)` is called as each plan is made.
+        Failures are counted in `failures` (PushError "infeasible" with them when no plan is found)."""
+        wanted = self.settings.max_plans if self.state.request.ranking else 1
+        plans: list[CandidatePlan] = []
+        used = 0
+        for index in feasible.order[: self.settings.max_plan_attempts]:
+            self.state.cancel.check()
+            used += 1
+            plan = within_limits(lambda: self._plan_push(feasible, int(index)), self.limits,
+                                 1 + self.settings.limit_retries, failures, "plan")
+            if plan is None:
+                continue
+            plans.append(CandidatePlan(int(index), plan))
+            if on_plan is not None:
+                on_plan(plans[-1])
+            if len(plans) == wanted:
+                break
+        if not plans:
+            raise PushError("infeasible", f"no collision-free arm plan for any of the {sum(failures.values())} "
+                            f"feasible pose(s) tried ({_counted(failures)})")
+        return plans, used
+
+    def _plan_push(self, feasible: Feasible, index: int) -> Plan:
+        candidates = feasible.candidates
+        return self.planner.plan_push(candidates.T_world_hand[index], candidates.q_hands[index], self.push.direction,
+                                      self.push.distance_m, q_start=self.q_arm_start, q_hand_start=self.q_hand_start,
+                                      q_pre_contact=feasible.q_pre[index], return_home=not self.state.request.ranking)
+
+    def with_way_back(self, ranked: list[RankedPlan]) -> RankedPlan:
+        """The best-ranked plan completed with its way back to the start (the next best if that fails)."""
+        failures: Counter = Counter()
+        for choice in ranked:
+            full = within_limits(lambda: self.planner.plan_return(choice.plan, self.q_arm_start, self.push.offset),
+                                 self.limits, 1 + self.settings.limit_retries, failures, "way back")
+            if full is not None:
+                return RankedPlan(choice.index, full, choice.score)
+        raise PushError("infeasible", f"no way back to the start for any of the {len(ranked)} ranked plan(s) "
+                        f"({_counted(failures)})")
+
+
+def robot_start(state: RequestState, planner: MotionPlanner) -> tuple[np.ndarray, np.ndarray]:
+    """Where the robot is: home with the hand open for a fresh world, else as the last push left it."""
+    if state.q_robot is None:
+        return planner.arm.home.double().numpy(), state.hand.open_joint_positions.double().numpy()
+    n_arm = planner.arm.dof
+    return state.q_robot[:n_arm], state.q_robot[n_arm:]
+
+
+def _counted(failures: Counter) -> str:
+    return ", ".join(f"{n}× {reason}" for reason, n in failures.most_common())
+
+
+# ------------------------------------------------------------------------------- 5. rollout
+
+
+def rollout_job(request: PushRequest, push: Push, pose_d: np.ndarray, plan: Plan) -> ValidationJob:
+    """The arm rollout of `plan` (for the pose `pose_d` in D) in simulation, with the request's obstacles."""
+    return ValidationJob(object=request.object, hand=request.hand, poses=pose_d[None], push_distance_m=push.distance_m,
+                         with_arm=True, arm=request.arm, plan=plan, frame=push.frame, obstacles=request.obstacles,
+                         seed=request.seed)
+
+
+# ------------------------------------------------------------------------------- 6. ranking
+
+
+def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future], l_dir: np.ndarray,
+         settings: PipelineSettings) -> list[RankedPlan]:
+    """Score every plan by its arm rollout (`rollouts[i]` is plan i's); the plans from best (lowest V) to worst.
+
+    A plan whose rollout made the robot or the object touch an obstacle is left out: it is never
+    executed, whatever its score (the obstacles are there to be avoided, and may be fragile).
+    """
+    started = time.perf_counter()
+    results = wait_for_results(rollouts, settings.validation_timeout_s, state.cancel)
+    state.time("rollouts", time.perf_counter() - started)
+    scored: list[RankedPlan] = []
+    errors: list[str] = []
+    for candidate, result in zip(plans, results):
+        if isinstance(result, Exception):
+            errors.append(str(result))
+            continue
+        if result.obstacle_contact is not None and bool(result.obstacle_contact.to_numpy()[0]):
+            continue
+        l_goal = ranking.goal_cost(float(result.goal_error_m.to_numpy()[0]), float(result.rotation_deg.to_numpy()[0]),
+                                   float(result.max_tilt_deg.to_numpy()[0]))
+        terms = ranking.score(l_goal, float(result.collision_cost.to_numpy()[0]), float(l_dir[candidate.index]),
+                              settings.weights)
+        scored.append(candidate.ranked(terms))
+    if errors and len(errors) == len(plans):
+        raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
+    return best_first(scored)
+
+
+def best_first(ranked: list[RankedPlan]) -> list[RankedPlan]:
+    """`ranked` from the lowest V to the highest (stable on ties)."""
+    return [ranked[i] for i in ranking.order([r.score for r in ranked])] if ranked else []
+
+
+def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible, validate: Validate,
+                  settings: PipelineSettings) -> list[RankedPlan]:
+    """Ranked plans, best first: rounds of `max_plans` plans rolled out until one is predicted to succeed.
+
+    Each plan's arm rollout is sent to the validator farm as soon as the plan exists, so the farm
+    rolls out while the planner plans the next pose; "rollouts" times only the wait after planning.
+    """
+    ranked: list[RankedPlan] = []
+    failures: Counter = Counter()  # over all rounds
+    rolled_out = 0
+    for _ in range(settings.max_plan_rounds):
+        rollouts: list[Future] = []
+
+        def roll_out(candidate: CandidatePlan) -> None:
+            pose_d = feasible.candidates.poses_d[candidate.index]
+            rollouts.append(validate(rollout_job(state.request, planning.push, pose_d, candidate.plan)))
+
+        started = time.perf_counter()
+        try:
+            plans, used = planning.plans(feasible, failures, on_plan=roll_out)
+        except PushError:
+            if ranked or rolled_out:  # a later round found nothing new: rank what the earlier rounds found
+                break
+            raise
+        finally:
+            state.time("planning", time.perf_counter() - started)
+        rolled_out += len(plans)
+        ranked = best_first(ranked + rank(state, plans, rollouts, feasible.candidates.l_dir, settings))
+        feasible = feasible.without_first(used)
+        if (ranked and ranking.predicts_success(ranked[0].score)) or feasible.order.size == 0:
+            break
+    if not ranked:
+        raise PushError("infeasible", f"each of the {rolled_out} rolled-out plan(s) made the robot or the object "
+                        "touch an obstacle")
+    return ranked
+
+
+def wait_for_results(futures: list[Future], timeout_s: float,
+                     cancel: Cancellation) -> list[ValidationResult | Exception]:
+    """Each future's result, or the exception it ended with (one failed job does not fail the others);
+    a job unfinished after `timeout_s` counts as a TimeoutError. RequestCancelled when cancelled first."""
+    cancel.wait(futures, timeout_s)
+    results: list[ValidationResult | Exception] = []
+    for future in futures:
+        try:
+            results.append(future.result(timeout=0))
+        except Exception as exc:  # noqa: BLE001 - reported with the job's other failures
+            results.append(exc)
+    return results
+
+
+# ------------------------------------------------------------------------------- 7. execution
+
+
+def execute(state: RequestState, push: Push, candidates: Candidates, chosen: RankedPlan,
+            run_plan: Execute) -> StepRecord:
+    """Execute `chosen` on the robot bridge (`run_plan`); the record of the push, its outcome judged
+    from the object pose the bridge observed. PushError when the bridge did not execute it."""
+    request = state.request
+    world = None
+    if state.q_robot is None:
+        world = SimWorld(object=request.object, object_pose=object_pose(push.T_world_O), obstacles=request.obstacles)
+    state.cancel.check()
+    started = time.perf_counter()
+    execution = run_plan(chosen.plan, world, state.cancel)
+    state.time("execution", time.perf_counter() - started)
+    state.cancel.check()  # a motion stopped by the cancellation is the cancellation's outcome
+    final = execution.final
+    if final.status != "done":
+        code = "infeasible" if final.status == "refused" else "internal"
+        raise PushError(code, f"the robot bridge did not execute the plan ({final.status}): {final.message}")
+    if final.object_pose is None:
+        raise PushError("internal", "the robot bridge observed no object pose after the push")
+    result = judge_push(push.T_world_O, push.target_xy, final.object_pose)
+    index = chosen.index
+    step = PushStep(chosen_pose=candidates.poses_d[index], chosen_pose_world=candidates.poses_world[index],
+                    plan=chosen.plan, score=chosen.score, result=result)
+    return StepRecord(step, push.T_world_O, execution, world)

@@ -1,0 +1,143 @@
+"""Worker limits: job ids bound to their content, bounded request sizes, per-job deadlines."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+import bus_test_workers as tw
+from shared.bus import BusConfig, Worker, job_key, live_workers, open_session
+from shared.bus.worker import timeout_attachment
+from shared.codec import decode, encode
+from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply, GenerationJob, GenerationResult, Message, ObjectRef
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def wait_until(predicate, timeout: float = 10.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def client(module_router):
+    session = open_session(BusConfig(connect=[module_router], connect_timeout_ms=5000))
+    yield session
+    session.close()
+
+
+@pytest.fixture()
+def serve(client):
+    """Start in-process workers on the shared session: serve(worker_id, **options) -> (Worker, job key).
+
+    They serve BusTestJob as the `bustest` service unless `service` and `handlers` say otherwise."""
+    started: list[tuple[Worker, threading.Thread]] = []
+
+    def start(worker_id: str, service: str = tw.SERVICE, handlers=None, **options) -> tuple[Worker, str]:
+        handlers = handlers or {tw.BusTestJob: tw.make_handler(worker_id)}
+        worker = Worker(service, handlers, worker_id=worker_id, session=client, status_period_s=0.2, **options)
+        thread = threading.Thread(target=worker.run)
+        thread.start()
+        started.append((worker, thread))
+        wait_until(lambda: worker_id in live_workers(client, service).get(service, []), 10, worker_id)
+        return worker, job_key(service, worker_id)
+
+    yield start
+    for worker, thread in started:
+        worker.stop()
+        thread.join(15)
+
+
+def send(client, key: str, job: Message, timeout_s: float | None = None, payload: bytes | None = None):
+    """Send a job as a raw query; returns a function waiting for its one decoded reply."""
+    body, encoding = encode(job)
+    attachment = timeout_attachment(timeout_s) if timeout_s is not None else None
+    replies = client.get(key, payload=body if payload is None else payload, encoding=encoding, timeout=30,
+                         attachment=attachment)
+
+    def answer():
+        [reply] = list(replies)
+        return decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+
+    return answer
+
+
+# ---------------------------------------------------------------------------------------- job ids
+def test_a_job_id_reused_for_a_different_job_is_refused(client, serve):
+    _, key = serve("ids-1")
+    running = tw.BusTestJob(text="first", sleep_s=0.5)
+    first = send(client, key, running)
+    time.sleep(0.1)
+    impostor = send(client, key, tw.BusTestJob(id=running.id, text="second"))()  # while the first runs
+    assert isinstance(impostor, ErrorReply) and impostor.code == "bad_request", impostor
+    assert f"job id {running.id} was reused for a different job" in impostor.message
+    assert first().text == "first"
+    after = send(client, key, tw.BusTestJob(id=running.id, text="second"))()  # once the first is cached
+    assert isinstance(after, ErrorReply) and "reused for a different job" in after.message
+    assert send(client, key, running)().text == "first"  # the same job again: the cached reply
+
+
+# ---------------------------------------------------------------------------------------- sizes
+def test_an_oversized_job_is_refused_without_decoding(client, serve, monkeypatch):
+    decoded: list[int] = []
+    real_decode = decode
+    monkeypatch.setattr("shared.bus.worker.decode", lambda payload, *a: decoded.append(len(payload)) or real_decode(payload, *a))
+    _, key = serve("size-1")
+    big = tw.BusTestJob(text="x" * (DEFAULT_MAX_PAYLOAD_BYTES + 1))
+    reply = send(client, key, big)()
+    assert isinstance(reply, ErrorReply) and reply.code == "bad_request", reply
+    size = len(encode(big)[0])
+    assert f"BusTestJob payload of {size} bytes exceeds the limit of {DEFAULT_MAX_PAYLOAD_BYTES} bytes" in reply.message
+    assert decoded == []
+    assert send(client, key, tw.BusTestJob(text="small"))().text == "small"
+
+
+# ---------------------------------------------------------------------------------------- deadlines
+def test_a_slow_job_does_not_starve_a_normal_job_past_its_deadline(client, serve):
+    worker, key = serve("starve-1", concurrency=1)
+    started = time.monotonic()
+    slow = send(client, key, tw.BusTestJob(text="huge", spin_s=30), timeout_s=1.0)  # its caller waits 1 s
+    time.sleep(0.05)
+    normal = send(client, key, tw.BusTestJob(text="normal"), timeout_s=20)
+    assert normal().text == "normal"
+    assert time.monotonic() - started < 2.0  # waited for the slow job's deadline, not its 30 s
+    answer = slow()
+    assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
+    assert "within its deadline of 0.9 s" in answer.message
+    wait_until(lambda: worker.status().in_flight == 0, 2, "the slow job's thread to stop")
+
+
+def test_the_worker_deadline_bounds_jobs_and_timeouts_are_not_cached(client, serve):
+    worker, key = serve("deadline-1", job_deadline_s=0.3)
+    spinning = tw.BusTestJob(spin_s=30)
+    started = time.monotonic()
+    answer = send(client, key, spinning)()  # no caller timeout: the worker's own deadline applies
+    assert isinstance(answer, ErrorReply) and answer.code == "timeout" and answer.id == spinning.id
+    assert time.monotonic() - started < 1.5
+    wait_until(lambda: worker.status().in_flight == 0, 2, "the job to stop at its next check")
+
+    late = tw.BusTestJob(text="late", sleep_s=0.6)  # ignores the deadline, finishes after it
+    assert send(client, key, late)().code == "timeout"
+    wait_until(lambda: worker.status().in_flight == 0, 3, "the late job to finish")
+    again = send(client, key, late)()  # neither the timeout nor the late result was cached: it runs again
+    assert isinstance(again, ErrorReply) and again.code == "timeout"
+    assert worker.status().jobs_done == 0
+
+
+def test_a_generation_job_past_its_deadline_stops_between_iterations(client, serve):
+    from services.generator.service import run_job
+
+    worker, key = serve("gen-1", service="generator-deadline", handlers={GenerationJob: run_job})
+    box = ObjectRef(library_id="proc-box-001")
+    warm = send(client, key, GenerationJob(object=box, hand="allegro", batch_size=2, iterations=5))()
+    assert isinstance(warm, GenerationResult)  # scene and hand loaded: the next job only optimises
+    endless = GenerationJob(object=box, hand="allegro", batch_size=2, iterations=100_000)  # minutes of work
+    started = time.monotonic()
+    answer = send(client, key, endless, timeout_s=1.5)()
+    assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
+    wait_until(lambda: worker.status().in_flight == 0, 3.0 - (time.monotonic() - started), "the optimisation to stop")
