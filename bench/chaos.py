@@ -6,6 +6,8 @@ Every scenario runs real processes on loopback (a router process, worker process
 robot bridge with its simulated robot, breaks something mid-work, and prints its figures:
 - `worker_killed`:  SIGKILL one of two workers mid-batch      -> jobs lost, jobs answered twice
 - `worker_stalled`: SIGSTOP one of two workers mid-batch      -> jobs lost, the longest a job waited
+- `router_restarted`: the router SIGKILLed mid-batch, a new one on the same port 0.5 s later
+                                                               -> jobs lost, jobs answered twice, the longest wait
 - `oversized_job`:  a 20 MB job beside normal ones             -> its answer, how long normal jobs waited
 - `lease_dropped`:  the commander's lease dropped mid-motion   -> stop latency, joint travel after the drop
 - `router_killed`:  the router SIGKILLed mid-motion            -> stop latency, joint travel after the kill
@@ -183,6 +185,28 @@ def worker_stalled(quick: bool) -> Figure:
                    "no wait beyond the timeout": float(gaps.max()) <= timeout_s + 2.5})
 
 
+def router_restarted(quick: bool) -> Figure:
+    n = 30 if quick else 200
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    routers = [spawn("router", endpoint)]
+
+    def restart(_workers: list[subprocess.Popen]) -> None:
+        routers[0].kill()
+        routers[0].wait()
+        time.sleep(0.5)
+        routers.append(spawn("router", endpoint))  # workers and the client reconnect to it by themselves
+
+    time.sleep(1.0)
+    try:
+        answers, latencies, failed = _batch(endpoint, n, 0.05, restart)
+    finally:
+        end(routers)
+    duplicated = sum(c - 1 for c in answers.values())
+    return Figure("router_restarted", {"jobs": n, "lost": n - len(answers), "duplicated": duplicated,
+                                       "longest_wait_s": round(float(np.diff([0.0, *latencies]).max()), 3)},
+                  {"no job lost": len(answers) == n and failed == 0, "no job duplicated": duplicated == 0})
+
+
 def oversized_job(quick: bool) -> Figure:
     with router_process() as (endpoint, _):
         workers = [spawn("worker", endpoint, "w0")]
@@ -340,7 +364,7 @@ def estop_garbage(quick: bool) -> Figure:
 
 
 SCENARIOS: dict[str, Callable[[bool], Figure]] = {
-    f.__name__: f for f in (worker_killed, worker_stalled, oversized_job, lease_dropped, router_killed, router_hung,
+    f.__name__: f for f in (worker_killed, worker_stalled, router_restarted, oversized_job, lease_dropped, router_killed, router_hung,
                             estop_garbage)
 }
 

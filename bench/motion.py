@@ -28,7 +28,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from services.planner.motion import MotionPlanner  # noqa: E402
-from services.validator.fixed_poses import spatula_pose  # noqa: E402
+from shared.fixed_poses import spatula_pose  # noqa: E402
 from shared.frames import direction_frame, make_transform, pose25_to_matrix  # noqa: E402
 from shared.hands import load_hand  # noqa: E402
 from shared.ik import ArmIK  # noqa: E402

@@ -51,7 +51,7 @@ REFERENCE = (50, 240)
 
 def candidate_poses(hand, obj, count: int, seed: int) -> np.ndarray:
     """The spatula pose and `count - 1` perturbations of it, alternately mild and strong."""
-    from services.validator.fixed_poses import spatula_pose
+    from shared.fixed_poses import spatula_pose
     from shared.frames import matrix_to_pose25, pose25_to_matrix
 
     rng = np.random.default_rng(seed)

@@ -177,7 +177,7 @@ def _hand_and_poses(args: argparse.Namespace, object_vertices_d: np.ndarray):
         return None, np.zeros((0, 25)), []
     hand = _load_hand(args.hand)
     if args.fixed_pose is not None:
-        from services.validator.fixed_poses import spatula_pose
+        from shared.fixed_poses import spatula_pose
 
         return hand, spatula_pose(hand, object_vertices_d)[None], [0]
     poses = _read_poses(args.poses)

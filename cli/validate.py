@@ -68,7 +68,7 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> dict:
-    from services.validator.fixed_poses import spatula_pose
+    from shared.fixed_poses import spatula_pose
     from services.validator.push import table_object
     from services.validator.validator import Validator, placement_offsets
     from shared.hands import load_hand

@@ -49,7 +49,7 @@ CHUNK_POSES = 25  # then pushed this many at a time until one succeeds
 
 HAND = "allegro"  # the hand the coverage experiments measure (the shipped Allegro checkpoint and dataset)
 DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "data" / f"{HAND}-train"
-TARGET_COVERED_PCT = 75.0  # issues 8 and 9: test objects with >= 1 validated pose of 200 samples
+TARGET_COVERED_PCT = 75.0  # target: test objects with >= 1 validated pose of 200 samples
 
 
 class CoverageError(ValueError):

@@ -5,7 +5,7 @@ The sampler is trained on 2%, 20%, 50% and 100% of the training objects (`gd2p t
 (2000 steps, batch 256, default model, the Allegro dataset), and each model's coverage is measured
 on a fixed, seeded subset of the test split: 200 DDPM-100 samples per object pushed in the
 floating-hand validator until one succeeds (evaluation/coverage.py). The paper reports 41.7, 102.7,
-110.3 and 169.3 of 300 unseen objects; issue 8's target is a monotone curve with 100% >= 75%.
+110.3 and 169.3 of 300 unseen objects; the target is a monotone curve with 100% >= 75%.
 
 One model is trained at a time with `workers` torch threads when the cores are idle (training is
 what parallelises there; on a busy machine 1 thread, see `training_threads`);

@@ -1,4 +1,4 @@
-"""Sampler quality on the test split (issue 9's benchmark): `gd2p eval sampler-quality`.
+"""Sampler quality on the test split (the sampler's benchmark): `gd2p eval sampler-quality`.
 
 For every test object (never trained on) and each method — the shipped Allegro checkpoint with the
 paper's DDPM-100, the same checkpoint with the DDIM-10 fast path, and the paper's Nearest Neighbor
@@ -6,7 +6,7 @@ baseline — 200 candidate poses are drawn and pushed in the floating-hand valid
 evaluation/coverage.py for the protocol and its exact early stopping). Reported per method: the
 fraction of sampled poses that validate (over each object's first 50 poses; mean over objects and
 pooled over all pushes) and the number of objects with >= 1 validated pose out of 200. The paper's
-anchor: 169 of 300 unseen objects (56%); issue 9's target: >= 75%.
+anchor: 169 of 300 unseen objects (56%); the target: >= 75%.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from evaluation.report import markdown_table, write_experiment
 from evaluation.store import ResultStore
 
 NAME = "sampler-quality"
-TITLE = "Sampler quality on the test split (issue 9)"
+TITLE = "Sampler quality on the test split"
 QUICK_OBJECTS = 8
 PAPER_COVERED, PAPER_OBJECTS = 169.33, 300
 

@@ -1,4 +1,4 @@
-"""The pose store: validated push poses in Parquet shards plus a `manifest.json` (issue 5).
+"""The pose store: validated push poses in Parquet shards plus a `manifest.json`.
 
 Written by the data engine (`gd2p dataset build`), read by the sampler's training
 (`services.sampler.dataset.load_pose_dataset`) and by `gd2p dataset stats`.

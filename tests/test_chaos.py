@@ -22,4 +22,4 @@ def test_every_chaos_scenario_meets_its_target():
     report = json.loads(run.stdout.strip().splitlines()[-1])
     missed = {s["scenario"]: (s["figures"], s["targets"]) for s in report["scenarios"] if not s["ok"]}
     assert not missed, missed
-    assert run.returncode == 0 and len(report["scenarios"]) == 7
+    assert run.returncode == 0 and len(report["scenarios"]) == 8

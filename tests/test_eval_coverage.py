@@ -16,7 +16,7 @@ from evaluation.coverage import (
 from evaluation.data_size import object_subset
 from evaluation.store import ResultStore, ResultStoreError
 from services.validator.augment import halton_perturbations
-from services.validator.fixed_poses import spatula_pose
+from shared.fixed_poses import spatula_pose
 from services.validator.push import table_object
 from services.validator.validator import Validator
 from shared.hands import load_hand

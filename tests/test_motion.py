@@ -7,8 +7,8 @@ import torch
 
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
-from services.robot_bridge.limits import RobotLimits
-from services.validator.fixed_poses import spatula_pose
+from shared.robot_limits import RobotLimits
+from shared.fixed_poses import spatula_pose
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
 from shared.hands import load_hand
 from shared.objects import load_object, write_object_urdf

@@ -11,7 +11,7 @@ from PIL import Image
 
 from cli.main import main
 from cli.show import show_scene
-from services.validator.fixed_poses import spatula_pose
+from shared.fixed_poses import spatula_pose
 from shared.frames import transform_points
 from shared.hands import load_hand
 from shared.objects import load_object

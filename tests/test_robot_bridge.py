@@ -12,7 +12,7 @@ from conftest import free_port, router_config
 
 from services.planner.motion import MotionPlanner
 from services.robot_bridge.backend import MotionStopped
-from services.robot_bridge.limits import WorkspaceBox
+from shared.robot_limits import WorkspaceBox
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
 from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.hands import load_hand
@@ -140,7 +140,7 @@ def test_stop_halts_a_running_plan(backend):
 
 def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
     """The open, spatula-like hand pushes a box 0.15 m sideways with the planner's IK + RRT + Cartesian push."""
-    from services.validator.fixed_poses import spatula_pose
+    from shared.fixed_poses import spatula_pose
 
     box = load_object("proc-box-013")  # 13.9 x 4.6 x 7.5 cm, 0.24 kg
     T_world_D = direction_frame(np.array([0.55, 0.0, 0.0]), 90.0)

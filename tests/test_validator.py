@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from services.validator.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRANSLATION_M, halton_perturbations
-from services.validator.fixed_poses import SPATULA_GAP_M, spatula_pose
+from shared.fixed_poses import SPATULA_GAP_M, spatula_pose
 from services.validator.push import PushSimulator, table_object
 from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets

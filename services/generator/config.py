@@ -113,7 +113,7 @@ class GenerationConfig:
     iterations: int = 1500
     contacts_per_pose: int = 4
     batch_size: int = 256  # poses optimised together (DESIGN.md §6: ~256 is cheapest per pose on CPU)
-    grasp_only: bool = False  # drop E_dir and E_arm: the grasp-pose baseline (issue 8)
+    grasp_only: bool = False  # drop E_dir and E_arm: the grasp-pose baseline
     contact_offset_m: float = 0.005  # E_dis target: contacts this far outside the surface
     penetration_margin_m: float = 0.003  # E_pen counts hand-object pairs closer than this
     table_clearance_m: float = 0.002  # E_tpen counts hand geometry lower than this above the table

@@ -1,4 +1,4 @@
-"""Bus adapter of the planner service: a PushRequest in, a PushResponse out (issue 6).
+"""Bus adapter of the planner service: a PushRequest in, a PushResponse out.
 
 The algorithm is `pipeline.PushPipeline`; this module gives it its services over Zenoh:
 - sampling: `SampleRequest` through a Dispatcher to the sampler workers;

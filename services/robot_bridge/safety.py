@@ -44,7 +44,7 @@ from services.robot_bridge.backend import (
     MotionStopped,
     TrajectoryError,
 )
-from services.robot_bridge.limits import (
+from shared.robot_limits import (
     DEFAULT_WORKSPACE,
     WORKSPACE_STEP_RAD,
     LimitViolation,

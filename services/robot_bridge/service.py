@@ -1,4 +1,4 @@
-"""Bus adapter of the robot_bridge service: executes plans on the simulated robot (issue 6).
+"""Bus adapter of the robot_bridge service: executes plans on the simulated robot.
 
 - An `ExecutionCommand` queried on `safety.COMMAND_KEY` (the one key the secure profile lets only
   the planner query) runs on the simulated robot of the plan's arm + hand (`sim_backend.SimExecutor`);

@@ -39,7 +39,7 @@ from services.robot_bridge.backend import (
     JointTrajectory,
     MotionStopped,
 )
-from services.robot_bridge.limits import DEFAULT_WORKSPACE, LimitViolation, RobotLimits, WorkspaceBox
+from shared.robot_limits import DEFAULT_WORKSPACE, LimitViolation, RobotLimits, WorkspaceBox
 from services.robot_bridge.safety import SafetyRefusal
 from shared.frames import matrix_to_quat_xyzw
 from shared.messages import ExecutionState, ObjectPose, Plan

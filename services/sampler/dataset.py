@@ -1,6 +1,6 @@
 """Reading the data engine's pose store for training, and the BPS of each training frame.
 
-Store layout (written by the data engine, issue 5): a directory of Parquet shards plus a
+Store layout (written by the data engine): a directory of Parquet shards plus a
 `manifest.json`. When the manifest has a `"shards"` list (paths relative to the directory, or
 objects with a `"path"`), exactly those shards are read; otherwise every `*.parquet` below the
 directory, in name order. Columns read here:

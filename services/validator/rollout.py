@@ -1,4 +1,4 @@
-"""Arm rollouts (issue 6): play a planned push with the arm in PyBullet and measure L_goal and L_coll.
+"""Arm rollouts: play a planned push with the arm in PyBullet and measure L_goal and L_coll.
 
 The planner sends one `ValidationJob(with_arm=True)` per feasible plan. Each rollout builds the
 world the robot bridge will execute in — table, the arm + hand at the plan's first waypoint, the

@@ -5,7 +5,7 @@ worker started with concurrency > 1 stays correct; one process per core is what 
 §6). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
 job seed fixes the augmentation copies, so a job gives the same result on any worker.
 
-Arm rollouts (`with_arm=True`, issue 6: a planned push played with the arm, for the planner's
+Arm rollouts (`with_arm=True`: a planned push played with the arm, for the planner's
 ranking) go to `rollout.rollout`.
 
 Deadline: a worker gives each job at most JOB_DEADLINE_S (less when its caller waits less); the
