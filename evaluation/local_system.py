@@ -17,13 +17,15 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 from services.planner.cancellation import Cancellation
-from services.planner.pipeline import Execution, PipelineSettings, PushError, PushPipeline, PushServices
+from services.planner.outcome import Execution, PushError
+from services.planner.pipeline import PushPipeline, PushServices
+from services.planner.stages import PipelineSettings
 from services.robot_bridge.service import reset_world
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
 from services.sampler.service import SamplerService
 from services.validator.service import validate
 from shared.bus.errors import ServiceError
-from shared.messages import ExecutionState, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob, ValidationResult
+from shared.messages import ExecutionState, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 

@@ -84,7 +84,7 @@ def request(run: Run) -> PushRequest:
 
 def run_one(run: Run) -> dict[str, Any]:
     """Plan and execute one multi-step request; its record (outcome, error to the goal, contacts)."""
-    from services.planner.pipeline import PushError
+    from services.planner.outcome import PushError
 
     system = protocol._system
     system.robot.contacts.reset()

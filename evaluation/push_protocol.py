@@ -123,7 +123,7 @@ def _init_worker(grasp_cache: str) -> None:
 
 def run_episode(episode: Episode) -> dict[str, Any]:
     """Plan and execute one trial; a record with the outcome ("infeasible" when no plan exists)."""
-    from services.planner.pipeline import PushError
+    from services.planner.outcome import PushError
 
     started = time.perf_counter()
     source = _grasp if episode.method == "grasp" else None

@@ -106,7 +106,7 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
 
     from evaluation import multistep
     from evaluation.local_system import Contacts
-    from services.planner.pipeline import PushError
+    from services.planner.outcome import PushError
     from shared.messages import ObjectPose
 
     moved = [SimpleNamespace(step=SimpleNamespace(result=SimpleNamespace(final_object_pose=ObjectPose(position=p))))

@@ -245,7 +245,9 @@ def _push_with_altered_rollouts(alter, settings=None):
     """A push of the box by spatula poses (`_spatula_poses`) on an in-process system whose i-th arm
     rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
+    from services.planner.outcome import PushError
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
 
     T_world_O = _box_at(0.5, 0.0)
     rollouts = []
@@ -285,7 +287,7 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
 
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
-    from services.planner.pipeline import PushError
+    from services.planner.outcome import PushError
     from shared.messages import NDArray
 
     def touching(result):
@@ -345,7 +347,9 @@ def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
     """The second push's pose source fails: the PushError carries the first push's record."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PipelineSettings, PushError, PushPipeline, PushServices
+    from services.planner.outcome import PushError
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
 
     samples = []
 

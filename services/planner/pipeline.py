@@ -49,7 +49,7 @@ from services.planner.cancellation import Cancellation
 from services.planner.candidates import Feasible, Push, RankedPlan
 from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.multistep import push_along_path
-from services.planner.outcome import Execution, PushError, PushOutcome, StepRecord
+from services.planner.outcome import PushError, PushOutcome
 from services.planner.stages import PipelineSettings, RequestState
 from shared.frames import direction_xy, make_transform
 from shared.hands import load_hand
@@ -60,9 +60,6 @@ from shared.objects import ObjectLoadError, ObjectModel, write_object_urdf
 from shared.push_outcome import judge_push, pose_matrix
 from shared.robot_limits import RobotLimits
 from shared.sim.robot_scene import RobotScene
-
-__all__ = ["DEFAULT_OBJECT_XY", "Execution", "PipelineSettings", "PushError", "PushOutcome", "PushPipeline",
-           "PushServices", "StepRecord"]
 
 DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base: sideways pushes reach well; pulls toward the robot need
 # the object nearer (at 0.50 m most pull poses have no IK solution; at 0.40 m all three evaluation directions plan)

@@ -31,7 +31,8 @@ from pathlib import Path
 import zenoh
 
 from services.planner.cancellation import Cancellation, RequestCancelled
-from services.planner.pipeline import Execution, PushError, PushPipeline, PushServices
+from services.planner.outcome import Execution, PushError
+from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.recording import record_push
 from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, ServiceError, Worker, open_session
 from shared.bus.errors import DispatchError
@@ -49,7 +50,6 @@ from shared.messages import (
     SampleResponse,
     SimWorld,
     ValidationJob,
-    ValidationResult,
     new_id,
 )
 

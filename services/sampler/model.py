@@ -1,7 +1,7 @@
 """The denoiser: a FiLM-conditioned residual MLP over the 25-d hand pose, conditioned on the BPS.
 
 Why not diffusion_policy's ConditionalUnet1D as is: GD2P's "horizon" is one pose, and a 1-long
-sequence breaks the U-Net's down-sampling (diffusion_policy issue #32). What survives of the U-Net
+sequence breaks the U-Net's down-sampling (https://github.com/real-stanford/diffusion_policy/issues/32). What survives of the U-Net
 at horizon 1 is its residual blocks with FiLM conditioning, which is what this model is:
 
     pose (25) -> Linear -> [ResidualFiLMBlock] x num_blocks -> Linear -> epsilon (25)

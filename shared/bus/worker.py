@@ -268,7 +268,7 @@ class Worker:
 
     # ------------------------------------------------------------------ serving
     def _serve(self, session: zenoh.Session, pool: _JobPool) -> None:
-        # Queryable before token: whoever sees the token may query at once (zenoh issue #588).
+        # Queryable before token: whoever sees the token may query at once (https://github.com/eclipse-zenoh/zenoh/issues/588).
         queryable = session.declare_queryable(self._reply_key, complete=True)
         publisher = session.declare_publisher(status_key(self.service, self.worker_id))
         token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
