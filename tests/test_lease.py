@@ -30,9 +30,13 @@ def session(endpoint: str) -> zenoh.Session:
 
 def hold_the_gil(seconds: float) -> float:
     """Keep this process busy in one C call that never releases the GIL (as PyBullet loading a world does)."""
-    started = time.perf_counter()
-    sum(range(1_000_000))
-    per_item = (time.perf_counter() - started) / 1_000_000
+    # The fastest of three calibrations: a cold cache or a busy neighbour only ever makes one slower.
+    timings = []
+    for _ in range(3):
+        started = time.perf_counter()
+        sum(range(1_000_000))
+        timings.append(time.perf_counter() - started)
+    per_item = min(timings) / 1_000_000
     started = time.perf_counter()
     sum(range(int(seconds / per_item)))
     return time.perf_counter() - started
@@ -156,7 +160,7 @@ def test_the_watchdog_does_not_blame_the_router_for_a_busy_process(zenoh_router)
             with LeaseMonitor(watcher, KEY, watchdog=watchdog) as monitor:
                 assert monitor.wait_confirmed(2.0)
                 time.sleep(0.2)
-                busy_s = hold_the_gil(3 * watchdog.bound_s)
+                busy_s = hold_the_gil(4 * watchdog.bound_s)
                 time.sleep(0.2)  # the monitor's thread looks again
                 silence = watchdog.silence_s()
                 assert not monitor.lost.is_set(), monitor.reason
