@@ -1,11 +1,18 @@
 """`gd2p eval EXPERIMENT [--quick] --out results/`: reproduce the paper's experiments in simulation.
 
     gd2p eval methods --out results/          # GD2P vs baselines, 14 objects x 3 directions x 5 trials
+    gd2p eval methods --world exact           # ... executed in the planner's own world (for comparison)
+    gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
+
+World (`--world`, methods / leap / multistep): `real` (default) executes every plan in a world drawn
+per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
+the object off its told pose (shared/sim/world.py documents each range); `exact` executes in the
+planner's own world. Results go to `<out>/<experiment>-<world>/`.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and
 refreshes `<out>/README.md`. Every finished trial is recorded at once: re-running the same command
@@ -28,6 +35,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
     "sampler-quality": "evaluation.sampler_quality:run",
 }
 TRIAL_EXPERIMENTS = ("methods", "leap")
+WORLD_EXPERIMENTS = ("methods", "leap", "multistep")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -40,7 +48,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--trials", type=int, default=None,
                         help="methods / leap: trials per object and direction (default: the paper's 5); a run can "
                              "later be extended to more trials in the same --out")
+    parser.add_argument("--world", choices=("real", "exact"), default="real",
+                        help="methods / leap / multistep: the execution world (default real; see above)")
+    parser.add_argument("--methods", type=_method_list, default=None,
+                        help="methods / leap: comma-separated methods to run (default: the experiment's all); "
+                             "known: gd2p, gd2p-unranked, gd2p-random, nearest, nearest-ranked, fixed, grasp, grasp-ranked")
     parser.set_defaults(func=run)
+
+
+def _method_list(text: str) -> tuple[str, ...]:
+    from evaluation.push_protocol import METHODS
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in METHODS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"unknown method(s) {', '.join(unknown) or '(none given)'}; "
+                                         f"known: {', '.join(METHODS)}")
+    return names
 
 
 def experiment_function(name: str):
@@ -64,6 +88,10 @@ def run(args: argparse.Namespace) -> int:
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     for name in names:
         options = {"trials": args.trials} if args.trials is not None and name in TRIAL_EXPERIMENTS else {}
+        if name in WORLD_EXPERIMENTS:
+            options["world"] = args.world
+        if args.methods is not None and name in TRIAL_EXPERIMENTS:
+            options["methods"] = args.methods
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except ResultStoreError as exc:

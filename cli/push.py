@@ -2,7 +2,7 @@
 
     gd2p push --object proc-box-013 --direction-deg 90 [--distance 0.2] [--json]
     gd2p push --object mug.obj --position 0.5 0.1 --yaw 30 --goal 0.5 -0.3 --obstacle 0.5 -0.1 0.05
-    gd2p push --object proc-box-013 --direction-deg 180 --method fixed --no-ranking
+    gd2p push --object proc-box-013 --direction-deg 180 --method nearest --choice random
 
 Prints the result (or, with --json, the PushResponse as JSON). Exit codes:
   0  the push succeeded
@@ -52,7 +52,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
-    parser.add_argument("--no-ranking", action="store_true", help="execute a random feasible plan (ablation)")
+    parser.add_argument("--choice", choices=("ranked", "unranked", "random"), default="ranked",
+                        help="how the executed plan is chosen: ranked by arm rollouts (GD2P, default); unranked: "
+                             "the same rolled-out plans, one drawn at random (the ranking ablation); random: a "
+                             "random feasible pose, no rollouts")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
@@ -82,7 +85,7 @@ def build_request(args: argparse.Namespace):
     return PushRequest(object=ref, object_pose=pose, direction_deg=args.direction_deg,
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
-                       k=args.k, ranking=not args.no_ranking, seed=args.seed, method=args.method,
+                       k=args.k, choice=args.choice, seed=args.seed, method=args.method,
                        sampler=args.sampler)
 
 

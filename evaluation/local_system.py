@@ -7,7 +7,9 @@ without a router in the loop. The pose source is pluggable (`PoseSource`), which
 baselines that have no service of their own (the grasp-pose baseline) enter the same pipeline.
 
 The simulated bridge here also watches the object against the obstacles while a plan runs (the
-bus bridge reports robot contacts only); multi-step evaluation needs both.
+bus bridge reports robot contacts only); multi-step evaluation needs both. It executes in the
+trial's execution world (`LocalRobot.execution_world`, `shared.sim.world`): physics and an object
+pose the planner was not told.
 """
 from __future__ import annotations
 
@@ -20,12 +22,12 @@ from services.planner.cancellation import Cancellation
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.stages import PipelineSettings
-from services.robot_bridge.service import reset_world
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
 from services.sampler.service import SamplerService
 from services.validator.service import validate
 from shared.bus.errors import ServiceError
 from shared.messages import ExecutionState, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob
+from shared.sim.world import ExecutionWorld
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 
@@ -54,6 +56,9 @@ class LocalRobot:
     def __init__(self):
         self._executors: dict[tuple[str, str], SimExecutor] = {}
         self.contacts = Contacts()
+        # The world a reset builds: the physics the robot meets and the object's true pose (None: the
+        # planner's own world). Set per trial by the evaluation; the planner never sees it.
+        self.execution_world: ExecutionWorld | None = None
 
     def executor(self, arm: str, hand: str) -> SimExecutor:
         key = (arm, hand)
@@ -67,7 +72,7 @@ class LocalRobot:
     def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None) -> Execution:
         executor = self.executor(plan.arm, plan.hand)
         if world is not None:
-            reset_world(executor.backend, world)
+            executor.backend.reset_world(world, self.execution_world)
         stop = threading.Event()
         unregister = cancel.on_cancel(stop.set) if cancel is not None else (lambda: None)
         try:

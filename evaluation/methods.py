@@ -1,12 +1,15 @@
 """Experiments "methods" (Allegro on the Panda, GD2P against its baselines) and "leap" (LEAP on the xArm7).
 
-Both follow the protocol of `push_protocol.py` and report like the paper's appendix table: per
-object and direction, the successful trials out of 5 for each method ("–": no trial had a
-kinematically feasible plan), and the averages over the procedural ("3D") objects, the everyday
-("DO") objects and all 14.
+Both follow the protocol of `push_protocol.py` in an execution world (`--world real|exact`) and report
+like the paper's appendix table: per object and direction, the successful trials out of the trial
+count for each method ("–": no trial had a kinematically feasible plan), and the averages over the
+procedural ("3D") objects, the everyday ("DO") objects and all 14, each with its 95% interval
+clustered by object (`stats.py`). Results go to `<out>/<experiment>-<world>/`; a `real` report shows
+the same methods' `exact` rates beside its own when an `exact` run is found in `<out>`.
 """
 from __future__ import annotations
 
+import json
 import time
 from collections import defaultdict
 from collections.abc import Sequence
@@ -15,12 +18,19 @@ from pathlib import Path
 from typing import Any
 
 from evaluation import push_protocol as protocol
-from evaluation.report import markdown_table, write_experiment
+from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
+from evaluation.stats import difference_interval, success_interval
 from evaluation.store import ResultStore
+from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M
+from shared.sim.world import WorldLevel
 
-METHOD_LABELS = {"gd2p": "GD2P", "gd2p-no-ranking": "GD2P w/o ranking", "nearest": "Nearest Neighbor",
-                 "fixed": "Fixed spatula", "grasp": "Grasp pose"}
 QUICK_OBJECTS = ("proc-box-001", "pb-mug")
+# The records of the committed `exact` run made before execution worlds existed (results/methods, leap):
+# the same trials, under the methods' earlier names.
+LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
+# Compared in the report's differences: GD2P against each baseline with the same pipeline stages.
+COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked"), ("gd2p", "nearest-ranked"),
+               ("gd2p-random", "nearest"))
 
 
 @dataclass(frozen=True)
@@ -32,51 +42,76 @@ class Protocol:
     objects: tuple[str, ...]
     directions: tuple[float, ...]
     trials: int
+    world: WorldLevel = "real"
+
+    @property
+    def directory_name(self) -> str:
+        return f"{self.name}-{self.world}"
 
     def settings(self) -> dict[str, Any]:
-        """What a resumed run must share with the records on disk. Not the trial count: trial k is the
-        same episode whatever the count, so a run with fewer trials can later be extended."""
-        return {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "methods": list(self.methods),
+        """What a resumed run must share with the records on disk. Not the trial count nor the methods:
+        trial k of a method is the same episode whatever else runs, so a run can later be extended."""
+        return {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
                 "objects": list(self.objects), "directions_deg": list(self.directions),
                 "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                 "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M}
 
 
-def protocol_for(name: str, quick: bool, trials: int | None = None) -> Protocol:
+def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
+                 methods: Sequence[str] | None = None) -> Protocol:
     objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
     if name == "methods":
-        return Protocol(name, "Methods × objects × directions (Allegro + Panda)", "allegro", protocol.METHODS,
-                        objects, protocol.DIRECTIONS_DEG, trials)
+        return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`", "allegro",
+                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world)
     if name == "leap":
-        return Protocol(name, "Hand morphology: LEAP + xArm7", "leap", ("gd2p",), objects,
-                        protocol.DIRECTIONS_DEG, trials)
+        return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`", "leap", tuple(methods or ("gd2p",)),
+                        objects, protocol.DIRECTIONS_DEG, trials, world)
     raise ValueError(f"unknown protocol {name!r}")
 
 
-def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None) -> Path:
-    spec = protocol_for(name, quick, trials)
-    directory = Path(out) / name
+def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
+                 world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
+    spec = protocol_for(name, quick, trials, world, methods)
+    directory = Path(out) / spec.directory_name
     store = ResultStore(directory, spec.settings())
     started = time.perf_counter()
-    todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials)
+    todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world)
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
     records = [store.records[e.key] for e in todo]
     summary = summarise(records, spec)
-    body = report_body(records, spec, summary)
+    body = report_body(records, spec, summary, exact_rates(Path(out), spec))
     _plot(records, spec, directory / "success_by_direction.png")
     body += "\n![success by method and direction](success_by_direction.png)\n"
-    return write_experiment(directory, spec.title, body, {"settings": {**spec.settings(), "trials": spec.trials},
+    return write_experiment(directory, spec.title, body, {"settings": {**spec.settings(), "trials": spec.trials,
+                                                                       "methods": list(spec.methods)},
                                                           **summary}, time.perf_counter() - started, quick)
 
 
-def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None) -> Path:
-    return run_protocol("methods", out, quick, workers, trials)
+def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
+                world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods)
 
 
-def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None) -> Path:
-    return run_protocol("leap", out, quick, workers, trials)
+def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
+             world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods)
+
+
+def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
+    """Per method, the success rate of the same protocol under `exact` found in `out` (for a `real` report):
+    `<name>-exact`, else the run made before execution worlds existed (`<name>`)."""
+    if spec.world == "exact":
+        return {}
+    for directory, names in ((out / f"{spec.name}-exact", {}), (out / spec.name, LEGACY_EXACT_NAMES)):
+        path = directory / SUMMARY_FILE
+        if path.is_file():
+            summary = json.loads(path.read_text())
+            methods = {names.get(m, m): v for m, v in summary.get("methods", {}).items()}
+            return {m: {"rate": v["success_rate"], "source": f"{directory.name} ({summary.get('code', '?')})"}
+                    for m, v in methods.items()}
+    return {}
 
 
 # ------------------------------------------------------------------------------------------ tables
@@ -85,29 +120,53 @@ def _rate(records: Sequence[dict[str, Any]]) -> float:
     return sum(r["success"] for r in records) / len(records) if records else float("nan")
 
 
+def failure_cause(record: dict[str, Any]) -> str | None:
+    """Why a trial failed: "planning" (no feasible plan, or an error), "pose quality" (the chosen plan's
+    own rollout predicted the failure: nothing better was found), "world gap" (predicted to succeed in
+    the planner's world, failed in the execution world: physics or pose error), "unpredicted" (a
+    random choice has no rollout to tell). None for a success."""
+    if record["success"]:
+        return None
+    if record["outcome"] != "failure":
+        return "planning"
+    predicted = record.get("predicted_l_goal")
+    if predicted is None:
+        return "unpredicted"
+    return "world gap" if predicted <= SUCCESS_POSITION_TOLERANCE_M else "pose quality"
+
+
 def summarise(records: Sequence[dict[str, Any]], spec: Protocol) -> dict[str, Any]:
-    """Success rates per method: all objects, procedural, everyday, per direction; outcome counts."""
+    """Per method: success rates (all objects with the clustered interval, procedural, everyday, per
+    direction), outcome and failure-cause counts; GD2P's differences to its baselines."""
     by_method: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for r in records:
         by_method[r["method"]].append(r)
     methods = {}
     for method in spec.methods:
         rs = by_method[method]
-        outcomes = defaultdict(int)
+        outcomes: dict[str, int] = defaultdict(int)
+        causes: dict[str, int] = defaultdict(int)
         for r in rs:
             outcomes[r["outcome"]] += 1
+            cause = failure_cause(r)
+            if cause is not None:
+                causes[cause] += 1
         feasible = [r for r in rs if r["outcome"] != "infeasible"]
         methods[method] = {
             "success_rate": _rate(rs),
+            "interval_95": success_interval(rs).as_dict(),
             "feasible_success_rate": _rate(feasible),  # pose quality apart from the arm's reach
             "procedural_success_rate": _rate([r for r in rs if r["object_id"] in protocol.PROCEDURAL_OBJECTS]),
             "everyday_success_rate": _rate([r for r in rs if r["object_id"] in protocol.EVERYDAY_OBJECTS]),
             "by_direction": {f"{d:g}": _rate([r for r in rs if r["direction_deg"] == d]) for d in spec.directions},
             "outcomes": dict(outcomes),
+            "failure_causes": dict(causes),
             "trials": len(rs),
             "median_seconds": sorted(r["seconds"] for r in rs)[len(rs) // 2] if rs else None,
         }
-    return {"methods": methods}
+    differences = {f"{a} - {b}": difference_interval(by_method[a], by_method[b]).as_dict()
+                   for a, b in COMPARISONS if a in spec.methods and b in spec.methods}
+    return {"methods": methods, "differences_95": differences}
 
 
 def _cell(records: Sequence[dict[str, Any]]) -> str:
@@ -116,35 +175,62 @@ def _cell(records: Sequence[dict[str, Any]]) -> str:
     return str(sum(r["success"] for r in records))
 
 
-def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict[str, Any]) -> str:
+def method_label(method: str) -> str:
+    return protocol.METHODS[method].label
+
+
+def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict[str, Any],
+                exact: dict[str, dict[str, Any]] | None = None) -> str:
     cells: dict[tuple[str, str, float], list[dict[str, Any]]] = defaultdict(list)
     for r in records:
         cells[(r["method"], r["object_id"], r["direction_deg"])].append(r)
-    headers = ["object"] + [f"{METHOD_LABELS[m]} {d:g}°" for m in spec.methods for d in spec.directions]
+    headers = ["object"] + [f"{method_label(m)} {d:g}°" for m in spec.methods for d in spec.directions]
     rows = [[o] + [_cell(cells[(m, o, d)]) for m in spec.methods for d in spec.directions] for o in spec.objects]
     averages = summary["methods"]
     for label, key in (("3D avg.", "procedural_success_rate"), ("DO avg.", "everyday_success_rate"),
                        ("All avg.", "success_rate")):
         rows.append([f"**{label}**"] + [f"{averages[m][key]:.2f}" if d == spec.directions[0] else ""
                                         for m in spec.methods for d in spec.directions])
-    text = (f"{spec.hand} hand on the {protocol.ROBOTS[spec.hand]}; objects resting at "
+    text = (f"World `{spec.world}` (`shared.sim.world`): "
+            + ("each trial executes in physics the planner does not know, with the object off the told pose. "
+               if spec.world == "real" else "each trial executes in the planner's own world. ")
+            + f"{spec.hand} hand on the {protocol.ROBOTS[spec.hand]}; objects resting at "
             f"({protocol.OBJECT_XY[0]:.2f}, {protocol.OBJECT_XY[1]:.2f}) m, re-placed for each trial (±"
             f"{protocol.PLACEMENT_NOISE_M * 100:.0f} cm, ±{protocol.PLACEMENT_NOISE_DEG:.0f}°); directions "
             f"{', '.join(f'{d:g}°' for d in spec.directions)} (180° pulls toward the robot); a "
             f"{protocol.PUSH_DISTANCE_M:.2f} m push; {spec.trials} trial(s) per cell. Cells: successful trials out of "
             f"{spec.trials}; – : no kinematically feasible plan in any trial (counted as failures).\n\n")
     text += markdown_table(headers, rows)
-    text += "\n### Averages\n\n"
+    text += "\n### Averages\n\nAll: the pooled rate and its 95% interval clustered by object (bootstrap over objects)"
+    text += (f"; exact: the same trials in the planner's own world ({next(iter(exact.values()))['source']})"
+             if exact else "") + ".\n\n"
     summary_rows = []
     for m in spec.methods:
         s = averages[m]
         o = s["outcomes"]
-        summary_rows.append([METHOD_LABELS[m], f"{s['success_rate']:.1%}", f"{s['procedural_success_rate']:.1%}",
+        interval = s["interval_95"]
+        exact_rate = f"{exact[m]['rate']:.1%}" if exact and m in exact else "–"
+        summary_rows.append([method_label(m), f"{s['success_rate']:.1%} [{interval['low']:.1%}, {interval['high']:.1%}]"]
+                            + ([exact_rate] if exact else [])
+                            + [f"{s['procedural_success_rate']:.1%}",
                              f"{s['everyday_success_rate']:.1%}", f"{s['feasible_success_rate']:.1%}"]
                             + [f"{s['by_direction'][f'{d:g}']:.1%}" for d in spec.directions]
                             + [o.get("infeasible", 0), o.get("error", 0), s["trials"], s["median_seconds"]])
-    text += markdown_table(["method", "all", "3D", "DO", "when feasible"] + [f"{d:g}°" for d in spec.directions]
+    text += markdown_table(["method", "all [95% CI]"] + (["exact"] if exact else []) + ["3D", "DO", "when feasible"]
+                           + [f"{d:g}°" for d in spec.directions]
                            + ["infeasible", "errors", "trials", "median s/trial"], summary_rows)
+    if summary["differences_95"]:
+        text += "\n### Differences (percentage points, paired by object, 95% interval)\n\n"
+        text += markdown_table(["comparison", "difference"],
+                               [[" − ".join(method_label(m) for m in key.split(" - ")),
+                                 f"{d['value'] * 100:+.1f} [{d['low'] * 100:+.1f}, {d['high'] * 100:+.1f}]"]
+                                for key, d in summary["differences_95"].items()])
+    causes = ("planning", "pose quality", "world gap", "unpredicted")
+    text += ("\n### Failures by cause\n\nplanning: no feasible plan (or an error); pose quality: the executed "
+             "plan's own rollout predicted the failure; world gap: predicted to succeed in the planner's world, "
+             "failed in the execution world (physics, pose error); unpredicted: a random choice, no rollout.\n\n")
+    text += markdown_table(["method"] + list(causes),
+                           [[method_label(m)] + [averages[m]["failure_causes"].get(c, 0) for c in causes] for m in spec.methods])
     return text
 
 
@@ -161,7 +247,7 @@ def _plot(records: Sequence[dict[str, Any]], spec: Protocol, path: Path) -> None
     for i, method in enumerate(spec.methods):
         rs = [r for r in records if r["method"] == method]
         rates = [_rate([r for r in rs if r["direction_deg"] == d]) for d in spec.directions] + [_rate(rs)]
-        ax.bar(x + (i - (len(spec.methods) - 1) / 2) * width, rates, width, label=METHOD_LABELS[method])
+        ax.bar(x + (i - (len(spec.methods) - 1) / 2) * width, rates, width, label=method_label(method))
     ax.set_xticks(x, [f"{d:g}°" for d in spec.directions] + ["all"])
     ax.set_ylim(0, 1)
     ax.set_ylabel("success rate")

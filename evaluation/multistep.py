@@ -5,7 +5,8 @@ through the planner's multi-step path (`PushRequest.goal_xy`): RRT* plans the ob
 plane around the obstacle, then one GD2P push per path edge, each planned from the object pose
 observed after the previous one. Success: the object's centre ends within 0.03 m of the goal, it
 did not topple, and nothing — robot or object — touched the obstacle (watched in the simulated
-robot while every plan runs).
+robot while every plan runs). Each run executes in its own execution world (`--world`, as the
+methods experiment: `shared.sim.world`), drawn once for all its pushes.
 """
 from __future__ import annotations
 
@@ -21,13 +22,15 @@ import numpy as np
 
 from evaluation import push_protocol as protocol
 from evaluation.report import markdown_table, write_experiment
+from evaluation.stats import success_interval
 from evaluation.store import ResultStore
 from shared.frames import make_transform, yaw_rotation
 from shared.messages import CircleObstacle, ObjectRef, PushRequest
 from shared.objects import load_object
 from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M, object_pose, pose_matrix
+from shared.sim.world import ExecutionWorld, WorldLevel, sample_world
 
-TITLE = "Multi-step pushing around an obstacle (Allegro + Panda)"
+TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`"
 PLOT_FILE = "object_paths.png"
 MAX_PUSH_M = 0.15  # longest single push along the path
 MAX_STEPS = 6
@@ -59,10 +62,16 @@ class Run:
     object_id: str
     trial: int
     hand: str = "allegro"
+    world: WorldLevel = "real"
 
     @property
     def key(self) -> str:
         return f"{self.scenario.name}/{self.object_id}/{self.trial}"
+
+    def execution_world(self) -> ExecutionWorld:
+        mesh = load_object(self.object_id).mesh
+        seed = int.from_bytes(hashlib.sha256(f"world/{self.key}".encode()).digest()[:4], "little") & 0x7FFFFFFF
+        return sample_world(self.world, seed, (mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)) / 2.0)
 
     @property
     def seed(self) -> int:
@@ -89,7 +98,10 @@ def run_one(run: Run) -> dict[str, Any]:
     system = protocol._system
     system.robot.contacts.reset()
     started = time.perf_counter()
-    record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial}
+    world = run.execution_world()
+    system.robot.execution_world = world
+    record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial,
+                              "world_draw": world.record()}
     pipeline, the_request = system.pipeline("sampler"), request(run)
     executed = []  # the executed pushes' records, also of a request that failed after some
     try:
@@ -102,11 +114,10 @@ def run_one(run: Run) -> dict[str, Any]:
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:
         response, executed = outcome.response, outcome.records
-        final = pose_matrix(response.result.final_object_pose)
-        error = float(np.linalg.norm(final[:2, 3] - np.asarray(run.scenario.goal_xy)))
         contacts = system.robot.contacts
-        success = error <= SUCCESS_POSITION_TOLERANCE_M and not response.result.toppled and not contacts.any
-        record.update(outcome="success" if success else "failure", success=success, goal_error_m=error,
+        success = response.result.success and not contacts.any  # at the goal, standing, the obstacle untouched
+        record.update(outcome="success" if success else "failure", success=success,
+                      goal_error_m=response.result.position_error_m,
                       toppled=response.result.toppled, rotation_deg=response.result.rotation_deg,
                       pushes=len(response.steps), robot_obstacle_contact=sorted(contacts.robot_obstacle),
                       object_obstacle_contact=contacts.object_obstacle)
@@ -121,12 +132,13 @@ def _object_path(the_request: PushRequest, steps) -> list[list[float]]:
     return [[round(float(v), 4) for v in pose_matrix(p)[:2, 3]] for p in poses]
 
 
-def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
+def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "real") -> Path:
     scenarios, objects, trials = (SCENARIOS[:1], OBJECTS[:1], 1) if quick else (SCENARIOS, OBJECTS, TRIALS)
-    runs = [Run(s, o, t) for s in scenarios for o in objects for t in range(trials)]
-    directory = Path(out) / "multistep"
+    runs = [Run(s, o, t, world=world) for s in scenarios for o in objects for t in range(trials)]
+    directory = Path(out) / f"multistep-{world}"
     settings = {"scenarios": [vars(s) for s in scenarios], "objects": list(objects), "trials": trials,
-                "max_push_m": MAX_PUSH_M, "max_steps": MAX_STEPS, "placement_noise_m": protocol.PLACEMENT_NOISE_M}
+                "max_push_m": MAX_PUSH_M, "max_steps": MAX_STEPS, "placement_noise_m": protocol.PLACEMENT_NOISE_M,
+                "world": world}
     store = ResultStore(directory, settings)
     started = time.perf_counter()
     protocol.run_in_workers([r for r in runs if not store.done(r.key)], run_one, store, workers,
@@ -144,11 +156,13 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
                      _median([r.get("goal_error_m") for r in rs]), _median([r.get("pushes") for r in rs]),
                      sum(bool(r.get("robot_obstacle_contact") or r.get("object_obstacle_contact")) for r in rs),
                      sum(r["outcome"] in ("infeasible", "error") for r in rs)])
-    rate = sum(r["success"] for r in records) / len(records)
-    body = (f"Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
+    interval = success_interval(records)
+    rate = interval.value
+    body = (f"World `{world}` (`shared.sim.world`). Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
             f"at most {MAX_PUSH_M:.2f} m, at most {MAX_STEPS} pushes. Success: within "
             f"{SUCCESS_POSITION_TOLERANCE_M:.2f} m of the goal, not toppled, no robot or object contact with the "
-            f"obstacle.\n\n**Success: {rate:.0%}** ({sum(r['success'] for r in records)}/{len(records)}).\n\n")
+            f"obstacle.\n\n**Success: {rate:.0%}** ({sum(r['success'] for r in records)}/{len(records)}; 95% interval clustered "
+            f"by object [{interval.low:.0%}, {interval.high:.0%}]).\n\n")
     body += markdown_table(["scenario", "start → goal (m)", "obstacle", "success", "median goal error (m)",
                             "median pushes", "obstacle contacts", "no plan / error"], rows)
     _plot(records, scenarios, directory / PLOT_FILE)
@@ -158,7 +172,8 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
         [[r["scenario"], r["object_id"], r["trial"], r["outcome"], _fmt(r.get("goal_error_m")), r.get("pushes", ""),
           ", ".join(r.get("robot_obstacle_contact") or []) + (" object" if r.get("object_obstacle_contact") else ""),
           r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
-    return write_experiment(directory, TITLE, body, {"success_rate": rate, "runs": len(records), "settings": settings},
+    return write_experiment(directory, TITLE.format(world=world), body, {"success_rate": rate, "interval_95": interval.as_dict(),
+                                                "runs": len(records), "settings": settings},
                             time.perf_counter() - started, quick)
 
 

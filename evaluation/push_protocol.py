@@ -6,16 +6,27 @@ directions evenly spread around a circle, one of them the pull toward the robot 
 per direction with the object placed again each time (a few mm and degrees of placement noise, as a
 person re-placing it), a 0.20 m push planned and executed with the arm. A trial succeeds when the
 object's centre ends within 0.03 m of the target, it turned ≤ 45° and did not topple
-(`shared.push_outcome.judge_push`); "–" marks a trial with no kinematically feasible plan, counted
-as a failure. The hand keeping contact throughout is not judged separately: a 0.20 m push that ends
-within 3 cm of its target has kept the object in front of the hand.
+(`shared.push_outcome.judge_push`, from the object's true start); "–" marks a trial with no
+kinematically feasible plan, counted as a failure. The hand keeping contact throughout is not
+judged separately: a 0.20 m push that ends within 3 cm of its target has kept the object in front
+of the hand.
 
-Methods (the paper's, on one pipeline — only the pose source and the choice among plans differ):
-- `gd2p`: K = 200 diffusion samples, plans ranked by arm rollouts (V = α L_goal + β L_coll + γ L_dir);
-- `gd2p-no-ranking`: the same samples, a random feasible plan executed;
+The execution world (`--world`, `shared.sim.world`): each trial draws one from its own seed — the
+same draw for every method, so methods face identical trials. Under `real` the robot executes in
+physics the planner does not know (friction, mass, centre of mass, controller) and the object
+stands where the planner was not told (±1 cm, ±5°); under `exact` it executes in the planner's world.
+
+Methods: every pose source runs through the same pipeline, (a) with the plans ranked by arm rollouts
+and (b) as a random feasible choice (`PushRequest.choice`), so pose quality and ranking are measured
+apart; the ranking ablation keeps every stage and rollout and drops only the ranking score:
+- `gd2p`: K = 200 diffusion samples, ranked (V = α L_goal + β L_coll + γ L_dir);
+- `gd2p-unranked`: the same stages and rollouts, the executed plan drawn at random among the rolled-out ones;
+- `gd2p-random`: the same samples, a random feasible plan executed (no prescreen, no rollouts);
 - `nearest`: the nearest training object's stored poses (BPS), a random feasible plan (as the paper);
-- `fixed`: the spatula pose behind the object;
-- `grasp`: grasp-only optimiser poses (`grasp_baseline.py`), a feasible one of the best executed.
+- `nearest-ranked`: the same poses, ranked;
+- `fixed`: the spatula pose behind the object (one pose: nothing to rank);
+- `grasp`: grasp-only optimiser poses (`grasp_baseline.py`), a random feasible one of the best;
+- `grasp-ranked`: the same poses, ranked.
 
 Episodes run in spawn worker processes, each with its own in-process system (`local_system.py`);
 every finished episode is recorded at once, so a killed run resumes where it stopped.
@@ -34,10 +45,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from shared.frames import make_transform, yaw_rotation
-from shared.messages import ObjectRef, PushRequest
+from shared.frames import direction_xy, make_transform, yaw_rotation
+from shared.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
 from shared.objects import load_object, split_of
-from shared.push_outcome import object_pose
+from shared.push_outcome import judge_push, object_pose
+from shared.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 
 PROCEDURAL_OBJECTS = ("proc-box-000", "proc-box-001", "proc-box-002", "proc-cylinder-000", "proc-cylinder-001",
                       "proc-ellipsoid-001", "proc-cone-000", "proc-hull-001")
@@ -48,8 +60,29 @@ PUSH_DISTANCE_M = 0.20
 OBJECT_XY = (0.40, 0.0)  # in front of the robot, where both arms reach all three directions (pulls fail at 0.5 m)
 PLACEMENT_NOISE_M = 0.01  # uniform in a ±1 cm square
 PLACEMENT_NOISE_DEG = 5.0  # uniform yaw in ±5°
-METHODS = ("gd2p", "gd2p-no-ranking", "nearest", "fixed", "grasp")
 ROBOTS = {"allegro": "panda", "leap": "xarm7"}
+
+
+@dataclass(frozen=True)
+class Method:
+    """A pose source and how the executed plan is chosen among its candidates."""
+
+    name: str
+    label: str
+    source: str  # "gd2p" | "nearest" | "fixed" (the planner's PushRequest.method) or "grasp" (grasp_baseline)
+    choice: PlanChoice
+
+
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("gd2p", "GD2P", "gd2p", "ranked"),
+    Method("gd2p-unranked", "GD2P w/o ranking", "gd2p", "unranked"),
+    Method("gd2p-random", "Diffusion, random feasible", "gd2p", "random"),
+    Method("nearest", "Nearest Neighbor", "nearest", "random"),
+    Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
+    Method("fixed", "Fixed spatula", "fixed", "random"),
+    Method("grasp", "Grasp pose", "grasp", "random"),
+    Method("grasp-ranked", "Grasp pose + ranking", "grasp", "ranked"),
+)}
 
 
 @dataclass(frozen=True)
@@ -59,10 +92,17 @@ class Episode:
     object_id: str
     direction_deg: float
     trial: int
+    world: WorldLevel = "real"
 
     @property
     def key(self) -> str:
         return f"{self.method}/{self.hand}/{self.object_id}/{self.direction_deg:g}/{self.trial}"
+
+    @property
+    def world_seed(self) -> int:
+        """The execution world's seed: the same draw for every method, independent of the placement's."""
+        digest = hashlib.sha256(f"world/{self.object_id}/{self.direction_deg:g}/{self.trial}".encode()).digest()
+        return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
 
     @property
     def arm(self) -> str:
@@ -76,18 +116,21 @@ class Episode:
 
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
-             trials: int) -> list[Episode]:
+             trials: int, world: WorldLevel = "real") -> list[Episode]:
     for object_id in objects:
         if split_of(object_id) != "test":
             raise ValueError(f"{object_id} is in the {split_of(object_id)} split; evaluation uses test objects only")
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown method(s) {sorted(unknown)}; known: {', '.join(METHODS)}")
-    return [Episode(m, hand, o, d, t) for m in methods for o in objects for d in directions for t in range(trials)]
+    if world not in WORLD_LEVELS:
+        raise ValueError(f"unknown world {world!r}; known: {', '.join(WORLD_LEVELS)}")
+    return [Episode(m, hand, o, d, t, world) for m in methods for o in objects for d in directions for t in range(trials)]
 
 
 def placement(episode: Episode) -> np.ndarray:
-    """T_world_O of the episode's trial: resting at the spot in front of the robot, re-placed with noise."""
+    """T_world_O the system is told for the episode's trial: resting at the spot in front of the robot,
+    re-placed with noise (the true pose differs by the execution world's pose error)."""
     rng = np.random.default_rng(episode.seed)
     dx, dy = rng.uniform(-PLACEMENT_NOISE_M, PLACEMENT_NOISE_M, 2)
     yaw = math.radians(rng.uniform(-PLACEMENT_NOISE_DEG, PLACEMENT_NOISE_DEG))
@@ -95,12 +138,25 @@ def placement(episode: Episode) -> np.ndarray:
     return make_transform(yaw_rotation(yaw), np.array([OBJECT_XY[0] + dx, OBJECT_XY[1] + dy, 0.0])) @ obj.T_D_O()
 
 
+def execution_world(episode: Episode) -> ExecutionWorld:
+    """The world the episode's plan is executed in (drawn from `world_seed`)."""
+    mesh = load_object(episode.object_id).mesh  # in the object's frame O
+    half_extents = (mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)) / 2.0
+    return sample_world(episode.world, episode.world_seed, half_extents)
+
+
 def push_request(episode: Episode, k: int = 200) -> PushRequest:
-    method = {"gd2p-no-ranking": "gd2p", "grasp": "gd2p"}.get(episode.method, episode.method)
-    ranking = episode.method == "gd2p"  # the paper: NN and w/o ranking execute a random feasible plan
+    method = METHODS[episode.method]
+    source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
                        direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
-                       arm=episode.arm, k=k, ranking=ranking, method=method, seed=episode.seed)
+                       arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed)
+
+
+def judge_episode(episode: Episode, world: ExecutionWorld, final: ObjectPose) -> ExecutionResult:
+    """The trial's outcome judged from where the object truly started (the told pose may be off)."""
+    T_start = world.pose_error.true_pose(placement(episode))
+    return judge_push(T_start, T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg), final)
 
 
 # ------------------------------------------------------------------------------------------ workers
@@ -126,9 +182,11 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     from services.planner.outcome import PushError
 
     started = time.perf_counter()
-    source = _grasp if episode.method == "grasp" else None
-    pipeline = _system.pipeline(episode.method if source is not None else "sampler", source)
-    record: dict[str, Any] = {**asdict(episode), "seed": episode.seed}
+    source = _grasp if METHODS[episode.method].source == "grasp" else None
+    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source)
+    world = execution_world(episode)
+    _system.robot.execution_world = world
+    record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record()}
     try:
         response = pipeline.run(push_request(episode)).response
     except PushError as exc:
@@ -137,8 +195,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     except Exception as exc:  # a crash in one trial is recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:
-        result = response.result
-        record.update(outcome="success" if response.success else "failure", success=bool(response.success),
+        result = judge_episode(episode, world, response.result.final_object_pose)
+        record.update(outcome="success" if result.success else "failure", success=bool(result.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)

@@ -58,6 +58,13 @@ Arm = Literal["panda", "xarm7"]
 Sampler = Literal["ddpm", "ddim", "nearest"]  # nearest: the nearest-neighbour baseline (stored training poses)
 DiffusionSampler = Literal["ddpm", "ddim"]
 PoseMethod = Literal["gd2p", "nearest", "fixed"]
+# How the executed plan is chosen among the candidates (PushRequest.choice):
+# - "ranked": GD2P - plans rolled out with the arm and ranked by V = alpha L_goal + beta L_coll + gamma L_dir;
+# - "unranked": the ranking ablation - the same stages and rollouts, the executed plan drawn at random
+#   among the rolled-out ones (only the ranking score is removed);
+# - "random": a random kinematically feasible pose, planned and executed with no prescreen, rollout or
+#   ranking (the pose source's quality on its own).
+PlanChoice = Literal["ranked", "unranked", "random"]
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
 
@@ -633,7 +640,7 @@ class PushRequest(Message):
     arm: Arm = "panda"
     obstacles: list[CircleObstacle] = Field(default_factory=list)
     k: int = Field(default=200, ge=1, le=1000)
-    ranking: bool = True
+    choice: PlanChoice = "ranked"
     max_steps: int = Field(default=10, ge=1, le=100)
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler

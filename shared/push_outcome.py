@@ -1,4 +1,7 @@
-"""Judging a push with the arm: where the object ended up against where it should be (the paper's criterion)."""
+"""The one judge of a push: where the object ended up against where it should be (the paper's criterion).
+
+Used by the floating-hand validator, the arm rollouts, the planner's result and every evaluation.
+"""
 from __future__ import annotations
 
 import math
@@ -25,8 +28,13 @@ def pose_matrix(pose: ObjectPose) -> np.ndarray:
     return T
 
 
-def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: ObjectPose) -> ExecutionResult:
-    """Position error (in the table plane, to the target), rotation, toppling and success of one push."""
+def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: ObjectPose, *,
+               max_rotation_deg: float | None = SUCCESS_MAX_ROTATION_DEG) -> ExecutionResult:
+    """Position error (in the table plane, to the target), rotation, toppling and success of one push.
+
+    `max_rotation_deg=None` does not judge the turn: a multi-step request, whose object may turn
+    along its path around obstacles, succeeds when it ends at the goal standing.
+    """
     T_end = pose_matrix(final)
     error = float(np.linalg.norm(T_end[:2, 3] - np.asarray(target_xy, dtype=np.float64)[:2]))
     r_start, r_end = T_world_O_start[:3, :3], T_end[:3, :3]
@@ -34,6 +42,7 @@ def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: Object
     up_in_object = r_start.T @ np.array([0.0, 0.0, 1.0])  # the object's up axis at the start, in O
     tilt = math.degrees(math.acos(np.clip(float((r_end @ up_in_object)[2]), -1.0, 1.0)))
     toppled = tilt > TOPPLED_TILT_DEG
-    success = error <= SUCCESS_POSITION_TOLERANCE_M and rotation <= SUCCESS_MAX_ROTATION_DEG and not toppled
+    turned_too_far = max_rotation_deg is not None and rotation > max_rotation_deg
+    success = error <= SUCCESS_POSITION_TOLERANCE_M and not turned_too_far and not toppled
     return ExecutionResult(final_object_pose=final, position_error_m=error, rotation_deg=rotation,
                            toppled=toppled, success=success)

@@ -184,7 +184,7 @@ def push_requests(draw) -> m.PushRequest:
     hand, arm = draw(pairs)
     target = {"direction_deg": draw(finite)} if draw(st.booleans()) else {"goal_xy": draw(st.tuples(finite, finite))}
     return m.PushRequest(object=draw(object_refs), object_pose=draw(st.none() | object_poses), distance_m=draw(st.floats(1e-3, 1.0)),
-                         hand=hand, arm=arm, obstacles=draw(obstacles), k=draw(st.integers(1, 1000)), ranking=draw(st.booleans()),
+                         hand=hand, arm=arm, obstacles=draw(obstacles), k=draw(st.integers(1, 1000)), choice=draw(st.sampled_from(["ranked", "unranked", "random"])),
                          max_steps=draw(st.integers(1, 100)), seed=draw(seeds), **target)
 
 

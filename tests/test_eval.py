@@ -53,8 +53,38 @@ def test_every_method_faces_the_same_placement():
     offset = protocol.placement(a)[:2, 3] - np.array(protocol.OBJECT_XY)
     assert np.all(np.abs(offset) <= protocol.PLACEMENT_NOISE_M + 1e-9)
     request = protocol.push_request(a)
-    assert request.ranking and request.method == "gd2p" and request.distance_m == pytest.approx(0.20)
-    assert not protocol.push_request(protocol.Episode("gd2p-no-ranking", "allegro", "pb-mug", 180.0, 3)).ranking
+    assert request.choice == "ranked" and request.method == "gd2p" and request.distance_m == pytest.approx(0.20)
+    ablation = protocol.push_request(protocol.Episode("gd2p-unranked", "allegro", "pb-mug", 180.0, 3))
+    random_nn = protocol.push_request(protocol.Episode("nearest", "allegro", "pb-mug", 180.0, 3))
+    assert (ablation.method, ablation.choice) == ("gd2p", "unranked")
+    assert (random_nn.method, random_nn.choice) == ("nearest", "random")
+
+
+def test_every_method_faces_the_same_execution_world_and_trials_differ():
+    a, b = (protocol.Episode(m, "allegro", "pb-mug", 180.0, 3) for m in ("gd2p", "fixed"))
+    other_trial = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 4)
+    world_a, world_b, world_c = (protocol.execution_world(e) for e in (a, b, other_trial))
+    assert world_a == world_b and world_a != world_c
+    assert world_a.level == "real" and world_a.pose_error != protocol.execution_world(
+        protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 3, world="exact")).pose_error
+
+
+def test_a_trial_is_judged_from_where_the_object_truly_started():
+    """Told pose off by 2 cm: an object pushed exactly 0.20 m from its true start succeeds, although it
+    ends 2 cm from the target the planner computed from the told pose."""
+    from dataclasses import replace
+
+    from shared.sim.world import PoseError
+
+    episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0)
+    world = replace(protocol.execution_world(episode), pose_error=PoseError(0.02, 0.0, 0.0))
+    T_true = world.pose_error.true_pose(protocol.placement(episode))
+    T_end = T_true.copy()
+    T_end[:2, 3] += 0.20 * direction_xy(60.0)
+    assert protocol.judge_episode(episode, world, object_pose(T_end)).success
+    T_told_end = protocol.placement(episode)
+    T_told_end[:2, 3] += 0.20 * direction_xy(60.0) + np.array([0.0, 0.035])
+    assert not protocol.judge_episode(episode, world, object_pose(T_told_end)).success
 
 
 def test_grasp_poses_move_with_the_object(tmp_path):
@@ -84,8 +114,9 @@ def test_grasp_poses_move_with_the_object(tmp_path):
 def test_fixed_pose_pull_toward_the_robot_succeeds_with_the_arm(tmp_path):
     """One full protocol trial in physics: the spatula pose pulls the box 0.20 m toward the robot."""
     protocol._init_worker(str(tmp_path))
-    record = protocol.run_episode(protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0))
+    record = protocol.run_episode(protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0, world="exact"))
     assert record["outcome"] == "success", record
+    assert record["world_draw"]["level"] == "exact"
     assert record["position_error_m"] <= 0.03 and not record["toppled"]
 
 

@@ -108,7 +108,7 @@ def test_direction_frame_yaw_or_vector():
 
 def test_push_request_defaults():
     req = m.PushRequest(object=BOX, direction_deg=90)
-    assert (req.distance_m, req.hand, req.arm, req.k, req.ranking) == (0.20, "allegro", "panda", 200, True)
+    assert (req.distance_m, req.hand, req.arm, req.k, req.choice) == (0.20, "allegro", "panda", 200, "ranked")
 
 
 def test_push_request_direction_xor_goal():

@@ -98,9 +98,9 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
         assert image.size[0] >= 3 * 320 and np.asarray(image).std() > 10  # three rendered frames, not blank
 
 
-def test_without_ranking_a_feasible_plan_is_executed_without_rollouts(system):
+def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
     cfg, _ = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, method="fixed", ranking=False)
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, method="fixed", choice="random")
     response = push(request, cfg, timeout_s=240.0)
     assert response.score is None and "rollouts" not in response.timings_s
     assert response.result.success, response.result
@@ -241,7 +241,7 @@ def _spatula_poses(request):
                           poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
 
-def _push_with_altered_rollouts(alter, settings=None):
+def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0):
     """A push of the box by spatula poses (`_spatula_poses`) on an in-process system whose i-th arm
     rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
     from evaluation.local_system import LocalRobot, validate_here
@@ -263,7 +263,7 @@ def _push_with_altered_rollouts(alter, settings=None):
                             settings or PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
-                                           direction_deg=90.0, k=8))
+                                           direction_deg=90.0, k=8, choice=choice, seed=seed))
         assert [r.step for r in outcome.records] == outcome.response.steps
         return outcome.response, len(rollouts)
     except PushError as exc:
@@ -284,6 +284,23 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
     assert rollouts == 4  # two rounds of two rolled-out plans
     assert response.score.l_goal < 0.1  # the executed plan is one of the second round's
     assert response.success
+
+
+def test_the_ranking_ablation_keeps_every_rollout_and_drops_only_the_score():
+    """choice="unranked": the same plans are made and rolled out as when ranked, but the executed one is
+    drawn at random among them, so the worse-scored plan can run."""
+    from services.planner.stages import PipelineSettings
+    from shared.messages import NDArray
+
+    def second_plan_missing(i, result):  # the second rolled-out plan "misses by 10 cm"
+        return result.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) if i == 1 else result
+
+    settings = PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1)
+    ranked, ranked_rollouts = _push_with_altered_rollouts(second_plan_missing, settings, "ranked", seed=3)
+    unranked, unranked_rollouts = _push_with_altered_rollouts(second_plan_missing, settings, "unranked", seed=3)
+    assert ranked_rollouts == unranked_rollouts == 2
+    assert ranked.score.l_goal < 0.1  # the ranking executes the better plan
+    assert unranked.score.l_goal >= 0.1  # seed 3 draws the permutation [1, 0]: the worse plan runs
 
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():

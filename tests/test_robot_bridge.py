@@ -385,17 +385,15 @@ def test_only_a_planner_lease_may_command_motion(bus_bridge, key_kind):
 
 
 def test_a_lease_lost_during_the_world_reset_refuses_the_command(bus_bridge, monkeypatch):
-    import services.robot_bridge.service as service
-
     key, token = bus_bridge.lease("planner-1.cmd-2")
-    reset_world = service.reset_world
+    reset_world = SimBackend.reset_world
 
-    def reset_and_lose_the_lease(backend, world):
-        reset_world(backend, world)
+    def reset_and_lose_the_lease(backend, world, execution=None):
+        reset_world(backend, world, execution)
         token.undeclare()  # the commander gives up while the world is being reset
         time.sleep(0.1)
 
-    monkeypatch.setattr(service, "reset_world", reset_and_lose_the_lease)
+    monkeypatch.setattr(SimBackend, "reset_world", reset_and_lose_the_lease)
     state = bus_bridge.bridge.execute(bus_bridge.move(key, world=box_world()))
     assert state.status == "refused" and "lease" in state.message and "lost" in state.message, state.message
     assert abs(bus_bridge.travel(state)) < 0.01

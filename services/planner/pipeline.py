@@ -17,8 +17,10 @@ Pose sources (`PushRequest.method`), so that methods can be compared on the same
   the stored poses of the training frame nearest to the object in BPS space, at most K of them;
 - "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline).
 
-Without ranking (`ranking=False`, the paper's ablation) a random feasible pose is planned and
-executed, with no rollouts.
+`PushRequest.choice` says how the executed plan is chosen: "ranked" (GD2P), "unranked" (the ranking
+ablation: the same stages and rollouts, the executed plan drawn at random among the rolled-out ones)
+or "random" (a random feasible pose planned and executed, with no prescreen or rollouts: the pose
+source's quality on its own).
 
 With `goal_xy` the request is multi-step: RRT* plans the object's path around the obstacles
 (`multistep.py`); each push goes to the next piece of the path and is planned from the object pose
@@ -157,7 +159,8 @@ class PushPipeline:
             raise PushError("infeasible", f"no object path to the goal: {exc}") from exc
         if not state.records:
             raise PushError("bad_request", "the object is already at the goal")
-        final = judge_push(start_T, np.asarray(request.goal_xy), state.records[-1].step.result.final_object_pose)
+        final = judge_push(start_T, np.asarray(request.goal_xy), state.records[-1].step.result.final_object_pose,
+                           max_rotation_deg=None)
         state.timings["object_path"] = sum(p.planning_s for p in outcome.paths)
         return final
 
@@ -173,17 +176,20 @@ class PushPipeline:
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
             feasible = stages.screen(state, planner, candidates, push, self.settings)
             planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), self.settings)
-            if request.ranking:
-                chosen = self._best_ranked(state, planning, feasible)
+            if stages.rolls_out(request):
+                chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
         state.advance(stages.execute(state, push, candidates, chosen, self.services.execute))
 
-    def _best_ranked(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
-        """The best-ranked plan of the (prescreened) feasible candidates, with its way back."""
+    def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
+        """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an
+        "unranked" request, a random one of the same rolled-out plans."""
         if self.settings.prescreen > 0:
             feasible = stages.prescreen(state, feasible, planning.push, self.services.validate, self.settings)
         ranked = stages.plan_and_rank(state, planning, feasible, self.services.validate, self.settings)
+        if state.request.choice == "unranked":
+            ranked = [ranked[i] for i in np.random.default_rng(state.seed).permutation(len(ranked))]
         started = time.perf_counter()
         try:
             return planning.with_way_back(ranked)
@@ -192,7 +198,7 @@ class PushPipeline:
 
     @staticmethod
     def _first_planned(state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
-        """Without ranking: the plan of the first feasible candidate (in random order) that has one."""
+        """A random feasible choice: the plan of the first feasible candidate (in random order) that has one."""
         started = time.perf_counter()
         try:
             plans, _ = planning.plans(feasible, Counter())

@@ -73,9 +73,9 @@ class PipelineSettings:
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
 
-    def feasible_needed(self, ranked: bool) -> int:
+    def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
-        return max(self.prescreen, self.max_plan_rounds * self.max_plan_attempts) if ranked else self.max_plan_attempts
+        return max(self.prescreen, self.max_plan_rounds * self.max_plan_attempts) if rolled_out else self.max_plan_attempts
 
 
 @dataclass
@@ -146,7 +146,7 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     """
     started = time.perf_counter()
     order = priority(state, candidates.l_dir)
-    needed = settings.feasible_needed(state.request.ranking)
+    needed = settings.feasible_needed(rolls_out(state.request))
     q_pre = np.zeros((len(order), planner.arm.dof))
     feasible: list[int] = []
     reasons: list[str] = []
@@ -165,9 +165,15 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     return Feasible(candidates, np.array(feasible), q_pre)
 
 
+def rolls_out(request: PushRequest) -> bool:
+    """Whether the request's plans are rolled out (ranked or not), i.e. not a random feasible choice."""
+    return request.choice != "random"
+
+
 def priority(state: RequestState, l_dir: np.ndarray) -> np.ndarray:
-    """The order in which to consider the K candidates: best-aligned palms when ranking, random when not."""
-    if state.request.ranking:
+    """The order in which to consider the K candidates: best-aligned palms when plans are rolled out,
+    random for a random feasible choice."""
+    if rolls_out(state.request):
         return np.argsort(l_dir, kind="stable")
     return np.random.default_rng(state.seed).permutation(len(l_dir))
 
@@ -255,10 +261,10 @@ class ArmPlanning:
 
     def plans(self, feasible: Feasible, failures: Counter,
               on_plan: Callable[[CandidatePlan], None] | None = None) -> tuple[list[CandidatePlan], int]:
-        """Plans for up to `max_plans` candidates taken in `feasible.order` (one plan when not ranking),
+        """Plans for up to `max_plans` candidates taken in `feasible.order` (one plan for a random choice),
         and how many candidates of the order were tried; `on_plan(plan)` is called as each plan is made.
         Failures are counted in `failures` (PushError "infeasible" with them when no plan is found)."""
-        wanted = self.settings.max_plans if self.state.request.ranking else 1
+        wanted = self.settings.max_plans if rolls_out(self.state.request) else 1
         plans: list[CandidatePlan] = []
         used = 0
         for index in feasible.order[: self.settings.max_plan_attempts]:
@@ -282,7 +288,7 @@ class ArmPlanning:
         candidates = feasible.candidates
         return self.planner.plan_push(candidates.T_world_hand[index], candidates.q_hands[index], self.push.direction,
                                       self.push.distance_m, q_start=self.q_arm_start, q_hand_start=self.q_hand_start,
-                                      q_pre_contact=feasible.q_pre[index], return_home=not self.state.request.ranking)
+                                      q_pre_contact=feasible.q_pre[index], return_home=not rolls_out(self.state.request))
 
     def with_way_back(self, ranked: list[RankedPlan]) -> RankedPlan:
         """The best-ranked plan completed with its way back to the start (the next best if that fails)."""

@@ -46,10 +46,8 @@ from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.codec import CodecError, decode, encode
-from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message, SimWorld
-from shared.object_refs import load_object_ref
-from shared.objects import ObjectLoadError, write_object_urdf
-from shared.push_outcome import pose_matrix
+from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message
+from shared.objects import ObjectLoadError
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
@@ -117,7 +115,7 @@ class Bridge:
         lease.require()
         if command.world is not None:
             try:
-                reset_world(executor.backend, command.world)
+                executor.backend.reset_world(command.world)
             except ObjectLoadError as exc:
                 raise SafetyRefusal("world", str(exc)) from None
             lease.require()  # lost during the reset: nothing has moved yet
@@ -191,15 +189,6 @@ class Bridge:
             query.reply(COMMAND_KEY, payload, encoding=encoding)
         finally:
             query.drop()  # finalise: an unanswered query keeps its caller waiting
-
-
-def reset_world(backend: SimBackend, world: SimWorld) -> None:
-    """A fresh simulation: robot at home with the hand open, the object at its pose, the obstacles."""
-    obj = load_object_ref(world.object)
-    backend.disconnect()
-    backend.connect()
-    backend.add_object(write_object_urdf(obj), pose_matrix(world.object_pose))
-    backend.add_obstacles([(o.x, o.y, o.radius) for o in world.obstacles])
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,

@@ -4,9 +4,10 @@ It is the default robot-bridge backend and follows the same contract as the hard
 (`backend.Backend`: connect / execute / state / stop / recover / disconnect), one device for the arm
 and hand together — they share one physics world, stepped by one thread.
 
-- Control: every joint motor tracks the trajectory in PyBullet's POSITION_CONTROL, with the segment's
-  finite-difference velocity as feed-forward and the URDF effort as its torque cap; the trajectory
-  is interpolated linearly at every physics step.
+- Control: `shared.sim.plan_runner.ArmController`, the control law the planner's rollouts predict
+  with (POSITION_CONTROL tracking the linearly interpolated trajectory, velocity feed-forward, URDF
+  efforts as torque caps); its gain, latency and settling come from the backend's `PhysicsParams`,
+  which an evaluation sets to a drawn execution world (`shared.sim.world`).
 - Time: physics follows the trajectory's own times (a push at the planned speed); wall-clock pacing
   is `realtime_factor` times faster (a large factor runs as fast as the CPU allows). A hardware
   backend, by contrast, executes the time-scaled trajectory.
@@ -28,7 +29,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
-import pybullet as pb
 
 from services.robot_bridge.backend import (
     Backend,
@@ -42,14 +42,15 @@ from services.robot_bridge.backend import (
 from shared.robot_limits import DEFAULT_WORKSPACE, LimitViolation, RobotLimits, WorkspaceBox
 from services.robot_bridge.safety import SafetyRefusal
 from shared.frames import matrix_to_quat_xyzw
-from shared.messages import ExecutionState, ObjectPose, Plan
+from shared.messages import ExecutionState, ObjectPose, Plan, SimWorld
+from shared.object_refs import load_object_ref
+from shared.objects import write_object_urdf
+from shared.push_outcome import pose_matrix
 from shared.sim.params import REFERENCE_PARAMS, PhysicsParams
+from shared.sim.plan_runner import ArmController, prepare_robot
 from shared.sim.robot_scene import RobotScene
+from shared.sim.world import ExecutionWorld
 
-SETTLE_S = 0.3  # the final waypoint is held this long before execute() returns
-# PyBullet motor position gain. With velocity feed-forward, measured on a planned box push: tracking
-# error median 3 mrad, max 9 mrad while moving (pushing included); 0.6 mrad after settling.
-POSITION_GAIN = 0.3
 START_TOLERANCE_RAD = 0.05  # a plan must start within this of the current joint positions
 
 StatePublisher = Callable[[ExecutionState], None]
@@ -77,6 +78,7 @@ class SimBackend(Backend):
         super().__init__(self.limits.joint_names)
         self.arm_name, self.hand_name = arm, hand
         self.T_world_base = T_world_base
+        self.nominal_params = params  # the physics of a world reset without an execution world
         self.params = params
         self.state_rate_hz = state_rate_hz
         self.publish = publish
@@ -98,11 +100,7 @@ class SimBackend(Backend):
             if self.scene is not None:
                 return
             self.scene = RobotScene(self.arm_name, self.hand_name, T_world_base=self.T_world_base, params=self.params)
-            # The Allegro URDF's joint damping (3-10) fights the motors and explodes (DESIGN.md §6).
-            for link in self.scene.hand_links:
-                pb.changeDynamics(self.scene.robot_id, link, jointDamping=self.params.hand_joint_damping,
-                                  physicsClientId=self.scene.client)
-            self._joints = self.scene.arm_joints + self.scene.hand_joints
+            prepare_robot(self.scene, self.params.hand_joint_damping)
             self.reset()
 
     def disconnect(self) -> None:
@@ -125,9 +123,30 @@ class SimBackend(Backend):
         q_arm = scene.arm.home.double().numpy() if q_arm is None else np.asarray(q_arm, dtype=np.float64)
         q_hand = (scene.hand.open_joint_positions.double().numpy() if q_hand is None
                   else np.asarray(q_hand, dtype=np.float64))
+        q = np.concatenate([q_arm, q_hand])
         with self._lock:
             scene.set_configuration(q_arm, q_hand)
-            self._command(np.concatenate([q_arm, q_hand]), np.zeros(len(self._joints)))
+            ArmController(scene, self.params, np.zeros(1), q[None]).command(q, np.zeros(len(q)))
+
+    def reset_world(self, world: SimWorld, execution: ExecutionWorld | None = None) -> None:
+        """A fresh simulation: robot at home with the hand open, the object at its pose, the obstacles.
+
+        `execution` (an evaluation's drawn world, `shared.sim.world`) sets the physics and the true
+        object (mass, centre of mass), and puts the object at its true pose: `world.object_pose` is
+        the pose the planner was told. Without it, the backend's own physics and the told pose.
+        """
+        obj = load_object_ref(world.object)
+        T_world_O = pose_matrix(world.object_pose)
+        physics, urdf = self.nominal_params, write_object_urdf(obj)
+        if execution is not None:
+            physics, T_world_O = execution.physics, execution.pose_error.true_pose(T_world_O)
+            urdf = write_object_urdf(obj, execution.mass_scale, execution.com_offset_m)
+        with self._lock:
+            self.disconnect()
+            self.params = physics
+            self.connect()
+        self.add_object(urdf, T_world_O)
+        self.add_obstacles([(o.x, o.y, o.radius) for o in world.obstacles])
 
     def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> None:
         """Place the object to push (URDF from `shared.objects.write_object_urdf`) with frame O at T_world_O."""
@@ -179,48 +198,28 @@ class SimBackend(Backend):
         if self._stop_requested.is_set():
             raise DeviceRefused(f"{self.name}: stopped; call recover() before executing again")
         own = self._own(trajectory)
-        velocities = own.velocities() if len(own.times_s) > 1 else np.zeros((0, len(self.joint_names)))
-        dt = self.params.time_step_s
-        publish_every = max(1, round(1.0 / (self.state_rate_hz * dt)))
-        steps = int(np.ceil((own.duration_s - own.times_s[0] + SETTLE_S) / dt))
+        controller = ArmController(self.scene, self.params, own.times_s, own.positions)
+        publish_every = max(1, round(1.0 / (self.state_rate_hz * self.params.time_step_s)))
         wall_start = time.monotonic()
         self.collisions = {}
-        for step in range(1, steps + 1):
+        for step in range(1, controller.step_count + 1):
+            elapsed = step * self.params.time_step_s
             if self._stop_requested.is_set() or (stop is not None and stop.is_set()):
-                self._hold()
-                raise MotionStopped(f"{self.name}: stopped {step * dt:.2f} s into a {own.duration_s:.2f} s trajectory")
+                with self._lock:
+                    controller.hold()
+                raise MotionStopped(f"{self.name}: stopped {elapsed:.2f} s into a {own.duration_s:.2f} s trajectory")
             with self._lock:
-                self._command(*_interpolate(own, velocities, own.times_s[0] + step * dt))
-                self.scene.sim.step()
+                controller.step(step)
                 for contact in self.scene.contacts(allow_hand_object=True):
-                    self.collisions.setdefault((contact.robot_link, contact.other), step * dt)
+                    self.collisions.setdefault((contact.robot_link, contact.other), elapsed)
             if self.publish is not None and step % publish_every == 0:
                 self.publish(self.execution_state("executing", command_id))
-            ahead = step * dt / pace - (time.monotonic() - wall_start)
+            ahead = elapsed / pace - (time.monotonic() - wall_start)
             if ahead > 0.0:
                 time.sleep(ahead)
         final = self.state().positions
-        return ExecutionReport(self.name, True, final, own.final, time.monotonic() - wall_start, samples=steps)
-
-    def _hold(self) -> None:
-        with self._lock:
-            positions, _ = self.scene.joint_state()
-            self._command(positions, np.zeros(len(positions)))
-
-    def _command(self, q: np.ndarray, qd: np.ndarray) -> None:
-        pb.setJointMotorControlArray(
-            self.scene.robot_id, self._joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
-            targetVelocities=qd.tolist(), forces=self.limits.effort.tolist(),
-            positionGains=[POSITION_GAIN] * len(self._joints), physicsClientId=self.scene.client)
-
-
-def _interpolate(trajectory: JointTrajectory, velocities: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Position at time t (held at the ends) and the feed-forward velocity of its segment."""
-    times = trajectory.times_s
-    if t >= times[-1] or len(times) < 2:
-        return trajectory.final, np.zeros(len(trajectory.joint_names))
-    k = max(0, int(np.searchsorted(times, t, side="right")) - 1)
-    return trajectory.sample(t), velocities[k]
+        return ExecutionReport(self.name, True, final, own.final, time.monotonic() - wall_start,
+                               samples=controller.step_count)
 
 
 class SimExecutor:

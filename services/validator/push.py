@@ -6,9 +6,10 @@ pose's angles, the base driven kinematically through a fixed constraint whose ta
 `push_distance_m` along +x at `PhysicsParams.push_speed_mps`, then holds for `settle_s` while the
 object comes to rest.
 
-Success (paper, "Hand Pose Validation in Simulation"): the object's centre (centre of mass) ends
-within `SUCCESS_POSITION_TOLERANCE_M` of start + push_distance_m * x and its orientation changed by at
-most `SUCCESS_MAX_ROTATION_DEG`. The other metrics are reported, not judged.
+Success (paper, "Hand Pose Validation in Simulation"): judged by `shared.push_outcome.judge_push`, the
+one judge of every push (validation, rollouts, executions): the object's centre (centre of mass)
+ends within 3 cm (table plane) of start + push_distance_m * x, turned at most 45° and did not topple.
+The other metrics are reported, not judged.
 
 One `PushSimulator` per (object, hand, physics): the scene is built once and its settled state
 saved; every episode restores that snapshot (bit-identical outcomes whatever ran before).
@@ -24,10 +25,9 @@ import numpy as np
 from shared.frames import FrameError, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.hands import HandModel
 from shared.objects import ObjectModel, write_object_urdf
-from shared.sim import PhysicsParams, SimScene
+from shared.push_outcome import judge_push, object_pose
+from shared.sim import PhysicsParams, SimScene, pos_quat_to_transform
 
-SUCCESS_POSITION_TOLERANCE_M = 0.03
-SUCCESS_MAX_ROTATION_DEG = 45.0
 DEFAULT_PUSH_DISTANCE_M = 0.20
 # Contact "kept" if the hand touched the object in >= 80% of the push steps: successful pushes of 384
 # generator candidates touched in >= 94% (1st percentile); 80% leaves room for a pre-contact gap
@@ -74,17 +74,6 @@ class PushOutcome:
     contact_kept: bool
     hand_table_contact: bool
     initial_penetration_m: float
-
-
-def judge(position_error_m: float, rotation_deg: float) -> bool:
-    """The paper's success criterion."""
-    return position_error_m <= SUCCESS_POSITION_TOLERANCE_M and rotation_deg <= SUCCESS_MAX_ROTATION_DEG
-
-
-def rotation_angle_deg(r_start: np.ndarray, r_end: np.ndarray) -> float:
-    """Geodesic angle between two rotations (degrees)."""
-    cos = (np.trace(r_end @ r_start.T) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
 class PushSimulator:
@@ -149,13 +138,12 @@ class PushSimulator:
                 contact_steps += 1
             table_contact = table_contact or scene.in_contact(hand, table)
             min_up = min(min_up, _up_z(body.com_pose()[1], up_in_object))
-        end_pos, end_quat = body.com_pose()
-        goal = np.asarray(start_pos) + np.array([distance, 0.0, 0.0])
-        error = float(np.linalg.norm(np.asarray(end_pos) - goal))
-        rotation = rotation_angle_deg(r_start, quat_xyzw_to_matrix(end_quat))
+        T_start = pos_quat_to_transform(start_pos, start_quat)
+        result = judge_push(T_start, T_start[:2, 3] + np.array([distance, 0.0]),
+                            object_pose(pos_quat_to_transform(*body.com_pose())))
         fraction = contact_steps / push_steps
         return PushOutcome(
-            success=judge(error, rotation), position_error_m=error, rotation_deg=rotation,
+            success=result.success, position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
             max_tilt_deg=math.degrees(math.acos(min(1.0, max(-1.0, min_up)))), contact_fraction=fraction,
             contact_kept=fraction >= CONTACT_KEPT_MIN_FRACTION, hand_table_contact=table_contact,
             initial_penetration_m=penetration)

@@ -36,7 +36,7 @@ from shared.objects import ObjectLoadError, write_object_urdf
 from shared.object_refs import load_object_ref
 from shared.push_outcome import judge_push, object_pose, pose_matrix
 from shared.sim import PhysicsParams
-from shared.sim.plan_runner import PlanRunError, prepare_robot, robot_efforts, run_plan
+from shared.sim.plan_runner import PlanRunError, prepare_robot, run_plan
 from shared.sim.robot_scene import RobotScene
 
 CONTACT_KEPT_MIN_FRACTION = 0.8  # as the floating-hand validator
@@ -63,7 +63,7 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
         scene.add_obstacles([(o.x, o.y, o.radius) for o in job.obstacles])
         penetration = _initial_penetration(scene, job)
         try:
-            run = run_plan(scene, job.plan, robot_efforts(scene), params.time_step_s, _window(job))
+            run = run_plan(scene, job.plan, params, _window(job))
         except PlanRunError as exc:
             raise ServiceError("bad_request", f"validator: {exc}") from exc
         final = object_pose(scene.object.pose())

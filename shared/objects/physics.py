@@ -67,9 +67,20 @@ def _quiet_stdout():
         os.close(saved)
 
 
-def write_object_urdf(obj: ObjectModel) -> Path:
-    """Write (once) and return the URDF of `obj`: visual mesh, convex collision pieces, mass, inertia."""
-    name = f"object-m{obj.mass:.6f}.urdf"  # mass depends on the density chosen at load time
+def write_object_urdf(obj: ObjectModel, mass_scale: float = 1.0,
+                      com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Path:
+    """Write (once) and return the URDF of `obj`: visual mesh, convex collision pieces, mass, inertia.
+
+    `mass_scale` and `com_offset_m` (in the object's frame O) describe an object whose true mass and
+    centre of mass differ from the model's (an execution world, `shared.sim.world`); the link frame
+    stays O, so poses mean the same.
+    """
+    if mass_scale <= 0 or not np.isfinite(mass_scale) or not np.all(np.isfinite(com_offset_m)):
+        raise ValueError(f"mass_scale must be positive and finite and com_offset_m finite, got {mass_scale}, {com_offset_m}")
+    mass = obj.mass * mass_scale
+    name = f"object-m{mass:.6f}.urdf"  # mass depends on the density chosen at load time
+    if any(com_offset_m):
+        name = f"object-m{mass:.6f}-c{'_'.join(f'{v * 1000:.2f}' for v in com_offset_m)}.urdf"
     path = obj.cache_dir / name
     if path.is_file():
         return path
@@ -83,7 +94,7 @@ def write_object_urdf(obj: ObjectModel) -> Path:
             scene.add_geometry(part, geom_name=f"hull{index}")
         # one OBJ object per piece: PyBullet builds a compound of their convex hulls
         atomic_write_text(collision, trimesh.exchange.obj.export_obj(scene, include_normals=False, include_texture=False))
-    atomic_write_text(path, _urdf_text(obj))
+    atomic_write_text(path, _urdf_text(obj, mass_scale, com_offset_m))
     return path
 
 
@@ -104,14 +115,15 @@ def load_in_pybullet(obj: ObjectModel, T_world_O: np.ndarray, physics_client_id:
     )
 
 
-def _urdf_text(obj: ObjectModel) -> str:
-    i = obj.inertia
+def _urdf_text(obj: ObjectModel, mass_scale: float, com_offset_m: tuple[float, float, float]) -> str:
+    i = obj.inertia * mass_scale
+    x, y, z = com_offset_m
     return f"""<?xml version="1.0"?>
 <robot name={quoteattr(obj.id)}>
   <link name="object">
     <inertial>
-      <origin xyz="0 0 0" rpy="0 0 0"/>
-      <mass value="{obj.mass:.9g}"/>
+      <origin xyz="{x:.9g} {y:.9g} {z:.9g}" rpy="0 0 0"/>
+      <mass value="{obj.mass * mass_scale:.9g}"/>
       <inertia ixx="{i[0, 0]:.9g}" ixy="{i[0, 1]:.9g}" ixz="{i[0, 2]:.9g}" iyy="{i[1, 1]:.9g}" iyz="{i[1, 2]:.9g}" izz="{i[2, 2]:.9g}"/>
     </inertial>
     <visual>

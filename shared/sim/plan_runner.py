@@ -1,9 +1,12 @@
-"""Play a planned joint trajectory on a `RobotScene` with physics, recording what the robot touches.
+"""The arm's control law and playing a planned joint trajectory with physics: the one physics core.
 
-Used by the validator's arm rollouts (the planner's L_goal / L_coll) — the robot bridge's simulated
-backend follows the same control law (POSITION_CONTROL tracking the linearly interpolated
-trajectory, finite-difference velocity as feed-forward, URDF efforts as torque caps), with pacing,
-stop and state publishing added on top.
+`ArmController` is the joint controller of every simulated arm: the validator's arm rollouts (the
+planner's L_goal / L_coll, `run_plan` here) and the robot bridge's simulated robot
+(`services/robot_bridge/sim_backend.py`, which adds pacing, stop and state publishing) follow a plan
+with it, so a prediction and an execution differ only in the world they run in (`PhysicsParams`:
+friction, mass, the controller's gain and latency; `shared.sim.world` draws an execution's).
+Control: POSITION_CONTROL tracking the linearly interpolated trajectory, the segment's
+finite-difference velocity as feed-forward, URDF efforts as torque caps.
 """
 from __future__ import annotations
 
@@ -13,10 +16,77 @@ import numpy as np
 import pybullet as pb
 
 from shared.messages import Plan
+from shared.sim.params import PhysicsParams
 from shared.sim.robot_scene import RobotScene
 
-POSITION_GAIN = 0.3  # the simulated backend's measured gain (services/robot_bridge/sim_backend.py)
-SETTLE_S = 0.3  # the final waypoint is held this long, so the object comes to rest
+
+class ArmController:
+    """Drives the scene's arm + hand joints along a trajectory (times [T], positions [T, joints]).
+
+    `window_s` = (start, stop) plays only that part: commands before `start` hold `start`'s
+    configuration, and from `stop` on the configuration at `stop` is held at rest.
+    """
+
+    def __init__(self, scene: RobotScene, params: PhysicsParams, times: np.ndarray, positions: np.ndarray,
+                 window_s: tuple[float, float] | None = None):
+        self.scene, self.params = scene, params
+        self.times = np.asarray(times, dtype=np.float64)
+        self.positions = np.asarray(positions, dtype=np.float64)
+        self.velocities = (np.diff(self.positions, axis=0) / np.diff(self.times)[:, None] if len(self.times) > 1
+                           else np.zeros((0, self.positions.shape[1])))
+        first, last = float(self.times[0]), float(self.times[-1])
+        self.start_s, self.stop_s = (first, last) if window_s is None else (max(first, window_s[0]), min(last, window_s[1]))
+        self.joints = scene.arm_joints + scene.hand_joints
+        self.efforts = robot_efforts(scene)
+
+    @property
+    def step_count(self) -> int:
+        """Physics steps to play the window, the command latency and the settling after it."""
+        p = self.params
+        return int(np.ceil((self.stop_s - self.start_s + p.arm_command_latency_s + p.arm_settle_s) / p.time_step_s))
+
+    def time_of(self, step: int) -> float:
+        """Trajectory time after `step` physics steps."""
+        return self.start_s + step * self.params.time_step_s
+
+    def target(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The command in force at trajectory time t: the position and feed-forward velocity of
+        `arm_command_latency_s` earlier (the window's start before it; at rest from its stop)."""
+        t = t - self.params.arm_command_latency_s
+        at_rest = np.zeros(self.positions.shape[1])
+        if t < self.start_s:
+            return self.sample(self.start_s), at_rest
+        if t >= self.stop_s or len(self.times) < 2:
+            return self.sample(self.stop_s), at_rest
+        k = max(0, int(np.searchsorted(self.times, t, side="right")) - 1)
+        return self.positions[k] + (t - self.times[k]) * self.velocities[k], self.velocities[k]
+
+    def sample(self, t: float) -> np.ndarray:
+        """The linearly interpolated configuration at trajectory time t (held at the ends)."""
+        times = self.times
+        if t >= times[-1] or len(times) < 2:
+            return self.positions[-1]
+        k = max(0, int(np.searchsorted(times, t, side="right")) - 1)
+        return self.positions[k] + (max(t, times[0]) - times[k]) * self.velocities[k]
+
+    def step(self, step: int) -> float:
+        """Command the joints for the time after `step` physics steps, advance the physics one step;
+        that time."""
+        t = self.time_of(step)
+        self.command(*self.target(t))
+        self.scene.sim.step()
+        return t
+
+    def command(self, q: np.ndarray, qd: np.ndarray) -> None:
+        pb.setJointMotorControlArray(self.scene.robot_id, self.joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
+                                     targetVelocities=qd.tolist(), forces=self.efforts.tolist(),
+                                     positionGains=[self.params.arm_position_gain] * len(self.joints),
+                                     physicsClientId=self.scene.client)
+
+    def hold(self) -> None:
+        """Hold the joints where they are."""
+        positions, _ = self.scene.joint_state()
+        self.command(positions, np.zeros(len(positions)))
 
 
 class PlanRunError(ValueError):
@@ -47,47 +117,34 @@ def prepare_robot(scene: RobotScene, hand_joint_damping: float) -> None:
         pb.changeDynamics(scene.robot_id, link, jointDamping=hand_joint_damping, physicsClientId=scene.client)
 
 
-def run_plan(scene: RobotScene, plan: Plan, efforts: np.ndarray, time_step_s: float,
+def run_plan(scene: RobotScene, plan: Plan, params: PhysicsParams,
              window_s: tuple[float, float] | None = None) -> PlanRun:
     """Follow `plan` with physics (teleported to its first waypoint); contacts recorded.
 
     `window_s` = (start, stop) plays only that part of the plan (plan times; the robot teleported to
-    where it is at `start`, at rest), then holds the configuration at `stop` for SETTLE_S.
+    where it is at `start`, at rest), then holds the configuration at `stop` while it settles.
     Hand-object contact is the push, not a collision; every other robot contact (table, obstacles,
     arm-object) is recorded with the first time it happened.
     """
     names = list(scene.joint_names)
     if list(plan.joint_names) != names:
         raise PlanRunError(f"plan joints {plan.joint_names[:3]}... do not match the scene's robot {names[:3]}...")
-    positions, times = plan.positions.to_numpy().astype(np.float64), plan.times_s.to_numpy().astype(np.float64)
-    joints = scene.arm_joints + scene.hand_joints
-    velocities = np.diff(positions, axis=0) / np.diff(times)[:, None] if len(times) > 1 else np.zeros((1, len(names)))
-    start_s, stop_s = (times[0], times[-1]) if window_s is None else (max(times[0], window_s[0]), min(times[-1], window_s[1]))
+    times = plan.times_s.to_numpy().astype(np.float64)
+    controller = ArmController(scene, params, times, plan.positions.to_numpy(), window_s)
     n_arm = len(scene.arm_joints)
-    q_start = _sample(times, positions, velocities, start_s)
+    q_start = controller.sample(controller.start_s)
     scene.set_configuration(q_start[:n_arm], q_start[n_arm:])
-    run = PlanRun(duration_s=float(stop_s - start_s))
+    run = PlanRun(duration_s=controller.stop_s - controller.start_s)
     push = next((s for s in plan.segments if s.label == "push"), None)
     push_window = (times[push.start], times[push.stop - 1]) if push is not None else (np.inf, -np.inf)
     hand_links = set(scene.hand_links)
     up_in_object = scene.object.pose()[:3, :3].T[:, 2] if scene.object is not None else None
     push_steps = contact_steps = 0
     min_up = 1.0
-    steps = int(np.ceil((run.duration_s + SETTLE_S) / time_step_s))
-    for step in range(1, steps + 1):
-        t = start_s + step * time_step_s
-        if t >= stop_s:
-            q, qd = _sample(times, positions, velocities, stop_s), np.zeros(len(names))
-        else:
-            k = max(0, int(np.searchsorted(times, t, side="right")) - 1)
-            q = positions[k] + (t - times[k]) * velocities[k]
-            qd = velocities[k]
-        pb.setJointMotorControlArray(scene.robot_id, joints, pb.POSITION_CONTROL, targetPositions=q.tolist(),
-                                     targetVelocities=qd.tolist(), forces=efforts.tolist(),
-                                     positionGains=[POSITION_GAIN] * len(joints), physicsClientId=scene.client)
-        scene.sim.step()
+    for step in range(1, controller.step_count + 1):
+        t = controller.step(step)
         for contact in scene.contacts(allow_hand_object=True):
-            run.collisions.setdefault((contact.robot_link, contact.other), step * time_step_s)
+            run.collisions.setdefault((contact.robot_link, contact.other), t - controller.start_s)
         if scene.object is not None:
             min_up = min(min_up, float(scene.object.pose()[:3, :3][2] @ up_in_object))
             run.object_obstacle_contact = run.object_obstacle_contact or scene.object_touches_obstacle()
@@ -99,11 +156,3 @@ def run_plan(scene: RobotScene, plan: Plan, efforts: np.ndarray, time_step_s: fl
     run.push_contact_fraction = contact_steps / push_steps if push_steps else 0.0
     run.max_tilt_deg = float(np.degrees(np.arccos(np.clip(min_up, -1.0, 1.0))))
     return run
-
-
-def _sample(times: np.ndarray, positions: np.ndarray, velocities: np.ndarray, t: float) -> np.ndarray:
-    """The linearly interpolated configuration at plan time t (held at the ends)."""
-    if t >= times[-1]:
-        return positions[-1]
-    k = max(0, int(np.searchsorted(times, t, side="right")) - 1)
-    return positions[k] + (max(t, times[0]) - times[k]) * velocities[k]
