@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+
+from pose_store import write_pose_store
 import pytest
 import torch
 import trimesh
@@ -31,9 +33,8 @@ from services.sampler.diffusion import TRAIN_TIMESTEPS
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
-from shared.frames import object_yaw_in_d
 from services.sampler.train import RunOptions, TrainConfig, TrainingError, hand_joint_limits, train
-from shared.frames import JOINTS, ROTATION_6D, poses_d_to_world, r6_to_matrix
+from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
 from shared.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
 from shared.objects import list_object_ids, load_object
 
@@ -81,7 +82,7 @@ def synthetic_poses(object_id: str, yaw: float, n: int, rng: np.random.Generator
 
 
 def write_store(directory: Path, objects: list[str], seed: int = 0, pose_column_type=None) -> Path:
-    """Two Parquet shards + manifest in the data engine's layout (with extra columns the reader ignores)."""
+    """A pose store in the data engine's layout (with extra columns the reader ignores)."""
     rng = np.random.default_rng(seed)
     rows = {"object_id": [], "hand": [], "pose": [], "yaw_rad": [], "pose_index": [], "success": []}
     for object_id in objects:
@@ -99,12 +100,7 @@ def write_store(directory: Path, objects: list[str], seed: int = 0, pose_column_
         "yaw_rad": pa.array(rows["yaw_rad"], pa.float64()), "pose_index": pa.array(rows["pose_index"], pa.int32()),
         "success": pa.array(rows["success"]),
     })
-    directory.mkdir(parents=True, exist_ok=True)
-    half = table.num_rows // 2
-    pq.write_table(table.slice(0, half), directory / "shard-00000.parquet")
-    pq.write_table(table.slice(half), directory / "shard-00001.parquet")
-    (directory / "manifest.json").write_text(json.dumps({"shards": ["shard-00000.parquet", "shard-00001.parquet"]}))
-    return directory
+    return write_pose_store(directory, table)
 
 
 @pytest.fixture(scope="module")
@@ -141,17 +137,25 @@ def test_reader_groups_poses_by_placement_and_splits_by_object(store):
 def test_reader_rejects_bad_stores(tmp_path):
     with pytest.raises(DatasetError, match="no such dataset"):
         load_pose_dataset(tmp_path / "missing", HAND)
-    bad = tmp_path / "short"
-    bad.mkdir()
-    pq.write_table(pa.table({"object_id": ["proc-box-004"], "hand": [HAND], "pose": [[0.0] * 24]}), bad / "a.parquet")
+    bare = tmp_path / "bare"  # Parquet files without the store's manifest are not a store
+    bare.mkdir()
+    pq.write_table(pa.table({"object_id": ["proc-box-004"], "hand": [HAND], "pose": [[0.0] * 25]}), bare / "a.parquet")
+    with pytest.raises(DatasetError, match="not a pose store"):
+        load_pose_dataset(bare, HAND)
+    bad = write_pose_store(tmp_path / "short", pa.table({"object_id": ["proc-box-004"], "hand": [HAND],
+                                                         "pose": [[0.0] * 24]}))
     with pytest.raises(DatasetError, match="25 floats"):
         load_pose_dataset(bad, HAND)
+    tampered = write_store(tmp_path / "tampered", synthetic_objects()[:1])
+    shard = next((tampered / "shards").glob("*.parquet"))
+    shard.write_bytes(shard.read_bytes()[:-8] + b"\0" * 8)  # modified after the build
+    with pytest.raises(DatasetError, match="differs from the manifest"):
+        load_pose_dataset(tampered, HAND)
     with pytest.raises(DatasetError, match="no poses for hand 'leap'"):
         load_pose_dataset(write_store(tmp_path / "ok", synthetic_objects()[:1]), "leap")
     test_object = next(i for i in list_object_ids("test") if i.startswith("proc-box-"))
-    leaked = tmp_path / "leaked"
-    leaked.mkdir()
-    pq.write_table(pa.table({"object_id": [test_object], "hand": [HAND], "pose": [[0.0] * 25]}), leaked / "a.parquet")
+    leaked = write_pose_store(tmp_path / "leaked", pa.table({"object_id": [test_object], "hand": [HAND],
+                                                             "pose": [[0.0] * 25]}))
     with pytest.raises(DatasetError, match="test objects are never used for training"):
         load_pose_dataset(leaked, HAND)
 
@@ -294,8 +298,8 @@ def test_nearest_neighbor_returns_the_closest_training_frame_and_round_trips(sto
 def test_sample_request_over_the_bus(zenoh_router, trained, tmp_path, monkeypatch):
     # A hand whose checkpoint is missing (the shipped leap.pt is pointed away) gets a clear error reply.
     monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_LEAP", str(tmp_path / "no-such-leap.pt"))
-    from shared.bus import BusConfig, Dispatcher, RemoteError, Worker, open_session
     from services.sampler.service import SERVICE, handlers
+    from shared.bus import BusConfig, Dispatcher, RemoteError, Worker, open_session
 
     session = open_session(BusConfig(connect=[zenoh_router], connect_timeout_ms=5000))
     stop = threading.Event()

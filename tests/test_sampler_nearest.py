@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
+from pose_store import write_pose_store
 import pytest
 
 from services.sampler.nearest_neighbor import (
@@ -51,9 +51,7 @@ def write_store(directory: Path) -> Path:
         "pose": pa.array([r[2].tolist() for r in rows], pa.list_(pa.float32())),
         "yaw_rad": pa.array([r[1] for r in rows], pa.float64()),
     })
-    directory.mkdir(parents=True, exist_ok=True)
-    pq.write_table(table, directory / "shard-00000.parquet")
-    return directory
+    return write_pose_store(directory, table)
 
 
 def placed(object_id: str, yaw_in_d: float, xy=(0.5, 0.1), push_deg: float = 30.0) -> DirectionFrame:

@@ -1,9 +1,8 @@
 """Reading the data engine's pose store for training, and the BPS of each training frame.
 
-Store layout (written by the data engine): a directory of Parquet shards plus a
-`manifest.json`. When the manifest has a `"shards"` list (paths relative to the directory, or
-objects with a `"path"`), exactly those shards are read; otherwise every `*.parquet` below the
-directory, in name order. Columns read here:
+The store (`shared.dataset_store`: Parquet shards listed in a `manifest.json` with their checksums)
+is opened and verified through `DatasetStore`, the one reader of its layout: a shard that is
+missing, modified or not in the manifest is never read. Columns used here:
 
     object_id   string            library id (or `mesh-<hash>` of a mesh loaded on this machine)
     hand        string            "allegro" | "leap"
@@ -23,7 +22,6 @@ sharing (object, resting pose, yaw) share one "frame" and one BPS, computed once
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,11 +33,11 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from shared.bps import BasisPointSet, BPSError
+from shared.dataset_store import DatasetStore, StoreError
 from shared.frames import POSE_DIM
 from shared.objects import ObjectLoadError, load_object, split_of
 from shared.objects.catalog import library_ids
 
-MANIFEST_NAME = "manifest.json"
 REQUIRED_COLUMNS = ("object_id", "hand", "pose")
 OPTIONAL_COLUMNS = ("pose_index", "yaw_rad")
 DEFAULT_POSE_INDEX = -1  # "the object's default resting pose"
@@ -82,7 +80,7 @@ class PoseDataset:
     def objects(self) -> list[str]:
         return sorted({f.object_id for f in self.frames})
 
-    def subset(self, keep_objects: set[str] | list[str]) -> "PoseDataset":
+    def subset(self, keep_objects: set[str] | list[str]) -> PoseDataset:
         """The poses of `keep_objects` only (frames renumbered)."""
         keep = set(keep_objects)
         kept_frames = [i for i, f in enumerate(self.frames) if f.object_id in keep]
@@ -94,47 +92,24 @@ class PoseDataset:
 
 
 # ----------------------------------------------------------------------------- reading
-def shard_paths(directory: str | Path) -> list[Path]:
-    """The Parquet shards of a store, per its manifest (or all *.parquet files)."""
+def open_store(directory: str | Path) -> DatasetStore:
+    """The pose store in `directory`, its shards checked against the manifest (DatasetError if not)."""
     directory = Path(directory)
     if not directory.is_dir():
         raise DatasetError(f"{directory}: no such dataset directory")
-    manifest_path = directory / MANIFEST_NAME
-    if manifest_path.is_file():
-        listed = _manifest_shards(manifest_path)
-        if listed is not None:
-            missing = [str(p) for p in listed if not (directory / p).is_file()]
-            if missing:
-                raise DatasetError(f"{manifest_path}: lists shards that do not exist: {missing[:5]}")
-            return [directory / p for p in listed]
-    paths = sorted(directory.rglob("*.parquet"))
-    if not paths:
-        raise DatasetError(f"{directory}: no Parquet shards (and no manifest listing any)")
-    return paths
-
-
-def _manifest_shards(path: Path) -> list[str] | None:
     try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: unreadable manifest: {exc}") from exc
-    shards = manifest.get("shards") if isinstance(manifest, dict) else None
-    if shards is None:
-        return None
-    if not isinstance(shards, list):
-        raise DatasetError(f"{path}: \"shards\" must be a list")
-    names = [s.get("path") if isinstance(s, dict) else s for s in shards]
-    if not all(isinstance(n, str) and n for n in names):
-        raise DatasetError(f"{path}: every shard entry must be a path or an object with a \"path\"")
-    return names
+        store = DatasetStore.open(directory)
+        store.verify()
+    except StoreError as exc:
+        raise DatasetError(f"{exc} (build a store with `gd2p dataset build`)") from exc
+    return store
 
 
-def dataset_fingerprint(directory: str | Path) -> str:
+def dataset_fingerprint(store: DatasetStore) -> str:
     """SHA-256 over the shards' relative names and bytes: equal iff the training data is equal."""
-    directory = Path(directory)
     digest = hashlib.sha256()
-    for path in shard_paths(directory):
-        digest.update(str(path.relative_to(directory)).encode() + b"\0")
+    for path in store.shard_paths():
+        digest.update(str(path.relative_to(store.directory)).encode() + b"\0")
         with path.open("rb") as handle:
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
@@ -144,7 +119,11 @@ def dataset_fingerprint(directory: str | Path) -> str:
 def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     """All poses of `hand` in the store, grouped into frames. Refuses test-split library objects."""
     directory = Path(directory)
-    tables = [_read_shard(path) for path in shard_paths(directory)]
+    store = open_store(directory)
+    paths = store.shard_paths()
+    if not paths:
+        raise DatasetError(f"{directory}: the store holds no poses yet")
+    tables = [_read_shard(path) for path in paths]
     table = pa.concat_tables(tables, promote_options="default") if len(tables) > 1 else tables[0]
     rows = pc.fill_null(pc.equal(table.column("hand"), hand), False)
     if not pc.any(rows).as_py():
@@ -157,7 +136,7 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     pose_index = _optional_column(table, "pose_index", DEFAULT_POSE_INDEX, np.int64)
     yaw = np.round(_optional_column(table, "yaw_rad", 0.0, np.float64), _YAW_DECIMALS)
     frames, frame_index = _group_frames(object_ids, pose_index, yaw)
-    return PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(directory))
+    return PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store))
 
 
 def _read_shard(path: Path) -> pa.Table:
@@ -196,7 +175,7 @@ def _optional_column(table: pa.Table, name: str, default, dtype) -> np.ndarray:
 def _group_frames(object_ids: list[str], pose_index: np.ndarray, yaw: np.ndarray) -> tuple[list[Frame], np.ndarray]:
     lookup: dict[Frame, int] = {}
     frame_index = np.empty(len(object_ids), dtype=np.int64)
-    for row, key in enumerate(zip(object_ids, pose_index.tolist(), yaw.tolist())):
+    for row, key in enumerate(zip(object_ids, pose_index.tolist(), yaw.tolist(), strict=True)):
         frame = Frame(str(key[0]), int(key[1]), float(key[2]))
         frame_index[row] = lookup.setdefault(frame, len(lookup))
     return list(lookup), frame_index
