@@ -19,7 +19,10 @@ $(STAMP): pyproject.toml
 demo: install
 	$(BIN)/gd2p demo
 
+# Lint (ruff, whole tree) and type-check (mypy, strict on shared/; cached in .mypy_cache) before the suite.
 test: install
+	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 # Break the system on purpose (workers, router, leases, e-stop) and print what a user would feel (docs/safety.md).

@@ -24,8 +24,8 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.bps import BasisPointSet  # noqa: E402
-from shared.objects import load_object  # noqa: E402
+from shared.bps import BasisPointSet
+from shared.objects import load_object
 
 
 def _timed_ms(function, repeats: int, warmup: int = 3) -> dict:
@@ -121,7 +121,7 @@ def bench_fk(repeats: int = 50) -> dict:
             results[name] = {"skipped": f"{type(exc).__name__}: {exc}"}
             continue
 
-        def forward():
+        def forward(hand=hand, pose=pose):  # this iteration's hand and pose
             with torch.no_grad():
                 hand.forward(pose)
 

@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deploy.launcher import Launcher, free_loopback_endpoint  # noqa: E402
-from shared.bus import BusConfig  # noqa: E402
-from shared.messages import ObjectRef, PushRequest  # noqa: E402
-from shared.push_client import PushFailed, push  # noqa: E402
+from deploy.launcher import Launcher, free_loopback_endpoint
+from shared.bus import BusConfig
+from shared.messages import ObjectRef, PushRequest
+from shared.push_client import PushFailed, push
 
 OBJECTS = ("proc-box-013", "proc-box-000", "proc-cylinder-000")  # test split
 DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 m in front of the robot

@@ -29,18 +29,18 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.generator.config import GenerationConfig  # noqa: E402
-from services.generator.synthesis import generate  # noqa: E402
-from services.planner import ranking  # noqa: E402
-from services.planner.motion import MotionPlanner, PlanningError  # noqa: E402
-from services.validator.rollout import rollout  # noqa: E402
-from services.validator.service import DEFAULT_PARAMS  # noqa: E402
-from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world  # noqa: E402
-from shared.hands import load_hand  # noqa: E402
-from shared.messages import DirectionFrame, ObjectRef, ValidationJob  # noqa: E402
-from shared.objects import load_object, write_object_urdf  # noqa: E402
-from shared.push_outcome import object_pose  # noqa: E402
-from shared.sim.robot_scene import RobotScene  # noqa: E402
+from services.generator.config import GenerationConfig
+from services.generator.synthesis import generate
+from services.planner import ranking
+from services.planner.motion import MotionPlanner, PlanningError
+from services.validator.rollout import rollout
+from services.validator.service import DEFAULT_PARAMS
+from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
+from shared.hands import load_hand
+from shared.messages import DirectionFrame, ObjectRef, ValidationJob
+from shared.objects import load_object, write_object_urdf
+from shared.push_outcome import object_pose
+from shared.sim.robot_scene import RobotScene
 
 OBJECTS = ("proc-box-013", "proc-cylinder-000", "proc-box-000")
 DIRECTIONS_DEG = (90.0, -90.0)

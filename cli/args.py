@@ -31,7 +31,7 @@ import argparse
 import copy
 import math
 from collections.abc import Callable, Mapping
-from functools import lru_cache
+from functools import cache
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pydantic is imported when a check runs: `gd2p --help` stays fast
@@ -118,14 +118,14 @@ class FlagError(ValueError):
     """Input a request model rejects, described by flag ("gd2p CMD: --flag: what is wrong", one line per problem)."""
 
 
-def describe_validation_error(exc: "ValidationError", flags: Mapping[str, str], command: str | None = None) -> str:
+def describe_validation_error(exc: ValidationError, flags: Mapping[str, str], command: str | None = None) -> str:
     """One line per problem of `exc`, naming the flag of each rejected field (see the module docstring)."""
     prefix = f"gd2p {command}: " if command else ""
     lines = [f"{prefix}{_flag_for(error['loc'], flags)}: {_what_is_wrong(error)}" for error in exc.errors(include_url=False)]
     return "\n".join(lines) or f"{prefix}invalid input"
 
 
-def validate_fields(model: "type[BaseModel]", values: Mapping[str, Any], flags: Mapping[str, str],
+def validate_fields(model: type[BaseModel], values: Mapping[str, Any], flags: Mapping[str, str],
                     command: str | None = None) -> dict[str, Any]:
     """Check `values` against the constraints `model` puts on those fields; FlagError naming flags if any fails.
 
@@ -143,8 +143,8 @@ def validate_fields(model: "type[BaseModel]", values: Mapping[str, Any], flags: 
     return {name: getattr(checked, name) for name in values}
 
 
-@lru_cache(maxsize=None)
-def _fields_model(model: "type[BaseModel]", names: tuple[str, ...]) -> "type[BaseModel]":
+@cache
+def _fields_model(model: type[BaseModel], names: tuple[str, ...]) -> type[BaseModel]:
     from pydantic import create_model
 
     unknown = [n for n in names if n not in model.model_fields]

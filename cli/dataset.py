@@ -176,8 +176,8 @@ def build_command_line(args: argparse.Namespace) -> list[str]:
 @contextlib.contextmanager
 def _bus_session(args: argparse.Namespace) -> Iterator:
     """A session on the running system (`--connect`), or on a local system started for this build."""
-    from shared.bus import BusConfig, BusError, open_session
     from services.validator.data_engine import BuildError
+    from shared.bus import BusConfig, BusError, open_session
 
     if args.connect:
         try:
@@ -187,7 +187,7 @@ def _bus_session(args: argparse.Namespace) -> Iterator:
         with session:
             yield session
         return
-    from deploy.launcher import LaunchError, Launcher, free_loopback_endpoint
+    from deploy.launcher import Launcher, LaunchError, free_loopback_endpoint
 
     scratch = Path(tempfile.mkdtemp(prefix="gd2p-dataset-build-"))
     launcher = Launcher(validators=args.workers, listen=free_loopback_endpoint(), log_dir=scratch / "logs",

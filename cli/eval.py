@@ -50,6 +50,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "later be extended to more trials in the same --out")
     parser.add_argument("--world", choices=("real", "exact"), default="real",
                         help="methods / leap / multistep: the execution world (default real; see above)")
+    parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=0,
+                        help="methods / leap: 0 (default) tells the system the object's mesh and a pose off by the "
+                             "world's pose error; 1-3: the system sees the object only through that many simulated "
+                             "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap: comma-separated methods to run (default: the experiment's all); "
                              "known: gd2p, gd2p-unranked, gd2p-random, nearest, nearest-ranked, fixed, grasp, grasp-ranked")
@@ -92,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
             options["world"] = args.world
         if args.methods is not None and name in TRIAL_EXPERIMENTS:
             options["methods"] = args.methods
+        if args.cameras and name in TRIAL_EXPERIMENTS:
+            options["cameras"] = args.cameras
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except ResultStoreError as exc:

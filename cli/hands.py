@@ -31,7 +31,7 @@ def hand_info(name: str) -> dict:
         "links": list(hand.link_names),
         "joint_names": list(hand.joint_names),
         "joint_limits": [[round(float(lo), 6), round(float(hi), 6)]
-                         for lo, hi in zip(hand.joint_lower, hand.joint_upper)],
+                         for lo, hi in zip(hand.joint_lower, hand.joint_upper, strict=True)],
         "open_joint_positions": [round(float(v), 6) for v in hand.open_joint_positions],
         "palm_normal": [round(float(v), 6) for v in hand.palm_normal_base],
         "collision_primitives": [prim.as_dict() for prim in hand.primitives.prims],
@@ -56,7 +56,8 @@ def _info(args: argparse.Namespace) -> int:
     print(f"URDF: {info['urdf']}")
     print(f"palm normal (base frame): {info['palm_normal']}")
     print(f"\n{'joint':<12}{'lower':>9}{'upper':>9}{'open':>9}")
-    for joint, (lower, upper), open_ in zip(info["joint_names"], info["joint_limits"], info["open_joint_positions"]):
+    for joint, (lower, upper), open_ in zip(info["joint_names"], info["joint_limits"], info["open_joint_positions"],
+                                            strict=True):
         print(f"{joint:<12}{lower:>9.3f}{upper:>9.3f}{open_:>9.3f}")
     print(f"\n{'contact region':<28}{'candidates':>10}")
     for region, count in info["contact_regions"].items():

@@ -25,6 +25,7 @@ COMMAND_MODULES: list[str] = [
     "cli.dataset",  # dataset build, dataset stats (data engine pose store)
     "cli.push",  # push (push / pull requests to the running system)
     "cli.eval",  # eval (the paper's experiments in simulation)
+    "cli.capture",  # capture (simulated depth-camera capture of an object to a point cloud)
 ]
 
 

@@ -3,6 +3,12 @@
     gd2p push --object proc-box-013 --direction-deg 90 [--distance 0.2] [--json]
     gd2p push --object mug.obj --position 0.5 0.1 --yaw 30 --goal 0.5 -0.3 --obstacle 0.5 -0.1 0.05
     gd2p push --object proc-box-013 --direction-deg 180 --method nearest --choice random
+    gd2p push --cloud scan.ply --direction-deg 90      # the object as a camera saw it (world frame, metres)
+
+With --cloud (.ply, .pcd or .npy: points in the world frame, metres, the table at z = 0) the system
+reconstructs the object from the cloud (table removed, the object's cluster kept, a watertight
+mesh) and plans around that; the cloud also says where the object stands. Clouds over 200k points
+are thinned (voxels) before they are sent.
 
 Prints the result (or, with --json, the PushResponse as JSON). Exit codes:
   0  the push succeeded
@@ -25,7 +31,7 @@ CONNECT_TIMEOUT_MS = 3000
 
 
 # PushRequest fields -> the flags that set them (errors name what the user typed).
-FLAGS = {"object": "--object", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
+FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
          "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler"}
 
@@ -36,7 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     parser = subparsers.add_parser("push", help="push or pull an object with the robot (needs `gd2p up`)",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--object", required=True, help="library object id or mesh file (.obj .stl .ply .glb)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--object", help="library object id or mesh file (.obj .stl .ply .glb)")
+    source.add_argument("--cloud", type=Path, help="the object as a point cloud (.ply .pcd .npy; world frame, metres)")
     parser.add_argument("--position", nargs=2, type=finite_float, metavar=("X", "Y"), default=None,
                         help="object position on the table in the world, m (default: 0.55 0 in front of the robot)")
     parser.add_argument("--yaw", type=finite_float, default=0.0, help="object yaw about world z, degrees (with --position)")
@@ -63,6 +71,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run_push)
 
 
+def object_ref(args: argparse.Namespace):
+    """The ObjectRef of --object (library id or mesh file) or --cloud (CloudFileError for a bad file)."""
+    from shared.messages import MeshBlob, ObjectRef
+    from shared.perception import cloud_for_request, load_cloud
+
+    if getattr(args, "cloud", None) is not None:
+        return ObjectRef(point_cloud=cloud_for_request(load_cloud(args.cloud).points))
+    path = Path(args.object)
+    if path.suffix and path.is_file():
+        return ObjectRef(mesh=MeshBlob.from_file(str(path)))
+    return ObjectRef(library_id=args.object)
+
+
 def build_request(args: argparse.Namespace):
     """The PushRequest the flags describe (ValueError / ObjectLoadError on bad input)."""
     import math
@@ -70,12 +91,13 @@ def build_request(args: argparse.Namespace):
     import numpy as np
 
     from shared.frames import make_transform
-    from shared.messages import CircleObstacle, MeshBlob, ObjectRef, PushRequest
+    from shared.messages import CircleObstacle, PushRequest
     from shared.object_refs import load_object_ref
     from shared.push_outcome import object_pose
 
-    path = Path(args.object)
-    ref = ObjectRef(mesh=MeshBlob.from_file(str(path))) if path.suffix and path.is_file() else ObjectRef(library_id=args.object)
+    ref = object_ref(args)
+    if ref.point_cloud is not None and args.position is not None:
+        raise ValueError("--position: the point cloud shows where the object stands; leave --position out")
     pose = None
     if args.position is not None:
         obj = load_object_ref(ref)
@@ -161,9 +183,9 @@ def response_json(response) -> dict:
 def describe(response) -> str:
     """A few human-readable lines about a PushResponse."""
     r = response.result
-    lines = [f"{'SUCCESS' if response.success else 'MISSED'}: object ended {r.position_error_m * 100:.1f} cm from the "
-             f"target, rotated {r.rotation_deg:.1f}°{', toppled' if r.toppled else ''} "
-             f"({len(response.steps)} push(es))",
+    lines = [(f"{'SUCCESS' if response.success else 'MISSED'}: object ended {r.position_error_m * 100:.1f} cm from the "
+              f"target, rotated {r.rotation_deg:.1f}°{', toppled' if r.toppled else ''} "
+              f"({len(response.steps)} push(es))"),
              f"final object position: {', '.join(f'{v:.3f}' for v in r.final_object_pose.position)} m"]
     if response.score is not None:
         s = response.score

@@ -35,8 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cli.args import (FlagError, finite_float, float_range, non_negative_int, positive_float, positive_int,
-                      validate_fields)
+from cli.args import (
+    FlagError,
+    finite_float,
+    float_range,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    validate_fields,
+)
 
 # SampleRequest fields (the sampler service's limits) this command checks, by flag.
 SAMPLE_FLAGS = {"k": "--n", "steps": "--steps", "seed": "--seed", "sampler": "--sampler"}
@@ -154,7 +161,11 @@ class _StopFlag:
 def _register_sample(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("sample", help="sample push poses for an object from a trained checkpoint",
                                    description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--object", required=True, help="library id (e.g. proc-box-001) or a mesh file in metres")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--object", help="library id (e.g. proc-box-001) or a mesh file in metres")
+    source.add_argument("--cloud", type=Path,
+                        help="the object as a point cloud (.ply .pcd .npy; world frame, metres, table at z = 0): "
+                             "reconstructed for validation, its own points give the BPS")
     parser.add_argument("--hand", required=True, choices=("allegro", "leap"))
     parser.add_argument("--n", type=positive_int, default=200, help="number of poses (1..1000, default 200)")
     parser.add_argument("--sampler", choices=("ddpm", "ddim", "nearest"), default="ddpm",
@@ -200,33 +211,50 @@ def check_sample_flags(args: argparse.Namespace) -> None:
 def _sample(args: argparse.Namespace) -> dict:
     import torch
 
-    from services.sampler.sampling import SamplerInputError, default_frame
-    from shared.objects import ObjectLoadError, load_object
+    from services.sampler.sampling import SamplerInputError
 
     torch.set_num_threads(max(1, args.threads))
     validator = _validator_modules() if args.validate else None  # fail before any work if it cannot run
-    try:
-        obj = load_object(args.object)
-    except ObjectLoadError as exc:
-        raise SamplerCliError(str(exc)) from exc
-    frame = default_frame(obj, args.direction_deg)
+    obj, frame, sampled = _object_and_frame(args)
     try:
         if args.sampler == "nearest":
-            result, source = _sample_nearest(args, obj, frame)
+            result, source = _sample_nearest(args, sampled, frame)
         else:
-            result, source = _sample_diffusion(args, obj, frame)
+            result, source = _sample_diffusion(args, sampled, frame)
     except SamplerInputError as exc:
         raise SamplerCliError(str(exc)) from exc
-    poses = [{"pose": d.tolist(), "pose_world": w.tolist()} for d, w in zip(result.poses_d, result.poses_world)]
+    poses = [{"pose": d.tolist(), "pose_world": w.tolist()}
+             for d, w in zip(result.poses_d, result.poses_world, strict=True)]
     report = {"n": len(poses), "latency_s": round(result.latency_s, 6), "poses": poses, "object": obj.id, "hand": args.hand,
               "sampler": result.sampler, "steps": result.steps, "seed": args.seed, "direction_deg": args.direction_deg,
               **source}
     if validator is not None:
         successes = validate_sampled_poses(obj, args.hand, result.poses_d, frame, progress=True)
-        for entry, success in zip(poses, successes):
+        for entry, success in zip(poses, successes, strict=True):
             entry["success"] = success
         report["validated_success"] = int(sum(successes))
     return report
+
+
+def _object_and_frame(args: argparse.Namespace) -> tuple:
+    """(ObjectModel, DirectionFrame, what the sampler encodes): a library object or mesh in its default
+    placement; a point cloud reconstructed where it stands, its own points encoded."""
+    from services.sampler.sampling import default_frame
+    from shared.messages import DirectionFrame, ObjectRef
+    from shared.object_refs import captured_object
+    from shared.objects import ObjectLoadError, load_object
+    from shared.perception import PerceptionError, bps_points, cloud_for_request, load_cloud
+    from shared.push_outcome import object_pose
+
+    try:
+        if args.cloud is None:
+            obj = load_object(args.object)
+            return obj, default_frame(obj, args.direction_deg), obj
+        captured = captured_object(ObjectRef(point_cloud=cloud_for_request(load_cloud(args.cloud).points)))
+    except (ObjectLoadError, PerceptionError) as exc:
+        raise SamplerCliError(str(exc)) from exc
+    frame = DirectionFrame(object_pose=object_pose(captured.T_world_O), yaw_deg=args.direction_deg)
+    return captured.model, frame, bps_points(captured.object_points)
 
 
 def _sample_diffusion(args: argparse.Namespace, obj, frame) -> tuple:
@@ -284,9 +312,9 @@ def validate_sampled_poses(obj, hand_name: str, poses_d: np.ndarray, frame, prog
     """
     from tqdm import tqdm
 
-    from shared.frames import object_yaw_in_d
     from services.validator.push import table_object
     from services.validator.validator import Validator
+    from shared.frames import object_yaw_in_d
     from shared.hands import load_hand
     from shared.sim import c_stdout_to_stderr
 

@@ -106,14 +106,24 @@ def show_scene(obj, T_D_O: np.ndarray, hand, poses_d: np.ndarray, labels: list[s
     """
     from shared.frames import direction_frame, poses_d_to_world
     from shared.render import (
-        CANDIDATE_COLORS, HAND_COLORS, MARKER_RGBA, OBJECT_RGBA, WORLD_X_RGBA, WORLD_Y_RGBA, LegendEntry,
-        candidate_items, hand_item, mesh_item, push_markers)
+        CANDIDATE_COLORS,
+        HAND_COLORS,
+        MARKER_RGBA,
+        OBJECT_RGBA,
+        WORLD_X_RGBA,
+        WORLD_Y_RGBA,
+        LegendEntry,
+        candidate_items,
+        hand_item,
+        mesh_item,
+        push_markers,
+    )
 
     T_world_D = direction_frame(np.zeros(3), direction_deg)
     items = [mesh_item(obj.id, obj.mesh, T_world_D @ T_D_O, OBJECT_RGBA)]
     legend = [LegendEntry(obj.id, OBJECT_RGBA)]
     alpha = 1.0 if len(poses_d) <= 1 else MULTI_POSE_ALPHA
-    for number, (label, pose_d) in enumerate(zip(labels, poses_d)):
+    for number, (label, pose_d) in enumerate(zip(labels, poses_d, strict=False)):
         color = HAND_COLORS[number % len(HAND_COLORS)]
         pose_world = poses_d_to_world(np.asarray(pose_d, dtype=np.float64), T_world_D)
         items.append(hand_item(label, hand, pose_world, (*color[:3], alpha)))

@@ -102,7 +102,7 @@ def _status_rows(statuses: list) -> list[tuple[str, ...]]:
 def _print_table(rows: list[tuple[str, ...]], indent: str = "") -> None:
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
-        print(indent + "  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip())
+        print(indent + "  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)).rstrip())
 
 
 # ---------------------------------------------------------------------------------------------

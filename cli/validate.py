@@ -68,9 +68,9 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> dict:
-    from shared.fixed_poses import spatula_pose
     from services.validator.push import table_object
     from services.validator.validator import Validator, placement_offsets
+    from shared.fixed_poses import spatula_pose
     from shared.hands import load_hand
     from shared.objects import ObjectLoadError, load_object
     from shared.sim import PhysicsParams, c_stdout_to_stderr
@@ -93,7 +93,8 @@ def _validate(args: argparse.Namespace) -> dict:
     report: dict = {"object": obj.object_id, "hand": args.hand, "results": results}
     if run.augmented is not None:
         report["augmented"] = [_result(o, int(p), 0) | {"pose": pose.tolist()}
-                               for o, p, pose in zip(run.augmented.outcomes, run.augmented.parent_index, run.augmented.poses)]
+                               for o, p, pose in zip(run.augmented.outcomes, run.augmented.parent_index, run.augmented.poses,
+                                                     strict=True)]
     return report
 
 

@@ -298,7 +298,7 @@ class Launcher:
             self._session.close()
         log.info("stopped %d process(es) and the router in %.1f s", len(children), time.monotonic() - t0)
 
-    def __enter__(self) -> "Launcher":
+    def __enter__(self) -> Launcher:
         self.start()
         return self
 
@@ -341,7 +341,7 @@ class Launcher:
                 state = "ready" if c.worker_id in live.get(c.service, []) else "starting"
             rows.append((c.service, c.worker_id, str(c.pid), state, str(c.restarts), str(c.log_path)))
         widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
-        return "\n".join("  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip() for row in rows)
+        return "\n".join("  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
     # ------------------------------------------------------------------ scaling
     def scale_refusal(self, service: str, count: int) -> str | None:

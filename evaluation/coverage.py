@@ -160,8 +160,7 @@ def _file_stamp(path: str) -> tuple[int, int]:
 
 def object_in_d(frame: Any) -> np.ndarray:
     """T_D_O: the object's pose in the direction frame D of a `DirectionFrame`."""
-    from shared.frames import frame_transform
-    from shared.frames import invert_transform, pos_quat_to_matrix
+    from shared.frames import frame_transform, invert_transform, pos_quat_to_matrix
 
     T_world_O = pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
     return invert_transform(frame_transform(frame)) @ T_world_O
@@ -241,8 +240,8 @@ def _hand(name: str):
 def measure_object(source: PoseSource, object_id: str, settings: CoverageSettings) -> dict[str, Any]:
     """Sample, push with early stopping, and return the object's coverage record."""
     from services.sampler.sampling import default_frame
-    from shared.frames import object_yaw_in_d
     from services.validator.push import table_object
+    from shared.frames import object_yaw_in_d
     from shared.objects import load_object
 
     started = time.perf_counter()
@@ -300,7 +299,7 @@ class CoveragePool:
         self.workers = max(1, int(workers))
         self._pool = None
 
-    def __enter__(self) -> "CoveragePool":
+    def __enter__(self) -> CoveragePool:
         return self
 
     def __exit__(self, *exc) -> None:

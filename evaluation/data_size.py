@@ -22,6 +22,7 @@ for FULL's 40 objects (more if many objects go uncovered: +6 s each).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import math
 import os
 import time
@@ -32,7 +33,16 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.coverage import DEFAULT_DATASET, HAND, TARGET_COVERED_PCT, CoverageError, CoveragePool, CoverageSettings, DiffusionSource, summarize
+from evaluation.coverage import (
+    DEFAULT_DATASET,
+    HAND,
+    TARGET_COVERED_PCT,
+    CoverageError,
+    CoveragePool,
+    CoverageSettings,
+    DiffusionSource,
+    summarize,
+)
 from evaluation.report import markdown_table, write_experiment
 from evaluation.store import ResultStore
 
@@ -222,7 +232,7 @@ def report_body(settings: DataSizeSettings, objects: Sequence[str], rows: list[d
 
 def verdict(rows: list[dict[str, Any]], n_objects: int) -> str:
     """Whether coverage grows monotonically with data, and how the largest fraction compares with the target."""
-    steps = [f"{a['fraction']:.0%}→{b['fraction']:.0%}" for a, b in zip(rows, rows[1:]) if b["covered_mean"] < a["covered_mean"]]
+    steps = [f"{a['fraction']:.0%}→{b['fraction']:.0%}" for a, b in itertools.pairwise(rows) if b["covered_mean"] < a["covered_mean"]]
     monotone = ("Coverage grows monotonically with the data size." if not steps
                 else f"Coverage is not monotone: it falls at {', '.join(steps)}.")
     last = rows[-1]
@@ -232,7 +242,7 @@ def verdict(rows: list[dict[str, Any]], n_objects: int) -> str:
               else f"misses the >= {TARGET_COVERED_PCT:.0f}% target by {-gap:.1f} points")
     fractions = [r["validated_fraction_mean"] for r in rows]
     trend = " → ".join(f"{v:.1%}" for v in fractions)
-    quality = ("rises monotonically" if all(b >= a for a, b in zip(fractions, fractions[1:])) else "is not monotone")
+    quality = ("rises monotonically" if all(b >= a for a, b in itertools.pairwise(fractions)) else "is not monotone")
     return (f"{monotone} At {last['fraction']:.0%} of the data, {last['covered_mean']:.1f} of {n_objects} test "
             f"objects ({pct:.1f}%) have >= 1 validated pose, which {target} (paper: "
             f"{100 * PAPER_COVERED[1.0][0] / PAPER_OBJECTS:.0f}% at 100%). The fraction of sampled poses that "
@@ -268,7 +278,7 @@ def plot_coverage(settings: DataSizeSettings, rows: list[dict[str, Any]], n_obje
     axis.plot(fractions, [r["covered_mean"] for r in rows], "-o", color="tab:blue", label="this run (mean over seeds)")
     paper = [(f, PAPER_COVERED[f][0] * n_objects / PAPER_OBJECTS) for f in fractions if f in PAPER_COVERED]
     if paper:
-        axis.plot(*zip(*paper), "--s", color="tab:gray", label=f"paper, scaled to {n_objects} objects")
+        axis.plot(*zip(*paper, strict=True), "--s", color="tab:gray", label=f"paper, scaled to {n_objects} objects")
     axis.axhline(TARGET_COVERED_PCT / 100 * n_objects, color="tab:red", linestyle=":", label=f"target {TARGET_COVERED_PCT:.0f}%")
     axis.set_xscale("log")
     axis.minorticks_off()

@@ -16,7 +16,9 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+
+import numpy as np
 
 from services.planner.cancellation import Cancellation
 from services.planner.outcome import Execution, PushError
@@ -26,8 +28,9 @@ from services.robot_bridge.sim_backend import SimBackend, SimExecutor
 from services.sampler.service import SamplerService
 from services.validator.service import validate
 from shared.bus.errors import ServiceError
-from shared.messages import ExecutionState, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob
-from shared.sim.world import ExecutionWorld
+from shared.messages import ExecutionState, ObjectRef, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob
+from shared.push_outcome import object_pose
+from shared.sim.world import ExecutionWorld, PoseError
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 
@@ -59,6 +62,9 @@ class LocalRobot:
         # The world a reset builds: the physics the robot meets and the object's true pose (None: the
         # planner's own world). Set per trial by the evaluation; the planner never sees it.
         self.execution_world: ExecutionWorld | None = None
+        # The true object and its true pose (T_world_O), when the planner plans around something else (a
+        # reconstruction from a camera cloud): a reset puts this object there. None: the planner's object.
+        self.true_object: tuple[ObjectRef, np.ndarray] | None = None
 
     def executor(self, arm: str, hand: str) -> SimExecutor:
         key = (arm, hand)
@@ -72,7 +78,7 @@ class LocalRobot:
     def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None) -> Execution:
         executor = self.executor(plan.arm, plan.hand)
         if world is not None:
-            executor.backend.reset_world(world, self.execution_world)
+            executor.backend.reset_world(*self._true_world(world))
         stop = threading.Event()
         unregister = cancel.on_cancel(stop.set) if cancel is not None else (lambda: None)
         try:
@@ -81,6 +87,16 @@ class LocalRobot:
             unregister()
         self.contacts.robot_obstacle.update(link for link, other in executor.backend.collisions if other.startswith("obstacle"))
         return Execution(final=state)
+
+    def _true_world(self, told: SimWorld) -> tuple[SimWorld, ExecutionWorld | None]:
+        """The world a reset builds from what the planner sent: the true object at its true pose, when known
+        (its pose error is then already applied)."""
+        if self.true_object is None:
+            return told, self.execution_world
+        obj, T_world_O = self.true_object
+        world = SimWorld(object=obj, object_pose=object_pose(T_world_O), obstacles=told.obstacles)
+        execution = None if self.execution_world is None else replace(self.execution_world, pose_error=PoseError())
+        return world, execution
 
     def _watch_object(self, backend: SimBackend) -> None:
         """Called at the state rate during execution: does the object touch an obstacle?"""

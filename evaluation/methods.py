@@ -43,40 +43,43 @@ class Protocol:
     directions: tuple[float, ...]
     trials: int
     world: WorldLevel = "real"
+    cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
 
     @property
     def directory_name(self) -> str:
-        return f"{self.name}-{self.world}"
+        return f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
 
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
         trial k of a method is the same episode whatever else runs, so a run can later be extended."""
-        return {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
-                "objects": list(self.objects), "directions_deg": list(self.directions),
-                "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
-                "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M}
+        settings = {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
+                    "objects": list(self.objects), "directions_deg": list(self.directions),
+                    "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
+                    "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M}
+        return {**settings, "cameras": self.cameras} if self.cameras else settings
 
 
 def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
-                 methods: Sequence[str] | None = None) -> Protocol:
+                 methods: Sequence[str] | None = None, cameras: int = 0) -> Protocol:
     objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
     if name == "methods":
         return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`", "allegro",
-                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world)
+                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras)
     if name == "leap":
         return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`", "leap", tuple(methods or ("gd2p",)),
-                        objects, protocol.DIRECTIONS_DEG, trials, world)
+                        objects, protocol.DIRECTIONS_DEG, trials, world, cameras)
     raise ValueError(f"unknown protocol {name!r}")
 
 
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
-                 world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
-    spec = protocol_for(name, quick, trials, world, methods)
+                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
+    spec = protocol_for(name, quick, trials, world, methods, cameras)
     directory = Path(out) / spec.directory_name
     store = ResultStore(directory, spec.settings())
     started = time.perf_counter()
-    todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world)
+    todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
+                             spec.cameras)
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
     records = [store.records[e.key] for e in todo]
@@ -90,13 +93,13 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
 
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
-                world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
-    return run_protocol("methods", out, quick, workers, trials, world, methods)
+                world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras)
 
 
 def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
-             world: WorldLevel = "real", methods: Sequence[str] | None = None) -> Path:
-    return run_protocol("leap", out, quick, workers, trials, world, methods)
+             world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras)
 
 
 def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
@@ -194,6 +197,9 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
     text = (f"World `{spec.world}` (`shared.sim.world`): "
             + ("each trial executes in physics the planner does not know, with the object off the told pose. "
                if spec.world == "real" else "each trial executes in the planner's own world. ")
+            + (f"The system never sees the object's mesh: it receives the point cloud {spec.cameras} simulated depth "
+               "camera(s) capture of it and plans around its own reconstruction; the robot pushes the true object. "
+               if spec.cameras else "The system is told the object's mesh. ")
             + f"{spec.hand} hand on the {protocol.ROBOTS[spec.hand]}; objects resting at "
             f"({protocol.OBJECT_XY[0]:.2f}, {protocol.OBJECT_XY[1]:.2f}) m, re-placed for each trial (±"
             f"{protocol.PLACEMENT_NOISE_M * 100:.0f} cm, ±{protocol.PLACEMENT_NOISE_DEG:.0f}°); directions "

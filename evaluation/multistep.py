@@ -100,6 +100,7 @@ def run_one(run: Run) -> dict[str, Any]:
     started = time.perf_counter()
     world = run.execution_world()
     system.robot.execution_world = world
+    system.robot.true_object = None  # the planner is told the library object; its pose error applies
     record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial,
                               "world_draw": world.record()}
     pipeline, the_request = system.pipeline("sampler"), request(run)
@@ -185,7 +186,7 @@ def _plot(records: list[dict[str, Any]], scenarios, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, len(scenarios), figsize=(4 * len(scenarios), 4.4), squeeze=False)
-    for ax, scenario in zip(axes[0], scenarios):
+    for ax, scenario in zip(axes[0], scenarios, strict=True):
         ox, oy, radius = scenario.obstacle
         ax.add_patch(plt.Circle((ox, oy), radius, color="0.4"))
         ax.add_patch(plt.Circle(scenario.goal_xy, SUCCESS_POSITION_TOLERANCE_M, fill=False, ls="--", color="tab:green"))

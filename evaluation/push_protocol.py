@@ -15,6 +15,9 @@ The execution world (`--world`, `shared.sim.world`): each trial draws one from i
 same draw for every method, so methods face identical trials. Under `real` the robot executes in
 physics the planner does not know (friction, mass, centre of mass, controller) and the object
 stands where the planner was not told (±1 cm, ±5°); under `exact` it executes in the planner's world.
+With `--cameras N` (1-3) the system is not told the object at all: it receives the point cloud N
+simulated depth cameras capture of the object at its true pose (`shared.sim.camera`, seeded per
+trial) and plans around its own reconstruction; the robot still executes on the true object.
 
 Methods: every pose source runs through the same pipeline, (a) with the plans ranked by arm rollouts
 and (b) as a random feasible choice (`PushRequest.choice`), so pose quality and ranking are measured
@@ -93,6 +96,7 @@ class Episode:
     direction_deg: float
     trial: int
     world: WorldLevel = "real"
+    cameras: int = 0  # 0: the system is told the mesh; 1-3: it receives a capture from that many cameras
 
     @property
     def key(self) -> str:
@@ -116,7 +120,7 @@ class Episode:
 
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
-             trials: int, world: WorldLevel = "real") -> list[Episode]:
+             trials: int, world: WorldLevel = "real", cameras: int = 0) -> list[Episode]:
     for object_id in objects:
         if split_of(object_id) != "test":
             raise ValueError(f"{object_id} is in the {split_of(object_id)} split; evaluation uses test objects only")
@@ -125,7 +129,8 @@ def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directio
         raise ValueError(f"unknown method(s) {sorted(unknown)}; known: {', '.join(METHODS)}")
     if world not in WORLD_LEVELS:
         raise ValueError(f"unknown world {world!r}; known: {', '.join(WORLD_LEVELS)}")
-    return [Episode(m, hand, o, d, t, world) for m in methods for o in objects for d in directions for t in range(trials)]
+    return [Episode(m, hand, o, d, t, world, cameras) for m in methods for o in objects for d in directions
+            for t in range(trials)]
 
 
 def placement(episode: Episode) -> np.ndarray:
@@ -142,15 +147,29 @@ def execution_world(episode: Episode) -> ExecutionWorld:
     """The world the episode's plan is executed in (drawn from `world_seed`)."""
     mesh = load_object(episode.object_id).mesh  # in the object's frame O
     half_extents = (mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)) / 2.0
-    return sample_world(episode.world, episode.world_seed, half_extents)
+    return sample_world(episode.world, episode.world_seed, half_extents, cameras=episode.cameras)
 
 
 def push_request(episode: Episode, k: int = 200) -> PushRequest:
+    """What the system is asked: the object as told (mesh and pose), or as the cameras see it."""
     method = METHODS[episode.method]
     source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
+    common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
+                  arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed)
+    if episode.cameras:
+        return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
-                       direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
-                       arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed)
+                       **common)
+
+
+def captured_cloud(episode: Episode) -> np.ndarray:
+    """The cloud `episode.cameras` depth cameras capture of the object at its true pose (seeded per trial)."""
+    from shared.perception import cloud_for_request
+    from shared.sim.camera import capture_object
+
+    T_true = execution_world(episode).pose_error.true_pose(placement(episode))
+    capture = capture_object(load_object(episode.object_id), T_true, n_cameras=episode.cameras, seed=episode.world_seed)
+    return cloud_for_request(capture.cloud)
 
 
 def judge_episode(episode: Episode, world: ExecutionWorld, final: ObjectPose) -> ExecutionResult:
@@ -186,6 +205,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     pipeline = _system.pipeline("grasp" if source is not None else "sampler", source)
     world = execution_world(episode)
     _system.robot.execution_world = world
+    # The robot pushes the true object where it truly stands, whatever the system was told or saw.
+    _system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record()}
     try:
         response = pipeline.run(push_request(episode)).response

@@ -51,7 +51,7 @@ def success_interval(records: Sequence[dict[str, Any]], cluster: str = "object_i
     counts = _per_object(records, cluster)
     if not counts:
         return Interval(float("nan"), float("nan"), float("nan"))
-    successes, trials = (np.array(v, dtype=np.float64) for v in zip(*counts.values()))
+    successes, trials = (np.array(v, dtype=np.float64) for v in zip(*counts.values(), strict=True))
     picks = np.random.default_rng(seed).integers(0, len(trials), size=(draws, len(trials)))
     rates = successes[picks].sum(axis=1) / trials[picks].sum(axis=1)
     return Interval(float(successes.sum() / trials.sum()), *(float(v) for v in np.percentile(rates, [2.5, 97.5])))
@@ -64,8 +64,8 @@ def difference_interval(a: Sequence[dict[str, Any]], b: Sequence[dict[str, Any]]
     shared = sorted(set(counts_a) & set(counts_b))
     if not shared:
         return Interval(float("nan"), float("nan"), float("nan"))
-    sa, ta = (np.array(v, dtype=np.float64) for v in zip(*(counts_a[k] for k in shared)))
-    sb, tb = (np.array(v, dtype=np.float64) for v in zip(*(counts_b[k] for k in shared)))
+    sa, ta = (np.array(v, dtype=np.float64) for v in zip(*(counts_a[k] for k in shared), strict=True))
+    sb, tb = (np.array(v, dtype=np.float64) for v in zip(*(counts_b[k] for k in shared), strict=True))
     picks = np.random.default_rng(seed).integers(0, len(shared), size=(draws, len(shared)))
     diffs = sa[picks].sum(axis=1) / ta[picks].sum(axis=1) - sb[picks].sum(axis=1) / tb[picks].sum(axis=1)
     value = sa.sum() / ta.sum() - sb.sum() / tb.sum()

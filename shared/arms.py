@@ -27,11 +27,11 @@ from shared.hands import HandModel, load_hand
 from shared.hands.urdf import (
     RobotAssetError,
     cache_dir,
+    content_key,
     example_robot_data_file,
     merge_urdf,
     read_urdf,
     resolved_urdf,
-    content_key,
 )
 
 ADAPTER_THICKNESS_M = 0.02
@@ -104,7 +104,8 @@ class ArmModel:
         """All link frames [B,L,4,4] (link_names order) in the arm's base frame, for joints q [B,dof]."""
         if q.ndim != 2 or q.shape[1] != self.dof:
             raise ArmModelError(f"{self.name}: joints must have shape [B, {self.dof}], got {tuple(q.shape)}")
-        return self.chain.forward_kinematics_tensor(q).transpose(0, 1)
+        frames: torch.Tensor = self.chain.forward_kinematics_tensor(q).transpose(0, 1)
+        return frames
 
     def flange_pose(self, q: torch.Tensor) -> torch.Tensor:
         """Flange frame [B,4,4] in the arm's base frame."""
@@ -119,7 +120,7 @@ class ArmModel:
         return ((q >= self.joint_lower) & (q <= self.joint_upper)).all(-1)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_arm(name: str) -> ArmModel:
     """The arm model for 'panda' or 'xarm7' (built once per process)."""
     try:

@@ -10,8 +10,9 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO, Any
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -23,8 +24,9 @@ def _fsync_dir(directory: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike, mode: str = "wb", durable: bool = False) -> Iterator[IO]:
-    """Open a temporary file beside `path`; on a clean exit it replaces `path`, on error it vanishes."""
+def atomic_writer(path: str | os.PathLike[str], mode: str = "wb", durable: bool = False) -> Iterator[IO[Any]]:
+    """Open a temporary file beside `path`; on a clean exit it replaces `path`, on error it vanishes.
+    The file is binary for mode "wb", text for "w"."""
     if mode not in ("wb", "w"):
         raise ValueError(f"atomic_writer mode must be 'wb' or 'w', got {mode!r}")
     path = Path(path)
@@ -44,11 +46,11 @@ def atomic_writer(path: str | os.PathLike, mode: str = "wb", durable: bool = Fal
         _fsync_dir(path.parent)
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes, durable: bool = False) -> Path:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, durable: bool = False) -> Path:
     with atomic_writer(path, "wb", durable) as handle:
         handle.write(data)
     return Path(path)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str, durable: bool = False) -> Path:
+def atomic_write_text(path: str | os.PathLike[str], text: str, durable: bool = False) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"), durable)

@@ -16,6 +16,8 @@ Speed: a scipy cKDTree over the cloud, queried by the basis (2048 points: ~2–3
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -52,9 +54,10 @@ class BasisPointSet:
         """[N, 3] cloud (metres, in D) -> [n] float32 distances from each basis point to the cloud."""
         points = self._check_cloud(points)
         distances, _ = cKDTree(points).query(self.basis, k=1)
-        return distances.astype(np.float32)
+        encoded: np.ndarray = distances.astype(np.float32)
+        return encoded
 
-    def encode_batch(self, clouds) -> np.ndarray:
+    def encode_batch(self, clouds: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
         """[B, N, 3] array or a list of [N_i, 3] clouds -> [B, n] float32."""
         if isinstance(clouds, np.ndarray) and clouds.ndim != 3:
             raise BPSError(f"a batch of clouds must be [B, N, 3], got shape {clouds.shape}")
@@ -79,12 +82,12 @@ class BasisPointSet:
             )
         return points
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """Everything needed to rebuild this basis, including the points themselves (for checkpoints)."""
         return {"n": self.n, "radius": self.radius, "seed": self.seed, "basis": self.basis.astype(np.float32).copy()}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "BasisPointSet":
+    def from_dict(cls, data: Mapping[str, Any]) -> BasisPointSet:
         """Rebuild from `to_dict`; a stored basis is used as is (and must match its n)."""
         try:
             bps = cls(int(data["n"]), float(data["radius"]), int(data["seed"]))

@@ -10,12 +10,12 @@ before it is unpacked; `check_payload_size` lets a receiver refuse it before eve
 """
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import TypeVar, overload
 
 import msgpack
 from pydantic import ValidationError
 
-from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, MESSAGE_TYPES, SCHEMA_VERSION, Message
+from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, MESSAGE_TYPES, SCHEMA_VERSION, ErrorReply, Message
 
 ENCODING_PREFIX = "application/msgpack;"
 M = TypeVar("M", bound=Message)
@@ -57,10 +57,18 @@ def encode(msg: Message) -> tuple[bytes, str]:
     """Return (payload bytes, Zenoh encoding string)."""
     if not isinstance(msg, Message):
         raise CodecError(f"can only encode shared.messages.Message instances, got {type(msg).__name__}")
-    return msgpack.packb(msg.model_dump(mode="python"), use_bin_type=True), encoding_for(msg)
+    payload: bytes = msgpack.packb(msg.model_dump(mode="python"), use_bin_type=True)
+    return payload, encoding_for(msg)
 
 
-def decode(payload: bytes | bytearray | memoryview, encoding: str | None = None, expected: type[M] | None = None) -> M:
+@overload
+def decode(payload: bytes | bytearray | memoryview, encoding: str | None = None, expected: None = None) -> Message: ...
+@overload
+def decode(payload: bytes | bytearray | memoryview, encoding: str | None, expected: type[M]) -> M | ErrorReply: ...
+@overload
+def decode(payload: bytes | bytearray | memoryview, *, expected: type[M]) -> M | ErrorReply: ...
+def decode(payload: bytes | bytearray | memoryview, encoding: str | None = None,
+           expected: type[Message] | None = None) -> Message:
     """Decode a payload into a message.
 
     The model is taken from the encoding string, else from `expected`. If both are given they

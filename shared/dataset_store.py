@@ -50,7 +50,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -89,12 +89,15 @@ class ObjectStatus:
 def table_to_parquet_bytes(table: pa.Table) -> bytes:
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink, compression="zstd")
-    return sink.getvalue().to_pybytes()
+    data: bytes = sink.getvalue().to_pybytes()
+    return data
 
 
 # ----------------------------------------------------------------------------- the store
 class DatasetStore:
     """A pose store directory; see the module docstring. Not safe for two concurrent writers."""
+
+    _lock_handle: IO[str] | None = None  # the writer lock file while held (see _lock_for_writing)
 
     def __init__(self, directory: Path, manifest: dict[str, Any]):
         self.directory = directory
@@ -102,7 +105,7 @@ class DatasetStore:
 
     # ------------------------------------------------------------------ opening
     @classmethod
-    def open(cls, directory: str | os.PathLike) -> "DatasetStore":
+    def open(cls, directory: str | os.PathLike[str]) -> DatasetStore:
         """An existing store (raises StoreError if there is none or its manifest is unreadable)."""
         directory = Path(directory)
         path = directory / MANIFEST_NAME
@@ -119,7 +122,7 @@ class DatasetStore:
         return cls(directory, manifest)
 
     @classmethod
-    def create_or_resume(cls, directory: str | os.PathLike, parameters: Mapping[str, Any]) -> "DatasetStore":
+    def create_or_resume(cls, directory: str | os.PathLike[str], parameters: Mapping[str, Any]) -> DatasetStore:
         """Open the store for a build with `parameters`, creating it if the directory has none.
 
         Refuses (StoreError) to resume a store built with different content parameters
@@ -182,7 +185,8 @@ class DatasetStore:
     # ------------------------------------------------------------------ reading
     @property
     def hand(self) -> str:
-        return self.manifest["hand"]
+        hand: str = self.manifest["hand"]
+        return hand
 
     def completed_objects(self) -> dict[str, ObjectStatus]:
         """Objects whose result is stored, by id (done objects are skipped on resume)."""

@@ -61,7 +61,8 @@ def spatula_rotation(hand: HandModel) -> np.ndarray:
     fingers = hand.finger_direction_base.double().numpy()
     base_axes = np.stack([normal, fingers, np.cross(normal, fingers)], axis=1)
     d_axes = np.stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], np.cross([1.0, 0.0, 0.0], [0.0, 0.0, -1.0])], axis=1)
-    return d_axes @ base_axes.T
+    rotation: np.ndarray = d_axes @ base_axes.T
+    return rotation
 
 
 def spatula_pose(hand: HandModel, object_vertices_d: np.ndarray) -> np.ndarray:

@@ -16,13 +16,19 @@ Quaternions are xyzw (PyBullet's and scipy's order).
 from __future__ import annotations
 
 import math
-from typing import Union
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
+from typing_extensions import TypeIs
 
-Array = Union[np.ndarray, torch.Tensor]
+if TYPE_CHECKING:
+    from shared.messages import DirectionFrame
+
+Array = np.ndarray | torch.Tensor
+A = TypeVar("A", np.ndarray, torch.Tensor)  # the functions on both kinds return the kind they are given
 
 POSE_DIM = 25
 NUM_JOINTS = 16
@@ -39,25 +45,30 @@ class FrameError(ValueError):
 
 
 # ----------------------------------------------------------------------------- array helpers
-def _is_torch(x: Array) -> bool:
+def _is_torch(x: object) -> TypeIs[torch.Tensor]:
     return isinstance(x, torch.Tensor)
 
 
-def _normalize(v: Array) -> Array:
+def _normalize(v: A) -> A:
     if _is_torch(v):
-        return v / v.norm(dim=-1, keepdim=True).clamp_min(_EPS)
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), _EPS)
+        unit: torch.Tensor = v / v.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+        return unit
+    normalized: np.ndarray = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), _EPS)
+    return normalized
 
 
-def _cross(a: Array, b: Array) -> Array:
-    return torch.linalg.cross(a, b, dim=-1) if _is_torch(a) else np.cross(a, b)
+def _cross(a: A, b: A) -> A:
+    if _is_torch(a):
+        crossed: torch.Tensor = torch.linalg.cross(a, b, dim=-1)
+        return crossed
+    return np.cross(a, b)
 
 
-def _stack_columns(cols: list[Array]) -> Array:
+def _stack_columns(cols: list[A]) -> A:
     return torch.stack(cols, dim=-1) if _is_torch(cols[0]) else np.stack(cols, axis=-1)
 
 
-def _concat(parts: list[Array]) -> Array:
+def _concat(parts: list[A]) -> A:
     return torch.cat(parts, dim=-1) if _is_torch(parts[0]) else np.concatenate(parts, axis=-1)
 
 
@@ -66,11 +77,13 @@ def _check_last_dim(x: Array, size: int, what: str) -> None:
         raise FrameError(f"{what} must have last dimension {size}, got shape {tuple(x.shape)}")
 
 
-def _as_array(x) -> Array:
-    return x if _is_torch(x) else np.asarray(x, dtype=np.float64)
+def _as_array(x: A) -> A:
+    if _is_torch(x):
+        return x
+    return np.asarray(x, dtype=np.float64)
 
 
-def _like(transform: Array, reference: Array) -> Array:
+def _like(transform: ArrayLike | torch.Tensor, reference: A) -> A:
     """`transform` as the same kind of array (and torch dtype / device) as `reference`."""
     if _is_torch(reference):
         return torch.as_tensor(transform, dtype=reference.dtype, device=reference.device)
@@ -80,7 +93,7 @@ def _like(transform: Array, reference: Array) -> Array:
 
 
 # ----------------------------------------------------------------------------- rotations
-def r6_to_matrix(r6: Array) -> Array:
+def r6_to_matrix(r6: A) -> A:
     """[..., 6] (first two columns, unnormalised) -> [..., 3, 3] rotation via Gram–Schmidt.
 
     numpy input must be non-degenerate (raises FrameError); torch input is clamped instead so a
@@ -104,7 +117,7 @@ def _reject_degenerate_r6(a: np.ndarray, b: np.ndarray) -> None:
         raise FrameError("r6 is degenerate: its first column is zero or its two columns are parallel")
 
 
-def matrix_to_r6(rotation: Array) -> Array:
+def matrix_to_r6(rotation: A) -> A:
     """[..., 3, 3] rotation -> [..., 6]: column 0 then column 1."""
     rotation = _as_array(rotation)
     if tuple(rotation.shape[-2:]) != (3, 3):
@@ -119,14 +132,15 @@ def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
     flat = quat.reshape(-1, 4)
     if np.any(np.linalg.norm(flat, axis=-1) < _EPS):
         raise FrameError("quaternion has zero norm")
-    return Rotation.from_quat(flat).as_matrix().reshape(quat.shape[:-1] + (3, 3))
+    matrices: np.ndarray = Rotation.from_quat(flat).as_matrix()
+    return matrices.reshape(quat.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat_xyzw(rotation: np.ndarray) -> np.ndarray:
     """[..., 3, 3] -> [..., 4] xyzw quaternion with w >= 0 (one canonical sign)."""
     rotation = np.asarray(rotation, dtype=np.float64)
     flat = rotation.reshape(-1, 3, 3)
-    quat = Rotation.from_matrix(flat).as_quat()
+    quat: np.ndarray = Rotation.from_matrix(flat).as_quat()
     quat = np.where(quat[:, 3:4] < 0, -quat, quat)
     return quat.reshape(rotation.shape[:-2] + (4,))
 
@@ -151,7 +165,7 @@ def yaw_rotation(yaw_rad: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- transforms
-def make_transform(rotation: Array, translation: Array) -> Array:
+def make_transform(rotation: A, translation: A) -> A:
     """Rotation [..., 3, 3] + translation [..., 3] -> homogeneous [..., 4, 4]."""
     if _is_torch(rotation):
         top = torch.cat([rotation, translation.unsqueeze(-1)], dim=-1)
@@ -167,30 +181,31 @@ def make_transform(rotation: Array, translation: Array) -> Array:
     return out
 
 
-def invert_transform(transform: Array) -> Array:
+def invert_transform(transform: A) -> A:
     """Inverse of a rigid [..., 4, 4] transform (uses R^T, not a general inverse)."""
     rotation, translation = transform[..., :3, :3], transform[..., :3, 3]
     rotation_t = rotation.transpose(-1, -2) if _is_torch(rotation) else np.swapaxes(rotation, -1, -2)
     return make_transform(rotation_t, -(rotation_t @ translation[..., None])[..., 0])
 
 
-def transform_points(transform: Array, points: Array) -> Array:
+def transform_points(transform: ArrayLike | torch.Tensor, points: A) -> A:
     """Apply a rigid 4x4 transform to points [..., 3]."""
     points = _as_array(points)
     _check_last_dim(points, 3, "points")
-    transform = _like(transform, points)
-    return points @ transform[:3, :3].T + transform[:3, 3]
+    matrix = _like(transform, points)
+    moved: A = points @ matrix[:3, :3].T + matrix[:3, 3]
+    return moved
 
 
 # ----------------------------------------------------------------------------- 25-d pose
-def pose25_to_matrix(pose: Array) -> tuple[Array, Array]:
+def pose25_to_matrix(pose: A) -> tuple[A, A]:
     """[..., 25] pose -> (hand base transform [..., 4, 4] in the pose's frame, joints [..., 16])."""
     pose = _as_array(pose)
     _check_last_dim(pose, POSE_DIM, "pose")
     return make_transform(r6_to_matrix(pose[..., ROTATION_6D]), pose[..., POSITION]), pose[..., JOINTS]
 
 
-def matrix_to_pose25(transform: Array, joints: Array) -> Array:
+def matrix_to_pose25(transform: A, joints: A) -> A:
     """Hand base transform [..., 4, 4] + joints [..., 16] -> [..., 25] pose."""
     transform = _as_array(transform)
     joints = _as_array(joints)
@@ -198,7 +213,7 @@ def matrix_to_pose25(transform: Array, joints: Array) -> Array:
     return _concat([transform[..., :3, 3], matrix_to_r6(transform[..., :3, :3]), joints])
 
 
-def transform_poses(poses: Array, transform: Array) -> Array:
+def transform_poses(poses: A, transform: ArrayLike | torch.Tensor) -> A:
     """Re-express [..., 25] poses under a rigid transform T (new = T · old); joints unchanged.
 
     The rotation acts on both r6 columns directly, so no Gram–Schmidt round trip is needed and
@@ -214,24 +229,24 @@ def transform_poses(poses: Array, transform: Array) -> Array:
     return _concat([position, col0, col1, poses[..., JOINTS]])
 
 
-def poses_d_to_world(poses_d: Array, T_world_D: Array) -> Array:
+def poses_d_to_world(poses_d: A, T_world_D: ArrayLike | torch.Tensor) -> A:
     """Hand poses [..., 25] in D -> in the world."""
     return transform_poses(poses_d, T_world_D)
 
 
-def poses_world_to_d(poses_world: Array, T_world_D: Array) -> Array:
+def poses_world_to_d(poses_world: A, T_world_D: A) -> A:
     """Hand poses [..., 25] in the world -> in D."""
     T_world_D = T_world_D if _is_torch(T_world_D) else np.asarray(T_world_D, dtype=np.float64)
     return transform_poses(poses_world, invert_transform(T_world_D))
 
 
-def points_world_to_d(points_world: Array, T_world_D: Array) -> Array:
+def points_world_to_d(points_world: A, T_world_D: A) -> A:
     """Points [..., 3] in the world -> in D."""
     T_world_D = T_world_D if _is_torch(T_world_D) else np.asarray(T_world_D, dtype=np.float64)
     return transform_points(invert_transform(T_world_D), points_world)
 
 
-def points_d_to_world(points_d: Array, T_world_D: Array) -> Array:
+def points_d_to_world(points_d: A, T_world_D: ArrayLike | torch.Tensor) -> A:
     """Points [..., 3] in D -> in the world."""
     return transform_points(T_world_D, points_d)
 
@@ -243,7 +258,7 @@ def direction_xy(direction: float | np.ndarray | list[float] | tuple[float, ...]
     A 3-vector is projected onto the table; a zero or vertical direction raises FrameError
     (there is no horizontal push direction to follow).
     """
-    if np.isscalar(direction):
+    if isinstance(direction, (int, float, np.integer, np.floating)):
         yaw = math.radians(float(direction))
         if not math.isfinite(yaw):
             raise FrameError(f"direction yaw must be finite, got {direction!r}")
@@ -264,7 +279,8 @@ def direction_toward(from_position: np.ndarray, to_position: np.ndarray) -> np.n
     return direction_xy(delta)
 
 
-def direction_frame(object_position_world: np.ndarray, direction) -> np.ndarray:
+def direction_frame(object_position_world: np.ndarray,
+                    direction: float | np.ndarray | list[float] | tuple[float, ...]) -> np.ndarray:
     """T_world_D: origin = object centroid projected to z = 0, +x along `direction`, +z up.
 
     `direction` is yaw in degrees (about world z, 0 = world +x) or an xy / xyz vector. A pull is
@@ -289,18 +305,18 @@ def direction_yaw_deg(T_world_D: np.ndarray) -> float:
 # `direction_xy`, i.e. shared.messages.DirectionFrame, which this module does not import)
 
 
-def frame_transform(frame) -> np.ndarray:
+def frame_transform(frame: DirectionFrame) -> np.ndarray:
     """T_world_D of a DirectionFrame."""
     direction = frame.yaw_deg if frame.yaw_deg is not None else np.asarray(frame.direction_xy)
     return direction_frame(np.asarray(frame.object_pose.position), direction)
 
 
-def frame_object_transform(frame) -> np.ndarray:
+def frame_object_transform(frame: DirectionFrame) -> np.ndarray:
     """T_world_O of a DirectionFrame's object."""
     return pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
 
 
-def object_yaw_in_d(frame, rest_rotation: np.ndarray) -> float:
+def object_yaw_in_d(frame: DirectionFrame, rest_rotation: np.ndarray) -> float:
     """The yaw (radians, about D's z) that turns the resting pose `rest_rotation` into the frame's object.
 
     `ObjectModel.T_D_O(pose, yaw)` is Rz(yaw) @ rest_rotation, so Rz(yaw) = R_D_O @ rest_rotation^T;

@@ -100,7 +100,8 @@ class ArmIK:
         """Hand base poses [K,4,4] in the world -> flange poses [K,4,4] in the arm's base frame."""
         T_world_hand = _check_transforms(T_world_hand)
         T_base_world = np.linalg.inv(self.T_world_base)
-        return T_base_world @ T_world_hand @ np.linalg.inv(self.T_flange_hand)
+        targets: np.ndarray = T_base_world @ T_world_hand @ np.linalg.inv(self.T_flange_hand)
+        return targets
 
     def solve_hand_poses(self, T_world_hand: np.ndarray, prefer: np.ndarray | None = None) -> IKResult:
         """Arm joints that put the hand base at each of `T_world_hand` [K,4,4] (or one [4,4])."""
@@ -127,7 +128,7 @@ class ArmIK:
         q, converged, pos_err, rot_err = self._solve_all_seeds(targets)
         order = np.argsort(self._scores(q, converged, pos_err, rot_err, prefer), axis=1)
         solutions = []
-        for q_k, converged_k, order_k in zip(q, converged, order):
+        for q_k, converged_k, order_k in zip(q, converged, order, strict=True):
             kept: list[np.ndarray] = []
             for candidate in q_k[order_k][converged_k[order_k]]:
                 if len(kept) == limit:
@@ -213,7 +214,7 @@ class ArmIK:
         """IK for one waypoint per row from q [K,dof]; limits enforced only for rows whose plain solution leaves them."""
         free = self._trackers[False]
         free.initial_config = q
-        solution = free.solve(target).solutions[:, 0].clone()
+        solution: torch.Tensor = free.solve(target).solutions[:, 0].clone()
         outside = ~self.arm.within_limits(solution)
         if bool(outside.any()):
             enforced = self._trackers[True]
@@ -230,7 +231,7 @@ class ArmIK:
         """Forward kinematics: hand base pose(s) in the world for arm joints q [dof] or [B,dof]."""
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
         flange = self.arm.flange_pose(torch.as_tensor(q, dtype=torch.float32)).double().numpy()
-        out = self.T_world_base @ flange @ self.T_flange_hand
+        out: np.ndarray = self.T_world_base @ flange @ self.T_flange_hand
         return out[0] if out.shape[0] == 1 else out
 
 

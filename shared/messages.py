@@ -35,7 +35,7 @@ from pydantic import (
 
 SCHEMA_VERSION = 1
 
-MESSAGE_TYPES: dict[str, type["Message"]] = {}
+MESSAGE_TYPES: dict[str, type[Message]] = {}
 
 POSE_DIM = 25  # [p(3), r6(6), q(16)]
 # The most poses one job carries: a generation batch, and the data engine validates one batch per
@@ -82,7 +82,7 @@ class Message(BaseModel):
 
     MAX_PAYLOAD_BYTES: ClassVar[int] = DEFAULT_MAX_PAYLOAD_BYTES
 
-    def __init_subclass__(cls, **kwargs):
+    def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         MESSAGE_TYPES[cls.__name__] = cls
 
@@ -121,7 +121,7 @@ class NDArray(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _size_matches(self) -> "NDArray":
+    def _size_matches(self) -> NDArray:
         if any(d < 0 for d in self.shape):
             raise ValueError(f"negative dimension in shape {self.shape}")
         expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
@@ -130,11 +130,13 @@ class NDArray(BaseModel):
         return self
 
     @classmethod
-    def from_numpy(cls, a: np.ndarray) -> "NDArray":
+    def from_numpy(cls, a: np.ndarray) -> NDArray:
         return cls(**_numpy_fields(np.asarray(a)))
 
     def to_numpy(self) -> np.ndarray:
-        return np.frombuffer(self.data, dtype=np.dtype(self.dtype).newbyteorder("<")).reshape(self.shape).copy()
+        little_endian = np.dtype(self.dtype).newbyteorder("<")
+        array: np.ndarray = np.frombuffer(self.data, dtype=little_endian).reshape(self.shape).copy()
+        return array
 
 
 def _numpy_fields(a: np.ndarray) -> dict[str, Any]:
@@ -161,7 +163,8 @@ def array_of(
     def check(a: NDArray) -> NDArray:
         if a.dtype not in dtypes:
             raise ValueError(f"array dtype must be one of {list(dtypes)}, got {a.dtype}")
-        if len(a.shape) != len(shape) or any(want is not None and want != got for want, got in zip(shape, a.shape)):
+        if len(a.shape) != len(shape) or any(want is not None and want != got
+                                             for want, got in zip(shape, a.shape, strict=True)):
             raise ValueError(f"array shape must be {_format_shape(shape)}, got {a.shape}")
         if a.shape and a.shape[0] < min_rows:
             raise ValueError(f"array needs at least {min_rows} row(s), got shape {a.shape}")
@@ -280,18 +283,18 @@ class MeshBlob(Value):
     name: str | None = None
 
     @model_validator(mode="after")
-    def _hash_matches(self) -> "MeshBlob":
+    def _hash_matches(self) -> MeshBlob:
         actual = hashlib.sha256(self.data).hexdigest()
         if actual != self.sha256:
             raise ValueError(f"mesh sha256 {self.sha256[:12]}... does not match its data (actual {actual[:12]}...)")
         return self
 
     @classmethod
-    def from_bytes(cls, data: bytes, format: str, name: str | None = None) -> "MeshBlob":
+    def from_bytes(cls, data: bytes, format: str, name: str | None = None) -> MeshBlob:
         return cls(sha256=hashlib.sha256(data).hexdigest(), format=format, data=data, name=name)
 
     @classmethod
-    def from_file(cls, path: str) -> "MeshBlob":
+    def from_file(cls, path: str) -> MeshBlob:
         """Read a mesh file; the format is taken from the file extension."""
         ext = os.path.splitext(path)[1].lower().lstrip(".")
         if ext not in MESH_FORMATS:
@@ -316,7 +319,7 @@ class ObjectRef(Value):
         return v
 
     @model_validator(mode="after")
-    def _exactly_one_source(self) -> "ObjectRef":
+    def _exactly_one_source(self) -> ObjectRef:
         given = [n for n in ("library_id", "mesh", "point_cloud") if getattr(self, n) is not None]
         if len(given) != 1:
             raise ValueError(f"an object needs exactly one of library_id, mesh, point_cloud; got {given or 'none'}")
@@ -358,7 +361,7 @@ class DirectionFrame(Value):
         return None if v is None else _unit(v, "direction_xy")  # type: ignore[return-value]
 
     @model_validator(mode="after")
-    def _one_direction(self) -> "DirectionFrame":
+    def _one_direction(self) -> DirectionFrame:
         if (self.yaw_deg is None) == (self.direction_xy is None):
             raise ValueError("give exactly one of yaw_deg or direction_xy for the push direction")
         return self
@@ -412,7 +415,7 @@ class GenerationResult(Message):
     MAX_PAYLOAD_BYTES: ClassVar[int] = MAX_RESULT_PAYLOAD_BYTES
 
     @model_validator(mode="after")
-    def _consistent_rows(self) -> "GenerationResult":
+    def _consistent_rows(self) -> GenerationResult:
         b = _rows(self.poses)
         _require_rows("GenerationResult", b, palm_normals=self.palm_normals, max_penetration_m=self.max_penetration_m)
         _require_rows("GenerationResult", b, **{f"energies[{k}]": v for k, v in self.energies.items()})
@@ -440,7 +443,7 @@ class PlanSegment(Value):
     stop: int = Field(ge=1)
 
     @model_validator(mode="after")
-    def _ordered(self) -> "PlanSegment":
+    def _ordered(self) -> PlanSegment:
         if self.stop <= self.start:
             raise ValueError(f"segment {self.label!r} has stop {self.stop} <= start {self.start}")
         return self
@@ -457,7 +460,7 @@ class Plan(Message):
     segments: list[PlanSegment] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _consistent(self) -> "Plan":
+    def _consistent(self) -> Plan:
         _check_pair(self.hand, self.arm)
         if len(set(self.joint_names)) != len(self.joint_names):
             raise ValueError("plan joint_names contain duplicates")
@@ -498,7 +501,7 @@ class ValidationJob(Message):
     obstacles: list[CircleObstacle] = Field(default_factory=list)
 
     @model_validator(mode="after")
-    def _rollout_complete(self) -> "ValidationJob":
+    def _rollout_complete(self) -> ValidationJob:
         rollout_fields = {"arm": self.arm, "plan": self.plan}
         if self.with_arm:
             missing = [n for n, v in {**rollout_fields, "frame": self.frame}.items() if v is None]
@@ -551,7 +554,7 @@ class AugmentedOutcomes(PushOutcomes):
     parent_index: IndexVector
 
     @model_validator(mode="after")
-    def _consistent_rows(self) -> "AugmentedOutcomes":
+    def _consistent_rows(self) -> AugmentedOutcomes:
         n = self._outcome_rows("AugmentedOutcomes")
         _require_rows("AugmentedOutcomes", n, poses=self.poses, parent_index=self.parent_index)
         return self
@@ -573,7 +576,7 @@ class ValidationResult(PushOutcomes, Message):
     MAX_PAYLOAD_BYTES: ClassVar[int] = MAX_RESULT_PAYLOAD_BYTES
 
     @model_validator(mode="after")
-    def _consistent_rows(self) -> "ValidationResult":
+    def _consistent_rows(self) -> ValidationResult:
         n = self._outcome_rows("ValidationResult")
         _require_rows("ValidationResult", n, goal_error_m=self.goal_error_m, collision_cost=self.collision_cost,
                       obstacle_contact=self.obstacle_contact)
@@ -618,7 +621,7 @@ class SampleResponse(Message):
     sampler: Sampler = "ddpm"
 
     @model_validator(mode="after")
-    def _consistent_rows(self) -> "SampleResponse":
+    def _consistent_rows(self) -> SampleResponse:
         _require_rows("SampleResponse", _rows(self.poses_d), poses_world=self.poses_world)
         return self
 
@@ -632,7 +635,8 @@ class PushRequest(Message):
     """Push or pull an object: a direction and distance, or a goal point (multi-step)."""
 
     object: ObjectRef
-    object_pose: ObjectPose | None = None  # None: resting at a reachable spot in front of the robot
+    # None: resting at a reachable spot in front of the robot; for a point cloud, where the cloud shows it.
+    object_pose: ObjectPose | None = None
     direction_deg: FiniteFloat | None = None
     goal_xy: tuple[FiniteFloat, FiniteFloat] | None = None
     distance_m: PositiveFloat = Field(default=0.20, le=1.0)  # with goal_xy: the longest single push
@@ -654,9 +658,11 @@ class PushRequest(Message):
     client_lease: str | None = Field(default=None, min_length=1, max_length=256)
 
     @model_validator(mode="after")
-    def _target_and_robot(self) -> "PushRequest":
+    def _target_and_robot(self) -> PushRequest:
         if (self.direction_deg is None) == (self.goal_xy is None):
             raise ValueError("give exactly one of direction_deg or goal_xy")
+        if self.object.point_cloud is not None and self.object_pose is not None:
+            raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
         _check_pair(self.hand, self.arm)
         return self
 
@@ -748,7 +754,7 @@ class ExecutionState(Message):
     message: str = ""
 
     @model_validator(mode="after")
-    def _consistent(self) -> "ExecutionState":
+    def _consistent(self) -> ExecutionState:
         n = len(self.joint_names)
         for name in ("positions", "velocities"):
             if getattr(self, name).shape[0] != n:

@@ -1,5 +1,11 @@
 """ObjectRef -> ObjectModel, for every service that simulates, plans around or samples for an object.
 
+A point cloud (world frame, metres, as a camera saw the object on the table) is reconstructed by
+`shared.perception.object_from_cloud` (table removed, the object's cluster kept, a watertight mesh),
+once per cloud: the result is cached on disk by the cloud's content hash, so the planner, the
+sampler, the validators and the robot bridge handed the same cloud all use the same reconstruction.
+The cloud also says where the object stands (`captured_pose`).
+
 A library id is loaded as an id only (`load_library_object`: never a path, whatever it looks like).
 An uploaded mesh joins the upload cache (`<cache>/objects/uploads/<sha256>.<format>`, named by its
 content) only once it loaded: it is written and loaded in a private temporary directory first, so
@@ -10,11 +16,15 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from shared.messages import MeshBlob, ObjectRef
 from shared.objects import ObjectLoadError, ObjectModel, load_object
 from shared.objects.cache import cache_root
 from shared.objects.model import load_library_object
+
+if TYPE_CHECKING:
+    from shared.perception import CloudObject
 
 
 def _upload_path(mesh: MeshBlob) -> Path:
@@ -61,16 +71,27 @@ def _upload_label(mesh: MeshBlob) -> str:
 
 
 def load_object_ref(ref: ObjectRef) -> ObjectModel:
-    """The library object or uploaded mesh of `ref`.
+    """The library object, uploaded mesh or reconstructed point cloud of `ref`.
 
-    Raises ObjectLoadError for point clouds and scaled objects (no mesh to simulate), unknown ids
-    and bad meshes.
+    Raises ObjectLoadError for scaled objects, unknown ids, bad meshes and clouds that cannot be
+    reconstructed (the perception error's message says why).
     """
     if ref.point_cloud is not None:
-        raise ObjectLoadError(f"object {ref.object_id}: a point cloud has no mesh to plan around or simulate")
+        return captured_object(ref).model
     if ref.scale is not None and ref.scale != 1.0:
         raise ObjectLoadError(f"object {ref.object_id}: scaled objects are not supported")
     if ref.library_id is not None:
         return load_library_object(ref.library_id)
     assert ref.mesh is not None
     return load_uploaded_mesh(ref.mesh)
+
+
+def captured_object(ref: ObjectRef) -> CloudObject:
+    """The reconstruction of `ref`'s point cloud (cached by content); ObjectLoadError if it fails."""
+    from shared.perception import PerceptionError, object_from_cloud
+
+    assert ref.point_cloud is not None
+    try:
+        return object_from_cloud(ref.point_cloud.to_numpy())
+    except PerceptionError as exc:
+        raise ObjectLoadError(f"object {ref.object_id}: the point cloud cannot be reconstructed: {exc}") from None

@@ -74,7 +74,7 @@ def _wait_for_planner(planner: Dispatcher) -> None:
                          "running and connected to the same router?)") from exc
 
 
-def _await(future: Future, connection: LeaseMonitor, timeout_s: float) -> Message:
+def _await(future: Future[Message], connection: LeaseMonitor, timeout_s: float) -> Message:
     """The planner's reply; PushOutcomeUnknown once the connection is lost, PushFailed("timeout") after `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while True:

@@ -25,13 +25,13 @@ import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from typing import IO, Any
 
 from mcap.decoder import DecoderFactory
 from mcap.exceptions import InvalidMagic
 from mcap.reader import make_reader
-from mcap.records import Attachment, Channel, Header, Metadata, Schema
+from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -66,7 +66,7 @@ class Record:
         return decode(self.payload, self.encoding)
 
 
-@lru_cache(maxsize=None)
+@cache
 def schema_for(model_name: str) -> bytes | None:
     """The JSON schema of a registered message model, or None if the name is unknown."""
     cls = MESSAGE_TYPES.get(model_name)
@@ -81,9 +81,10 @@ class McapWriter:
     Use as a context manager or call `close()`: an MCAP file without its footer is incomplete.
     """
 
-    def __init__(self, output: str | IO[bytes], *, chunk_bytes: int = DEFAULT_CHUNK_BYTES, compress: bool = True):
+    def __init__(self, output: str | os.PathLike[str] | IO[bytes], *, chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+                 compress: bool = True):
         self._owns_stream = isinstance(output, (str, os.PathLike))
-        self._stream: IO[bytes] = open(output, "wb") if self._owns_stream else output  # type: ignore[arg-type]
+        self._stream: IO[bytes] = open(output, "wb") if isinstance(output, (str, os.PathLike)) else output
         self._writer = Writer(
             self._stream,
             chunk_size=chunk_bytes,
@@ -150,7 +151,7 @@ class McapWriter:
         if self._owns_stream:
             self._stream.close()
 
-    def __enter__(self) -> "McapWriter":
+    def __enter__(self) -> McapWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -162,7 +163,7 @@ class McapWriter:
         if channel_id is None:
             model = model_name_from_encoding(encoding)
             schema_data = schema_for(model) if model else None
-            schema_id = self._schema(model, schema_data) if schema_data is not None else 0
+            schema_id = self._schema(model, schema_data) if model and schema_data is not None else 0
             channel_id = self._writer.register_channel(
                 topic=key,
                 message_encoding=MSGPACK_ENCODING if schema_id else encoding or "application/octet-stream",
@@ -226,7 +227,7 @@ class _ExactReads:
         return data
 
 
-def is_complete_mcap(path: str | os.PathLike) -> bool:
+def is_complete_mcap(path: str | os.PathLike[str]) -> bool:
     """True if the file opens with `make_reader` (magic, footer and summary all readable)."""
     try:
         with open(path, "rb") as stream:
@@ -236,7 +237,7 @@ def is_complete_mcap(path: str | os.PathLike) -> bool:
     return True
 
 
-def recover_mcap(source: str | os.PathLike, destination: str | os.PathLike, *,
+def recover_mcap(source: str | os.PathLike[str], destination: str | os.PathLike[str], *,
                  chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> Recovery:
     """Copy every complete record of a (possibly cut) MCAP file into a new, complete MCAP file.
 
@@ -253,7 +254,7 @@ def recover_mcap(source: str | os.PathLike, destination: str | os.PathLike, *,
         raise RecordingError(f"cannot open recording {source}: {exc.strerror}") from None
     with stream:
         records = StreamReader(_ExactReads(stream), validate_crcs=True).records  # type: ignore[arg-type]
-        first: object = None
+        first: McapRecord | None = None
         try:
             first = next(records)
         except (EOFError, StopIteration):  # cut before its first record: an empty recording

@@ -27,18 +27,22 @@ from __future__ import annotations
 import io
 import math
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar, cast
 
 import numpy as np
 import pybullet as pb
 import trimesh
+from numpy.typing import ArrayLike
 from PIL import Image
 
-from shared.frames import (
-    invert_transform, matrix_to_quat_xyzw, pose25_to_matrix, transform_points, yaw_rotation)
+from shared.frames import invert_transform, matrix_to_quat_xyzw, pose25_to_matrix, transform_points, yaw_rotation
 from shared.sim.scene import c_stdout_to_stderr, pos_quat_to_transform
+
+if TYPE_CHECKING:
+    from shared.hands import HandModel
 
 RGBA = tuple[float, float, float, float]
 
@@ -143,20 +147,21 @@ def mesh_item(name: str, mesh: trimesh.Trimesh, transform: np.ndarray, rgba: RGB
                     np.asarray(transform, dtype=np.float64), rgba)
 
 
-def hand_item(name: str, hand, pose_world: np.ndarray, rgba: RGBA | None) -> UrdfItem:
+def hand_item(name: str, hand: HandModel, pose_world: np.ndarray, rgba: RGBA | None) -> UrdfItem:
     """A hand (`shared.hands.HandModel`) at a 25-d pose [p, r6, q] given in the world."""
     base, joints = pose25_to_matrix(np.asarray(pose_world, dtype=np.float64))
-    return UrdfItem(name, Path(hand.urdf_path), base, dict(zip(hand.joint_names, (float(q) for q in joints))), rgba)
+    joint_values = dict(zip(hand.joint_names, (float(q) for q in joints), strict=False))
+    return UrdfItem(name, Path(hand.urdf_path), base, joint_values, rgba)
 
 
-def candidate_items(name: str, hand, pose_world: np.ndarray) -> list[PointsItem]:
+def candidate_items(name: str, hand: HandModel, pose_world: np.ndarray) -> list[PointsItem]:
     """The hand's contact candidates at a world pose, one PointsItem per region kind (tip, finger, palm)."""
     import torch  # only needed here: the renderer itself is numpy + PyBullet
 
     with torch.no_grad():
         state = hand.forward(torch.as_tensor(np.asarray(pose_world), dtype=torch.float32).reshape(1, -1))
-        points, _ = hand.contact_candidates_world(state)
-    points = points[0].double().numpy()
+        candidates_world, _ = hand.contact_candidates_world(state)
+    points = candidates_world[0].double().numpy()
     cands = hand.contact_candidates
     kinds = np.array([region.split(":", 1)[0] for region in cands.region_names])[cands.region_index.numpy()]
     return [PointsItem(f"{name} {kind} candidates", points[kinds == kind], rgba)
@@ -308,10 +313,10 @@ class RenderWorld:
             pb.disconnect(physicsClientId=self.client)
             self.client = -1
 
-    def __enter__(self) -> "RenderWorld":
+    def __enter__(self) -> RenderWorld:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------------------------ rendering
@@ -362,7 +367,8 @@ class RenderWorld:
         for body, (position, orientation) in poses.items():
             pb.resetBasePositionAndOrientation(body, position, orientation, physicsClientId=self.client)
         blended = pixel_alpha[..., None] * rgb + (1.0 - pixel_alpha[..., None]) * behind
-        return np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+        blended_rgb: np.ndarray = np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+        return blended_rgb
 
     # ------------------------------------------------------------------------------------ bodies
 
@@ -395,7 +401,8 @@ class RenderWorld:
         if shape < 0:
             raise RenderError(f"PyBullet rejected a mesh of {len(vertices)} vertices")
         position, quaternion = _pos_quat(transform)
-        return pb.createMultiBody(0.0, -1, shape, position, quaternion, physicsClientId=self.client)
+        body: int = pb.createMultiBody(0.0, -1, shape, position, quaternion, physicsClientId=self.client)
+        return body
 
     def _add_urdf(self, item: UrdfItem) -> int:
         path = Path(item.urdf_path)
@@ -403,7 +410,7 @@ class RenderWorld:
             raise RenderError(f"{item.name}: URDF not found: {path}")
         try:
             with c_stdout_to_stderr():
-                body = pb.loadURDF(str(path), physicsClientId=self.client)
+                body: int = pb.loadURDF(str(path), physicsClientId=self.client)
         except pb.error as exc:
             raise RenderError(f"{item.name}: PyBullet cannot load {path}: {exc}") from exc
         # PyBullet's base pose is the base's centre-of-mass frame (DESIGN.md §6).
@@ -439,8 +446,8 @@ class RenderWorld:
         shaft = trimesh.creation.box([length - head, item.width_m, 0.002])
         shaft.apply_translation([(length - head) / 2, 0.0, 0.0])
         tip = [(length, 0.0), (length - head, 1.5 * item.width_m), (length - head, -1.5 * item.width_m)]
-        head_mesh = trimesh.convex.convex_hull([(x, y, z) for x, y in tip for z in (-0.001, 0.001)])
-        arrow = trimesh.util.concatenate([shaft, head_mesh])
+        head_mesh = trimesh.convex.convex_hull(np.array([(x, y, z) for x, y in tip for z in (-0.001, 0.001)]))
+        arrow = cast(trimesh.Trimesh, trimesh.util.concatenate([shaft, head_mesh]))  # meshes in, a mesh out
         yaw = math.atan2(*(end - start)[::-1])
         transform = _translation([start[0], start[1], 0.0015])
         transform[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
@@ -483,7 +490,7 @@ class RenderWorld:
         with tempfile.TemporaryDirectory(prefix="gd2p-render-") as directory:
             path = Path(directory) / "grid.png"
             Image.fromarray(image).save(path)
-            texture = pb.loadTexture(str(path), physicsClientId=self.client)
+            texture: int = pb.loadTexture(str(path), physicsClientId=self.client)
         if texture < 0:
             raise RenderError("PyBullet could not load the table texture")
         return texture
@@ -520,7 +527,7 @@ def _joint_indices(body: int, client: int) -> dict[str, int]:
     return out
 
 
-def _translation(xyz) -> np.ndarray:
+def _translation(xyz: ArrayLike) -> np.ndarray:
     out = np.eye(4)
     out[:3, 3] = xyz
     return out
@@ -544,11 +551,11 @@ def render_views(items: Sequence[Item], views: Sequence[View | str] = DEFAULT_VI
                  heading_deg: float = 0.0, *, table: bool = True, supersample: int = 2,
                  frame_points: np.ndarray | None = None) -> list[RenderedView]:
     """Render the items from each view at `size` = (width, height) pixels (see RenderWorld for the options)."""
-    views = [views_by_name([v])[0] if isinstance(v, str) else v for v in views]
-    if not views:
+    resolved = [views_by_name([v])[0] if isinstance(v, str) else v for v in views]
+    if not resolved:
         raise RenderError("at least one view is needed")
     with RenderWorld(items, heading_deg=heading_deg, table=table, frame_points=frame_points) as world:
-        return [world.render(view, size[0], size[1], supersample) for view in views]
+        return [world.render(view, size[0], size[1], supersample) for view in resolved]
 
 
 def picture_size(view_count: int, size: tuple[int, int], columns: int | None = None, *, title: str = "",
@@ -579,7 +586,13 @@ def compose_png(rendered: Sequence[RenderedView], out: str | Path, *, title: str
     width, height = picture_size(len(rendered), (tile_w, tile_h), columns, title=title, legend=legend)
     header = _header_layout(width, title, legend)
     figure = plt.figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI, facecolor="white")
-    px_x, px_y = (lambda x: x / width), (lambda y: 1.0 - y / height)  # header pixels (from the top-left) -> figure
+
+    def px_x(x: float) -> float:  # header pixels (from the top-left) -> figure
+        return x / width
+
+    def px_y(y: float) -> float:
+        return 1.0 - y / height
+
     try:
         for index, view in enumerate(rendered):
             row, col = divmod(index, columns)
@@ -597,9 +610,9 @@ def compose_png(rendered: Sequence[RenderedView], out: str | Path, *, title: str
         for line in header.title_lines:
             figure.text(px_x(_PAD_PX), px_y(y), line, fontsize=_TITLE_PT, fontweight="bold", va="top", ha="left")
             y += _TITLE_LINE_PX
-        for row in header.legend_rows:
-            x = _PAD_PX
-            for entry in row:
+        for legend_row in header.legend_rows:
+            x: float = _PAD_PX
+            for entry in legend_row:
                 figure.add_artist(Rectangle((px_x(x), px_y(y + _SWATCH_PX + 3)), px_x(_SWATCH_PX) - px_x(0),
                                             _SWATCH_PX / height, facecolor=entry.rgba[:3], edgecolor="black",
                                             linewidth=0.5, transform=figure.transFigure))
@@ -682,8 +695,12 @@ def _header_layout(width: int, title: str, legend: Sequence[LegendEntry]) -> _He
     return _HeaderLayout([" · ".join(line) for line in title_lines], rows)
 
 
-def _fill_lines(pieces: list, line_width, available: float) -> list[list]:
-    lines: list[list] = []
+_Piece = TypeVar("_Piece")
+
+
+def _fill_lines(pieces: list[_Piece], line_width: Callable[[list[_Piece]], float],
+                available: float) -> list[list[_Piece]]:
+    lines: list[list[_Piece]] = []
     for piece in pieces:
         if lines and line_width(lines[-1] + [piece]) <= available:
             lines[-1].append(piece)

@@ -49,7 +49,8 @@ class WorkspaceBox:
     lower: tuple[float, float, float]
     upper: tuple[float, float, float]
 
-    def contains(self, points: np.ndarray) -> np.ndarray:
+    def contains(self, points: np.ndarray) -> np.ndarray | np.bool_:
+        """Per point [..., 3]: inside the box (a numpy bool for a single point)."""
         points = np.asarray(points)
         return ((points >= np.asarray(self.lower)) & (points <= np.asarray(self.upper))).all(axis=-1)
 
@@ -82,7 +83,7 @@ class RobotLimits:
         workspace: WorkspaceBox | None = DEFAULT_WORKSPACE,
         velocity_scale: float = 1.0,
         T_world_base: np.ndarray | None = None,
-    ) -> "RobotLimits":
+    ) -> RobotLimits:
         """Limits from the URDFs of `arm` and `hand`; velocities scaled by `velocity_scale` (0, 1]."""
         if not 0.0 < velocity_scale <= 1.0:
             raise ValueError(f"velocity_scale must be in (0, 1], got {velocity_scale}")
@@ -147,15 +148,19 @@ class RobotLimits:
                                  f"moves {speed[step, joint]:.3f} rad/s > {self.velocity[joint]:.3f} rad/s")
 
     def check_workspace(self, positions: np.ndarray, times: np.ndarray) -> None:
-        """Flange and hand base inside the box at every given waypoint (densify the path first)."""
+        """Flange and hand base inside the box at every given waypoint (densify the path first).
+        Nothing to check without a box (`workspace` None)."""
+        workspace = self.workspace
+        if workspace is None:
+            return
         points = self.tool_points(positions[:, : self.arm.dof])
-        outside = ~self.workspace.contains(points)  # [T, 2]
+        outside = ~np.asarray(workspace.contains(points))  # [T, 2]
         if outside.any():
             step, which = _first(outside)
             name = (f"flange ({self.arm.flange_link})", "hand base")[which]
             raise LimitViolation("workspace box", name, times[step],
                                  f"is at {np.round(points[step, which], 3).tolist()} m, outside the box "
-                                 f"{list(self.workspace.lower)} .. {list(self.workspace.upper)}")
+                                 f"{list(workspace.lower)} .. {list(workspace.upper)}")
 
     def tool_points(self, arm_positions: np.ndarray) -> np.ndarray:
         """World positions [T, 2, 3] of the flange and the hand base for arm joints [T, dof]."""
@@ -188,4 +193,5 @@ def densify(positions: np.ndarray, times: np.ndarray, max_step_rad: float) -> tu
 
 def _first(mask: np.ndarray) -> tuple[int, int]:
     """(row, column) of the first True in row-major order (the earliest waypoint)."""
-    return divmod(int(np.argmax(mask.reshape(-1))), mask.shape[1])
+    row_column: tuple[int, int] = divmod(int(np.argmax(mask.reshape(-1))), mask.shape[1])
+    return row_column

@@ -67,7 +67,7 @@ def test_arm_kinematics_match_pybullet(name):
     q = random_joints(arm.joint_lower, arm.joint_upper, 3, seed=0)
     links = arm.forward(q)
     for b in range(len(q)):
-        expected = pybullet_link_frames(arm.urdf_path, dict(zip(arm.joint_names, q[b].tolist())))
+        expected = pybullet_link_frames(arm.urdf_path, dict(zip(arm.joint_names, q[b].tolist(), strict=True)))
         ours = {link: links[b, i].double().numpy() for i, link in enumerate(arm.link_names)}
         assert_frames_match(ours, expected)
 
@@ -116,8 +116,8 @@ def test_combined_urdf_kinematics_match_pybullet_and_compose_with_the_mount(arm_
 
     q_arm = random_joints(arm.joint_lower, arm.joint_upper, 2, seed=1)
     q_hand = random_joints(hand.joint_lower, hand.joint_upper, 2, seed=2)
-    values = [dict(zip(arm.joint_names, a.tolist())) | dict(zip(hand.joint_names, h.tolist()))
-              for a, h in zip(q_arm, q_hand)]
+    values = [dict(zip(arm.joint_names, a.tolist(), strict=True)) | dict(zip(hand.joint_names, h.tolist(), strict=True))
+              for a, h in zip(q_arm, q_hand, strict=True)]
     frames = chain.forward_kinematics_tensor(torch.tensor([[v[n] for n in joint_names] for v in values]))
     for b in range(2):
         ours = {chain.idx_to_frame[i]: frames[i, b].double().numpy() for i in range(frames.shape[0])}

@@ -441,6 +441,6 @@ def test_connect_all_leaves_nothing_half_connected(dxl_bus):
 
     hand = LeapBackend(dxl_bus.port_name)
     arm = XArmBackend("127.0.0.1")  # nothing listens on the xArm's port here: connection refused
-    with pytest.raises(DeviceUnavailable, match="xArm at 127.0.0.1"):
+    with pytest.raises(DeviceUnavailable, match=r"xArm at 127\.0\.0\.1"):
         connect_all([Device(hand, LEAP_LIMITS), Device(arm, XARM7_LIMITS)])
     assert not hand.connected and not dxl_bus.motor(0).torque_on  # the hand that did connect was let go

@@ -17,16 +17,16 @@ import pytest
 pytest.importorskip("xarm")
 pytest.importorskip("dynamixel_sdk")
 
-import zenoh  # noqa: E402
+import zenoh
 
-from services.robot_bridge.adapters.leap import LeapBackend  # noqa: E402
-from services.robot_bridge.adapters.xarm import XArmBackend  # noqa: E402
-from services.robot_bridge.backend import MotionStopped  # noqa: E402
-from services.robot_bridge.devsim import dynamixel as dx  # noqa: E402
-from services.robot_bridge.devsim.dynamixel import DynamixelBus  # noqa: E402
-from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api  # noqa: E402
-from services.robot_bridge import safety  # noqa: E402
-from services.robot_bridge.safety import (  # noqa: E402
+from services.robot_bridge import safety
+from services.robot_bridge.adapters.leap import LeapBackend
+from services.robot_bridge.adapters.xarm import XArmBackend
+from services.robot_bridge.backend import MotionStopped
+from services.robot_bridge.devsim import dynamixel as dx
+from services.robot_bridge.devsim.dynamixel import DynamixelBus
+from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api
+from services.robot_bridge.safety import (
     ESTOP_KEY,
     LEAP_LIMITS,
     XARM7_LIMITS,
@@ -36,12 +36,13 @@ from services.robot_bridge.safety import (  # noqa: E402
     SafetyRefusal,
     check_command_lease,
 )
-from shared.bus.keys import alive_key  # noqa: E402
-from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present  # noqa: E402
-from shared.codec import encode  # noqa: E402
-from shared.messages import EStop, ErrorReply, ExecutionCommand, Plan  # noqa: E402
+from shared.bus.keys import alive_key
+from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present
+from shared.codec import encode
+from shared.messages import ErrorReply, EStop, ExecutionCommand, Plan
 
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
+HAND_OPEN = np.zeros(16)
 LEASE = lease_key("planner", "planner-test.1")
 STOP_BOUND_S = 0.5  # the target is 0.2 s; slack for a loaded 2-core CI machine
 
@@ -123,8 +124,8 @@ def planner(zenoh_router):
     session.close()
 
 
-def plan(arm_goal=XARM_HOME, hand_goal=np.zeros(16), duration_s=0.6, steps=4, arm_start=XARM_HOME,
-         hand_start=np.zeros(16)) -> Plan:
+def plan(arm_goal=XARM_HOME, hand_goal=HAND_OPEN, duration_s=0.6, steps=4, arm_start=XARM_HOME,
+         hand_start=HAND_OPEN) -> Plan:
     alphas = np.linspace(0.0, 1.0, steps)[:, None]
     start = np.concatenate([arm_start, hand_start])
     goal = np.concatenate([np.asarray(arm_goal, dtype=float), np.asarray(hand_goal, dtype=float)])
@@ -228,7 +229,9 @@ def test_a_live_token_that_is_not_a_planner_lease_commands_nothing(robot, zenoh_
     other = client(zenoh_router)  # e.g. the recorder's session, or a client's lease: alive, but no planner lease
     try:
         token = other.liveliness().declare_token(key)
-        assert lease_present(robot.session, key, 1.0)  # the token is there ...
+        deadline = time.monotonic() + 5.0  # the token is there (a single query may come back empty) ...
+        while not lease_present(robot.session, key, 1.0):
+            assert time.monotonic() < deadline, f"the token on {key} never showed up"
         state = robot.executor.execute(command(plan(XARM_HOME + 0.1), lease=key))  # ... and commands nothing
         token.undeclare()
     finally:

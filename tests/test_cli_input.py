@@ -7,11 +7,22 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from cli.args import (FlagError, describe_validation_error, finite_float, float_range, non_negative_float,
-                      non_negative_int, positive_float, positive_int, probability, validate_fields)
+from cli.args import (
+    FlagError,
+    describe_validation_error,
+    finite_float,
+    float_range,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    probability,
+    validate_fields,
+)
 from cli.main import main as gd2p
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,3 +140,20 @@ def test_dataset_build_rejects_a_job_the_generator_would_refuse_before_creating_
     assert code == 2
     assert capsys.readouterr().err.strip() == "gd2p dataset build: --per-object: must be <= 4096, got 5000"
     assert not out.exists()
+
+
+def test_push_and_sample_refuse_a_bad_cloud_before_anything_runs(capsys, tmp_path):
+    assert gd2p(["push", "--cloud", str(tmp_path / "missing.ply"), "--direction-deg", "0"]) == 2
+    assert "missing.ply: no such file" in capsys.readouterr().err
+    millimetres = tmp_path / "mm.npy"
+    np.save(millimetres, np.random.default_rng(0).uniform(0, 500, (1000, 3)))  # a scan in millimetres
+    assert gd2p(["push", "--cloud", str(millimetres), "--direction-deg", "0"]) == 2
+    assert "millimetres" in capsys.readouterr().err
+    good = tmp_path / "ok.npy"
+    np.save(good, np.random.default_rng(0).uniform(0, 0.5, (1000, 3)))
+    assert gd2p(["push", "--cloud", str(good), "--position", "0.5", "0", "--direction-deg", "0"]) == 2
+    assert "the point cloud shows where the object stands" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # an object and a cloud at once
+        gd2p(["push", "--cloud", str(good), "--object", "proc-box-001", "--direction-deg", "0"])
+    assert gd2p(["sample", "--cloud", str(tmp_path / "missing.pcd"), "--hand", "allegro"]) == 2
+    assert "missing.pcd: no such file" in capsys.readouterr().err

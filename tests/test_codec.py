@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import sys
 from pathlib import Path
 
@@ -96,7 +97,7 @@ def plans(draw) -> m.Plan:
     bounds = [0, *cuts, steps]
     segments = [
         m.PlanSegment(label=draw(st.sampled_from(["approach", "push", "retreat"])), start=a, stop=b)
-        for a, b in zip(bounds, bounds[1:])
+        for a, b in itertools.pairwise(bounds)
         if b > a
     ]
     return m.Plan(
@@ -183,7 +184,9 @@ def sample_responses(draw) -> m.SampleResponse:
 def push_requests(draw) -> m.PushRequest:
     hand, arm = draw(pairs)
     target = {"direction_deg": draw(finite)} if draw(st.booleans()) else {"goal_xy": draw(st.tuples(finite, finite))}
-    return m.PushRequest(object=draw(object_refs), object_pose=draw(st.none() | object_poses), distance_m=draw(st.floats(1e-3, 1.0)),
+    obj = draw(object_refs)  # a point cloud shows where the object stands: it comes without a pose
+    pose = None if obj.point_cloud is not None else draw(st.none() | object_poses)
+    return m.PushRequest(object=obj, object_pose=pose, distance_m=draw(st.floats(1e-3, 1.0)),
                          hand=hand, arm=arm, obstacles=draw(obstacles), k=draw(st.integers(1, 1000)), choice=draw(st.sampled_from(["ranked", "unranked", "random"])),
                          max_steps=draw(st.integers(1, 100)), seed=draw(seeds), **target)
 

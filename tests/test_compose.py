@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
-import json
 import importlib.util
+import json
 import re
 from pathlib import Path, PurePosixPath
 

@@ -165,7 +165,7 @@ def test_verify_rejects_a_manifest_whose_content_hash_does_not_match_its_rows(tm
     manifest = _manifest_on_disk(out)
     manifest["content_hash"] = "0" * 64  # e.g. a store written by a build before this fix, killed mid-run
     (out / MANIFEST_NAME).write_text(json.dumps(manifest))
-    with pytest.raises(StoreError, match="content_hash .* is not the hash of the stored rows"):
+    with pytest.raises(StoreError, match=r"content_hash .* is not the hash of the stored rows"):
         DatasetStore.open(out).verify()
 
 
@@ -208,10 +208,10 @@ def test_object_selection_is_a_fixed_order_that_larger_builds_extend():
 @pytest.fixture(scope="module")
 def bus():
     """A router with one generator and one validator worker (threads of this process)."""
+    from deploy.launcher import free_loopback_endpoint
     from services.generator import service as generator_service
     from services.validator import service as validator_service
     from shared.bus import BusConfig, open_session, run_worker
-    from deploy.launcher import free_loopback_endpoint
 
     endpoint = free_loopback_endpoint()
     router = open_session(BusConfig(mode="router", listen=[endpoint], connect=[]))

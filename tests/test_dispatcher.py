@@ -8,7 +8,7 @@ from collections import Counter
 import pytest
 
 import bus_test_workers as tw
-from shared.bus import BusConfig, BusError, DispatchError, Dispatcher, RemoteError, alive_key, job_key, open_session
+from shared.bus import BusConfig, BusError, Dispatcher, DispatchError, RemoteError, alive_key, job_key, open_session
 from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply
 
 pytestmark = pytest.mark.timeout(60)
@@ -129,7 +129,7 @@ def test_a_job_past_its_deadline_is_answered_once_not_redispatched(session, two_
     with Dispatcher(session, tw.SERVICE, timeout_s=2.0, max_attempts=3) as dispatcher:
         dispatcher.wait_for_workers(2, timeout=10)
         started = time.monotonic()
-        with pytest.raises(RemoteError, match="did not finish within its deadline of 1.8 s") as info:
+        with pytest.raises(RemoteError, match=r"did not finish within its deadline of 1\.8 s") as info:
             dispatcher.call(tw.BusTestJob(text="endless", spin_s=30), timeout=10)
         assert info.value.code == "timeout"
         assert time.monotonic() - started < 3.0  # the worker answered before the query timed out

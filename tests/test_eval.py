@@ -69,6 +69,27 @@ def test_every_method_faces_the_same_execution_world_and_trials_differ():
         protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 3, world="exact")).pose_error
 
 
+def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
+    from evaluation.local_system import LocalRobot
+    from shared.messages import SimWorld
+    from shared.sim.world import PoseError
+
+    episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0, cameras=1)
+    request = protocol.push_request(episode)
+    assert request.object.point_cloud is not None and request.object_pose is None
+    assert np.array_equal(protocol.captured_cloud(episode), request.object.point_cloud.to_numpy())  # seeded
+    world = protocol.execution_world(episode)
+    assert world.cameras == 1 and world.pose_error == PoseError()  # perception brings its own pose error
+    robot = LocalRobot()
+    robot.execution_world = world
+    robot.true_object = (ObjectRef(library_id="proc-box-001"), protocol.placement(episode))
+    told = SimWorld(object=request.object, object_pose=object_pose(np.eye(4)))
+    true_world, execution = robot._true_world(told)
+    assert true_world.object.library_id == "proc-box-001"
+    assert np.allclose(pose_matrix(true_world.object_pose), protocol.placement(episode))
+    assert execution.physics == world.physics
+
+
 def test_a_trial_is_judged_from_where_the_object_truly_started():
     """Told pose off by 2 cm: an object pushed exactly 0.20 m from its true start succeeds, although it
     ends 2 cm from the target the planner computed from the told pose."""

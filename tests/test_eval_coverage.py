@@ -16,9 +16,9 @@ from evaluation.coverage import (
 from evaluation.data_size import object_subset
 from evaluation.store import ResultStore, ResultStoreError
 from services.validator.augment import halton_perturbations
-from shared.fixed_poses import spatula_pose
 from services.validator.push import table_object
 from services.validator.validator import Validator
+from shared.fixed_poses import spatula_pose
 from shared.hands import load_hand
 from shared.objects import load_object, split_of
 
@@ -88,7 +88,7 @@ def test_early_stopping_never_changes_any_success_on_random_outcomes():
         outcomes = rng.random(n) < rng.choice([0.0, 0.02, 0.2])
         pushed: list[int] = []
 
-        def push(start: int, stop: int) -> list[bool]:
+        def push(start: int, stop: int, pushed: list[int] = pushed, outcomes: np.ndarray = outcomes) -> list[bool]:
             pushed.extend(range(start, stop))
             return list(outcomes[start:stop])
 

@@ -235,7 +235,7 @@ def test_contact_sampling_is_distinct_and_avoids_excluded_indices():
     generator = torch.Generator().manual_seed(0)
     current = sample_contacts(10, 500, 4, generator)
     fresh = sample_contacts(10, 500, 4, generator, exclude=current)
-    for row, old in zip(fresh.tolist(), current.tolist()):
+    for row, old in zip(fresh.tolist(), current.tolist(), strict=True):
         assert len(set(row)) == 4 and not set(row) & set(old)
     with pytest.raises(ValueError):
         sample_contacts(6, 1, 4, generator, exclude=current[:1])

@@ -21,8 +21,8 @@ from deploy import scale_validators
 from deploy.launcher import (
     MAX_SCALE_ENV,
     SERVICES,
-    LaunchError,
     Launcher,
+    LaunchError,
     default_scale_limits,
     free_loopback_endpoint,
     request_scale,

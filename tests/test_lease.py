@@ -15,8 +15,8 @@ import time
 
 import pytest
 import zenoh
-from conftest import free_port, router_config
 
+from conftest import free_port, router_config
 from shared.bus import BusConfig, open_session
 from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, lease_alive, lease_key, parse_lease_key
 

@@ -7,11 +7,11 @@ import torch
 
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
-from shared.robot_limits import RobotLimits
 from shared.fixed_poses import spatula_pose
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
 from shared.hands import load_hand
 from shared.objects import load_object, write_object_urdf
+from shared.robot_limits import RobotLimits
 from shared.sim.robot_scene import Collision, RobotScene
 
 torch.set_num_threads(1)
@@ -64,7 +64,7 @@ def hand_above_box(height_m: float) -> np.ndarray:
 
 def interpolate_path(path: np.ndarray, max_step_rad: float) -> np.ndarray:
     states = [path[:1]]
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=True):
         steps = max(1, int(np.ceil(np.abs(b - a).max() / max_step_rad)))
         states.append(a + np.linspace(0.0, 1.0, steps + 1)[1:, None] * (b - a))
     return np.concatenate(states)
@@ -286,6 +286,6 @@ def test_multi_step_pushes_replan_from_the_observed_position_until_the_goal():
     assert np.linalg.norm(result.positions[-1] - goal) <= 0.03
     assert all(np.linalg.norm(b - a) <= 0.2 + 1e-9 for a, b in pushes)
     # Every push started where the previous one was observed to end (re-planning, not the old path).
-    assert all(np.allclose(a, observed) for (a, _), observed in zip(pushes, result.positions[:-1]))
+    assert all(np.allclose(a, observed) for (a, _), observed in zip(pushes, result.positions[:-1], strict=True))
     travelled = interpolate_path(np.array(result.positions), 0.001)
     assert (np.linalg.norm(travelled - np.array(obstacle[:2]), axis=1) - obstacle[2]).min() > object_radius

@@ -13,6 +13,8 @@ import torch
 import trimesh
 
 from shared.bps import BasisPointSet
+from shared.messages import MeshBlob, ObjectRef
+from shared.object_refs import load_object_ref, uploaded_mesh_path
 from shared.objects import (
     FAMILIES,
     HELD_OUT_PER_FAMILY,
@@ -28,8 +30,6 @@ from shared.objects import (
     split_of,
     write_object_urdf,
 )
-from shared.messages import MeshBlob, ObjectRef
-from shared.object_refs import load_object_ref, uploaded_mesh_path
 from shared.objects.cache import cache_root
 from shared.objects.model import load_library_object
 from shared.objects.procedural import procedural_spec
@@ -110,7 +110,7 @@ def test_box_rests_on_the_table_with_its_centre_over_d(cache):
     a, b, height = procedural_spec(obj.id).dims
     assert obj.watertight and not obj.mass_from_voxels
     assert obj.default_pose.height == pytest.approx(height / 2, abs=1e-9)
-    for index, pose in enumerate(obj.resting_poses):
+    for index in range(len(obj.resting_poses)):
         mesh = obj.mesh_in_d(index, yaw_rad=0.7)
         assert mesh.bounds[0, 2] == pytest.approx(0.0, abs=1e-9)  # lowest point on the table
         np.testing.assert_allclose(mesh.center_mass[:2], 0.0, atol=1e-9)  # centroid over D's origin

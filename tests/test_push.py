@@ -98,6 +98,36 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
         assert image.size[0] >= 3 * 320 and np.asarray(image).std() > 10  # three rendered frames, not blank
 
 
+def test_a_point_cloud_is_pushed_through_the_system_and_recorded(system):
+    """The object as three simulated depth cameras see it: the request carries the cloud, every service
+    uses one reconstruction (cached by the cloud's content), the MCAP shows the cloud."""
+    from mcap.reader import make_reader
+
+    from shared.object_refs import captured_object
+    from shared.objects import load_object
+    from shared.perception import cloud_for_request
+    from shared.sim.camera import capture_object
+
+    cfg, _ = system
+    box = load_object(BOX)
+    T_world_O = box.T_D_O()
+    T_world_O[:2, 3] = (0.55, 0.0)
+    cloud = cloud_for_request(capture_object(box, T_world_O, n_cameras=3, seed=1, size=(212, 120)).cloud)
+    ref = ObjectRef(point_cloud=cloud)
+    response = push(PushRequest(object=ref, direction_deg=90.0, method="fixed", choice="random"), cfg, timeout_s=240.0)
+    captured = captured_object(ref)
+    assert captured.from_cache  # reconstructed once, by the first service handed the cloud
+    assert np.allclose(captured.T_world_O[:2, 3], (0.55, 0.0), atol=0.01)  # where the cloud shows the box
+    moved = np.asarray(response.result.final_object_pose.position[:2]) - captured.T_world_O[:2, 3]
+    assert response.success and np.allclose(moved, (0.0, 0.20), atol=0.03), response.result
+    with open(response.recording_path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    channels = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert channels["/cloud"] == "foxglove.PointCloud" and channels["/scene"] == "foxglove.SceneUpdate"
+    with pytest.raises(ValueError, match="leave object_pose empty"):
+        PushRequest(object=ref, object_pose=ObjectPose(position=(0.5, 0.0, 0.04)), direction_deg=90.0)
+
+
 def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
     cfg, _ = system
     request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, method="fixed", choice="random")

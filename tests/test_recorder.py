@@ -19,8 +19,16 @@ from mcap.reader import make_reader
 from services.recorder.recorder import RecorderError, RotatingRecorder, recover_unfinished
 from shared import messages as m
 from shared.codec import CodecError, decode, encode
-from shared.recording import (MessageDecoderFactory, McapWriter, Record, RecordingError, is_complete_mcap, read_records,
-                              recover_mcap, replay)
+from shared.recording import (
+    McapWriter,
+    MessageDecoderFactory,
+    Record,
+    RecordingError,
+    is_complete_mcap,
+    read_records,
+    recover_mcap,
+    replay,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 RAW_ENCODING = "text/plain"
@@ -183,7 +191,7 @@ def test_a_cut_recording_is_recovered_when_the_recorder_starts(tmp_path, caplog)
     (record_dir / "gd2p-20250101T000000Z-0002.mcap").write_bytes(data_b)
     (record_dir / "gd2p-20250101T000000Z-0004.mcap.part").write_bytes(b"")  # killed before the header was flushed
     (record_dir / "gd2p-20250101T000000Z-0005.mcap.part").write_bytes(b"not an mcap file at all")
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - whatever the mcap reader raises: the point is it cannot read it
         _reader_messages(record_dir / "gd2p-20250101T000000Z-0003.mcap.part")  # the reason for all this
 
     with caplog.at_level("INFO", logger="gd2p.recorder"):
@@ -343,7 +351,7 @@ def test_a_sigkilled_recorders_file_is_recovered_by_the_next_start(zenoh_router,
             proc.kill()
             proc.wait()
     [part] = list(tmp_path.glob("*.mcap.part"))
-    with pytest.raises(Exception):
+    with pytest.raises(Exception):  # noqa: B017 - whatever the mcap reader raises: the point is it cannot read it
         list(read_records(str(part)))  # unreadable as it is
 
     again = _start_recorder(zenoh_router, tmp_path, "rec-again")

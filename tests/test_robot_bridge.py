@@ -2,22 +2,22 @@
 from __future__ import annotations
 
 import threading
-from dataclasses import replace
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
-from conftest import free_port, router_config
 
+from conftest import free_port, router_config
 from services.planner.motion import MotionPlanner
 from services.robot_bridge.backend import MotionStopped
-from shared.robot_limits import WorkspaceBox
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor
 from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.hands import load_hand
 from shared.messages import ExecutionState, Plan
 from shared.objects import load_object, write_object_urdf
+from shared.robot_limits import WorkspaceBox
 from shared.sim.robot_scene import RobotScene
 
 torch.set_num_threads(1)

@@ -14,12 +14,11 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-
-from pose_store import write_pose_store
 import pytest
 import torch
 import trimesh
 
+from pose_store import write_pose_store
 from services.sampler.checkpoint import CheckpointError, load_checkpoint, manifest_path, save_checkpoint
 from services.sampler.dataset import (
     DatasetError,

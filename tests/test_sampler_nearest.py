@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-from pose_store import write_pose_store
 import pytest
 
+from pose_store import write_pose_store
 from services.sampler.nearest_neighbor import (
     NearestNeighborBaseline,
     NearestNeighborSampler,

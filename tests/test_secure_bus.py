@@ -26,17 +26,18 @@ pytest.importorskip("cryptography")
 pytest.importorskip("xarm")
 pytest.importorskip("dynamixel_sdk")
 
-import zenoh  # noqa: E402
+import zenoh
 
-from deploy.launcher import SERVICES, LaunchError, Launcher, request_scale  # noqa: E402
-from deploy.secure import CertificateError, prepare  # noqa: E402
-from deploy.secure import profile as acl  # noqa: E402
-from deploy.secure.certs import IDENTITIES, generate  # noqa: E402
-from services.robot_bridge.adapters.leap import LeapBackend  # noqa: E402
-from services.robot_bridge.adapters.xarm import XArmBackend  # noqa: E402
-from services.robot_bridge.devsim.dynamixel import DynamixelBus  # noqa: E402
-from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api  # noqa: E402
-from services.robot_bridge.safety import (  # noqa: E402
+from conftest import free_port
+from deploy.launcher import SERVICES, Launcher, LaunchError, request_scale
+from deploy.secure import CertificateError, prepare
+from deploy.secure import profile as acl
+from deploy.secure.certs import IDENTITIES, generate
+from services.robot_bridge.adapters.leap import LeapBackend
+from services.robot_bridge.adapters.xarm import XArmBackend
+from services.robot_bridge.devsim.dynamixel import DynamixelBus
+from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api
+from services.robot_bridge.safety import (
     COMMAND_KEY,
     ESTOP_KEY,
     LEAP_LIMITS,
@@ -44,11 +45,18 @@ from services.robot_bridge.safety import (  # noqa: E402
     Device,
     SafeExecutor,
 )
-from shared.bus import Dispatcher, RemoteError, ServiceError, Worker, health, live_workers  # noqa: E402
-from shared.bus import keys  # noqa: E402
-from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key  # noqa: E402
-from shared.codec import decode, encode  # noqa: E402
-from shared.messages import (  # noqa: E402
+from shared.bus import (
+    Dispatcher,
+    RemoteError,
+    ServiceError,
+    Worker,
+    health,
+    keys,
+    live_workers,
+)
+from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key
+from shared.codec import decode, encode
+from shared.messages import (
     EStop,
     ExecutionCommand,
     ExecutionState,
@@ -59,7 +67,6 @@ from shared.messages import (  # noqa: E402
     ScaleReply,
     WorkerStatus,
 )
-from conftest import free_port  # noqa: E402
 
 HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
 

@@ -10,15 +10,15 @@ import pytest
 import trimesh
 
 from services.validator.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRANSLATION_M, halton_perturbations
-from shared.fixed_poses import SPATULA_GAP_M, spatula_pose
 from services.validator.push import PushSimulator, table_object
 from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
 from shared.bus import BusConfig, ServiceError, Worker, job_key, live_workers, open_session
 from shared.bus.worker import timeout_attachment
+from shared.codec import decode, encode
+from shared.fixed_poses import SPATULA_GAP_M, spatula_pose
 from shared.frames import make_transform, pose25_to_matrix
 from shared.hands import load_hand
-from shared.codec import decode, encode
 from shared.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
 from shared.objects import load_object
 from shared.push_outcome import object_pose

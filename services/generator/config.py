@@ -148,7 +148,7 @@ class GenerationConfig:
         """Weights with the push terms zeroed when `grasp_only`."""
         return {t: (w if t in self.active_terms else 0.0) for t, w in self.weights.as_dict().items()}
 
-    def replace(self, **changes) -> "GenerationConfig":
+    def replace(self, **changes) -> GenerationConfig:
         """A copy with some fields changed (None values are ignored, so optional CLI flags pass through)."""
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 

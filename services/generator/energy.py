@@ -21,10 +21,9 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from services.generator.config import TERMS, GenerationConfig
 from shared.hands import HandModel, HandState
 from shared.hands.primitives import surface_samples
-
-from services.generator.config import TERMS, GenerationConfig
 
 _FAR_AWAY_M = 1.0e3  # distance reported for points that no primitive's bounding sphere reaches
 _SURFACE_SAMPLE_SEED = 1234
@@ -68,7 +67,7 @@ def contact_distance(distance: torch.Tensor, offset_m: float) -> torch.Tensor:
     return (distance - offset_m).abs().sum(-1)
 
 
-def object_penetration(geometry: "HandGeometry", state: HandState, scene: ObjectField, margin_m: float = 0.0,
+def object_penetration(geometry: HandGeometry, state: HandState, scene: ObjectField, margin_m: float = 0.0,
                        clearance: torch.Tensor | None = None) -> torch.Tensor:
     """E_pen,obj = sum_j max(0, m - sd_hand(o_j)): object surface points inside (or within m of) the hand.
 
@@ -88,7 +87,7 @@ def object_penetration(geometry: "HandGeometry", state: HandState, scene: Object
     return state.pose.new_zeros(state.batch_size).index_add(0, batch, depth)
 
 
-def hand_in_object(geometry: "HandGeometry", state: HandState, scene: ObjectField, margin_m: float = 0.0,
+def hand_in_object(geometry: HandGeometry, state: HandState, scene: ObjectField, margin_m: float = 0.0,
                    clearance: torch.Tensor | None = None) -> torch.Tensor:
     """E_pen,hand = sum_s max(0, m - d(h_s)): hand surface samples inside (or within m of) the object.
 
@@ -170,7 +169,7 @@ class EnergyTerms:
     total: torch.Tensor
 
 
-def evaluate_energy(hand: HandModel, geometry: "HandGeometry", scene: ObjectField, pose: torch.Tensor,
+def evaluate_energy(hand: HandModel, geometry: HandGeometry, scene: ObjectField, pose: torch.Tensor,
                     contact_indices: torch.Tensor, config: GenerationConfig) -> EnergyTerms:
     """All terms of E for poses [B,25] (in D) with selected contact candidate indices [B,K]."""
     state = hand.forward(pose)
@@ -198,7 +197,7 @@ def evaluate_energy(hand: HandModel, geometry: "HandGeometry", scene: ObjectFiel
     return EnergyTerms(terms, total)
 
 
-def max_penetration(hand: HandModel, geometry: "HandGeometry", scene: ObjectField, pose: torch.Tensor,
+def max_penetration(hand: HandModel, geometry: HandGeometry, scene: ObjectField, pose: torch.Tensor,
                     object_points: torch.Tensor) -> torch.Tensor:
     """Deepest hand-object interpenetration per pose [B] (m, >= 0), checked both ways.
 
@@ -351,7 +350,7 @@ def _hand_surface_samples(prims, total: int) -> tuple[torch.Tensor, torch.Tensor
     areas = np.array([p.area() for p in prims])
     counts = np.maximum(1, np.round(total * areas / areas.sum()).astype(int))
     owners, points = [], []
-    for index, (prim, count) in enumerate(zip(prims, counts)):
+    for index, (prim, count) in enumerate(zip(prims, counts, strict=True)):
         local, _ = surface_samples(prim, int(count), rng)
         owners += [index] * len(local)
         points.append(local)

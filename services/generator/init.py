@@ -18,9 +18,8 @@ import numpy as np
 import torch
 import trimesh
 
-from shared.hands import HandModel
-
 from services.generator.config import InitSettings
+from shared.hands import HandModel
 
 _POOL_FACTOR = 4  # hull points drawn per pose before the push-side / height filter
 _MAX_DRAWS = 16

@@ -31,7 +31,7 @@ class PushScene:
 
     @classmethod
     def from_object(cls, obj: ObjectModel, pose_index: int | None = None, yaw_rad: float = 0.0,
-                    surface_points: int = 1024, check_points: int = 4096) -> "PushScene":
+                    surface_points: int = 1024, check_points: int = 4096) -> PushScene:
         """Place `obj` resting in pose `pose_index` (its default pose if None), turned by `yaw_rad` about z."""
         index = obj.default_pose_index if pose_index is None else pose_index
         if not 0 <= index < len(obj.resting_poses):

@@ -14,15 +14,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from shared.frames import matrix_to_r6, r6_to_matrix
-from shared.hands import HandModel, load_hand
-from shared.objects import ObjectModel
-
 from services.generator.config import TERMS, GenerationConfig
 from services.generator.energy import EnergyTerms, HandGeometry, evaluate_energy, max_penetration
 from services.generator.init import initial_poses, sample_contacts
 from services.generator.optimizer import AnnealingOptimizer
 from services.generator.scene import PushScene
+from shared.frames import matrix_to_r6, r6_to_matrix
+from shared.hands import HandModel, load_hand
+from shared.objects import ObjectModel
 
 ProgressCallback = Callable[[int], None]  # called with the number of iterations just finished
 TOTAL = "total"

@@ -144,7 +144,8 @@ class MotionPlanner:
         options = self.ik.distinct_solutions(T_world_hand, limit=self.settings.max_ik_candidates)
         self.stats.ik_s += time.perf_counter() - started
         q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(options), -1)
-        chosen = [self._first_collision_free(options_k, q_hand) for options_k, q_hand in zip(options, q_hands)]
+        chosen = [self._first_collision_free(options_k, q_hand)
+                  for options_k, q_hand in zip(options, q_hands, strict=True)]
         q = np.array([q_k for q_k, _ in chosen]).reshape(len(options), self.arm.dof)
         reasons = [reason for _, reason in chosen]
         if push is not None:
@@ -178,7 +179,7 @@ class MotionPlanner:
         tracked = self.ik.track_many(paths, q[rows])
         self.stats.ik_s += time.perf_counter() - started
         steps = np.abs(np.diff(np.concatenate([q[rows][:, None], tracked.q], axis=1), axis=1)).max(axis=2)
-        for i, reached, jumps in zip(rows, tracked.success, steps):
+        for i, reached, jumps in zip(rows, tracked.success, steps, strict=True):
             if not reached.all():
                 reasons[i] = "push runs out of reach"
             elif jumps.max() > self.settings.max_joint_step_rad:
@@ -457,7 +458,7 @@ class MotionPlanner:
                                 f"{jumps[bad]:.2f} rad between Cartesian waypoints {bad} and {bad + 1}")
         carried = np.concatenate([[0.0], fractions if carry_object else np.zeros(steps)])[:, None] * displacement
         with self._movable_object() as move_object:
-            for row, offset in zip(q, carried):
+            for row, offset in zip(q, carried, strict=True):
                 move_object(offset)
                 hits = self.scene.collisions(row, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
                 if hits:
@@ -524,7 +525,7 @@ def time_parameterise(path: np.ndarray, velocity_limits: np.ndarray, dt: float) 
     """
     path = np.asarray(path, dtype=np.float64)
     positions, times, offset = [path[0]], [0.0], 0.0
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=True):
         duration = 1.875 * float((np.abs(b - a) / velocity_limits).max())
         if duration <= 0.0:
             continue

@@ -30,7 +30,6 @@ from ompl import geometric as og
 
 from services.planner.motion import PlanningError, seed_ompl
 
-
 DEFAULT_PADDING_M = 0.3  # default bounds: the start-goal box grown by this much on every side
 EDGE_CHECK_M = 0.005  # OMPL's edge check spacing: cuts an inflated obstacle's edge by < 0.03 mm (sagitta)
 RRT_STAR_ITERATIONS = 1000  # measured: within 1% of the shortest path around one obstacle (0.681 vs 0.677 m), 0.15 s
@@ -46,7 +45,7 @@ class Disc:
     radius: float
 
     @classmethod
-    def of(cls, obstacle) -> "Disc":
+    def of(cls, obstacle) -> Disc:
         """From a Disc, a shared.messages.CircleObstacle or an (x, y, radius) tuple."""
         if isinstance(obstacle, Disc):
             return obstacle
@@ -130,7 +129,7 @@ def _rrt_star(start, goal, centres, radii, low, high, iterations: int, seed: int
     space.setLongestValidSegmentFraction(EDGE_CHECK_M / space.getMaximumExtent())
     setup = og.SimpleSetup(space)
 
-    discs = [(float(x), float(y), float(r) ** 2) for (x, y), r in zip(centres, radii)]
+    discs = [(float(x), float(y), float(r) ** 2) for (x, y), r in zip(centres, radii, strict=True)]
 
     def valid(state) -> bool:  # plain floats: called thousands of times per plan, numpy's overhead dominates
         x, y = state[0], state[1]
@@ -180,13 +179,13 @@ def split_into_pushes(waypoints: np.ndarray, max_push_m: float) -> list[tuple[np
         raise PlanningError("bad request", f"max push distance must be positive, got {max_push_m}")
     waypoints = np.asarray(waypoints, dtype=np.float64)
     pushes = []
-    for a, b in zip(waypoints[:-1], waypoints[1:]):
+    for a, b in zip(waypoints[:-1], waypoints[1:], strict=True):
         length = float(np.linalg.norm(b - a))
         if length < 1e-9:
             continue
         pieces = math.ceil(length / max_push_m - 1e-9)
         cuts = [a + (b - a) * k / pieces for k in range(pieces + 1)]
-        pushes += list(zip(cuts[:-1], cuts[1:]))
+        pushes += list(zip(cuts[:-1], cuts[1:], strict=True))
     return pushes
 
 

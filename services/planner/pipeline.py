@@ -57,7 +57,7 @@ from shared.frames import direction_xy, make_transform
 from shared.hands import load_hand
 from shared.ik import ArmIK
 from shared.messages import ExecutionResult, PushRequest, PushResponse
-from shared.object_refs import load_object_ref
+from shared.object_refs import captured_object, load_object_ref
 from shared.objects import ObjectLoadError, ObjectModel, write_object_urdf
 from shared.push_outcome import judge_push, pose_matrix
 from shared.robot_limits import RobotLimits
@@ -119,12 +119,17 @@ class PushPipeline:
     @staticmethod
     def _start(request: PushRequest, cancel: Cancellation) -> RequestState:
         cancel.check()
+        captured = None
         try:
-            obj = load_object_ref(request.object)
+            if request.object.point_cloud is not None:  # the reconstruction, and where the cloud shows it
+                captured = captured_object(request.object)
+            obj = captured.model if captured is not None else load_object_ref(request.object)
             urdf = str(write_object_urdf(obj))
         except ObjectLoadError as exc:
             raise PushError("bad_request", f"bad object: {exc}") from exc
-        if request.object_pose is not None:
+        if captured is not None:
+            T_world_O = captured.T_world_O.copy()
+        elif request.object_pose is not None:
             T_world_O = pose_matrix(request.object_pose)
         else:
             T_world_O = make_transform(np.eye(3), np.array([*DEFAULT_OBJECT_XY, 0.0])) @ obj.T_D_O()

@@ -1,8 +1,9 @@
 """Recording of one push request for people: an MCAP viewable in Foxglove, and a PNG storyboard.
 
 `<record_dir>/push-<request id>.mcap` holds
-- Foxglove channels: `/scene` (SceneUpdate: the object's mesh in its own frame, the table, the
-  obstacles), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
+- Foxglove channels: `/scene` (SceneUpdate: the object's mesh in its own frame - for a point cloud,
+  its reconstruction -, the table, the obstacles), `/cloud` (PointCloud: the received point cloud,
+  world frame, when the object came as one), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
   robot state), `/joint_states` (JointStates);
 - the bus messages as they travel (msgpack, `shared.recording`): the PushRequest, every executed
   Plan, the robot's ExecutionStates and the PushResponse.
@@ -25,11 +26,11 @@ import trimesh
 from foxglove import messages as fg
 
 from services.planner.outcome import PushOutcome, StepRecord
-from shared.messages import ExecutionState, PushRequest
-from shared.objects import write_object_urdf
-from shared.object_refs import load_object_ref
-from shared.push_outcome import pose_matrix
 from shared.arms import combined_urdf
+from shared.messages import ExecutionState, PushRequest
+from shared.object_refs import load_object_ref
+from shared.objects import write_object_urdf
+from shared.push_outcome import pose_matrix
 from shared.recording import McapWriter
 from shared.render import VIEWS, UrdfItem, compose_png, mesh_item, render_views
 from shared.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
@@ -64,6 +65,8 @@ def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, sc
         start_ns = time.time_ns()
         writer.write_message("gd2p/planner/request", request, start_ns)
         _write_scene(writer, obj.mesh, request, start_ns)
+        if request.object.point_cloud is not None:
+            _write_cloud(writer, request.object.point_cloud.to_numpy(), start_ns)
         for record in records:
             writer.write_message("gd2p/planner/plan", record.step.plan, start_ns)
             for state in record.execution.states + [record.execution.final]:
@@ -112,6 +115,15 @@ def _write_scene(writer: McapWriter, mesh, request: PushRequest, ns: int) -> Non
     _foxglove(writer, "/scene", fg.SceneUpdate(entities=entities), ns)
 
 
+def _write_cloud(writer: McapWriter, points: np.ndarray, ns: int) -> None:
+    """The point cloud the request carried, as received (world frame, float32 x y z)."""
+    packed = np.ascontiguousarray(points, dtype="<f4")
+    fields = [fg.PackedElementField(name=name, offset=4 * i, type=fg.PackedElementFieldNumericType.Float32)
+              for i, name in enumerate("xyz")]
+    _foxglove(writer, "/cloud", fg.PointCloud(timestamp=_stamp(ns), frame_id=WORLD_FRAME, pose=fg.Pose(),
+                                             point_stride=12, fields=fields, data=packed.tobytes()), ns)
+
+
 def _transform(parent: str, child: str, position, quat_xyzw, ns: int) -> fg.FrameTransform:
     x, y, z = (float(v) for v in position)
     qx, qy, qz, qw = (float(v) for v in quat_xyzw)
@@ -125,7 +137,7 @@ def _link_poses(scene: RobotScene) -> list[tuple[str, tuple, tuple]]:
     states = pb.getLinkStates(scene.robot_id, links, computeForwardKinematics=True, physicsClientId=scene.client)
     base_position, base_quat = transform_to_pos_quat(scene.T_world_base)  # the base's URDF frame, not its COM
     poses = [(scene.link_names[-1], base_position, base_quat)]
-    return poses + [(scene.link_names[j], state[4], state[5]) for j, state in zip(links, states)]
+    return poses + [(scene.link_names[j], state[4], state[5]) for j, state in zip(links, states, strict=True)]
 
 
 def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -> None:
@@ -134,7 +146,7 @@ def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -
     writer.write_message("gd2p/robot_bridge/state", state, ns)
     q = state.positions.to_numpy().astype(np.float64)
     joints = [fg.JointState(name=name, position=float(p), velocity=float(v))
-              for name, p, v in zip(state.joint_names, q, state.velocities.to_numpy())]
+              for name, p, v in zip(state.joint_names, q, state.velocities.to_numpy(), strict=False)]
     _foxglove(writer, "/joint_states", fg.JointStates(timestamp=_stamp(ns), joints=joints), ns)
     n_arm = len(scene.arm_joints)
     scene.set_configuration(q[:n_arm], q[n_arm:])
@@ -165,8 +177,8 @@ def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, pa
         result = record.step.result
         frames += [(f"push {i + 1}: start", positions[0], record.T_world_O_start),
                    (f"push {i + 1}: pre-contact", positions[push.start], record.T_world_O_start),
-                   (f"push {i + 1}: end ({'success' if result.success else 'miss'}, "
-                    f"{result.position_error_m * 100:.1f} cm off)",
+                   ((f"push {i + 1}: end ({'success' if result.success else 'miss'}, "
+                     f"{result.position_error_m * 100:.1f} cm off)"),
                     record.execution.final.positions.to_numpy().astype(np.float64), pose_matrix(result.final_object_pose))]
     obstacle_items = [mesh_item(f"obstacle {k}", trimesh.creation.cylinder(o.radius, OBSTACLE_HEIGHT_M),
                                 _translation([o.x, o.y, OBSTACLE_HEIGHT_M / 2]), OBSTACLE_RGBA)
@@ -180,7 +192,7 @@ def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, pa
     def render() -> Path:
         rendered = []
         for label, q, T_world_O in frames:
-            items = [UrdfItem("robot", robot_urdf, T_world_base, dict(zip(joint_names, map(float, q)))),
+            items = [UrdfItem("robot", robot_urdf, T_world_base, dict(zip(joint_names, map(float, q), strict=False))),
                      mesh_item("object", mesh, T_world_O), *obstacle_items]
             view = dataclasses.replace(VIEWS["iso"], label=label)
             rendered += render_views(items, [view], IMAGE_SIZE, heading, supersample=STORYBOARD_SUPERSAMPLE,

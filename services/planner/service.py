@@ -100,7 +100,7 @@ class BusServices:
         def settle(reply: Future) -> None:
             try:
                 result = reply.result()
-            except Exception as exc:  # noqa: BLE001 - DispatchError, TimeoutError: the caller reports them
+            except Exception as exc:  # DispatchError, TimeoutError: the caller reports them
                 outcome.set_exception(exc)
                 return
             if isinstance(result, ErrorReply):

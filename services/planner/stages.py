@@ -17,6 +17,7 @@ the farm, before and after the robot moves) and raises `RequestCancelled`.
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections import Counter
@@ -213,7 +214,7 @@ def prescreen(state: RequestState, feasible: Feasible, push: Push, validate: Val
     success = np.zeros(len(tested), dtype=bool)
     error = np.full(len(tested), np.inf)
     start = 0
-    for chunk, result in zip(chunks, results):
+    for chunk, result in zip(chunks, results, strict=True):
         if not isinstance(result, Exception):  # an unavailable validator only loses the reordering
             success[start:start + len(chunk)] = result.success.to_numpy()
             error[start:start + len(chunk)] = result.position_error_m.to_numpy()
@@ -270,7 +271,7 @@ class ArmPlanning:
         for index in feasible.order[: self.settings.max_plan_attempts]:
             self.state.cancel.check()
             used += 1
-            plan = within_limits(lambda: self._plan_push(feasible, int(index)), self.limits,
+            plan = within_limits(functools.partial(self._plan_push, feasible, int(index)), self.limits,
                                  1 + self.settings.limit_retries, failures, "plan")
             if plan is None:
                 continue
@@ -294,7 +295,8 @@ class ArmPlanning:
         """The best-ranked plan completed with its way back to the start (the next best if that fails)."""
         failures: Counter = Counter()
         for choice in ranked:
-            full = within_limits(lambda: self.planner.plan_return(choice.plan, self.q_arm_start, self.push.offset),
+            full = within_limits(functools.partial(self.planner.plan_return, choice.plan, self.q_arm_start,
+                                                   self.push.offset),
                                  self.limits, 1 + self.settings.limit_retries, failures, "way back")
             if full is not None:
                 return RankedPlan(choice.index, full, choice.score)
@@ -339,7 +341,7 @@ def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future]
     state.time("rollouts", time.perf_counter() - started)
     scored: list[RankedPlan] = []
     errors: list[str] = []
-    for candidate, result in zip(plans, results):
+    for candidate, result in zip(plans, results, strict=True):
         if isinstance(result, Exception):
             errors.append(str(result))
             continue
@@ -373,7 +375,9 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
     for _ in range(settings.max_plan_rounds):
         rollouts: list[Future] = []
 
-        def roll_out(candidate: CandidatePlan) -> None:
+        # This round's `feasible` and `rollouts`, bound now: the loop rebinds both for the next round.
+        def roll_out(candidate: CandidatePlan, feasible: Feasible = feasible,
+                     rollouts: list[Future] = rollouts) -> None:
             pose_d = feasible.candidates.poses_d[candidate.index]
             rollouts.append(validate(rollout_job(state.request, planning.push, pose_d, candidate.plan)))
 
@@ -406,7 +410,7 @@ def wait_for_results(futures: list[Future], timeout_s: float,
     for future in futures:
         try:
             results.append(future.result(timeout=0))
-        except Exception as exc:  # noqa: BLE001 - reported with the job's other failures
+        except Exception as exc:  # reported with the job's other failures
             results.append(exc)
     return results
 

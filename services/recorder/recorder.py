@@ -19,10 +19,11 @@ import fcntl
 import logging
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import IO, Iterator
+from typing import IO
 
 from shared.recording import McapWriter, RecordingError, is_complete_mcap, recover_mcap
 
@@ -174,7 +175,7 @@ class RotatingRecorder:
         self._finish_current()
         return list(self.files)
 
-    def __enter__(self) -> "RotatingRecorder":
+    def __enter__(self) -> RotatingRecorder:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -74,7 +74,7 @@ class JointTrajectory:
             raise TrajectoryError("times_s must start at >= 0 and increase strictly")
 
     @classmethod
-    def from_plan(cls, plan, realtime_factor: float = 1.0) -> "JointTrajectory":
+    def from_plan(cls, plan, realtime_factor: float = 1.0) -> JointTrajectory:
         """All joints of a `shared.messages.Plan`; time is divided by `realtime_factor` (2 = twice as fast)."""
         if realtime_factor <= 0:
             raise TrajectoryError(f"realtime_factor must be > 0, got {realtime_factor}")
@@ -88,7 +88,7 @@ class JointTrajectory:
     def final(self) -> np.ndarray:
         return self.positions[-1]
 
-    def select(self, joint_names: Sequence[str]) -> "JointTrajectory":
+    def select(self, joint_names: Sequence[str]) -> JointTrajectory:
         """The columns of `joint_names`, in that order (TrajectoryError naming the missing ones)."""
         index = {name: i for i, name in enumerate(self.joint_names)}
         missing = [name for name in joint_names if name not in index]

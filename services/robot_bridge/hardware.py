@@ -61,7 +61,7 @@ class HardwareSpec:
                            help="the Allegro runs H-inf firmware (position targets on the SET_TORQUE ids)")
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> "HardwareSpec | None":
+    def from_args(cls, args: argparse.Namespace) -> HardwareSpec | None:
         """None when --hardware is not given (the simulated robot)."""
         if not getattr(args, "hardware", None):
             return None

@@ -44,6 +44,10 @@ from services.robot_bridge.backend import (
     MotionStopped,
     TrajectoryError,
 )
+from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
+from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, parse_lease_key
+from shared.codec import decode
+from shared.messages import EStop, ExecutionCommand, ExecutionState, Message, Plan
 from shared.robot_limits import (
     DEFAULT_WORKSPACE,
     WORKSPACE_STEP_RAD,
@@ -52,10 +56,6 @@ from shared.robot_limits import (
     WorkspaceBox,
     densify,
 )
-from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
-from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, parse_lease_key
-from shared.codec import decode
-from shared.messages import EStop, ExecutionCommand, ExecutionState, Message, Plan
 
 log = logging.getLogger("gd2p.robot_bridge.safety")
 
@@ -159,7 +159,7 @@ ALLEGRO_LIMITS = DeviceLimits(
     effort=[240.0] * 16,
     effort_unit="mA",
 )
-DEVICE_LIMITS: dict[str, DeviceLimits] = {l.device: l for l in (FR3_LIMITS, XARM7_LIMITS, LEAP_LIMITS, ALLEGRO_LIMITS)}
+DEVICE_LIMITS: dict[str, DeviceLimits] = {d.device: d for d in (FR3_LIMITS, XARM7_LIMITS, LEAP_LIMITS, ALLEGRO_LIMITS)}
 
 
 def hardware_limits(arm: str, hand: str, devices: Sequence[DeviceLimits], workspace: WorkspaceBox | None = DEFAULT_WORKSPACE,
@@ -234,7 +234,7 @@ class CommandLease:
         self.noticed_at: float | None = None  # time.monotonic() when the loss was noticed
         self._monitor: LeaseMonitor | None = None
 
-    def __enter__(self) -> "CommandLease":
+    def __enter__(self) -> CommandLease:
         self._monitor = LeaseMonitor(self.session, self.key, on_lost=self._on_lost, watchdog=self.watchdog)
         return self
 
@@ -325,7 +325,7 @@ def describe_estop(sample: zenoh.Sample) -> EStop:
     """The EStop a sample on the e-stop key stands for; never raises (whatever arrived is a stop)."""
     try:
         msg: Message = decode(sample.payload.to_bytes(), str(sample.encoding), EStop)
-    except Exception as exc:  # noqa: BLE001 - a malformed stop is still a stop
+    except Exception as exc:  # a malformed stop is still a stop
         return EStop(reason=f"undecodable message on the e-stop key ({type(exc).__name__}: {exc})")
     if isinstance(msg, EStop):
         return msg

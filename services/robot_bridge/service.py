@@ -33,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
+from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.safety import (
     COMMAND_KEY,
     CommandLease,
@@ -40,13 +41,12 @@ from services.robot_bridge.safety import (
     SafeExecutor,
     SafetyRefusal,
 )
-from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.codec import CodecError, decode, encode
-from shared.messages import EStop, ErrorReply, ExecutionCommand, ExecutionState, Message
+from shared.messages import ErrorReply, EStop, ExecutionCommand, ExecutionState, Message
 from shared.objects import ObjectLoadError
 
 SERVICE = "robot_bridge"

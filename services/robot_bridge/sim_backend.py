@@ -39,13 +39,13 @@ from services.robot_bridge.backend import (
     JointTrajectory,
     MotionStopped,
 )
-from shared.robot_limits import DEFAULT_WORKSPACE, LimitViolation, RobotLimits, WorkspaceBox
 from services.robot_bridge.safety import SafetyRefusal
 from shared.frames import matrix_to_quat_xyzw
 from shared.messages import ExecutionState, ObjectPose, Plan, SimWorld
 from shared.object_refs import load_object_ref
 from shared.objects import write_object_urdf
 from shared.push_outcome import pose_matrix
+from shared.robot_limits import DEFAULT_WORKSPACE, LimitViolation, RobotLimits, WorkspaceBox
 from shared.sim.params import REFERENCE_PARAMS, PhysicsParams
 from shared.sim.plan_runner import ArmController, prepare_robot
 from shared.sim.robot_scene import RobotScene
@@ -109,7 +109,7 @@ class SimBackend(Backend):
                 self.scene.close()
                 self.scene = None
 
-    def __enter__(self) -> "SimBackend":
+    def __enter__(self) -> SimBackend:
         self.connect()
         return self
 

@@ -76,7 +76,7 @@ class SamplerCheckpoint:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any], source: str = "checkpoint") -> "SamplerCheckpoint":
+    def from_dict(cls, data: dict[str, Any], source: str = "checkpoint") -> SamplerCheckpoint:
         if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
             found = data.get("format") if isinstance(data, dict) else type(data).__name__
             raise CheckpointError(f"{source}: not a GD2P sampler checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT!r})")

@@ -82,7 +82,7 @@ class PoseNormalizer:
     MIN_RANGE = 1e-4  # a constant dimension (e.g. a joint never moved) maps to 0 instead of dividing by 0
 
     @classmethod
-    def fit(cls, poses: torch.Tensor) -> "PoseNormalizer":
+    def fit(cls, poses: torch.Tensor) -> PoseNormalizer:
         if poses.ndim != 2 or poses.shape[0] == 0:
             raise ValueError(f"need a non-empty [N, D] pose tensor to fit the normaliser, got {tuple(poses.shape)}")
         return cls(poses.min(dim=0).values.float(), poses.max(dim=0).values.float())
@@ -105,7 +105,7 @@ class PoseNormalizer:
         return {"low": self.low.clone(), "high": self.high.clone()}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "PoseNormalizer":
+    def from_dict(cls, data: dict) -> PoseNormalizer:
         return cls(torch.as_tensor(data["low"], dtype=torch.float32), torch.as_tensor(data["high"], dtype=torch.float32))
 
 
@@ -141,14 +141,15 @@ def sample_normalized(
     scheduler = make_sampling_scheduler(kind, steps)
     device = bps.device
     pose_dim = model.config.pose_dim
-    samples = [torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators)]
+    samples = [torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators, strict=True)]
     x = torch.cat(samples)
     bounds = _row_bounds(counts)
     group = None if len(counts) == 1 else torch.repeat_interleave(torch.arange(len(counts), device=device), torch.as_tensor(counts, device=device))
     object_embedding = model.encode_object(bps)
     for t in scheduler.timesteps:
         epsilon = model.denoise(x, model.film(object_embedding, t.to(device)), group)
-        x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g) for (a, b), g in zip(bounds, generators)])
+        x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g)
+                       for (a, b), g in zip(bounds, generators, strict=True)])
     return [x[a:b] for a, b in bounds]
 
 

@@ -59,7 +59,7 @@ class DenoiserConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "DenoiserConfig":
+    def from_dict(cls, data: dict) -> DenoiserConfig:
         known = {k: int(v) for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(**known)
 

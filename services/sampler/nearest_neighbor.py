@@ -88,7 +88,7 @@ class NearestNeighborBaseline:
         return view
 
     @classmethod
-    def from_dataset(cls, dataset: PoseDataset, bps: BasisPointSet | None = None, progress: bool = False) -> "NearestNeighborBaseline":
+    def from_dataset(cls, dataset: PoseDataset, bps: BasisPointSet | None = None, progress: bool = False) -> NearestNeighborBaseline:
         bps = bps or BasisPointSet()
         features = frame_bps(dataset.frames, bps, SURFACE_POINTS, SURFACE_SEED, progress=progress)
         return cls(dataset.hand, bps, dataset.frames, features, dataset.poses, dataset.frame_index,
@@ -96,7 +96,7 @@ class NearestNeighborBaseline:
 
     @classmethod
     def from_directory(cls, directory: str | Path, hand: str, bps: BasisPointSet | None = None,
-                       progress: bool = False) -> "NearestNeighborBaseline":
+                       progress: bool = False) -> NearestNeighborBaseline:
         return cls.from_dataset(load_pose_dataset(directory, hand), bps, progress)
 
     # ------------------------------------------------------------------ queries
@@ -141,7 +141,7 @@ class NearestNeighborBaseline:
             poses=self._poses, frame_index=frame_rows)
 
     @classmethod
-    def load(cls, path: str | Path) -> "NearestNeighborBaseline":
+    def load(cls, path: str | Path) -> NearestNeighborBaseline:
         try:
             with np.load(Path(path), allow_pickle=False) as data:
                 arrays = {name: data[name] for name in data.files}
@@ -152,7 +152,7 @@ class NearestNeighborBaseline:
         n, radius, seed = arrays["bps_meta"]
         bps = BasisPointSet.from_dict({"n": int(n), "radius": float(radius), "seed": int(seed), "basis": arrays["basis"]})
         frames = [Frame(str(o), int(i), float(y)) for o, i, y in
-                  zip(arrays["frame_object_ids"], arrays["frame_pose_index"], arrays["frame_yaw_rad"])]
+                  zip(arrays["frame_object_ids"], arrays["frame_pose_index"], arrays["frame_yaw_rad"], strict=True)]
         # Indexes written before these fields existed were built with the dataset module's defaults.
         surface_points, surface_seed = arrays.get("surface_meta", np.array([SURFACE_POINTS, SURFACE_SEED])).tolist()
         manifest = json.loads(str(arrays["manifest"])) if "manifest" in arrays else {}
@@ -253,7 +253,7 @@ class NearestNeighborSampler:
         return self.index.hand
 
     @classmethod
-    def load(cls, path: str | Path) -> "NearestNeighborSampler":
+    def load(cls, path: str | Path) -> NearestNeighborSampler:
         """Serve an index file; its id is `nn:<file name>@<first 8 hex of its SHA-256>`."""
         path = Path(path)
         if not path.is_file():

@@ -29,7 +29,6 @@ from collections import OrderedDict
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
 
 import numpy as np
 import torch
@@ -53,7 +52,7 @@ from shared.frames import (
 from shared.messages import DirectionFrame, ObjectPose
 from shared.objects import ObjectLoadError, ObjectModel, load_object
 
-ObjectInput = Union[str, Path, ObjectModel, np.ndarray]
+ObjectInput = str | Path | ObjectModel | np.ndarray
 MAX_POSES_PER_REQUEST = 1000
 MAX_BATCH_POSES = 8192  # rows per network batch; larger queues run as several batches
 _OBJECT_CACHE_SIZE = 64
@@ -173,7 +172,7 @@ class PoseSampler:
         self._start_lock = threading.Lock()
         self._closed = False
 
-    def __enter__(self) -> "PoseSampler":
+    def __enter__(self) -> PoseSampler:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -266,7 +265,7 @@ class PoseSampler:
             bps = torch.stack([job.bps for job in jobs]).to(self.device)
             generators = [torch.Generator(device=self.device).manual_seed(job.seed) for job in jobs]
             outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps)
-            for job, output in zip(jobs, outputs):
+            for job, output in zip(jobs, outputs, strict=True):
                 job.future.set_result(self._to_poses(output))
         except Exception as exc:  # deliver the failure to every waiting caller, keep serving
             for job in jobs:

@@ -20,14 +20,12 @@ import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-import numpy as np
-
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
 from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
-from shared.object_refs import load_uploaded_mesh
+from shared.object_refs import captured_object, load_uploaded_mesh
 from shared.objects import ObjectLoadError
 from shared.objects.model import load_library_object
 
@@ -116,9 +114,11 @@ class SamplerService:
 
 
 def object_input(ref: ObjectRef) -> ObjectInput:
-    """What PoseSampler.sample takes for an ObjectRef: the loaded object, or a world point cloud.
+    """What PoseSampler.sample takes for an ObjectRef: the loaded object, or, for a point cloud, the
+    object's own points in the world (table removed, its cluster kept, thinned: `bps_points`), so the
+    BPS is computed from the cloud itself as in the paper.
 
-    SamplerInputError for an unknown id or a mesh that does not load."""
+    SamplerInputError for an unknown id, a mesh that does not load or a cloud with no object in it."""
     if ref.scale is not None and ref.scale != 1.0:
         raise ServiceError("bad_request", f"object {ref.object_id}: scaled objects are not supported by the sampler")
     try:
@@ -129,7 +129,13 @@ def object_input(ref: ObjectRef) -> ObjectInput:
     except ObjectLoadError as exc:
         raise SamplerInputError(str(exc)) from exc
     assert ref.point_cloud is not None
-    return ref.point_cloud.to_numpy().astype(np.float64)
+    from shared.perception import bps_points
+
+    try:
+        captured = captured_object(ref)
+    except ObjectLoadError as exc:
+        raise SamplerInputError(str(exc)) from exc
+    return bps_points(captured.object_points)
 
 
 def handlers(checkpoints: Mapping[str, str | Path] | None = None,

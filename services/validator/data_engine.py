@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from shared.bus import DispatchError, Dispatcher
+from shared.bus import Dispatcher, DispatchError
 from shared.dataset_store import COUNT_KEYS, DatasetStore
 from shared.messages import (
     ErrorReply,

@@ -99,7 +99,7 @@ class PushSimulator:
     def close(self) -> None:
         self.scene.close()
 
-    def __enter__(self) -> "PushSimulator":
+    def __enter__(self) -> PushSimulator:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -32,8 +32,8 @@ import pybullet as pb
 from shared.bus import ServiceError
 from shared.frames import direction_xy
 from shared.messages import ValidationJob, ValidationResult
-from shared.objects import ObjectLoadError, write_object_urdf
 from shared.object_refs import load_object_ref
+from shared.objects import ObjectLoadError, write_object_urdf
 from shared.push_outcome import judge_push, object_pose, pose_matrix
 from shared.sim import PhysicsParams
 from shared.sim.plan_runner import PlanRunError, prepare_robot, run_plan

@@ -22,8 +22,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from services.validator.rollout import rollout
 from services.validator.push import PushInputError, PushOutcome, table_object
+from services.validator.rollout import rollout
 from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
 from shared.bus.worker import check_deadline

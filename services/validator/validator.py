@@ -76,7 +76,7 @@ class Validator:
         while self._simulators:
             self._simulators.popitem()[1].close()
 
-    def __enter__(self) -> "Validator":
+    def __enter__(self) -> Validator:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -103,7 +103,8 @@ class Validator:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 25)
         sim = self._simulator(obj, hand, params or self.default_params)
         offsets = object_offsets if object_offsets is not None else [None] * len(poses)
-        outcomes = [self._run(sim, pose, push_distance_m, offset, progress) for pose, offset in zip(poses, offsets)]
+        outcomes = [self._run(sim, pose, push_distance_m, offset, progress)
+                    for pose, offset in zip(poses, offsets, strict=False)]
         run = ValidationRun(outcomes)
         if augment:
             run.augmented = self._augment(sim, hand, poses, outcomes, push_distance_m, seed, progress)

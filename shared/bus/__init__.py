@@ -3,6 +3,8 @@
     from shared.bus import BusConfig, open_session, run_worker, Dispatcher, live_workers
 """
 from shared.bus.config import DEFAULT_ROUTER_ENDPOINT, MODES, BusConfig, open_session
+from shared.bus.discovery import health, live_workers, worker_counts
+from shared.bus.dispatcher import Dispatcher
 from shared.bus.errors import BusError, DispatchError, OpenCancelled, RemoteError, RouterUnreachable, ServiceError
 from shared.bus.keys import (
     ALL_KEYS,
@@ -14,8 +16,6 @@ from shared.bus.keys import (
     status_pattern,
 )
 from shared.bus.worker import Worker, default_worker_id, run_worker
-from shared.bus.discovery import health, live_workers, worker_counts
-from shared.bus.dispatcher import Dispatcher
 
 __all__ = [
     "ALL_KEYS", "DEFAULT_ROUTER_ENDPOINT", "MODES",

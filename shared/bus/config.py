@@ -70,7 +70,7 @@ class BusConfig:
 
     # ----------------------------------------------------------------- constructors
     @classmethod
-    def from_env(cls, environ: dict[str, str] | None = None, connect_timeout_ms: int = -1) -> "BusConfig":
+    def from_env(cls, environ: dict[str, str] | None = None, connect_timeout_ms: int = -1) -> BusConfig:
         """Read GD2P_ZENOH_MODE, GD2P_ZENOH_CONNECT / _LISTEN (comma-separated), GD2P_ZENOH_CONFIG."""
         env = os.environ if environ is None else environ
         return cls(
@@ -94,7 +94,7 @@ class BusConfig:
         group.add_argument("--zenoh-config", default=None, metavar="FILE", help=f"Zenoh json5 config merged first (env {ENV_CONFIG})")
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace, connect_timeout_ms: int = -1) -> "BusConfig":
+    def from_args(cls, args: argparse.Namespace, connect_timeout_ms: int = -1) -> BusConfig:
         """Build from `add_cli_args` flags; each unset flag takes its environment variable."""
         env = cls.from_env(connect_timeout_ms=connect_timeout_ms)
         connect = _split_endpoints(getattr(args, "connect", None))
@@ -111,7 +111,7 @@ class BusConfig:
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config: the file (if any) first, then this object's settings on top."""
         try:
-            cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+            cfg: zenoh.Config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
             cfg.insert_json5("mode", json.dumps(self.mode))
             if self.connect is not None:
                 cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))

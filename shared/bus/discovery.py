@@ -47,7 +47,9 @@ def health(session: zenoh.Session, service: str | None = None, timeout: float = 
         if reply.ok is None:
             continue
         try:
-            statuses.append(decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding), WorkerStatus))
+            status = decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding), WorkerStatus)
         except CodecError:
             continue  # something that is not one of our workers answered on this key
+        if isinstance(status, WorkerStatus):  # not an ErrorReply (e.g. a worker shutting down)
+            statuses.append(status)
     return sorted(statuses, key=lambda s: (s.service, s.worker_id))

@@ -32,9 +32,10 @@ import queue
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, as_completed
 from dataclasses import dataclass, field
+from typing import Any
 
 import zenoh
 
@@ -57,7 +58,7 @@ _DEADLINE_MARGIN_S = 2.0
 class _WorkerState:
     worker_id: str
     key: str
-    in_flight: set["_Attempt"] = field(default_factory=set)
+    in_flight: set[_Attempt] = field(default_factory=set)
     draining: bool = False  # answered "unavailable": it is shutting down
     cooldown_until: float = 0.0
     dispatched: int = 0
@@ -69,9 +70,9 @@ class _Job:
     msg: Message
     payload: bytes
     encoding: str
-    future: Future
+    future: Future[Message]
     failures: int = 0
-    current: "_Attempt | None" = None
+    current: _Attempt | None = None
     failed_on: set[str] = field(default_factory=set)
     last_failure: str = ""
 
@@ -112,12 +113,13 @@ class Dispatcher:
         self._lock = threading.Lock()
         self._space = threading.Condition(self._lock)  # unfinished count fell / worker set changed
         # job id -> (payload digest, future): unfinished jobs, and the last `remember_completed` finished.
-        self._active: dict[str, tuple[str, Future]] = {}
-        self._recent: OrderedDict[str, tuple[str, Future]] = OrderedDict()
+        self._active: dict[str, tuple[str, Future[Message]]] = {}
+        self._recent: OrderedDict[str, tuple[str, Future[Message]]] = OrderedDict()
         self._live_ids: list[str] = []
         self._closed = False
         # Owned by the dispatcher thread.
-        self._events: queue.SimpleQueue = queue.SimpleQueue()
+        # (kind, data): the data of each kind is what its handler in `_run` takes.
+        self._events: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._workers: dict[str, _WorkerState] = {}
         self._pending: deque[_Job] = deque()
         self._jobs: dict[str, _Job] = {}
@@ -129,7 +131,7 @@ class Dispatcher:
         )
 
     # ================================================================== public API
-    def submit(self, job: Message) -> Future:
+    def submit(self, job: Message) -> Future[Message]:
         """Queue `job`; the future resolves to the worker's reply (an `ErrorReply` included).
 
         Blocks while `max_queued` jobs are unfinished. The future fails with `DispatchError` if no
@@ -150,13 +152,14 @@ class Dispatcher:
                 if len(self._active) < self.max_queued:
                     break
                 self._space.wait()
-            future: Future = Future()
+            future: Future[Message] = Future()
             future.set_running_or_notify_cancel()  # not cancellable: the job may already be running
             self._active[job.id] = (digest, future)
         self._events.put(("submit", _Job(job, payload, encoding, future)))
         return future
 
-    def _same_job(self, job: Message, digest: str, known_digest: str, future: Future) -> Future:
+    def _same_job(self, job: Message, digest: str, known_digest: str,
+                  future: Future[Message]) -> Future[Message]:
         """The future of an already submitted job; BusError when `job` only shares its id."""
         if digest != known_digest:
             raise BusError(f"job id {job.id} was reused for a different job: this {self.service} dispatcher already "
@@ -210,7 +213,7 @@ class Dispatcher:
 
     def stats(self) -> dict[str, dict[str, int]]:
         """Per live worker: jobs dispatched / answered / in flight (a snapshot; for diagnostics)."""
-        done: Future = Future()
+        done: Future[dict[str, dict[str, int]]] = Future()
         if threading.current_thread() is self._thread:  # called from a future's done-callback
             self._on_stats(done)
         else:
@@ -232,10 +235,10 @@ class Dispatcher:
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=10.0)
 
-    def __enter__(self) -> "Dispatcher":
+    def __enter__(self) -> Dispatcher:
         return self
 
-    def __exit__(self, *exc_info) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
     # ================================================================== zenoh callbacks (never block)
@@ -246,12 +249,13 @@ class Dispatcher:
             return
         self._events.put(("alive" if sample.kind == zenoh.SampleKind.PUT else "gone", worker_id))
 
-    def _reply_handler(self, attempt: _Attempt) -> zenoh.handlers.Callback:
+    def _reply_handler(self, attempt: _Attempt) -> zenoh.handlers.Callback[zenoh.Reply]:
         def on_reply(reply: zenoh.Reply) -> None:
             ok = reply.ok
             if ok is not None:
                 self._events.put(("reply", (attempt, ok.payload.to_bytes(), str(ok.encoding), None)))
             else:
+                assert reply.err is not None  # a reply is either ok or an error
                 self._events.put(("reply", (attempt, b"", "", reply.err.payload.to_string())))
 
         def on_done() -> None:
@@ -259,11 +263,12 @@ class Dispatcher:
 
         # indirect=False runs these in Zenoh's own thread instead of a hand-off thread: they only
         # enqueue, and it more than doubles throughput with several workers (bench/bus.py).
-        return zenoh.handlers.Callback(on_reply, on_done, indirect=False)
+        callback: zenoh.handlers.Callback[zenoh.Reply] = zenoh.handlers.Callback(on_reply, on_done, indirect=False)
+        return callback
 
     # ================================================================== dispatcher thread
     def _run(self) -> None:
-        handlers = {
+        handlers: dict[str, Callable[[Any], None]] = {
             "submit": self._on_submit, "reply": self._on_reply_event, "done": self._on_query_done,
             "alive": self._on_worker_alive, "gone": self._on_worker_gone, "stats": self._on_stats,
         }
@@ -295,7 +300,7 @@ class Dispatcher:
         self._jobs[job.msg.id] = job
         self._pending.append(job)
 
-    def _on_reply_event(self, data: tuple) -> None:
+    def _on_reply_event(self, data: tuple[_Attempt, bytes, str, str | None]) -> None:
         attempt, payload, encoding, error = data
         self._settle(attempt)
         job = attempt.job
@@ -308,7 +313,7 @@ class Dispatcher:
             return
         attempt.worker.answered += 1
         try:
-            reply = decode(payload, encoding)
+            reply: Message = decode(payload, encoding)
         except CodecError as exc:
             reply = ErrorReply(id=job.msg.id, code="internal", service=self.service, request_type=type(job.msg).__name__,
                                message=f"worker {attempt.worker.worker_id} sent an undecodable reply: {exc}")
@@ -346,7 +351,7 @@ class Dispatcher:
                 self._attempt_failed(attempt, f"worker {worker_id} went away (liveliness token deleted)")
         self._publish_live_ids()
 
-    def _on_stats(self, done: Future) -> None:
+    def _on_stats(self, done: Future[dict[str, dict[str, int]]]) -> None:
         done.set_result({
             w.worker_id: {"dispatched": w.dispatched, "answered": w.answered, "in_flight": len(w.in_flight)}
             for w in self._workers.values()
@@ -406,7 +411,7 @@ class Dispatcher:
         job.last_failure = reason
         log.warning("%s job %s attempt %d failed: %s", self.service, job.msg.id, job.failures, reason)
         if job.failures >= self.max_attempts:
-            self._finish(job, error=DispatchError(
+            self._finish(job, DispatchError(
                 "timeout",
                 f"{type(job.msg).__name__} {job.msg.id}: no result from a {self.service} worker after "
                 f"{job.failures} attempt(s); last failure: {reason}",
@@ -429,9 +434,9 @@ class Dispatcher:
 
     # ---------------------------------------------------------------- completion
     def _complete(self, job: _Job, reply: Message) -> None:
-        self._finish(job, result=reply)
+        self._finish(job, reply)
 
-    def _finish(self, job: _Job, result: Message | None = None, error: Exception | None = None) -> None:
+    def _finish(self, job: _Job, outcome: Message | Exception) -> None:
         job_id = job.msg.id
         self._jobs.pop(job_id, None)
         with self._lock:
@@ -441,10 +446,10 @@ class Dispatcher:
             while len(self._recent) > self._remember:
                 self._recent.popitem(last=False)
             self._space.notify_all()
-        if error is not None:
-            job.future.set_exception(error)
+        if isinstance(outcome, Exception):
+            job.future.set_exception(outcome)
         else:
-            job.future.set_result(result)
+            job.future.set_result(outcome)
 
     def _fail_all(self, code: str, reason: str) -> None:
         """Fail every unfinished future, including ones submitted but not yet seen by this thread."""

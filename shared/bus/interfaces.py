@@ -42,8 +42,8 @@ from shared.bus.lease import LEASE_ROLES, lease_key
 from shared.codec import ENCODING_PREFIX
 from shared.messages import (
     SCHEMA_VERSION,
-    EStop,
     ErrorReply,
+    EStop,
     ExecutionCommand,
     ExecutionState,
     GenerationJob,
@@ -124,7 +124,8 @@ class Interface:
 
     def includes(self, key: str) -> bool:
         """True if the concrete key `key` is an instance of this row's key."""
-        return zenoh.KeyExpr(self.pattern).includes(zenoh.KeyExpr(key))
+        included: bool = zenoh.KeyExpr(self.pattern).includes(zenoh.KeyExpr(key))
+        return included
 
     def messages(self) -> tuple[type[Message], ...]:
         """Every message type travelling on the key, requests first."""
@@ -219,15 +220,15 @@ def _worker_interfaces(svc: Service) -> tuple[Interface, ...]:
 
 def _lease_interface(role: str) -> Interface:
     holder = LEASE_HOLDERS[role]
-    detail = {"planner": ("The lease of one robot command: the planner declares `<worker_id>.<command_id>` before"
-                          " it sends the command and names it in ExecutionCommand.lease_token.",
-                          "The robot bridge (`CommandLease`: a LeaseMonitor from before its first check until"
-                          " the motion ends; losing the token stops the robot).",
+    detail = {"planner": (("The lease of one robot command: the planner declares `<worker_id>.<command_id>` before"
+                           " it sends the command and names it in ExecutionCommand.lease_token."),
+                          ("The robot bridge (`CommandLease`: a LeaseMonitor from before its first check until"
+                           " the motion ends; losing the token stops the robot)."),
                           ("services/planner/service.py: BusServices.execute", "services/robot_bridge/safety.py")),
-              "client": ("The lease of one push client: declared for one request and named in"
-                         " PushRequest.client_lease.",
-                         "The planner (a LeaseMonitor while it serves the request; losing the token cancels the"
-                         " request and stops the robot if it moves).",
+              "client": (("The lease of one push client: declared for one request and named in"
+                          " PushRequest.client_lease."),
+                         ("The planner (a LeaseMonitor while it serves the request; losing the token cancels the"
+                          " request and stops the robot if it moves)."),
                          ("shared/push_client.py: push", "services/planner/service.py: BusServices.watch_client"))}
     summary, used_by, code = detail[role]
     return Interface(f"{role} lease", lease_key(role, "<holder>"), "liveliness", summary,
@@ -332,7 +333,8 @@ def array_aliases() -> dict[str, dict[str, typing.Any]]:
     for name, obj in vars(messages).items():
         if typing.get_origin(obj) is typing.Annotated and obj.__origin__ is messages.NDArray:
             check = obj.__metadata__[0].func
-            aliases[name] = dict(zip(check.__code__.co_freevars, (c.cell_contents for c in check.__closure__)))
+            aliases[name] = dict(zip(check.__code__.co_freevars, (c.cell_contents for c in check.__closure__),
+                                     strict=True))
     return aliases
 
 
@@ -390,7 +392,9 @@ def constraints(info: FieldInfo) -> list[str]:
 def default_text(info: FieldInfo) -> str:
     """The value a field takes when the map leaves it out ('required' when it may not)."""
     if info.default_factory is not None:
-        return "a new random id (uuid4 hex)" if info.default_factory is messages.new_id else repr(info.default_factory())
+        if info.default_factory is messages.new_id:
+            return "a new random id (uuid4 hex)"
+        return repr(info.get_default(call_default_factory=True))
     if info.default is PydanticUndefined:
         return "required"
     value = list(info.default) if isinstance(info.default, tuple) else info.default
@@ -458,17 +462,17 @@ def _overview() -> list[str]:
     rows = [(f"[`{r.key}`](#{_anchor(r.service or r.title)})", r.kind, _carried(r), _who(r.declarers),
              _who(r.callers)) for r in INTERFACES]
     return ["## Key expressions", "",
-            "`<name>` marks a chunk that varies; a caller matching every instance writes `*` there. "
-            "\"Declared by\" serves the queryable, publishes or holds the token; \"called by\" queries, "
-            "subscribes or watches the token. These are what the secure profile (`gd2p up --secure`, "
-            "deploy/secure/profile.py) allows each identity; without it the router lets anyone do anything.", "",
+            ("`<name>` marks a chunk that varies; a caller matching every instance writes `*` there. "
+             "\"Declared by\" serves the queryable, publishes or holds the token; \"called by\" queries, "
+             "subscribes or watches the token. These are what the secure profile (`gd2p up --secure`, "
+             "deploy/secure/profile.py) allows each identity; without it the router lets anyone do anything."), "",
             *_table(("key expression", "kind", "messages", "declared by", "called by"), rows), ""]
 
 
 def _participants() -> list[str]:
     return ["## Participants", "",
-            "Each participant joins the router with a session of its own; under the secure profile each has a "
-            "certificate whose common name is the identity below.", "",
+            ("Each participant joins the router with a session of its own; under the secure profile each has a "
+             "certificate whose common name is the identity below."), "",
             *_table(("identity", "what it is"), PARTICIPANTS.items()), ""]
 
 
@@ -513,8 +517,8 @@ def _workers_intro() -> list[str]:
                          message=WorkerStatus)]
     rows = [(f"`{r.key}`", r.kind, _carried(r)) for r in generic]
     return ["## Workers", "",
-            "Every service runs its workers on the worker runtime (shared/bus/worker.py), so every worker has the "
-            "same three keys; the sections below give each service's jobs and callers.", "",
+            ("Every service runs its workers on the worker runtime (shared/bus/worker.py), so every worker has the "
+             "same three keys; the sections below give each service's jobs and callers."), "",
             *_table(("key expression", "kind", "messages"), rows), "",
             f"* Liveliness token: {_ALIVE_LIVELINESS} Used by: {_ALIVE_USED_BY}",
             f"* Job queryable: {_JOB_LIVELINESS} {_JOB_QOS}",
@@ -550,19 +554,20 @@ def _linked(type_text: str) -> str:
 def _model_section(model: type[BaseModel]) -> list[str]:
     doc = (inspect.getdoc(model) or "").split("\n\n")[0].replace("\n", " ")
     lines = [f"### {model.__name__}", "", doc, ""]
-    on = _keys_of(model) if issubclass(model, Message) else []
-    if on:
-        lines += [f"Encoding `{ENCODING_PREFIX}{model.__name__}`; at most {model.MAX_PAYLOAD_BYTES // 2**20} MiB; "
-                  f"on {', '.join(f'`{k}`' for k in on)}.", ""]
-    elif issubclass(model, Message):
-        lines += ["Sent nested in other messages only (as a map with its `schema_version` and `id`).", ""]
+    if issubclass(model, Message):
+        on = _keys_of(model)
+        if on:
+            lines += [(f"Encoding `{ENCODING_PREFIX}{model.__name__}`; at most {model.MAX_PAYLOAD_BYTES // 2**20} MiB; "
+                       f"on {', '.join(f'`{k}`' for k in on)}."), ""]
+        else:
+            lines += ["Sent nested in other messages only (as a map with its `schema_version` and `id`).", ""]
     rows = [(f"`{name}`", _linked(field_type(info)), default_text(info), ", ".join(constraints(info)))
             for name, info in model.model_fields.items()]
     return lines + _table(("field", "type", "default", "constraints"), rows) + [""]
 
 
 def _arrays() -> list[str]:
-    def shape(spec: dict) -> str:
+    def shape(spec: dict[str, typing.Any]) -> str:
         names = iter("NMKT")
         return "[" + ", ".join(str(d) if d is not None else next(names) for d in spec["shape"]) + "]"
 

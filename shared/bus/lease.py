@@ -24,6 +24,7 @@ uses them only to confirm the token once.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 import threading
@@ -172,11 +173,10 @@ class RouterWatchdog:
     def close(self) -> None:
         self._closed.set()
         self._thread.join(timeout=1.0)
-        for declared in (self._publisher, self._subscriber):
-            try:
-                declared.undeclare()
-            except zenoh.ZError:
-                pass
+        with contextlib.suppress(zenoh.ZError):
+            self._publisher.undeclare()
+        with contextlib.suppress(zenoh.ZError):
+            self._subscriber.undeclare()
 
 
 class LeaseMonitor:
@@ -286,8 +286,8 @@ class LeaseMonitor:
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=1.0)
 
-    def __enter__(self) -> "LeaseMonitor":
+    def __enter__(self) -> LeaseMonitor:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -47,6 +47,7 @@ import uuid
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import msgpack
 import zenoh
@@ -103,7 +104,8 @@ def check_deadline() -> None:
 
 def timeout_attachment(timeout_s: float) -> bytes:
     """The query attachment telling a worker how long the caller waits for the answer."""
-    return msgpack.packb({_TIMEOUT_KEY: float(timeout_s)})
+    packed: bytes = msgpack.packb({_TIMEOUT_KEY: float(timeout_s)})
+    return packed
 
 
 def caller_timeout_s(attachment: bytes | None) -> float | None:
@@ -112,8 +114,9 @@ def caller_timeout_s(attachment: bytes | None) -> float | None:
         value = msgpack.unpackb(attachment, raw=False)[_TIMEOUT_KEY] if attachment else None
     except Exception:  # not ours: ignore it
         return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
-    return float(value) if ok else None
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+        return float(value)
+    return None
 
 
 def payload_digest(payload: bytes, encoding: str | None) -> str:
@@ -131,14 +134,14 @@ class _JobPool:
     """
 
     def __init__(self, size: int, name: str):
-        self._jobs: queue.Queue = queue.Queue()
+        self._jobs: queue.Queue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.Queue()
         self._idle = threading.Condition()
         self._busy = 0
         self._threads = [threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True) for i in range(size)]
         for thread in self._threads:
             thread.start()
 
-    def submit(self, fn: Callable, *args) -> None:
+    def submit(self, fn: Callable[..., object], *args: object) -> None:
         with self._idle:
             self._busy += 1
         self._jobs.put((fn, args))
@@ -310,7 +313,7 @@ class Worker:
         except zenoh.ZError as exc:  # no router right now: the heartbeat is best effort
             log.debug("status heartbeat not sent: %s", exc)
 
-    def _receive(self, queryable: zenoh.Queryable, pool: _JobPool) -> None:
+    def _receive(self, queryable: zenoh.Queryable[zenoh.handlers.Handler[zenoh.Query]], pool: _JobPool) -> None:
         for query in queryable:
             try:
                 self._accept(query, pool)
@@ -367,15 +370,18 @@ class Worker:
                 self._in_flight += 1
                 self._deadline_changed.notify()  # the deadline watcher may have to wake up sooner
                 return True
-            same = (cached[0] if cached is not None else running.digest) == run.digest
-            if same and cached is None:  # same job already running: answer this query too when it ends
-                running.queries.append(query)
-                return False
-        if not same:
+            if cached is not None:
+                same = cached[0] == run.digest
+            elif running is not None:
+                same = running.digest == run.digest
+                if same:  # same job already running: answer this query too when it ends
+                    running.queries.append(query)
+                    return False
+        if cached is not None and same:
+            self._reply(query, *cached[1:])
+        else:
             self._reply_error(query, "bad_request", f"job id {job.id} was reused for a different job: this "
                               f"{self.service} worker already has a job {job.id} with other content", job=job)
-        else:
-            self._reply(query, *cached[1:])
         return False
 
     def _execute(self, handler: Handler, run: _Run) -> None:
@@ -500,7 +506,7 @@ def run_worker(
     concurrency: int = 1,
     capabilities: list[str] | None = None,
     stop: threading.Event | None = None,
-    **options,
+    **options: Any,  # passed on to Worker
 ) -> None:
     """Serve `service` with `handlers` until SIGTERM/SIGINT or `stop` is set (see `Worker`).
 

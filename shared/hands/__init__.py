@@ -6,9 +6,9 @@
     hand.signed_distance(points, state)     # [B,N], negative inside the hand
     hand.contact_points(state, indices)     # selected contact candidates and their normals
 """
+from shared.frames import POSE_DIM
 from shared.hands.config import HAND_SPECS, ContactRegion, HandSpec
 from shared.hands.model import (
-    POSE_DIM,
     ContactCandidates,
     HandModel,
     HandModelError,

@@ -22,11 +22,12 @@ link the table would otherwise leave out. 24 x 4 + 16 x 6 + 4 x 3 + 16 x 2 + 128
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from shared.hands.urdf import example_robot_data_file, resolved_urdf
 from shared.hands.leap_urdf import ASSET_PATH as LEAP_URDF_PATH
+from shared.hands.urdf import example_robot_data_file, resolved_urdf
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,8 @@ class HandSpec:
         return _URDF_SOURCES[self.name]()
 
 
-def _regions(prefix: str, links, count: int, facing, min_cos: float) -> tuple[ContactRegion, ...]:
+def _regions(prefix: str, links: Iterable[str], count: int, facing: tuple[float, float, float],
+             min_cos: float) -> tuple[ContactRegion, ...]:
     return tuple(ContactRegion(f"{prefix}:{link}", link, count, facing, min_cos) for link in links)
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,10 +64,14 @@ class ZCylinder:
         return np.diag([side, side, mass * r * r / 2.0])
 
 
+Shape = Box | ZCylinder
+
+
 def _span_box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> Box:
     """Box given by its min and max corners (how the outlines below were measured)."""
-    center = tuple(round((a + b) / 2, 6) for a, b in zip(lo, hi))
-    size = tuple(round(b - a, 6) for a, b in zip(lo, hi))
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    center = (round((x0 + x1) / 2, 6), round((y0 + y1) / 2, 6), round((z0 + z1) / 2, 6))
+    size = (round(x1 - x0, 6), round(y1 - y0, 6), round(z1 - z0, 6))
     return Box(center, size)
 
 
@@ -135,24 +140,24 @@ def _link_mass(link: str) -> float:
     return _MASS_KG[link[:-2] if finger_copy else link]
 
 
-def _inertial(shapes, mass: float) -> tuple[np.ndarray, np.ndarray]:
+def _inertial(shapes: Sequence[Shape], mass: float) -> tuple[np.ndarray, np.ndarray]:
     """COM (volume centroid) and inertia about it, treating the primitives as disjoint solids."""
     volumes = np.array([s.volume() for s in shapes])
     centers = np.array([s.center for s in shapes])
     com = (volumes[:, None] * centers).sum(0) / volumes.sum()
     inertia = np.zeros((3, 3))
-    for shape, volume, center in zip(shapes, volumes, centers):
+    for shape, volume, center in zip(shapes, volumes, centers, strict=True):
         m = mass * volume / volumes.sum()
         d = center - com
         inertia += shape.inertia_about_center(m) + m * (d @ d * np.eye(3) - np.outer(d, d))
     return com, inertia
 
 
-def _fmt(values) -> str:
+def _fmt(values: Iterable[float]) -> str:
     return " ".join(f"{float(v):.6g}" for v in values)
 
 
-def _add_geometry(parent: ET.Element, shape) -> None:
+def _add_geometry(parent: ET.Element, shape: Shape) -> None:
     ET.SubElement(parent, "origin", {"xyz": _fmt(shape.center), "rpy": "0 0 0"})
     geometry = ET.SubElement(parent, "geometry")
     if isinstance(shape, Box):

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytorch_kinematics as pk
 import torch
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from shared.frames import POSE_DIM, matrix_to_r6, pose25_to_matrix
@@ -174,11 +175,12 @@ class HandModel:
         pose[:, 9:] = self.open_joint_positions
         return pose
 
-    def urdf_base_to_pybullet(self, position, quaternion_xyzw) -> tuple[np.ndarray, np.ndarray]:
+    def urdf_base_to_pybullet(self, position: ArrayLike, quaternion_xyzw: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """URDF base frame pose -> pose of the base's centre-of-mass frame (what PyBullet resets/reports)."""
         return _compose(position, quaternion_xyzw, self.pybullet_base_com_offset)
 
-    def pybullet_to_urdf_base(self, com_position, com_quaternion_xyzw) -> tuple[np.ndarray, np.ndarray]:
+    def pybullet_to_urdf_base(self, com_position: ArrayLike,
+                              com_quaternion_xyzw: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """PyBullet base (centre-of-mass) pose -> URDF base frame pose."""
         return _compose(com_position, com_quaternion_xyzw, np.linalg.inv(self.pybullet_base_com_offset))
 
@@ -224,7 +226,8 @@ class HandModel:
             torch.tensor(regions, dtype=torch.long),
         )
 
-    def _sample_region(self, region: ContactRegion, open_state: HandState, rng: np.random.Generator):
+    def _sample_region(self, region: ContactRegion, open_state: HandState,
+                       rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Dense area-uniform samples on the link's facing, exposed surface, thinned by farthest-point sampling."""
         link = self.link_index(region.link)
         prims = [p for p in self.primitives.prims if p.link_index == link]
@@ -233,7 +236,7 @@ class HandModel:
         dense = _DENSE_SAMPLES_PER_CANDIDATE * region.count
         areas = np.array([p.area() for p in prims])
         per_prim = rng.multinomial(dense, areas / areas.sum())
-        samples = [surface_samples(p, int(k), rng) for p, k in zip(prims, per_prim)]
+        samples = [surface_samples(p, int(k), rng) for p, k in zip(prims, per_prim, strict=True)]
         points = np.concatenate([s[0] for s in samples])
         normals = np.concatenate([s[1] for s in samples])
         facing = normals @ np.asarray(region.facing) > region.min_cos
@@ -261,7 +264,7 @@ class HandModel:
         return ((sdf[0] > -_EXPOSED_TOLERANCE_M) & (sdf[1] > 0.5 * _EXPOSURE_STEP_M)).numpy()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def load_hand(name: str) -> HandModel:
     """The hand model for 'allegro' or 'leap' (built once per process)."""
     try:
@@ -279,14 +282,16 @@ def _apply(frames: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return (frames[..., :3, :3] @ points.unsqueeze(-1)).squeeze(-1) + frames[..., :3, 3]
 
 
-def _unit(vector) -> torch.Tensor:
+def _unit(vector: tuple[float, float, float]) -> torch.Tensor:
     v = torch.tensor(vector, dtype=torch.float32)
-    return v / v.norm()
+    unit: torch.Tensor = v / v.norm()
+    return unit
 
 
-def _compose(position, quaternion_xyzw, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _compose(position: ArrayLike, quaternion_xyzw: ArrayLike, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     frame = np.eye(4)
     frame[:3, :3] = Rotation.from_quat(quaternion_xyzw).as_matrix()
     frame[:3, 3] = position
     result = frame @ offset
-    return result[:3, 3], Rotation.from_matrix(result[:3, :3]).as_quat()
+    quaternion: np.ndarray = Rotation.from_matrix(result[:3, :3]).as_quat()
+    return result[:3, 3], quaternion

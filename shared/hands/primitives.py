@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
@@ -44,11 +45,12 @@ class Primitive:
             return 4.0 * math.pi * self.radius**2
         return 2.0 * math.pi * self.radius * (self.radius + self.length)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, object]:
         from shared.hands.urdf import matrix_to_xyz_rpy
 
         xyz, rpy = matrix_to_xyz_rpy(self.origin)
-        out = {"link": self.link, "kind": self.kind, "xyz": xyz.round(6).tolist(), "rpy": rpy.round(6).tolist()}
+        out: dict[str, object] = {"link": self.link, "kind": self.kind, "xyz": xyz.round(6).tolist(),
+                                  "rpy": rpy.round(6).tolist()}
         if self.kind == "box":
             out["size"] = list(self.size)
         else:
@@ -66,7 +68,7 @@ def primitives_from_urdf(robot: UrdfRobot, link_names: tuple[str, ...]) -> tuple
             g = shape.geometry
             if g.kind == "mesh":
                 raise RobotAssetError(f"link {link!r} has a mesh collision shape; hand models need primitives")
-            prims.append(Primitive(link, index, g.kind, shape.origin, tuple(g.size), g.radius, g.length))
+            prims.append(Primitive(link, index, g.kind, shape.origin, g.size, g.radius, g.length))
     if not prims:
         raise RobotAssetError(f"robot {robot.name!r} has no collision primitives")
     return tuple(prims)
@@ -105,8 +107,9 @@ class PrimitiveSet:
             distances.append(_box_sdf(local, self._box_half).amin(-1))
         if len(self._sphere_radius):
             centers = (link_transforms[:, self._sphere_link] @ self._sphere_center.unsqueeze(-1))[..., :3, 0]
-            squared = sum((p.unsqueeze(2) - c.unsqueeze(1)).square()  # [B,N,S] per axis, no size-3 reduction
-                          for p, c in zip(points.unbind(-1), centers.unbind(-1)))
+            # [B,N,S] per axis, no size-3 reduction (a sum of 3 tensors: never sum()'s int start alone)
+            squared = cast(torch.Tensor, sum((p.unsqueeze(2) - c.unsqueeze(1)).square()
+                                             for p, c in zip(points.unbind(-1), centers.unbind(-1), strict=True)))
             distances.append((_safe_sqrt(squared) - self._sphere_radius).amin(-1))
         if len(self._cyl_radius):
             local = _to_primitive_frames(points, link_transforms[:, self._cyl_link] @ self._cyl_origin)
@@ -143,14 +146,14 @@ def _to_primitive_frames(points: torch.Tensor, frames: torch.Tensor) -> tuple[to
 def _box_sdf(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> torch.Tensor:
     if not _needs_grad(*local):
         return _box_sdf_inplace(local, half)
-    qx, qy, qz = (c.abs() - h for c, h in zip(local, half.unbind(-1)))
+    qx, qy, qz = (c.abs() - h for c, h in zip(local, half.unbind(-1), strict=True))
     outside = _safe_sqrt(qx.clamp_min(0.0).square() + qy.clamp_min(0.0).square() + qz.clamp_min(0.0).square())
     return outside + torch.maximum(qx, torch.maximum(qy, qz)).clamp_max(0.0)
 
 
 def _box_sdf_inplace(local: tuple[torch.Tensor, ...], half: torch.Tensor) -> torch.Tensor:
     """Same values as _box_sdf without autograd: in-place arithmetic skips ~10 fresh [B,N,P] buffers (1.7x)."""
-    qx, qy, qz = (c.abs().sub_(h) for c, h in zip(local, half.unbind(-1)))
+    qx, qy, qz = (c.abs().sub_(h) for c, h in zip(local, half.unbind(-1), strict=True))
     inside = torch.maximum(qx, qy)
     torch.maximum(inside, qz, out=inside).clamp_max_(0.0)
     outside = qx.clamp_min_(0.0).square_().add_(qy.clamp_min_(0.0).square_()).add_(qz.clamp_min_(0.0).square_())
@@ -207,7 +210,8 @@ def _box_surface(half: np.ndarray, count: int, rng: np.random.Generator) -> tupl
     return points, normals
 
 
-def _cylinder_surface(radius: float, half_length: float, count: int, rng: np.random.Generator):
+def _cylinder_surface(radius: float, half_length: float, count: int,
+                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     side_area = 4 * math.pi * radius * half_length
     cap_area = math.pi * radius**2
     on_side = rng.uniform(size=count) < side_area / (side_area + 2 * cap_area)
@@ -253,7 +257,7 @@ class PenetrationKeypoints:
         gap = torch.linalg.vector_norm(centers[:, first] - centers[:, second], dim=-1)
         return torch.relu(self.radius[first] + self.radius[second] - gap).sum(-1)
 
-    def keep_pairs(self, mask: torch.Tensor) -> "PenetrationKeypoints":
+    def keep_pairs(self, mask: torch.Tensor) -> PenetrationKeypoints:
         return PenetrationKeypoints(self.link_index, self.centers, self.radius, self.pairs[mask])
 
     def closest_separation(self, link_transforms: torch.Tensor) -> torch.Tensor:
@@ -261,7 +265,8 @@ class PenetrationKeypoints:
         centers = (link_transforms[:, self.link_index] @ self.centers.unsqueeze(-1))[..., :3, 0]
         first, second = self.pairs[:, 0], self.pairs[:, 1]
         gap = torch.linalg.vector_norm(centers[:, first] - centers[:, second], dim=-1)
-        return (gap - self.radius[first] - self.radius[second]).amin(0)
+        separation: torch.Tensor = (gap - self.radius[first] - self.radius[second]).amin(0)
+        return separation
 
 
 def build_keypoints(prims: tuple[Primitive, ...], link_names: tuple[str, ...], robot: UrdfRobot,
@@ -319,10 +324,11 @@ def _rigid_body_of(robot: UrdfRobot, link_names: tuple[str, ...]) -> list[int]:
     return body
 
 
-def _collidable_body_pairs(robot, link_names, body, exclusions) -> set[tuple[int, int]]:
+def _collidable_body_pairs(robot: UrdfRobot, link_names: tuple[str, ...], body: list[int],
+                           exclusions: tuple[tuple[str, str], ...]) -> set[tuple[int, int]]:
     index = {name: i for i, name in enumerate(link_names)}
     bodies = sorted(set(body))
-    adjacent = set()
+    adjacent: set[tuple[int, int]] = set()
     for joint in robot.movable_joints:
         a, b = body[index[joint.parent]], body[index[joint.child]]
         adjacent |= {(a, b), (b, a)}

@@ -17,6 +17,7 @@ import importlib.metadata
 import os
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -95,16 +96,16 @@ def merge_urdf(parent_path: Path, child_path: Path, parent_link: str, transform:
     """URDF text with `child`'s root link fixed to `parent_link` of `parent` at `transform` (4x4, parent_link→child root)."""
     parent = _parse_xml(Path(parent_path).read_text(), str(parent_path))
     child = _parse_xml(Path(child_path).read_text(), str(child_path))
-    parent_links = {link.get("name") for link in parent.iter("link")}
+    parent_links = {_attr(link, "name") for link in parent.iter("link")}
     if parent_link not in parent_links:
         raise RobotAssetError(f"{parent_path} has no link {parent_link!r} to attach to")
-    clash = parent_links & {link.get("name") for link in child.iter("link")}
-    clash |= {j.get("name") for j in parent.iter("joint")} & {j.get("name") for j in child.iter("joint")}
+    clash = parent_links & {_attr(link, "name") for link in child.iter("link")}
+    clash |= {_attr(j, "name") for j in parent.iter("joint")} & {_attr(j, "name") for j in child.iter("joint")}
     if clash:
         raise RobotAssetError(f"cannot merge {child_path} into {parent_path}: duplicate names {sorted(clash)}")
     child_root = read_urdf(child_path).root_link
     merged = ET.Element("robot", {"name": robot_name})
-    material_names = set()
+    material_names: set[str | None] = set()
     for element in list(parent) + list(child):
         if element.tag == "material":  # top-level materials are global: keep the first definition of a name
             if element.get("name") in material_names:
@@ -125,6 +126,15 @@ def content_key(*parts: str) -> str:
     for part in parts:
         digest.update(b"\0" + part.encode())
     return digest.hexdigest()[:12]
+
+
+def _attr(element: ET.Element | None, key: str) -> str:
+    """The attribute `key` a URDF element must have (RobotAssetError when it or the element is missing)."""
+    value = None if element is None else element.get(key)
+    if value is None:
+        where = "a missing element" if element is None else f"<{element.tag}>"
+        raise RobotAssetError(f"{where} has no {key!r} attribute")
+    return value
 
 
 def _parse_xml(text: str, origin: str) -> ET.Element:
@@ -169,17 +179,17 @@ def _resolve_mesh_uris(root: ET.Element, share: Path, source_dir: Path) -> None:
 def _prune_below(root: ET.Element, keep_link: str) -> None:
     children: dict[str, list[ET.Element]] = {}
     for joint in root.findall("joint"):
-        children.setdefault(joint.find("parent").get("link"), []).append(joint)
-    if keep_link not in {link.get("name") for link in root.findall("link")}:
+        children.setdefault(_attr(joint.find("parent"), "link"), []).append(joint)
+    if keep_link not in {_attr(link, "name") for link in root.findall("link")}:
         raise RobotAssetError(f"cannot prune below unknown link {keep_link!r}")
     doomed_links: set[str] = set()
     stack = list(children.get(keep_link, []))
     while stack:
         joint = stack.pop()
         root.remove(joint)
-        link = joint.find("child").get("link")
-        doomed_links.add(link)
-        stack.extend(children.get(link, []))
+        child = _attr(joint.find("child"), "link")
+        doomed_links.add(child)
+        stack.extend(children.get(child, []))
     for link in root.findall("link"):
         if link.get("name") in doomed_links:
             root.remove(link)
@@ -247,15 +257,17 @@ class UrdfRobot:
 def read_urdf(path: Path) -> UrdfRobot:
     """Parse joints, collision shapes and inertial frames of a URDF file."""
     root = _parse_xml(Path(path).read_text(), str(path))
-    links = tuple(link.get("name") for link in root.findall("link"))
+    links = tuple(_attr(link, "name") for link in root.findall("link"))
     joints = tuple(_read_joint(j) for j in root.findall("joint"))
     children = {j.child for j in joints}
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
         raise RobotAssetError(f"{path} must have exactly one root link, found {roots}")
-    collisions, inertials, masses = {}, {}, {}
+    collisions: dict[str, tuple[UrdfShape, ...]] = {}
+    inertials: dict[str, np.ndarray] = {}
+    masses: dict[str, float] = {}
     for link in root.findall("link"):
-        name = link.get("name")
+        name = _attr(link, "name")
         collisions[name] = tuple(
             UrdfShape(name, _read_geometry(c.find("geometry"), path), _read_origin(c.find("origin")))
             for c in link.findall("collision")
@@ -264,21 +276,24 @@ def read_urdf(path: Path) -> UrdfRobot:
         if inertial is not None:
             inertials[name] = _read_origin(inertial.find("origin"))
             mass = inertial.find("mass")
-            masses[name] = float(mass.get("value")) if mass is not None else 0.0
+            masses[name] = float(_attr(mass, "value")) if mass is not None else 0.0
     return UrdfRobot(root.get("name", ""), roots[0], links, joints, collisions, inertials, masses)
 
 
 def _read_joint(element: ET.Element) -> UrdfJoint:
     limit = element.find("limit")
     axis = element.find("axis")
-    get = (lambda key, default: float(limit.get(key, default))) if limit is not None else (lambda key, default: default)
+
+    def get(key: str, default: float) -> float:
+        return float(limit.get(key, default)) if limit is not None else default
+
     return UrdfJoint(
-        name=element.get("name"),
-        kind=element.get("type"),
-        parent=element.find("parent").get("link"),
-        child=element.find("child").get("link"),
+        name=_attr(element, "name"),
+        kind=_attr(element, "type"),
+        parent=_attr(element.find("parent"), "link"),
+        child=_attr(element.find("child"), "link"),
         origin=_read_origin(element.find("origin")),
-        axis=np.array([float(v) for v in axis.get("xyz").split()]) if axis is not None else np.array([1.0, 0.0, 0.0]),
+        axis=np.array([float(v) for v in _attr(axis, "xyz").split()]) if axis is not None else np.array([1.0, 0.0, 0.0]),
         lower=get("lower", 0.0),
         upper=get("upper", 0.0),
         velocity=get("velocity", 0.0),
@@ -286,18 +301,19 @@ def _read_joint(element: ET.Element) -> UrdfJoint:
     )
 
 
-def _read_geometry(element: ET.Element, path: Path) -> UrdfGeometry:
+def _read_geometry(element: ET.Element | None, path: Path) -> UrdfGeometry:
     shape = element[0] if element is not None and len(element) else None
     if shape is None:
         raise RobotAssetError(f"{path}: a collision element has no geometry")
     if shape.tag == "box":
-        return UrdfGeometry("box", size=tuple(float(v) for v in shape.get("size").split()))
+        x, y, z = (float(v) for v in _attr(shape, "size").split())
+        return UrdfGeometry("box", size=(x, y, z))
     if shape.tag == "sphere":
-        return UrdfGeometry("sphere", radius=float(shape.get("radius")))
+        return UrdfGeometry("sphere", radius=float(_attr(shape, "radius")))
     if shape.tag == "cylinder":
-        return UrdfGeometry("cylinder", radius=float(shape.get("radius")), length=float(shape.get("length")))
+        return UrdfGeometry("cylinder", radius=float(_attr(shape, "radius")), length=float(_attr(shape, "length")))
     if shape.tag == "mesh":
-        return UrdfGeometry("mesh", filename=shape.get("filename"))
+        return UrdfGeometry("mesh", filename=_attr(shape, "filename"))
     raise RobotAssetError(f"{path}: unsupported geometry <{shape.tag}>")
 
 
@@ -313,7 +329,7 @@ def _read_origin(element: ET.Element | None) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- conversions
 
 
-def xyz_rpy_to_matrix(xyz, rpy) -> np.ndarray:
+def xyz_rpy_to_matrix(xyz: Sequence[float] | np.ndarray, rpy: Sequence[float] | np.ndarray) -> np.ndarray:
     """4x4 transform from a URDF origin (rpy = fixed-axis roll, pitch, yaw: R = Rz(y) Ry(p) Rx(r))."""
     matrix = np.eye(4)
     matrix[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
@@ -331,5 +347,5 @@ def matrix_to_xyz_rpy(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return matrix[:3, 3].copy(), rpy
 
 
-def _fmt(values) -> str:
+def _fmt(values: Iterable[float]) -> str:
     return " ".join(f"{float(v):.10g}" for v in values)

@@ -18,7 +18,7 @@ from shared.atomic import atomic_write_bytes
 CACHE_ENV = "GD2P_CACHE_DIR"
 
 
-def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
+def cache_root(cache_dir: str | os.PathLike[str] | None = None) -> Path:
     """The objects cache directory (argument > $GD2P_CACHE_DIR > ~/.cache/gd2p)."""
     base = Path(cache_dir) if cache_dir is not None else Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "gd2p"))
     return base.expanduser() / "objects"
@@ -27,7 +27,7 @@ def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
 def save_npz(path: Path, **arrays: np.ndarray) -> Path:
     """Atomically save arrays as an uncompressed .npz (fast to load, mmap-free)."""
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]  # mypy fears a key named allow_pickle: keys are array names
     return atomic_write_bytes(path, buffer.getvalue())
 
 

@@ -22,13 +22,21 @@ import math
 import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import pybullet_data
 import trimesh
 
 from . import meshio
 from .errors import ObjectLoadError, SplitError, UnknownObjectError
-from .procedural import PER_FAMILY, PROCEDURAL_VERSION, is_procedural_id, procedural_ids, procedural_mesh, procedural_spec
+from .procedural import (
+    PER_FAMILY,
+    PROCEDURAL_VERSION,
+    is_procedural_id,
+    procedural_ids,
+    procedural_mesh,
+    procedural_spec,
+)
 
 SPLITS = ("train", "val", "test")
 SPLIT_FRACTIONS = {"train": 0.8, "val": 0.1, "test": 0.1}
@@ -85,7 +93,7 @@ class ObjectInfo:
     size_m: tuple[float, float, float]  # footprint a >= b, height H in the default resting pose
     split: str
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         out["size_m"] = [round(v, 4) for v in self.size_m]
         return out
@@ -167,9 +175,9 @@ def read_source_mesh(source: ObjectSource) -> trimesh.Trimesh:
     """The raw mesh in metres, in the source's own frame (upright rotation applied)."""
     if source.source == "procedural":
         return procedural_mesh(procedural_spec(source.object_id))
+    assert source.path is not None
     if source.source == "mesh":
         return meshio.read_mesh_file(source.path)
-    assert source.path is not None
     if not source.path.is_file():
         raise ObjectLoadError(f"{source.object_id}: asset file {source.path} is missing (is pybullet installed completely?)")
     if source.path.suffix == ".urdf":

@@ -164,7 +164,7 @@ def _coarse_hull(mesh: trimesh.Trimesh, max_faces: int = STABLE_POSE_HULL_FACES)
     outermost hull vertex per cell of a grid only moves the hull by a fraction of a cell, and
     flat bottoms stay flat (their kept vertices are still coplanar).
     """
-    hull = mesh.convex_hull
+    hull: trimesh.Trimesh = mesh.convex_hull
     if len(hull.faces) <= max_faces:
         return hull
     vertices = hull.vertices
@@ -172,7 +172,8 @@ def _coarse_hull(mesh: trimesh.Trimesh, max_faces: int = STABLE_POSE_HULL_FACES)
     keys = np.floor((vertices - vertices.min(axis=0)) / cell).astype(np.int64)
     order = np.argsort(-np.linalg.norm(vertices, axis=1), kind="stable")  # outermost first
     _, first = np.unique(keys[order], axis=0, return_index=True)
-    return trimesh.convex.convex_hull(vertices[order[first]])
+    thinned: trimesh.Trimesh = trimesh.convex.convex_hull(vertices[order[first]])
+    return thinned
 
 
 def _rest_height(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,7 +60,7 @@ def check_suffix(path: Path) -> str:
     return suffix
 
 
-def _as_triangle_mesh(loaded, source: Path | str) -> trimesh.Trimesh:
+def _as_triangle_mesh(loaded: object, source: Path | str) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         kind = type(loaded).__name__
         raise ObjectLoadError(f"{source}: contains no triangles (loaded as {kind}; a point cloud or an empty scene?)")
@@ -85,18 +86,21 @@ def read_urdf_visual(urdf_path: Path) -> UrdfVisual:
         raise ObjectLoadError(f"{urdf_path}: cannot read URDF: {exc}") from exc
     visual = root.find(".//visual")
     mesh = visual.find("geometry/mesh") if visual is not None else None
-    if mesh is None or not mesh.get("filename"):
+    filename = mesh.get("filename") if mesh is not None else None
+    if visual is None or mesh is None or not filename:
         raise ObjectLoadError(f"{urdf_path}: no visual mesh")
     scale = [float(v) for v in (mesh.get("scale") or "1 1 1").split()]
     origin = visual.find("origin")
     xyz = [float(v) for v in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
     rpy = [float(v) for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
-    transform = trimesh.transformations.euler_matrix(*rpy, axes="sxyz")
+    roll, pitch, yaw = rpy
+    transform = trimesh.transformations.euler_matrix(roll, pitch, yaw, axes="sxyz")
     transform[:3, 3] = xyz
-    return UrdfVisual(urdf_path.parent / mesh.get("filename"), (scale[0], scale[1], scale[2]), transform)
+    return UrdfVisual(urdf_path.parent / filename, (scale[0], scale[1], scale[2]), transform)
 
 
-def read_asset_mesh(mesh_path: Path, scale=(1.0, 1.0, 1.0), transform: np.ndarray | None = None) -> trimesh.Trimesh:
+def read_asset_mesh(mesh_path: Path, scale: Sequence[float] = (1.0, 1.0, 1.0),
+                    transform: np.ndarray | None = None) -> trimesh.Trimesh:
     """A bundled asset mesh with a URDF-style per-axis scale, then a rigid transform."""
     try:
         loaded = trimesh.load(str(mesh_path), force="mesh", process=False)
@@ -153,7 +157,7 @@ def fuse_closed_parts(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     if len(bodies) < 2 or not all(body.is_watertight for body in bodies):
         return mesh
     try:
-        fused = trimesh.boolean.union(bodies, engine="manifold")
+        fused: trimesh.Trimesh = trimesh.boolean.union(bodies, engine="manifold")
     except Exception as exc:  # manifold3d refuses some inputs; the parts still work without fusing
         log.debug("union of %d parts failed (%s); keeping them separate", len(bodies), exc)
         return mesh

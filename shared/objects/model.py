@@ -14,6 +14,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pybullet
@@ -21,9 +22,9 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from . import meshio
 from shared.atomic import atomic_write_text
 
+from . import meshio
 from .cache import cache_root, load_npz, save_npz
 from .catalog import (
     ObjectInfo,
@@ -92,16 +93,18 @@ class _Geometry:
         }
 
     @classmethod
-    def from_arrays(cls, a: dict[str, np.ndarray]) -> "_Geometry":
+    def from_arrays(cls, a: dict[str, np.ndarray]) -> _Geometry:
         poses = [
             RestingPose(r, float(h), float(p), bool(n))
-            for r, h, p, n in zip(a["pose_rotations"], a["pose_heights"], a["pose_probabilities"], a["pose_native"])
+            for r, h, p, n in zip(a["pose_rotations"], a["pose_heights"], a["pose_probabilities"], a["pose_native"],
+                                  strict=True)
         ]
         parts = None
         if bool(a["has_convex_parts"]):
             vertex_splits = np.cumsum(a["part_vertex_counts"])[:-1]
             face_splits = np.cumsum(a["part_face_counts"])[:-1]
-            parts = list(zip(np.split(a["part_vertices"], vertex_splits), np.split(a["part_faces"], face_splits)))
+            parts = list(zip(np.split(a["part_vertices"], vertex_splits), np.split(a["part_faces"], face_splits),
+                             strict=True))
         return cls(
             a["vertices"], a["faces"], a["T_source_O"], float(a["volume"]), a["unit_inertia"], bool(a["mass_from_voxels"]),
             bool(a["watertight"]), poses, int(a["default_pose_index"]), parts,
@@ -147,7 +150,8 @@ class ObjectModel:
     """
 
     def __init__(
-        self, source: ObjectSource, key: str, geometry: _Geometry, *, density: float, sdf_resolution: int, cache_dir: Path, provenance: dict
+        self, source: ObjectSource, key: str, geometry: _Geometry, *, density: float, sdf_resolution: int, cache_dir: Path,
+        provenance: dict[str, str | None],
     ) -> None:
         self.id = source.object_id
         self.source = source.source
@@ -293,7 +297,7 @@ def _load_source(source: ObjectSource, root: Path, density: float, sdf_resolutio
     key = _object_key(source)
     directory = root / key
     arrays = load_npz(directory / "geometry.npz")
-    provenance: dict = {"geometry": "cache", "sdf": None}
+    provenance: dict[str, str | None] = {"geometry": "cache", "sdf": None}
     if arrays is None:
         geometry = _compute_geometry(source)
         save_npz(directory / "geometry.npz", **geometry.to_arrays())
@@ -355,8 +359,9 @@ def list_objects(split: str | None = None, *, cache_dir: str | Path | None = Non
     return infos
 
 
-def _read_catalog(path: Path) -> dict:
+def _read_catalog(path: Path) -> dict[str, Any]:
     try:
-        return json.loads(path.read_text())
+        catalog: dict[str, Any] = json.loads(path.read_text())
+        return catalog
     except (OSError, ValueError):
         return {}

@@ -13,7 +13,9 @@ import contextlib
 import os
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+from typing import cast
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -22,6 +24,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from shared.atomic import atomic_write_bytes, atomic_write_text
+
 from .model import ObjectModel
 
 # V-HACD voxel resolution: 2e5 resolves a mug handle in ~1.5 s (1e5: coarser, 4e5: ~3.5 s).
@@ -39,7 +42,8 @@ def convex_decomposition(obj: ObjectModel) -> list[trimesh.Trimesh]:
     cached = obj.cache_dir / "vhacd.obj"
     if not cached.is_file():
         _run_vhacd(obj.mesh, cached)
-    return list(trimesh.load(str(cached), force="mesh", process=False).split(only_watertight=False))
+    parts_mesh = cast(trimesh.Trimesh, trimesh.load(str(cached), force="mesh", process=False))  # force="mesh"
+    return list(parts_mesh.split(only_watertight=False))
 
 
 def _run_vhacd(mesh: trimesh.Trimesh, out_path: Path) -> None:
@@ -55,7 +59,7 @@ def _run_vhacd(mesh: trimesh.Trimesh, out_path: Path) -> None:
 
 
 @contextlib.contextmanager
-def _quiet_stdout():
+def _quiet_stdout() -> Iterator[None]:
     sys.stdout.flush()
     saved = os.dup(1)
     try:
@@ -106,13 +110,14 @@ def load_in_pybullet(obj: ObjectModel, T_world_O: np.ndarray, physics_client_id:
     """
     T_world_O = np.asarray(T_world_O, dtype=np.float64)
     quat = Rotation.from_matrix(T_world_O[:3, :3]).as_quat()  # xyzw, PyBullet's order
-    return pybullet.loadURDF(
+    body: int = pybullet.loadURDF(
         str(write_object_urdf(obj)),
         T_world_O[:3, 3].tolist(),
         quat.tolist(),
         flags=pybullet.URDF_USE_INERTIA_FROM_FILE,
         physicsClientId=physics_client_id,
     )
+    return body
 
 
 def _urdf_text(obj: ObjectModel, mass_scale: float, com_offset_m: tuple[float, float, float]) -> str:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +40,9 @@ _ID_PATTERN = re.compile(r"^proc-([a-z]+)-(\d{3})$")
 _CLASS_MARGIN = 0.15
 _ROUND_SECTIONS = 48
 _BASE_CUT = 0.08  # fraction of an ellipsoid's / capsule's height cut off to make a base
+
+Params = dict[str, float]
+Dims = tuple[float, float, float]  # footprint a >= b and height H
 
 
 @dataclass(frozen=True)
@@ -102,44 +106,44 @@ def _log_uniform(rng: np.random.Generator, low: float, high: float) -> float:
 
 
 # ----------------------------------------------------------------------------- samplers: params, (a, b, H)
-def _sample_box(rng):
+def _sample_box(rng: np.random.Generator) -> tuple[Params, Dims]:
     a, b = sorted((_log_uniform(rng, 0.04, 0.25), _log_uniform(rng, 0.04, 0.25)), reverse=True)
     height = _log_uniform(rng, 0.02, 0.25)
     return {"a": a, "b": b, "height": height}, (a, b, height)
 
 
-def _sample_cylinder(rng):
+def _sample_cylinder(rng: np.random.Generator) -> tuple[Params, Dims]:
     diameter, height = _log_uniform(rng, 0.04, 0.20), _log_uniform(rng, 0.02, 0.25)
     return {"diameter": diameter, "height": height}, (diameter, diameter, height)
 
 
-def _sample_cone(rng):
+def _sample_cone(rng: np.random.Generator) -> tuple[Params, Dims]:
     diameter, height = _log_uniform(rng, 0.05, 0.22), _log_uniform(rng, 0.03, 0.25)
     top_ratio = float(rng.uniform(0.0, 0.7))  # 0 = a pointed cone, else a frustum (cup, lampshade)
     return {"diameter": diameter, "top_ratio": top_ratio, "height": height}, (diameter, diameter, height)
 
 
-def _sample_ellipsoid(rng):
+def _sample_ellipsoid(rng: np.random.Generator) -> tuple[Params, Dims]:
     a = _log_uniform(rng, 0.05, 0.22)
     b = _log_uniform(rng, 0.04, a)
     c = _log_uniform(rng, 0.025, 0.16)
     return {"a": a, "b": b, "c": c}, (a, b, c * (1.0 - _BASE_CUT))
 
 
-def _sample_capsule(rng):
+def _sample_capsule(rng: np.random.Generator) -> tuple[Params, Dims]:
     radius = _log_uniform(rng, 0.01, 0.04)
     length = _log_uniform(rng, max(0.05, 5.0 * radius), 0.25)  # overall, caps included
     return {"radius": radius, "length": length}, (length, 2 * radius, 2 * radius * (1.0 - _BASE_CUT))
 
 
-def _sample_hull(rng):
+def _sample_hull(rng: np.random.Generator) -> tuple[Params, Dims]:
     a, b = sorted((_log_uniform(rng, 0.04, 0.24), _log_uniform(rng, 0.04, 0.24)), reverse=True)
     height = _log_uniform(rng, 0.02, 0.25)
     params = {"a": a, "b": b, "height": height, "top_scale": float(rng.uniform(0.3, 1.0)), "points_seed": float(rng.integers(2**31))}
     return params, (a, b, height)
 
 
-_SAMPLERS = {
+_SAMPLERS: dict[str, Callable[[np.random.Generator], tuple[Params, Dims]]] = {
     "box": _sample_box,
     "cylinder": _sample_cylinder,
     "cone": _sample_cone,
@@ -150,12 +154,15 @@ _SAMPLERS = {
 
 
 # ----------------------------------------------------------------------------- builders
-def _build_box(p) -> trimesh.Trimesh:
-    return trimesh.creation.box(extents=(p["a"], p["b"], p["height"]))
+def _build_box(p: Params) -> trimesh.Trimesh:
+    box: trimesh.Trimesh = trimesh.creation.box(extents=(p["a"], p["b"], p["height"]))
+    return box
 
 
-def _build_cylinder(p) -> trimesh.Trimesh:
-    return trimesh.creation.cylinder(radius=p["diameter"] / 2, height=p["height"], sections=_ROUND_SECTIONS)
+def _build_cylinder(p: Params) -> trimesh.Trimesh:
+    cylinder: trimesh.Trimesh = trimesh.creation.cylinder(radius=p["diameter"] / 2, height=p["height"],
+                                                          sections=_ROUND_SECTIONS)
+    return cylinder
 
 
 def _ring(radius_x: float, radius_y: float, z: float, count: int, phase: float = 0.0) -> np.ndarray:
@@ -163,12 +170,13 @@ def _ring(radius_x: float, radius_y: float, z: float, count: int, phase: float =
     return np.stack([radius_x * np.cos(angles), radius_y * np.sin(angles), np.full(count, z)], axis=1)
 
 
-def _build_cone(p) -> trimesh.Trimesh:
+def _build_cone(p: Params) -> trimesh.Trimesh:
     radius = p["diameter"] / 2
     base = _ring(radius, radius, 0.0, _ROUND_SECTIONS)
     top_radius = radius * p["top_ratio"]
     top = _ring(top_radius, top_radius, p["height"], _ROUND_SECTIONS) if top_radius > 1e-3 else np.array([[0.0, 0.0, p["height"]]])
-    return trimesh.convex.convex_hull(np.vstack([base, top]))
+    cone: trimesh.Trimesh = trimesh.convex.convex_hull(np.vstack([base, top]))
+    return cone
 
 
 def _cut_base(mesh: trimesh.Trimesh, height: float) -> trimesh.Trimesh:
@@ -177,23 +185,24 @@ def _cut_base(mesh: trimesh.Trimesh, height: float) -> trimesh.Trimesh:
     keep_lower = lower - 1.0
     keep_lower[2] = lower[2] + _BASE_CUT * height
     keep = trimesh.creation.box(bounds=[keep_lower, upper + 1.0])
-    return trimesh.boolean.intersection([mesh, keep], engine="manifold")
+    cut: trimesh.Trimesh = trimesh.boolean.intersection([mesh, keep], engine="manifold")
+    return cut
 
 
-def _build_ellipsoid(p) -> trimesh.Trimesh:
+def _build_ellipsoid(p: Params) -> trimesh.Trimesh:
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     sphere.apply_scale([p["a"] / 2, p["b"] / 2, p["c"] / 2])
     return _cut_base(sphere, p["c"])
 
 
-def _build_capsule(p) -> trimesh.Trimesh:
+def _build_capsule(p: Params) -> trimesh.Trimesh:
     radius = p["radius"]
     capsule = trimesh.creation.capsule(height=p["length"] - 2 * radius, radius=radius, count=[32, 16])
     capsule.apply_transform(trimesh.transformations.rotation_matrix(math.pi / 2, [0.0, 1.0, 0.0]))  # lie along x
     return _cut_base(capsule, 2 * radius)
 
 
-def _build_hull(p) -> trimesh.Trimesh:
+def _build_hull(p: Params) -> trimesh.Trimesh:
     rng = np.random.default_rng(int(p["points_seed"]))
     rx, ry, height = p["a"] / 2, p["b"] / 2, p["height"]
     base = _ring(rx, ry, 0.0, 12, phase=float(rng.uniform(0, 2 * math.pi)))  # the footprint, so upright rests
@@ -201,10 +210,11 @@ def _build_hull(p) -> trimesh.Trimesh:
     radius = np.sqrt(rng.uniform(0.0, 1.0, 30))
     angle = rng.uniform(0.0, 2 * math.pi, 30)
     interior = np.stack([rx * radius * np.cos(angle), ry * radius * np.sin(angle), rng.uniform(0.0, height, 30)], axis=1)
-    return trimesh.convex.convex_hull(np.vstack([base, top, interior]))
+    hull: trimesh.Trimesh = trimesh.convex.convex_hull(np.vstack([base, top, interior]))
+    return hull
 
 
-_BUILDERS = {
+_BUILDERS: dict[str, Callable[[Params], trimesh.Trimesh]] = {
     "box": _build_box,
     "cylinder": _build_cylinder,
     "cone": _build_cone,

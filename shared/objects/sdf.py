@@ -22,12 +22,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
+from torch.autograd.function import FunctionCtx
 
 DEFAULT_RESOLUTION = 64
 DEFAULT_SURFACE_SAMPLES = 200_000
@@ -48,7 +50,8 @@ def grid_bounds(mesh_bounds: np.ndarray, padding: float | None = None) -> tuple[
 
 
 def node_axes(lower: np.ndarray, upper: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return tuple(np.linspace(lower[i], upper[i], resolution) for i in range(3))  # type: ignore[return-value]
+    x, y, z = (np.linspace(lower[i], upper[i], resolution) for i in range(3))
+    return x, y, z
 
 
 # ----------------------------------------------------------------------------- inside / outside
@@ -67,7 +70,8 @@ def inside_mask(mesh: trimesh.Trimesh, axes: tuple[np.ndarray, np.ndarray, np.nd
     return inside_votes(mesh, axes) >= INSIDE_VOTES
 
 
-def _axis_votes(mesh: trimesh.Trimesh, axes, axis: int, use_winding: bool) -> np.ndarray:
+def _axis_votes(mesh: trimesh.Trimesh, axes: tuple[np.ndarray, np.ndarray, np.ndarray], axis: int,
+                use_winding: bool) -> np.ndarray:
     other = [i for i in range(3) if i != axis]
     grid_b, grid_c = np.meshgrid(axes[other[0]], axes[other[1]], indexing="ij")
     n_rays = grid_b.size
@@ -152,7 +156,7 @@ def compute_sdf_grid(
     padding: float | None = None,
     samples: int = DEFAULT_SURFACE_SAMPLES,
     seed: int = 0,
-) -> "SdfGrid":
+) -> SdfGrid:
     """Precompute the signed distance + gradient grid of `mesh` (in the mesh's frame)."""
     if resolution < 4:
         raise ValueError(f"SDF resolution must be >= 4, got {resolution}")
@@ -180,7 +184,7 @@ class _GridLookup(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, points: torch.Tensor, grid: "SdfGrid"):  # type: ignore[override]
+    def forward(ctx: FunctionCtx, points: torch.Tensor, grid: SdfGrid) -> tuple[torch.Tensor, torch.Tensor]:
         distance, gradient = grid._evaluate(points.detach())
         distance, gradient = distance.to(points.dtype), gradient.to(points.dtype)
         ctx.save_for_backward(gradient)
@@ -188,7 +192,8 @@ class _GridLookup(torch.autograd.Function):
         return distance, gradient
 
     @staticmethod
-    def backward(ctx, grad_distance: torch.Tensor, _grad_gradient: torch.Tensor):  # type: ignore[override]
+    def backward(ctx: Any, grad_distance: torch.Tensor,  # ctx: torch's backward context (saved_tensors)
+                 _grad_gradient: torch.Tensor) -> tuple[torch.Tensor, None]:
         (gradient,) = ctx.saved_tensors
         return grad_distance.unsqueeze(-1) * gradient, None
 
@@ -226,7 +231,8 @@ class SdfGrid:
 
     @property
     def spacing(self) -> np.ndarray:
-        return (self.upper - self.lower) / (np.array(self.resolution) - 1)
+        spacing: np.ndarray = (self.upper - self.lower) / (np.array(self.resolution) - 1)
+        return spacing
 
     def query(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance [...] and unit gradient [..., 3] at points [..., 3] (torch, metres).
@@ -240,7 +246,8 @@ class SdfGrid:
             raise ValueError(f"points must be [..., 3], got {tuple(points.shape)}")
         flat = points.reshape(-1, 3)
         if flat.requires_grad and torch.is_grad_enabled():
-            distance, gradient = _GridLookup.apply(flat, self)
+            # torch leaves Function.apply unannotated: it returns what forward returns.
+            distance, gradient = _GridLookup.apply(flat, self)  # type: ignore[no-untyped-call]
         else:
             distance, gradient = self._evaluate(flat)
             distance, gradient = distance.to(points.dtype), gradient.to(points.dtype)
@@ -285,5 +292,5 @@ class SdfGrid:
         return {"sdf_values": self.values, "sdf_lower": self.lower, "sdf_upper": self.upper}
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "SdfGrid":
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> SdfGrid:
         return cls(arrays["sdf_values"], arrays["sdf_lower"], arrays["sdf_upper"])

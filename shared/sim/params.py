@@ -75,7 +75,7 @@ class PhysicsParams:
     # The final waypoint is held this long, so the object comes to rest before it is judged.
     arm_settle_s: float = 0.3
 
-    def with_solver(self, solver_iterations: int, time_step_s: float) -> "PhysicsParams":
+    def with_solver(self, solver_iterations: int, time_step_s: float) -> PhysicsParams:
         return replace(self, solver_iterations=solver_iterations, time_step_s=time_step_s)
 
 

@@ -65,9 +65,11 @@ class ArmController:
         """The linearly interpolated configuration at trajectory time t (held at the ends)."""
         times = self.times
         if t >= times[-1] or len(times) < 2:
-            return self.positions[-1]
+            last: np.ndarray = self.positions[-1]
+            return last
         k = max(0, int(np.searchsorted(times, t, side="right")) - 1)
-        return self.positions[k] + (max(t, times[0]) - times[k]) * self.velocities[k]
+        q: np.ndarray = self.positions[k] + (max(t, times[0]) - times[k]) * self.velocities[k]
+        return q
 
     def step(self, step: int) -> float:
         """Command the joints for the time after `step` physics steps, advance the physics one step;

@@ -30,6 +30,8 @@ from shared.hands import HandModel, load_hand
 from shared.sim.params import PhysicsParams
 from shared.sim.scene import Body, SimError, SimScene, c_stdout_to_stderr, transform_to_pos_quat
 
+Joints = Sequence[float] | np.ndarray  # joint angles (rad)
+
 OBSTACLE_HEIGHT_M = 0.3
 
 
@@ -74,8 +76,8 @@ class RobotScene:
         pos, quat = transform_to_pos_quat(self.T_world_base)
         # Implicit cylinders: exact finger shapes, not faceted hulls with a 1 mm margin (as the validator).
         with c_stdout_to_stderr():  # PyBullet warns on stdout (links without inertia): keep stdout clean
-            robot = pb.loadURDF(str(urdf), pos, quat, useFixedBase=True, flags=pb.URDF_USE_IMPLICIT_CYLINDER,
-                                physicsClientId=self.client)
+            robot: int = pb.loadURDF(str(urdf), pos, quat, useFixedBase=True, flags=pb.URDF_USE_IMPLICIT_CYLINDER,
+                                     physicsClientId=self.client)
         for link in range(-1, pb.getNumJoints(robot, physicsClientId=self.client)):
             pb.changeDynamics(robot, link, lateralFriction=self.sim.params.hand_friction, physicsClientId=self.client)
         return robot
@@ -119,7 +121,7 @@ class RobotScene:
         """
         centres, radii = np.zeros((len(links), 3)), np.zeros(len(links))
         states = pb.getLinkStates(self.robot_id, links, computeForwardKinematics=True, physicsClientId=self.client)
-        for i, (link, state) in enumerate(zip(links, states)):
+        for i, (link, state) in enumerate(zip(links, states, strict=True)):
             low, high = (np.asarray(v) for v in pb.getAABB(self.robot_id, link, physicsClientId=self.client))
             rotation = np.asarray(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
             centres[i] = rotation.T @ ((low + high) / 2 - np.asarray(state[4]))
@@ -150,15 +152,15 @@ class RobotScene:
     def close(self) -> None:
         self.sim.close()
 
-    def __enter__(self) -> "RobotScene":
+    def __enter__(self) -> RobotScene:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------------------------- state
 
-    def set_configuration(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None) -> None:
+    def set_configuration(self, q_arm: Joints, q_hand: Joints | None = None) -> None:
         """Teleport the joints (zero velocity); hand joints unchanged when `q_hand` is None."""
         if len(q_arm) != len(self.arm_joints):
             raise SimError(f"{self.arm.name} has {len(self.arm_joints)} joints, got {len(q_arm)} angles")
@@ -181,7 +183,8 @@ class RobotScene:
         if index is None:
             raise SimError(f"robot has no link {link_name!r}")
         if index == -1:
-            return self.T_world_base.copy()
+            base: np.ndarray = self.T_world_base.copy()
+            return base
         state = pb.getLinkState(self.robot_id, index, computeForwardKinematics=True, physicsClientId=self.client)
         out = np.eye(4)
         out[:3, :3] = np.asarray(pb.getMatrixFromQuaternion(state[5])).reshape(3, 3)
@@ -192,8 +195,8 @@ class RobotScene:
 
     def collisions(
         self,
-        q_arm: Sequence[float] | None = None,
-        q_hand: Sequence[float] | None = None,
+        q_arm: Joints | None = None,
+        q_hand: Joints | None = None,
         *,
         clearance_m: float = 0.0,
         allow_hand_object: bool = False,
@@ -231,7 +234,7 @@ class RobotScene:
         return self.object is not None and any(
             pb.getContactPoints(self.object.id, obstacle.id, physicsClientId=self.client) for obstacle in self.obstacles)
 
-    def is_collision_free(self, q_arm: Sequence[float], q_hand: Sequence[float] | None = None, *,
+    def is_collision_free(self, q_arm: Joints, q_hand: Joints | None = None, *,
                           clearance_m: float = 0.0, allow_hand_object: bool = False) -> bool:
         return not self.collisions(q_arm, q_hand, clearance_m=clearance_m, allow_hand_object=allow_hand_object,
                                    first_only=True)
@@ -285,7 +288,8 @@ def _rotate(quaternions: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """Vectors [n,3] rotated by unit quaternions [n,4] (x, y, z, w)."""
     axis, w = quaternions[:, :3], quaternions[:, 3:]
     t = 2.0 * _cross(axis, vectors)
-    return vectors + w * t + _cross(axis, t)
+    rotated: np.ndarray = vectors + w * t + _cross(axis, t)
+    return rotated
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

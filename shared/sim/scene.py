@@ -78,7 +78,7 @@ def c_stdout_to_stderr() -> Iterator[None]:
 class Body:
     """A body in the scene and the offset between its URDF base frame and PyBullet's base (COM) frame."""
 
-    scene: "SimScene"
+    scene: SimScene
     id: int
     com_offset: np.ndarray  # T_base_com: URDF base frame -> centre-of-mass frame
 
@@ -89,7 +89,9 @@ class Body:
 
     def com_pose(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """PyBullet's base pose: centre-of-mass position and xyzw quaternion."""
-        return pb.getBasePositionAndOrientation(self.id, physicsClientId=self.scene.client)
+        pose: tuple[tuple[float, ...], tuple[float, ...]] = pb.getBasePositionAndOrientation(
+            self.id, physicsClientId=self.scene.client)
+        return pose
 
     def reset_pose(self, transform: np.ndarray) -> None:
         """Teleport the URDF base frame to `transform` and zero the base velocity."""
@@ -106,7 +108,7 @@ class FloatingHand(Body):
     `PhysicsParams.hand_joint_force_scale` as the force limit.
     """
 
-    def __init__(self, scene: "SimScene", body_id: int, com_offset: np.ndarray, joint_names: Sequence[str]):
+    def __init__(self, scene: SimScene, body_id: int, com_offset: np.ndarray, joint_names: Sequence[str]):
         super().__init__(scene, body_id, com_offset)
         by_name = scene.joint_indices(body_id)
         missing = [n for n in joint_names if n not in by_name]
@@ -129,7 +131,7 @@ class FloatingHand(Body):
             raise SimError(f"hand has {len(self.joint_indices)} joints, got {len(joints)} angles")
         self.reset_pose(transform)
         client = self.scene.client
-        for index, angle in zip(self.joint_indices, joints):
+        for index, angle in zip(self.joint_indices, joints, strict=True):
             pb.resetJointState(self.id, index, angle, 0.0, physicsClientId=client)
         pb.setJointMotorControlArray(
             self.id, self.joint_indices, pb.POSITION_CONTROL, targetPositions=joints,
@@ -161,12 +163,13 @@ class FloatingHand(Body):
 class SimScene:
     """A PyBullet DIRECT world with a table plane at z = 0. Use as a context manager, or call close()."""
 
+    table: Body  # the plane at z = 0, added by reset()
+
     def __init__(self, params: PhysicsParams | None = None):
         self.params = params or PhysicsParams()
         self.client = pb.connect(pb.DIRECT)
         if self.client < 0:
             raise SimError("could not start a PyBullet DIRECT client")
-        self.table: Body | None = None
         self.reset()
 
     # ------------------------------------------------------------------------------------ lifecycle
@@ -189,15 +192,16 @@ class SimScene:
             pb.disconnect(physicsClientId=self.client)
             self.client = -1
 
-    def __enter__(self) -> "SimScene":
+    def __enter__(self) -> SimScene:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def save(self) -> int:
         """Snapshot the whole world in memory (positions, velocities, contact caches)."""
-        return pb.saveState(physicsClientId=self.client)
+        state_id: int = pb.saveState(physicsClientId=self.client)
+        return state_id
 
     def restore(self, state_id: int) -> None:
         """Return to a `save()`d snapshot; bodies and constraints must be the same as when saved."""
@@ -262,14 +266,15 @@ class SimScene:
 
     # ------------------------------------------------------------------------------------- internals
 
-    def _load_urdf(self, urdf_path: str | Path, flags: int, base_position=(0.0, 0.0, 0.0),
-                   base_orientation=(0.0, 0.0, 0.0, 1.0), fixed: bool = False) -> int:
+    def _load_urdf(self, urdf_path: str | Path, flags: int, base_position: Sequence[float] = (0.0, 0.0, 0.0),
+                   base_orientation: Sequence[float] = (0.0, 0.0, 0.0, 1.0), fixed: bool = False) -> int:
         path = Path(urdf_path)
         if not path.is_file():
             raise SimError(f"URDF not found: {path}")
         try:
-            return pb.loadURDF(str(path), list(base_position), list(base_orientation), useFixedBase=fixed,
-                               flags=flags, physicsClientId=self.client)
+            body: int = pb.loadURDF(str(path), list(base_position), list(base_orientation), useFixedBase=fixed,
+                                    flags=flags, physicsClientId=self.client)
+            return body
         except pb.error as exc:
             raise SimError(f"PyBullet cannot load {path}: {exc}") from exc
 

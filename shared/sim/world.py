@@ -22,12 +22,17 @@ differently. `sample_world(level, seed, ...)` draws one such execution world per
 
 Rollouts never see an execution world: it goes to the robot (the evaluation's simulated robot), the
 planner gets the told pose.
+
+Perception (`cameras`): with 0 the system is told the object's mesh and a pose off by `pose_error`;
+with 1-3 it receives instead what that many simulated depth cameras see (`shared.sim.camera`: a
+noisy point cloud of the object standing at its true pose) and reconstructs the object from it, so
+its shape and pose errors are perception's own and no pose error is drawn.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -79,7 +84,7 @@ class PoseError:
         """T_world_O of the object's true pose, given the told one."""
         told = np.asarray(T_world_O_told, dtype=np.float64)
         turn = make_transform(yaw_rotation(math.radians(self.dyaw_deg)), np.zeros(3))
-        true = turn @ make_transform(told[:3, :3], np.zeros(3))
+        true: np.ndarray = turn @ make_transform(told[:3, :3], np.zeros(3))
         true[:3, 3] = told[:3, 3] + np.array([self.dx_m, self.dy_m, 0.0])
         return true
 
@@ -94,25 +99,30 @@ class ExecutionWorld:
     mass_scale: float = 1.0
     com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the object's frame O
     pose_error: PoseError = PoseError()
+    cameras: int = 0  # 0: the system is told the mesh (and a pose off by pose_error); 1-3: a camera cloud
 
-    def record(self) -> dict:
+    def record(self) -> dict[str, Any]:
         """What a result record keeps of the world (the drawn values, not the solver settings)."""
         p = self.physics
         return {"level": self.level, "seed": self.seed, "table_friction": round(p.table_friction, 4),
                 "hand_friction": round(p.hand_friction, 4), "rolling_friction": round(p.object_rolling_friction, 5),
                 "mass_scale": round(self.mass_scale, 4), "com_offset_m": [round(v, 4) for v in self.com_offset_m],
                 "position_gain": round(p.arm_position_gain, 4), "latency_s": round(p.arm_command_latency_s, 4),
-                "pose_error": {k: round(v, 4) for k, v in asdict(self.pose_error).items()}}
+                "pose_error": {k: round(v, 4) for k, v in asdict(self.pose_error).items()}, "cameras": self.cameras}
 
 
 def sample_world(level: WorldLevel, seed: int, half_extents_m: np.ndarray,
-                 base: PhysicsParams = REFERENCE_PARAMS, ranges: WorldRanges = REAL_RANGES) -> ExecutionWorld:
+                 base: PhysicsParams = REFERENCE_PARAMS, ranges: WorldRanges = REAL_RANGES,
+                 cameras: int = 0) -> ExecutionWorld:
     """The execution world of one trial. `half_extents_m`: the object's half extents along its frame
-    O's axes (for the centre-of-mass offset); `base`: the solver settings and nominal physics."""
+    O's axes (for the centre-of-mass offset); `base`: the solver settings and nominal physics;
+    `cameras`: 0 (the mesh is told) or how many depth cameras the system sees the object with."""
     if level not in WORLD_LEVELS:
         raise ValueError(f"unknown world level {level!r}; known: {', '.join(WORLD_LEVELS)}")
+    if cameras not in (0, 1, 2, 3):
+        raise ValueError(f"cameras must be 0 (the mesh is told) or 1-3, got {cameras}")
     if level == "exact":
-        return ExecutionWorld("exact", seed, base)
+        return ExecutionWorld("exact", seed, base, cameras=cameras)
     rng = np.random.default_rng(seed)
     physics = replace(base, table_friction=base.table_friction * ranges.table_friction_scale.draw(rng),
                       hand_friction=base.hand_friction * ranges.hand_friction_scale.draw(rng),
@@ -121,6 +131,10 @@ def sample_world(level: WorldLevel, seed: int, half_extents_m: np.ndarray,
                       arm_command_latency_s=ranges.command_latency_s.draw(rng))
     fractions = np.array([ranges.com_offset_fraction_xy] * 2 + [ranges.com_offset_fraction_z])
     com = rng.uniform(-1.0, 1.0, 3) * fractions * np.asarray(half_extents_m, dtype=np.float64)
-    error = PoseError(*(float(v) for v in rng.uniform(-ranges.pose_error_m, ranges.pose_error_m, 2)),
-                      float(rng.uniform(-ranges.pose_error_deg, ranges.pose_error_deg)))
-    return ExecutionWorld("real", seed, physics, ranges.mass_scale.draw(rng), tuple(float(v) for v in com), error)
+    dx, dy = (float(v) for v in rng.uniform(-ranges.pose_error_m, ranges.pose_error_m, 2))
+    error = PoseError(dx, dy, float(rng.uniform(-ranges.pose_error_deg, ranges.pose_error_deg)))
+    cx, cy, cz = (float(v) for v in com)
+    mass_scale = ranges.mass_scale.draw(rng)
+    if cameras:  # perception's own pose error replaces the drawn one
+        error = PoseError()
+    return ExecutionWorld("real", seed, physics, mass_scale, (cx, cy, cz), error, cameras)

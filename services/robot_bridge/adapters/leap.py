@@ -98,12 +98,12 @@ class LeapBackend(StreamingBackend):
             raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
                                     f"(power, cabling, ids or baud rate {self.baudrate})")
         caps = [int(round(c)) for c in self.effort_cap]
-        for motor, cap in zip(self.motor_ids, caps):
+        for motor, cap in zip(self.motor_ids, caps, strict=False):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)  # EEPROM items below are writable only with torque off
             self._write(motor, ADDR_OPERATING_MODE, 1, CURRENT_BASED_POSITION_MODE)
             self._write(motor, ADDR_CURRENT_LIMIT, 2, cap)
         self._hold_here()
-        for motor, cap in zip(self.motor_ids, caps):
+        for motor, cap in zip(self.motor_ids, caps, strict=False):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 1)
             self._write(motor, ADDR_GOAL_CURRENT, 2, cap)
         self._writer = sdk.GroupSyncWrite(self._port, self._packets, ADDR_GOAL_POSITION, LEN_GOAL_POSITION)
@@ -166,7 +166,7 @@ class LeapBackend(StreamingBackend):
         ticks = np.round((np.asarray(q) + LEAP_ZERO_OFFSET_RAD) * TICKS_PER_RAD).astype(np.int64)
         with self._io:
             self._writer.clearParam()
-            for motor, value in zip(self.motor_ids, ticks):
+            for motor, value in zip(self.motor_ids, ticks, strict=False):
                 self._writer.addParam(motor, int(value).to_bytes(4, "little", signed=True))
             result = self._writer.txPacket()
         if result != 0:

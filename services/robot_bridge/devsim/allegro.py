@@ -47,7 +47,7 @@ class SimAllegroHand:
             thread.join(timeout=2.0)
         self.bus.shutdown()
 
-    def __enter__(self) -> "SimAllegroHand":
+    def __enter__(self) -> SimAllegroHand:
         return self
 
     def __exit__(self, *exc) -> None:

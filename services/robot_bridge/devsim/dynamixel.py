@@ -185,7 +185,7 @@ class DynamixelBus:
         self._thread = threading.Thread(target=self._serve, name="dynamixel-bus", daemon=True)
         self._thread.start()
 
-    def __enter__(self) -> "DynamixelBus":
+    def __enter__(self) -> DynamixelBus:
         return self
 
     def __exit__(self, *exc) -> None:
