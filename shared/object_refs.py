@@ -24,7 +24,7 @@ from shared.objects.cache import cache_root
 from shared.objects.model import load_library_object
 
 if TYPE_CHECKING:
-    from shared.perception import CloudObject
+    from shared.perception.object_model import CloudObject
 
 
 def _upload_path(mesh: MeshBlob) -> Path:
@@ -88,7 +88,8 @@ def load_object_ref(ref: ObjectRef) -> ObjectModel:
 
 def captured_object(ref: ObjectRef) -> CloudObject:
     """The reconstruction of `ref`'s point cloud (cached by content); ObjectLoadError if it fails."""
-    from shared.perception import PerceptionError, object_from_cloud
+    from shared.perception import PerceptionError
+    from shared.perception.object_model import object_from_cloud
 
     assert ref.point_cloud is not None
     try:

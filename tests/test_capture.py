@@ -13,8 +13,7 @@ import trimesh
 from cli.main import main
 from shared.frames import make_transform
 from shared.objects import load_object
-from shared.perception import load_cloud
-from shared.perception import reconstruct
+from shared.perception import load_cloud, reconstruct
 from shared.sim.camera import DEFAULT_SIZE, StereoDepthNoise, capture_object, default_cameras
 
 SIZE = (160, 120)

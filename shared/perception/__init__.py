@@ -5,9 +5,10 @@
     captured = object_from_cloud(points_world)     # ObjectModel + T_world_O, cached by content hash
 
 cloud.py (Cloud, load_cloud / save_cloud for .ply .pcd .npy, input checks), depth.py (DepthFrame,
-Intrinsics, back-projection), reconstruct.py (table, cluster, watertight mesh; the method choice
-and its measurement), object_model.py (ObjectModel of a capture, BPS from the cloud). The simulated
-camera that produces clouds is shared.sim.camera.
+Intrinsics, back-projection), reconstruct.py (table, cluster, watertight solid; the method choice
+and its measurement), decompose.py (the solid's convex pieces: the collision shape, found in the
+height map instead of by V-HACD), object_model.py (ObjectModel of a capture, BPS from the cloud).
+The simulated camera that produces clouds is shared.sim.camera.
 
 object_model imports the object library (torch): its names load on first use, so reading a cloud
 file stays cheap for a command-line client.

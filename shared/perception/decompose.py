@@ -44,7 +44,6 @@ from scipy.spatial import ConvexHull, QhullError
 OVERLAP_M = 1e-4  # pieces grow by this much sideways (and downwards above the table) into their neighbours
 _SQUARE = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])  # a column's corners, in half pitches
 _CUT_QUANTILES = (0.25, 0.5, 0.75)
-_MIN_GAIN = 1.0  # a cut must leave less concavity than its piece had, or the piece is final
 
 
 @dataclass(frozen=True)
@@ -153,7 +152,7 @@ def convex_pieces(heights: np.ndarray, origin_xy: np.ndarray, pitch: float, max_
             final.append(piece)
             continue
         best = min(columns.cuts(piece), key=_cut_cost, default=None)
-        if best is None or _cut_cost(best) >= _MIN_GAIN * piece.concavity:
+        if best is None or _cut_cost(best) >= piece.concavity:  # no cut helps: the piece is final
             final.append(piece)
             continue
         for child in best:
@@ -165,8 +164,15 @@ def convex_pieces(heights: np.ndarray, origin_xy: np.ndarray, pitch: float, max_
 
 
 def hull_mesh(points: np.ndarray) -> trimesh.Trimesh:
-    """The convex hull of `points` as a closed mesh with outward faces (qhull directly: no trimesh processing)."""
-    hull = ConvexHull(points)
+    """The convex hull of `points` as a closed mesh with outward faces (qhull directly: no trimesh processing).
+
+    Nearly coplanar input is joggled (qhull's QJ) rather than refused; the pieces built here are
+    never flat (a piece spans at least one pitch in height), so this is a guard, not a path.
+    """
+    try:
+        hull = ConvexHull(points)
+    except QhullError:
+        hull = ConvexHull(points, qhull_options="QJ")
     faces = hull.simplices.copy()
     a, b, c = (points[faces[:, k]] for k in range(3))
     inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), hull.equations[:, :3]) < 0.0
