@@ -112,7 +112,9 @@ def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
         if path.is_file():
             summary = json.loads(path.read_text())
             methods = {names.get(m, m): v for m, v in summary.get("methods", {}).items()}
-            return {m: {"rate": v["success_rate"], "source": f"{directory.name} ({summary.get('code', '?')})"}
+            code = summary.get("code", "code before commit ids were recorded")
+            return {m: {"rate": v["success_rate"],
+                        "source": f"results/{directory.name}, {v['trials']} trials per method, {code}"}
                     for m, v in methods.items()}
     return {}
 
@@ -208,7 +210,7 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
             f"{spec.trials}; – : no kinematically feasible plan in any trial (counted as failures).\n\n")
     text += markdown_table(headers, rows)
     text += "\n### Averages\n\nAll: the pooled rate and its 95% interval clustered by object (bootstrap over objects)"
-    text += (f"; exact: the same trials in the planner's own world ({next(iter(exact.values()))['source']})"
+    text += (f"; exact: the same protocol in the planner's own world ({next(iter(exact.values()))['source']})"
              if exact else "") + ".\n\n"
     summary_rows = []
     for m in spec.methods:
