@@ -104,10 +104,15 @@ def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | Non
 
 def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
     """Per method, the success rate of the same protocol under `exact` found in `out` (for a `real` report):
-    `<name>-exact`, else the run made before execution worlds existed (`<name>`)."""
+    `<name>-exact[-cameraN]` (the same perception), else, for a mesh-told run, the run made before
+    execution worlds existed (`<name>`)."""
     if spec.world == "exact":
         return {}
-    for directory, names in ((out / f"{spec.name}-exact", {}), (out / spec.name, LEGACY_EXACT_NAMES)):
+    suffix = f"-camera{spec.cameras}" if spec.cameras else ""
+    candidates = [(out / f"{spec.name}-exact{suffix}", {})]
+    if not spec.cameras:  # the run before execution worlds existed told the planner the mesh
+        candidates.append((out / spec.name, LEGACY_EXACT_NAMES))
+    for directory, names in candidates:
         path = directory / SUMMARY_FILE
         if path.is_file():
             summary = json.loads(path.read_text())

@@ -175,3 +175,15 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
     assert record["outcome"] == "infeasible" and record["pushes"] == 2 and not record["success"]
     start = pose_matrix(multistep.request(run).object_pose)[:2, 3]
     assert record["path_xy"] == [[round(float(v), 4) for v in start], [0.45, 0.0], [0.47, 0.1]]
+
+
+def test_a_real_report_compares_with_the_exact_run_of_the_same_perception(tmp_path):
+    from evaluation.methods import exact_rates, protocol_for
+
+    legacy = tmp_path / "methods"
+    legacy.mkdir()
+    (legacy / "summary.json").write_text(json.dumps({"methods": {"gd2p-no-ranking": {"success_rate": 0.3, "trials": 210}}}))
+    told_mesh = exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p-random",)))
+    assert told_mesh["gd2p-random"]["rate"] == 0.3 and "results/methods, 210 trials" in told_mesh["gd2p-random"]["source"]
+    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p",), cameras=1)) == {}
+    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "exact", ("gd2p",))) == {}
