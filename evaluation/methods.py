@@ -202,7 +202,8 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
         rows.append([f"**{label}**"] + [f"{averages[m][key]:.2f}" if d == spec.directions[0] else ""
                                         for m in spec.methods for d in spec.directions])
     text = (f"World `{spec.world}` (`shared.sim.world`): "
-            + ("each trial executes in physics the planner does not know, with the object off the told pose. "
+            + ("each trial executes in physics the planner does not know"
+               + ("" if spec.cameras else ", with the object off the told pose") + ". "
                if spec.world == "real" else "each trial executes in the planner's own world. ")
             + (f"The system never sees the object's mesh: it receives the point cloud {spec.cameras} simulated depth "
                "camera(s) capture of it and plans around its own reconstruction; the robot pushes the true object. "
