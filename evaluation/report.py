@@ -42,13 +42,24 @@ def machine() -> str:
 
 
 def code_version() -> str:
-    """The git commit the results came from (`-dirty` with uncommitted changes), or "unknown" outside git."""
-    try:
-        done = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=Path(__file__).resolve().parent,
-                              capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
+    """The git commit the results came from (`-dirty` when code differs from it), or "unknown" outside git.
+
+    Changed files under results/ do not make the code dirty: an evaluation writes there while it runs.
+    """
+    root = Path(__file__).resolve().parent.parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "--short", "HEAD")
+    if not commit:
         return "unknown"
-    return done.stdout.strip() if done.returncode == 0 and done.stdout.strip() else "unknown"
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
+    return commit + ("-dirty" if changed else "")
 
 
 CODE_AT_START = code_version()  # what this process loaded: a commit made while a long run goes on is not its code
