@@ -164,8 +164,24 @@ def test_unusable_clouds_are_refused_with_the_reason(box):
         reconstruct(cloud[cloud[:, 2] < 0.004])  # the table alone
     with pytest.raises(PerceptionError, match="not at 0"):
         reconstruct(cloud + np.array([0.0, 0.0, 0.012]))  # a cloud whose table is 12 mm up
+    with pytest.raises(PerceptionError, match="not at 0"):
+        reconstruct(cloud - np.array([0.0, 0.0, 0.012]))  # everything 12 mm below the table
     with pytest.raises(PerceptionError, match=r"within 0\.1 m"):
         reconstruct(cloud, region=Region((0.0, 0.6), 0.1))
+
+
+def test_a_five_million_point_scan_is_thinned_before_it_travels(box):
+    """A dense scan is voxel-thinned to a bounded message; what is left still reconstructs the box."""
+    from shared.perception import cloud_for_request
+    from shared.perception.cloud import MAX_REQUEST_POINTS
+
+    cloud = box[2].cloud
+    rng = np.random.default_rng(0)
+    dense = np.repeat(cloud, 5_000_000 // len(cloud) + 1, axis=0)[:5_000_000]
+    dense += rng.normal(0.0, 0.0005, dense.shape)
+    sent = cloud_for_request(dense)
+    assert len(sent) <= MAX_REQUEST_POINTS and sent.dtype == np.float32
+    assert reconstruct(sent).mesh.is_watertight
 
 
 def test_remove_table_tolerance_follows_the_noise():
