@@ -69,9 +69,8 @@ class Run:
         return f"{self.scenario.name}/{self.object_id}/{self.trial}"
 
     def execution_world(self) -> ExecutionWorld:
-        mesh = load_object(self.object_id).mesh
         seed = int.from_bytes(hashlib.sha256(f"world/{self.key}".encode()).digest()[:4], "little") & 0x7FFFFFFF
-        return sample_world(self.world, seed, (mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)) / 2.0)
+        return sample_world(self.world, seed, protocol.half_extents(self.object_id))
 
     @property
     def seed(self) -> int:

@@ -145,9 +145,13 @@ def placement(episode: Episode) -> np.ndarray:
 
 def execution_world(episode: Episode) -> ExecutionWorld:
     """The world the episode's plan is executed in (drawn from `world_seed`)."""
-    mesh = load_object(episode.object_id).mesh  # in the object's frame O
-    half_extents = (mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)) / 2.0
-    return sample_world(episode.world, episode.world_seed, half_extents, cameras=episode.cameras)
+    return sample_world(episode.world, episode.world_seed, half_extents(episode.object_id), cameras=episode.cameras)
+
+
+def half_extents(object_id: str) -> np.ndarray:
+    """The object's half extents along the axes of its frame O (what a centre-of-mass offset is drawn in)."""
+    vertices = load_object(object_id).mesh.vertices  # in the object's frame O
+    return (vertices.max(axis=0) - vertices.min(axis=0)) / 2.0
 
 
 def push_request(episode: Episode, k: int = 200) -> PushRequest:
