@@ -54,9 +54,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="methods / leap: 0 (default) tells the system the object's mesh and a pose off by the "
                              "world's pose error; 1-3: the system sees the object only through that many simulated "
                              "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
+    parser.add_argument("--split", choices=("test", "val"), default="test",
+                        help="methods / leap: the 14 test objects (default, for reporting) or 14 val objects (for "
+                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test)")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap: comma-separated methods to run (default: the experiment's all); "
-                             "known: gd2p, gd2p-unranked, gd2p-random, nearest, nearest-ranked, fixed, grasp, grasp-ranked")
+                             "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, nearest, nearest-ranked, fixed, grasp, "
+                             "grasp-ranked")
     parser.set_defaults(func=run)
 
 
@@ -98,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
             options["methods"] = args.methods
         if args.cameras and name in TRIAL_EXPERIMENTS:
             options["cameras"] = args.cameras
+        if args.split != "test" and name in TRIAL_EXPERIMENTS:
+            options["split"] = args.split
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except ResultStoreError as exc:

@@ -25,6 +25,11 @@ from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M
 from shared.sim.world import WorldLevel
 
 QUICK_OBJECTS = ("proc-box-001", "pb-mug")
+# For tuning (`--split val`): two val objects of each procedural family and two random shapes, as many
+# as the test objects. Settings are chosen on these; the test objects only report.
+VAL_OBJECTS = ("proc-box-010", "proc-box-017", "proc-cylinder-006", "proc-cylinder-013", "proc-cone-006",
+               "proc-cone-007", "proc-ellipsoid-011", "proc-ellipsoid-019", "proc-capsule-016", "proc-capsule-017",
+               "proc-hull-006", "proc-hull-012", "rnd-002", "rnd-004")
 # The records of the committed `exact` run made before execution worlds existed (results/methods, leap):
 # the same trials, under the methods' earlier names.
 LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
@@ -44,10 +49,12 @@ class Protocol:
     trials: int
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
+    split: str = "test"  # "val": the tuning objects
 
     @property
     def directory_name(self) -> str:
-        return f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
+        return (f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
+                + ("-val" if self.split == "val" else ""))
 
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
@@ -60,26 +67,34 @@ class Protocol:
 
 
 def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
-                 methods: Sequence[str] | None = None, cameras: int = 0) -> Protocol:
-    objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
+                 methods: Sequence[str] | None = None, cameras: int = 0, split: str = "test") -> Protocol:
+    if split not in ("test", "val"):
+        raise ValueError(f"unknown split {split!r}; known: test, val")
+    if split == "val":
+        objects = VAL_OBJECTS[:2] if quick else VAL_OBJECTS
+    else:
+        objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
+    on_val = ", val objects (tuning)" if split == "val" else ""
     if name == "methods":
-        return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`", "allegro",
-                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras)
+        return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`{on_val}", "allegro",
+                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras,
+                        split)
     if name == "leap":
-        return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`", "leap", tuple(methods or ("gd2p",)),
-                        objects, protocol.DIRECTIONS_DEG, trials, world, cameras)
+        return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`{on_val}", "leap",
+                        tuple(methods or ("gd2p",)), objects, protocol.DIRECTIONS_DEG, trials, world, cameras, split)
     raise ValueError(f"unknown protocol {name!r}")
 
 
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
-                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
-    spec = protocol_for(name, quick, trials, world, methods, cameras)
+                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
+                 split: str = "test") -> Path:
+    spec = protocol_for(name, quick, trials, world, methods, cameras, split)
     directory = Path(out) / spec.directory_name
     store = ResultStore(directory, spec.settings())
     started = time.perf_counter()
     todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
-                             spec.cameras)
+                             spec.cameras, spec.split)
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
     records = [store.records[e.key] for e in todo]
@@ -93,13 +108,15 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
 
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
-                world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
-    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras)
+                world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
+                split: str = "test") -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split)
 
 
 def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
-             world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0) -> Path:
-    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras)
+             world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
+             split: str = "test") -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split)
 
 
 def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:

@@ -53,6 +53,7 @@ from shared.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, 
 from shared.objects import load_object, split_of
 from shared.push_outcome import judge_push, object_pose
 from shared.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
+from shared.sim.world import half_extents as world_half_extents
 
 PROCEDURAL_OBJECTS = ("proc-box-000", "proc-box-001", "proc-box-002", "proc-cylinder-000", "proc-cylinder-001",
                       "proc-ellipsoid-001", "proc-cone-000", "proc-hull-001")
@@ -74,12 +75,16 @@ class Method:
     label: str
     source: str  # "gd2p" | "nearest" | "fixed" (the planner's PushRequest.method) or "grasp" (grasp_baseline)
     choice: PlanChoice
+    physics_draws: int = 0  # PushRequest.physics_draws: rank by rollouts in this many drawn worlds too
 
+
+ROBUST_DRAWS = 4  # the robust ranking's draws per plan
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p", "GD2P", "gd2p", "ranked"),
     Method("gd2p-unranked", "GD2P w/o ranking", "gd2p", "unranked"),
     Method("gd2p-random", "Diffusion, random feasible", "gd2p", "random"),
+    Method("gd2p-robust", "GD2P, robust ranking", "gd2p", "ranked", ROBUST_DRAWS),
     Method("nearest", "Nearest Neighbor", "nearest", "random"),
     Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
     Method("fixed", "Fixed spatula", "fixed", "random"),
@@ -120,10 +125,14 @@ class Episode:
 
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
-             trials: int, world: WorldLevel = "real", cameras: int = 0) -> list[Episode]:
+             trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test") -> list[Episode]:
+    """The trials of a protocol. Objects must be of `split`: "test" to report, "val" to tune; never train."""
+    if split not in ("test", "val"):
+        raise ValueError(f"evaluation runs on the test objects (to report) or the val objects (to tune), not {split!r}")
     for object_id in objects:
-        if split_of(object_id) != "test":
-            raise ValueError(f"{object_id} is in the {split_of(object_id)} split; evaluation uses test objects only")
+        if split_of(object_id) != split:
+            raise ValueError(f"{object_id} is in the {split_of(object_id)} split; this evaluation uses {split} "
+                             "objects only")
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown method(s) {sorted(unknown)}; known: {', '.join(METHODS)}")
@@ -150,8 +159,7 @@ def execution_world(episode: Episode) -> ExecutionWorld:
 
 def half_extents(object_id: str) -> np.ndarray:
     """The object's half extents along the axes of its frame O (what a centre-of-mass offset is drawn in)."""
-    vertices = load_object(object_id).mesh.vertices  # in the object's frame O
-    return (vertices.max(axis=0) - vertices.min(axis=0)) / 2.0
+    return world_half_extents(load_object(object_id).mesh.vertices)
 
 
 def push_request(episode: Episode, k: int = 200) -> PushRequest:
@@ -159,7 +167,8 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     method = METHODS[episode.method]
     source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
-                  arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed)
+                  arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
+                  physics_draws=method.physics_draws)
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
@@ -226,6 +235,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
+            if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
+                record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
     record["seconds"] = round(time.perf_counter() - started, 2)
     return record
 

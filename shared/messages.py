@@ -65,6 +65,7 @@ PoseMethod = Literal["gd2p", "nearest", "fixed"]
 # - "random": a random kinematically feasible pose, planned and executed with no prescreen, rollout or
 #   ranking (the pose source's quality on its own).
 PlanChoice = Literal["ranked", "unranked", "random"]
+MAX_PHYSICS_DRAWS = 16  # rollouts per plan for robust ranking: each costs about half a second of CPU
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
 
@@ -499,10 +500,15 @@ class ValidationJob(Message):
     # places the object (default resting pose) turned in D as the frame says (default: yaw 0 in D).
     frame: DirectionFrame | None = None
     obstacles: list[CircleObstacle] = Field(default_factory=list)
+    # Arm rollouts: also roll the plan out in this many worlds drawn around the nominal physics and
+    # the told pose (`shared.sim.world.rollout_worlds`, seeded by `seed`), for ranking by robustness.
+    physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
 
     @model_validator(mode="after")
     def _rollout_complete(self) -> ValidationJob:
         rollout_fields = {"arm": self.arm, "plan": self.plan}
+        if self.physics_draws and not self.with_arm:
+            raise ValueError("physics_draws is only used with with_arm=True (arm rollouts)")
         if self.with_arm:
             missing = [n for n, v in {**rollout_fields, "frame": self.frame}.items() if v is None]
             if missing:
@@ -571,6 +577,8 @@ class ValidationResult(PushOutcomes, Message):
     collision_cost: FloatVector | None = None  # arm rollouts: L_coll
     obstacle_contact: BoolVector | None = None  # arm rollouts: the robot or the pushed object touched an obstacle
     final_object_poses: list[ObjectPose] | None = None  # arm rollouts: object pose after the push
+    # Arm rollouts with physics_draws: the push's outcome in each drawn world (one row per draw).
+    draws: PushOutcomes | None = None
     elapsed_s: NonNegFloat = 0.0
 
     MAX_PAYLOAD_BYTES: ClassVar[int] = MAX_RESULT_PAYLOAD_BYTES
@@ -582,6 +590,8 @@ class ValidationResult(PushOutcomes, Message):
                       obstacle_contact=self.obstacle_contact)
         if self.final_object_poses is not None and len(self.final_object_poses) != n:
             raise ValueError(f"ValidationResult: final_object_poses has {len(self.final_object_poses)} entries but there are {n} poses")
+        if self.draws is not None:
+            self.draws._outcome_rows("ValidationResult.draws")
         return self
 
 
@@ -645,6 +655,10 @@ class PushRequest(Message):
     obstacles: list[CircleObstacle] = Field(default_factory=list)
     k: int = Field(default=200, ge=1, le=1000)
     choice: PlanChoice = "ranked"
+    # Rank by robustness: roll each plan out in this many physics draws besides the nominal world
+    # (friction, mass, centre of mass, controller, pose off by up to 1 cm / 5 deg; `shared.sim.world`)
+    # and score its mean L_goal. 0: the paper's single nominal rollout.
+    physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
     max_steps: int = Field(default=10, ge=1, le=100)
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
@@ -663,6 +677,8 @@ class PushRequest(Message):
             raise ValueError("give exactly one of direction_deg or goal_xy")
         if self.object.point_cloud is not None and self.object_pose is not None:
             raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
+        if self.physics_draws and self.choice == "random":
+            raise ValueError("physics_draws ranks rolled-out plans; choice 'random' rolls none out")
         _check_pair(self.hand, self.arm)
         return self
 
@@ -677,6 +693,10 @@ class ScoreTerms(Value):
     alpha: FiniteFloat
     beta: FiniteFloat
     gamma: FiniteFloat
+    # Ranked by robustness: in how many of the rollout's physics draws (the nominal world included) the
+    # push succeeded, out of how many; L_goal is then their mean.
+    draws_succeeded: int | None = Field(default=None, ge=0)
+    draws: int | None = Field(default=None, ge=1)
 
 
 class ExecutionResult(Value):

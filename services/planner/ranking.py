@@ -34,7 +34,7 @@ import numpy as np
 
 from shared.frames import pose25_to_matrix
 from shared.hands import HandModel
-from shared.messages import ScoreTerms
+from shared.messages import ScoreTerms, ValidationResult
 from shared.push_outcome import SUCCESS_MAX_ROTATION_DEG, SUCCESS_POSITION_TOLERANCE_M, TOPPLED_TILT_DEG
 
 FAILED_PUSH_PENALTY_M = 0.1  # a rotated or toppled rollout ranks behind any clean miss of up to 10 cm
@@ -61,6 +61,23 @@ def goal_cost(position_error_m: float, rotation_deg: float, max_tilt_deg: float)
     """L_goal of one arm rollout: its distance from the target, penalised when the push fails on rotation or tilt."""
     failed = rotation_deg > SUCCESS_MAX_ROTATION_DEG or max_tilt_deg > TOPPLED_TILT_DEG
     return position_error_m + (FAILED_PUSH_PENALTY_M if failed else 0.0)
+
+
+def score_rollout(result: ValidationResult, l_dir: float, weights: Weights = Weights()) -> ScoreTerms:
+    """The score of one plan from its arm rollout (`ValidationResult` of one row). With physics draws
+    (robust ranking), L_goal is the mean of the nominal rollout's and every drawn world's: a plan
+    whose push only works in the nominal world ranks behind one that works in most of them."""
+    rows = [result] + ([result.draws] if result.draws is not None else [])
+    errors = np.concatenate([r.position_error_m.to_numpy() for r in rows])
+    rotations = np.concatenate([r.rotation_deg.to_numpy() for r in rows])
+    tilts = np.concatenate([r.max_tilt_deg.to_numpy() for r in rows])
+    costs = [goal_cost(float(e), float(r), float(t)) for e, r, t in zip(errors, rotations, tilts, strict=True)]
+    assert result.collision_cost is not None, "an arm rollout's result has L_coll"
+    terms = score(float(np.mean(costs)), float(result.collision_cost.to_numpy()[0]), l_dir, weights)
+    if result.draws is None:
+        return terms
+    succeeded = int(sum(c <= SUCCESS_POSITION_TOLERANCE_M for c in costs))
+    return terms.model_copy(update={"draws_succeeded": succeeded, "draws": len(costs)})
 
 
 def predicts_success(terms: ScoreTerms) -> bool:

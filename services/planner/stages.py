@@ -323,7 +323,7 @@ def rollout_job(request: PushRequest, push: Push, pose_d: np.ndarray, plan: Plan
     """The arm rollout of `plan` (for the pose `pose_d` in D) in simulation, with the request's obstacles."""
     return ValidationJob(object=request.object, hand=request.hand, poses=pose_d[None], push_distance_m=push.distance_m,
                          with_arm=True, arm=request.arm, plan=plan, frame=push.frame, obstacles=request.obstacles,
-                         seed=request.seed)
+                         seed=request.seed, physics_draws=request.physics_draws)
 
 
 # ------------------------------------------------------------------------------- 6. ranking
@@ -347,10 +347,7 @@ def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future]
             continue
         if result.obstacle_contact is not None and bool(result.obstacle_contact.to_numpy()[0]):
             continue
-        l_goal = ranking.goal_cost(float(result.goal_error_m.to_numpy()[0]), float(result.rotation_deg.to_numpy()[0]),
-                                   float(result.max_tilt_deg.to_numpy()[0]))
-        terms = ranking.score(l_goal, float(result.collision_cost.to_numpy()[0]), float(l_dir[candidate.index]),
-                              settings.weights)
+        terms = ranking.score_rollout(result, float(l_dir[candidate.index]), settings.weights)
         scored.append(candidate.ranked(terms))
     if errors and len(errors) == len(plans):
         raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))

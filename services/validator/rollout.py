@@ -25,19 +25,22 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pybullet as pb
 
 from shared.bus import ServiceError
 from shared.frames import direction_xy
-from shared.messages import ValidationJob, ValidationResult
+from shared.messages import ExecutionResult, PushOutcomes, ValidationJob, ValidationResult
 from shared.object_refs import load_object_ref
 from shared.objects import ObjectLoadError, write_object_urdf
 from shared.push_outcome import judge_push, object_pose, pose_matrix
 from shared.sim import PhysicsParams
-from shared.sim.plan_runner import PlanRunError, prepare_robot, run_plan
+from shared.sim.plan_runner import PlanRun, PlanRunError, prepare_robot, run_plan
 from shared.sim.robot_scene import RobotScene
+from shared.sim.world import half_extents, rollout_worlds
 
 CONTACT_KEPT_MIN_FRACTION = 0.8  # as the floating-hand validator
 LEAD_S = 1.5  # simulated before the push: the Cartesian approach (2 x 5 cm at 0.1 m/s) and some margin
@@ -47,45 +50,81 @@ _local = threading.local()
 
 
 def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
-    """Play `job.plan` with the arm and judge the push it makes (one row: the job's one pose)."""
+    """Play `job.plan` with the arm and judge the push it makes (one row: the job's one pose); with
+    `job.physics_draws`, also in that many drawn worlds (`draws`, one row each)."""
     assert job.with_arm and job.plan is not None and job.frame is not None and job.arm is not None
     started = time.perf_counter()
     try:
         obj = load_object_ref(job.object)
     except ObjectLoadError as exc:
         raise ServiceError("bad_request", f"validator: {exc}") from exc
-    T_world_O = pose_matrix(job.frame.object_pose)
+    scene = _scene(job.arm, job.hand, params)
+    nominal = _play(scene, job, write_object_urdf(obj), pose_matrix(job.frame.object_pose), params,
+                    with_penetration=True)
+    worlds = rollout_worlds(job.seed, job.physics_draws, half_extents(obj.mesh.vertices), params)
+    drawn = [_play(scene, job, write_object_urdf(obj, w.mass_scale, w.com_offset_m),
+                   w.pose_error.true_pose(pose_matrix(job.frame.object_pose)), w.physics) for w in worlds]
+    scene.use_contact_physics(params)  # the cached scene is the nominal world again
+    hand_link_names = {scene.link_names[i] for i in scene.hand_links}
+    collided = bool(nominal.run.collisions)
+    touched_obstacle = (nominal.run.object_obstacle_contact
+                        or any(other.startswith("obstacle") for _, other in nominal.run.collisions))
+    return ValidationResult(job_id=job.id, hand=job.hand, object_id=obj.id,
+                            goal_error_m=np.array([nominal.result.position_error_m]),
+                            collision_cost=np.array([float(collided)]), obstacle_contact=np.array([touched_obstacle]),
+                            final_object_poses=[nominal.result.final_object_pose],
+                            draws=_outcomes(drawn, hand_link_names) if drawn else None,
+                            elapsed_s=time.perf_counter() - started,
+                            **_fields(_outcomes([nominal], hand_link_names)))
+
+
+@dataclass(frozen=True)
+class _Played:
+    """One rollout of the plan in one world: the run, its judged push, the hand's initial penetration."""
+
+    run: PlanRun
+    result: ExecutionResult
+    penetration_m: float
+
+
+def _play(scene: RobotScene, job: ValidationJob, urdf: Path, T_world_O: np.ndarray, params: PhysicsParams,
+          with_penetration: bool = False) -> _Played:
+    """The plan played with the object (`urdf`) truly at T_world_O in the world `params`, judged as an
+    evaluation judges an execution: from where the object truly stood, `push_distance_m` along the push."""
+    assert job.plan is not None and job.frame is not None
     direction = direction_xy(np.degrees(job.frame.yaw_rad()))
     target_xy = T_world_O[:2, 3] + job.push_distance_m * direction
-    scene = _scene(job.arm, job.hand, params)
+    scene.use_contact_physics(params)
     try:
-        scene.add_object(write_object_urdf(obj), T_world_O)
+        scene.add_object(urdf, T_world_O)
         scene.add_obstacles([(o.x, o.y, o.radius) for o in job.obstacles])
-        penetration = _initial_penetration(scene, job)
+        penetration = _initial_penetration(scene, job) if with_penetration else 0.0
         try:
             run = run_plan(scene, job.plan, params, _window(job))
         except PlanRunError as exc:
             raise ServiceError("bad_request", f"validator: {exc}") from exc
         final = object_pose(scene.object.pose())
-        hand_link_names = {scene.link_names[i] for i in scene.hand_links}
     finally:
         scene.clear_environment()
-    result = judge_push(T_world_O, target_xy, final)
-    collided = bool(run.collisions)
-    touched_obstacle = run.object_obstacle_contact or any(other.startswith("obstacle") for _, other in run.collisions)
-    arrays = {
-        "success": np.array([result.success]),
-        "position_error_m": np.array([result.position_error_m]),
-        "rotation_deg": np.array([result.rotation_deg]),
-        "max_tilt_deg": np.array([run.max_tilt_deg]),
-        "contact_kept": np.array([run.push_contact_fraction >= CONTACT_KEPT_MIN_FRACTION]),
-        "hand_table_contact": np.array([any(other == "table" and link in hand_link_names for link, other in run.collisions)]),
-        "initial_penetration_m": np.array([penetration]),
-    }
-    return ValidationResult(job_id=job.id, hand=job.hand, object_id=obj.id, goal_error_m=np.array([result.position_error_m]),
-                            collision_cost=np.array([float(collided)]), obstacle_contact=np.array([touched_obstacle]),
-                            final_object_poses=[final],
-                            elapsed_s=time.perf_counter() - started, **arrays)
+    return _Played(run, judge_push(T_world_O, target_xy, final), penetration)
+
+
+def _fields(outcomes: PushOutcomes) -> dict[str, np.ndarray]:
+    return {name: getattr(outcomes, name) for name in PushOutcomes.model_fields}
+
+
+def _outcomes(played: list[_Played], hand_link_names: set[str]) -> PushOutcomes:
+    """The push outcomes of rollouts, one row each."""
+    def table_touched(run: PlanRun) -> bool:
+        return any(other == "table" and link in hand_link_names for link, other in run.collisions)
+    return PushOutcomes(
+        success=np.array([p.result.success for p in played]),
+        position_error_m=np.array([p.result.position_error_m for p in played]),
+        rotation_deg=np.array([p.result.rotation_deg for p in played]),
+        max_tilt_deg=np.array([p.run.max_tilt_deg for p in played]),
+        contact_kept=np.array([p.run.push_contact_fraction >= CONTACT_KEPT_MIN_FRACTION for p in played]),
+        hand_table_contact=np.array([table_touched(p.run) for p in played]),
+        initial_penetration_m=np.array([p.penetration_m for p in played]))
 
 
 def _scene(arm: str, hand: str, params: PhysicsParams) -> RobotScene:

@@ -128,6 +128,18 @@ class RobotScene:
             radii[i] = np.linalg.norm(high - low) / 2
         return centres, radii
 
+    def use_contact_physics(self, params: PhysicsParams) -> None:
+        """Set the friction of the table and the robot, and the rolling friction of objects added from now
+        on, to `params`' (a drawn world's): another world without reloading the robot. The solver settings
+        must stay those the scene was built with."""
+        built = self.sim.params
+        if (params.solver_iterations, params.time_step_s) != (built.solver_iterations, built.time_step_s):
+            raise SimError("use_contact_physics changes friction only: build a new scene for other solver settings")
+        self.sim.params = params
+        pb.changeDynamics(self.sim.table.id, -1, lateralFriction=params.table_friction, physicsClientId=self.client)
+        for link in range(-1, pb.getNumJoints(self.robot_id, physicsClientId=self.client)):
+            pb.changeDynamics(self.robot_id, link, lateralFriction=params.hand_friction, physicsClientId=self.client)
+
     def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> Body:
         """Load the object (URDF from `shared.objects.write_object_urdf`) with its frame O at `T_world_O`."""
         if self.object is not None:

@@ -21,7 +21,9 @@ differently. `sample_world(level, seed, ...)` draws one such execution world per
 | told pose vs true pose | equal | ±1 cm in x and y, ±5° yaw | object pose from a tabletop camera or a fiducial: typical errors 0.5-1.5 cm, a few degrees |
 
 Rollouts never see an execution world: it goes to the robot (the evaluation's simulated robot), the
-planner gets the told pose.
+planner gets the told pose. A planner that ranks for robustness (`PushRequest.physics_draws`) rolls
+each plan out in worlds of its own, `rollout_worlds`: drawn from the same ranges (the planner's prior
+about what it does not know) with seeds derived from the request's, never the execution's draw.
 
 Perception (`cameras`): with 0 the system is told the object's mesh and a pose off by `pose_error`;
 with 1-3 it receives instead what that many simulated depth cameras see (`shared.sim.camera`: a
@@ -109,6 +111,29 @@ class ExecutionWorld:
                 "mass_scale": round(self.mass_scale, 4), "com_offset_m": [round(v, 4) for v in self.com_offset_m],
                 "position_gain": round(p.arm_position_gain, 4), "latency_s": round(p.arm_command_latency_s, 4),
                 "pose_error": {k: round(v, 4) for k, v in asdict(self.pose_error).items()}, "cameras": self.cameras}
+
+
+def half_extents(vertices_o: np.ndarray) -> np.ndarray:
+    """An object's half extents along the axes of its frame O, from its mesh vertices in O (what a
+    centre-of-mass offset is drawn in)."""
+    vertices = np.asarray(vertices_o, dtype=np.float64)
+    extents: np.ndarray = (vertices.max(axis=0) - vertices.min(axis=0)) / 2.0
+    return extents
+
+
+ROLLOUT_SEED_SALT = 0x5EED_D2A3  # keeps a planner's own draws apart from every evaluation's world seeds
+
+
+def rollout_worlds(request_seed: int, count: int, half_extents_m: np.ndarray,
+                   base: PhysicsParams, ranges: WorldRanges = REAL_RANGES) -> list[ExecutionWorld]:
+    """`count` worlds the planner rolls its plans out in to rank them for robustness: `real` draws
+    around its nominal physics `base`, the same draws for every plan of a request (common random
+    numbers: plans are compared in the same worlds), seeded from the request's seed."""
+    worlds = []
+    for k in range(count):
+        seed = int(np.random.SeedSequence([request_seed, ROLLOUT_SEED_SALT, k]).generate_state(1, np.uint64)[0] >> 1)
+        worlds.append(sample_world("real", seed, half_extents_m, base=base, ranges=ranges))
+    return worlds
 
 
 def sample_world(level: WorldLevel, seed: int, half_extents_m: np.ndarray,
