@@ -130,6 +130,16 @@ def test_push_request_distance_bounds(d):
         m.PushRequest(object=BOX, direction_deg=0, distance_m=d)
 
 
+def test_physics_draws_are_bounded_and_only_for_rolled_out_plans():
+    with pytest.raises(ValidationError, match="physics_draws\n.*less than or equal to 16"):
+        m.PushRequest(object=BOX, direction_deg=0, physics_draws=17)
+    with pytest.raises(ValidationError, match="choice 'random' rolls none out"):
+        m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="random")
+    with pytest.raises(ValidationError, match="physics_draws is only used with with_arm=True"):
+        m.ValidationJob(object=BOX, hand="allegro", poses=_poses(2), physics_draws=2)
+    assert m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="unranked").physics_draws == 4
+
+
 def test_unknown_hand_and_bad_pair():
     with pytest.raises(ValidationError, match=r"hand\n.*Input should be 'allegro' or 'leap'"):
         m.PushRequest(object=BOX, direction_deg=0, hand="shadow")

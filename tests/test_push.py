@@ -271,7 +271,7 @@ def _spatula_poses(request):
                           poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
 
-def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0):
+def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0, physics_draws=0, jobs=None):
     """A push of the box by spatula poses (`_spatula_poses`) on an in-process system whose i-th arm
     rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
     from evaluation.local_system import LocalRobot, validate_here
@@ -286,6 +286,8 @@ def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0):
         altered: Future = Future()
         altered.set_result(alter(len(rollouts), validate_here(job).result()))
         rollouts.append(job)
+        if jobs is not None:
+            jobs.append(job)
         return altered
 
     robot = LocalRobot()
@@ -293,7 +295,8 @@ def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0):
                             settings or PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
-                                           direction_deg=90.0, k=8, choice=choice, seed=seed))
+                                           direction_deg=90.0, k=8, choice=choice, seed=seed,
+                                           physics_draws=physics_draws))
         assert [r.step for r in outcome.records] == outcome.response.steps
         return outcome.response, len(rollouts)
     except PushError as exc:
@@ -331,6 +334,52 @@ def test_the_ranking_ablation_keeps_every_rollout_and_drops_only_the_score():
     assert ranked_rollouts == unranked_rollouts == 2
     assert ranked.score.l_goal < 0.1  # the ranking executes the better plan
     assert unranked.score.l_goal >= 0.1  # seed 3 draws the permutation [1, 0]: the worse plan runs
+
+
+def test_robust_ranking_executes_the_plan_that_works_in_the_drawn_worlds_not_only_the_nominal_one():
+    """physics_draws=2: each plan is also rolled out in two drawn worlds. The first plan "works" only in
+    the nominal world (its draws overridden to miss by 10 cm), the second in all three: the second runs,
+    although ranking by the nominal rollout alone would pick the first (its nominal error is lower)."""
+    from services.planner.stages import PipelineSettings
+    from shared.messages import NDArray
+
+    real_draws = []
+
+    def fragile_first_plan(i, result):
+        real_draws.append(result.draws)
+        draws = result.draws.model_copy(update={"position_error_m": NDArray.from_numpy(np.full(2, 0.1 if i == 0 else 0.005))})
+        nominal = NDArray.from_numpy(np.full(1, 0.001 if i == 0 else 0.004))
+        return result.model_copy(update={"draws": draws, "goal_error_m": nominal})
+
+    settings = PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1)
+    jobs = []
+    response, rollouts = _push_with_altered_rollouts(fragile_first_plan, settings, physics_draws=2, jobs=jobs)
+    assert rollouts == 2 and all(job.physics_draws == 2 for job in jobs)
+    assert all(len(d.success.to_numpy()) == 2 for d in real_draws)  # the validator rolled each plan out twice more
+    assert response.score.draws == 3 and response.score.draws_succeeded == 3
+    assert response.score.l_goal == pytest.approx(0.014 / 3)  # the mean over the nominal world and the draws
+
+
+def test_drawn_rollouts_leave_the_nominal_rollout_as_it_was():
+    """The validator reuses one scene for the nominal world and the draws: the nominal outcome of a plan is
+    the same with draws as without, and the draws are seeded (the same worlds again give the same outcomes)."""
+    from evaluation.local_system import validate_here
+
+    jobs = []
+    _push_with_altered_rollouts(lambda i, result: result, _one_plan_settings(), physics_draws=2, jobs=jobs)
+    with_draws = validate_here(jobs[0]).result()
+    without = validate_here(jobs[0].model_copy(update={"physics_draws": 0})).result()
+    again = validate_here(jobs[0]).result()
+    assert without.draws is None and len(with_draws.draws.success.to_numpy()) == 2
+    assert with_draws.goal_error_m.to_numpy() == pytest.approx(without.goal_error_m.to_numpy(), abs=1e-9)
+    assert with_draws.draws.position_error_m.to_numpy() == pytest.approx(again.draws.position_error_m.to_numpy(),
+                                                                          abs=1e-9)
+
+
+def _one_plan_settings():
+    from services.planner.stages import PipelineSettings
+
+    return PipelineSettings(max_plans=1, prescreen=0, max_plan_rounds=1)
 
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
@@ -523,6 +572,8 @@ def test_gd2p_push_without_a_planner_says_none_is_running(zenoh_router, capsys):
     (["--yaw", "inf", "--position", "0.5", "0"], "argument --yaw: must be a finite number"),
     (["--k", "0"], "argument --k: must be >= 1"),
     (["--distance", "5"], "gd2p push: --distance: must be <= 1"),
+    (["--physics-draws", "17"], "gd2p push: --physics-draws: must be <= 16"),
+    (["--physics-draws", "2", "--choice", "random"], "physics_draws ranks rolled-out plans; choice 'random' rolls none out"),
 ])
 def test_gd2p_push_names_the_flag_of_a_bad_value_without_a_traceback(flags, says, capsys):
     from cli.main import main

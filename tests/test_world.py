@@ -14,7 +14,7 @@ from shared.messages import ObjectRef, SimWorld
 from shared.objects import load_object
 from shared.push_outcome import object_pose
 from shared.sim.params import REFERENCE_PARAMS
-from shared.sim.world import REAL_RANGES, PoseError, sample_world
+from shared.sim.world import REAL_RANGES, PoseError, rollout_worlds, sample_world
 
 BOX = "proc-box-001"
 HALF_EXTENTS = np.array([0.05, 0.03, 0.04])
@@ -34,6 +34,15 @@ def test_exact_is_the_planners_world_and_real_draws_within_its_ranges():
     assert sample_world("real", 3, HALF_EXTENTS) == sample_world("real", 3, HALF_EXTENTS)
     with pytest.raises(ValueError, match="unknown world level"):
         sample_world("mars", 0, HALF_EXTENTS)
+
+
+def test_the_planners_own_draws_are_seeded_by_the_request_and_never_the_executions_draw():
+    worlds = rollout_worlds(11, 4, HALF_EXTENTS, REFERENCE_PARAMS)
+    assert worlds == rollout_worlds(11, 4, HALF_EXTENTS, REFERENCE_PARAMS)  # every plan of a request: same worlds
+    assert len({w.seed for w in worlds}) == 4 and worlds != rollout_worlds(12, 4, HALF_EXTENTS, REFERENCE_PARAMS)
+    assert all(w.level == "real" and w.pose_error != PoseError() for w in worlds)
+    execution = sample_world("real", 11, HALF_EXTENTS)  # an evaluation's trial seeded like the request
+    assert all(w.physics != execution.physics for w in worlds)
 
 
 def test_the_simulated_robot_executes_in_the_drawn_world_not_the_told_one():

@@ -10,6 +10,10 @@
 - L_dir = E_dir = -cos(v_palm, u_dir) of the hand pose in the direction frame D (u_dir = +x of D):
   -1 when the palm faces the push direction.
 
+Robust ranking (`PushRequest.physics_draws`, `score_rollout`): L_goal is the mean of the goal cost
+over the nominal rollout and the rollouts in the drawn worlds, so a push tuned to the nominal
+friction and pose ranks behind one that works across them.
+
 Weights. The terms have different units, so the weights say what trades for what:
 - α = 10 per metre: a 3 cm miss (the success tolerance) costs 0.3;
 - β = 1: a collision costs as much as a 10 cm miss — more than any successful push's error, so a
@@ -67,12 +71,14 @@ def score_rollout(result: ValidationResult, l_dir: float, weights: Weights = Wei
     """The score of one plan from its arm rollout (`ValidationResult` of one row). With physics draws
     (robust ranking), L_goal is the mean of the nominal rollout's and every drawn world's: a plan
     whose push only works in the nominal world ranks behind one that works in most of them."""
-    rows = [result] + ([result.draws] if result.draws is not None else [])
-    errors = np.concatenate([r.position_error_m.to_numpy() for r in rows])
-    rotations = np.concatenate([r.rotation_deg.to_numpy() for r in rows])
-    tilts = np.concatenate([r.max_tilt_deg.to_numpy() for r in rows])
-    costs = [goal_cost(float(e), float(r), float(t)) for e, r, t in zip(errors, rotations, tilts, strict=True)]
-    assert result.collision_cost is not None, "an arm rollout's result has L_coll"
+    assert result.goal_error_m is not None and result.collision_cost is not None, "an arm rollout's result"
+    costs = [goal_cost(float(result.goal_error_m.to_numpy()[0]), float(result.rotation_deg.to_numpy()[0]),
+                       float(result.max_tilt_deg.to_numpy()[0]))]
+    if result.draws is not None:
+        draws = result.draws
+        costs += [goal_cost(float(e), float(r), float(t)) for e, r, t in
+                  zip(draws.position_error_m.to_numpy(), draws.rotation_deg.to_numpy(), draws.max_tilt_deg.to_numpy(),
+                      strict=True)]
     terms = score(float(np.mean(costs)), float(result.collision_cost.to_numpy()[0]), l_dir, weights)
     if result.draws is None:
         return terms

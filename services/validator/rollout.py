@@ -14,6 +14,13 @@ law as the simulated robot (`shared.sim.plan_runner`). Measured:
 - the usual push outcomes (success within 3 cm and 45°, not toppled; tilt; hand-object contact
   kept through at least 80% of the push segment; hand-table contact).
 
+Robust ranking (`job.physics_draws` = N): the plan is also played in N worlds drawn around the
+nominal one (`shared.sim.world.rollout_worlds`: friction, mass, centre of mass, controller gain and
+latency, the object off its told pose by up to 1 cm / 5 deg), seeded by the job's seed so every plan
+of a request meets the same N worlds; their outcomes come back as `draws`, one row each. The scene
+is reused: only friction changes between worlds (`RobotScene.use_contact_physics`) and the object is
+loaded with each world's mass and centre of mass.
+
 Only the part of the plan near the object is simulated: from `LEAD_S` before the push segment
 (the straight Cartesian approach down and in) to `TRAIL_S` after it (the straight back-off), then
 the object settles. The joint-space motions before and after (RRTConnect from and back to the
