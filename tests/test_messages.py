@@ -131,7 +131,7 @@ def test_push_request_distance_bounds(d):
 
 
 def test_physics_draws_are_bounded_and_only_for_rolled_out_plans():
-    with pytest.raises(ValidationError, match="physics_draws\n.*less than or equal to 16"):
+    with pytest.raises(ValidationError, match=r"physics_draws\n.*less than or equal to 16"):
         m.PushRequest(object=BOX, direction_deg=0, physics_draws=17)
     with pytest.raises(ValidationError, match="choice 'random' rolls none out"):
         m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="random")
