@@ -41,9 +41,7 @@ class HardwareSpec:
     hand_config: HandConfig
 
     def __post_init__(self) -> None:
-        if (self.hand, self.arm) not in HAND_ARM_PAIRS:
-            pairs = ", ".join(f"{a}+{h}" for h, a in sorted(HAND_ARM_PAIRS))
-            raise HardwareConfigError(f"no hardware pairing {self.arm}+{self.hand}; supported: {pairs}")
+        _check_pairing(self.arm, self.hand)
 
     @staticmethod
     def add_cli_args(parser: argparse.ArgumentParser) -> None:
@@ -71,14 +69,18 @@ class HardwareSpec:
         arm, sep, hand = args.hardware.partition("+")
         if not sep:
             raise HardwareConfigError(f"--hardware takes ARM+HAND (e.g. xarm7+leap), got {args.hardware!r}")
-        if (hand, arm) not in HAND_ARM_PAIRS:  # before asking for the addresses of devices it cannot drive
-            pairs = ", ".join(f"{a}+{h}" for h, a in sorted(HAND_ARM_PAIRS))
-            raise HardwareConfigError(f"no hardware pairing {arm}+{hand}; supported: {pairs}")
+        _check_pairing(arm, hand)  # before asking for the addresses of devices it cannot drive
         return cls(arm, hand, _arm_config(arm, args), _hand_config(hand, args))
 
     def robots(self) -> list[Robot]:
         """The arm's and the hand's robots, not connected (each imports its vendor package on connect)."""
         return [_robot(self.arm_config), _robot(self.hand_config)]
+
+
+def _check_pairing(arm: str, hand: str) -> None:
+    if (hand, arm) not in HAND_ARM_PAIRS:
+        pairs = ", ".join(f"{a}+{h}" for h, a in sorted(HAND_ARM_PAIRS))
+        raise HardwareConfigError(f"no hardware pairing {arm}+{hand}; supported: {pairs}")
 
 
 def _arm_config(arm: str, args: argparse.Namespace) -> ArmConfig:

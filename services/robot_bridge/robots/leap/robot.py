@@ -100,7 +100,7 @@ class LeapRobot(StreamingRobot):
         if missing:
             raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
                                     f"(power, cabling, ids or baud rate {self.baudrate})")
-        caps = [int(round(c)) for c in self.effort_cap]
+        caps = [int(round(self.config.current_limit_ma))] * len(self.motor_ids)
         for motor, cap in zip(self.motor_ids, caps, strict=False):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)  # EEPROM items below are writable only with torque off
             self._write(motor, ADDR_OPERATING_MODE, 1, CURRENT_BASED_POSITION_MODE)

@@ -72,7 +72,7 @@ class PandaRobot(Robot):
         try:
             if robot.has_errors and not robot.recover_from_errors():
                 raise DeviceRefused(f"Franka at {self.host}: reports errors that automatic recovery cannot clear")
-            robot.set_collision_behavior(list(self.effort_cap), [30.0] * 6)
+            robot.set_collision_behavior(list(self.config.collision_torque_nm), [30.0] * 6)
             robot.relative_dynamics_factor = self.relative_dynamics_factor
         except franky.Exception as exc:
             raise DeviceRefused(f"Franka at {self.host}: configuration refused: {exc}") from None

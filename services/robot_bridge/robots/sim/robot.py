@@ -113,14 +113,13 @@ class SimRobot(Robot):
 
     def reset(self, q_arm: Sequence[float] | None = None, q_hand: Sequence[float] | None = None) -> None:
         """Teleport the robot (default: arm home, hand open) and hold it there."""
-        self.require_connected()
-        scene = self.scene
-        q_arm = scene.arm.home.double().numpy() if q_arm is None else np.asarray(q_arm, dtype=np.float64)
-        q_hand = (scene.hand.open_joint_positions.double().numpy() if q_hand is None
-                  else np.asarray(q_hand, dtype=np.float64))
-        q = np.concatenate([q_arm, q_hand])
+        scene = self._scene()
+        arm = scene.arm.home.double().numpy() if q_arm is None else np.asarray(q_arm, dtype=np.float64)
+        hand = (scene.hand.open_joint_positions.double().numpy() if q_hand is None
+                else np.asarray(q_hand, dtype=np.float64))
+        q = np.concatenate([arm, hand])
         with self._lock:
-            scene.set_configuration(q_arm, q_hand)
+            scene.set_configuration(arm, hand)
             ArmController(scene, self.params, np.zeros(1), q[None]).command(q, np.zeros(len(q)))
 
     def reset_world(self, world: TrueWorld) -> None:
@@ -145,15 +144,15 @@ class SimRobot(Robot):
 
     def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> None:
         """Place the object to push (URDF from `shared.objects.write_object_urdf`) with frame O at T_world_O."""
-        self.require_connected()
+        scene = self._scene()
         with self._lock:
-            self.scene.add_object(urdf_path, T_world_O)
+            scene.add_object(urdf_path, T_world_O)
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
         """Static cylinders (x, y, radius) on the table."""
-        self.require_connected()
+        scene = self._scene()
         with self._lock:
-            self.scene.add_obstacles(circles)
+            scene.add_obstacles(circles)
 
     # ---------------------------------------------------------------------------------------- observe
 
