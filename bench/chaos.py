@@ -252,8 +252,8 @@ def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, 
 
     session, probe = client(endpoint), client(endpoint)
     bridge = Bridge(session, probe=probe)  # as services/robot_bridge/service.run builds it: with its router watchdog
-    robot = bridge.executor("panda", "allegro").backend
-    start_q = robot.state().positions.copy()
+    robot = bridge.executor("panda", "allegro").executor.robots[0]
+    start_q = robot.observe().positions.copy()
     goal = start_q.copy()
     goal[0] += 0.8
     alphas = np.linspace(0.0, 1.0, 80)[:, None]
@@ -269,7 +269,7 @@ def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, 
 
     def sample() -> None:
         while not sampling.is_set():
-            motion.trace.append((time.monotonic(), float(robot.state().positions[0])))
+            motion.trace.append((time.monotonic(), float(robot.observe().positions[0])))
             time.sleep(0.01)
 
     threads = [threading.Thread(target=run, daemon=True), threading.Thread(target=sample, daemon=True)]

@@ -1,8 +1,9 @@
 """`gd2p bridge selftest [--json] [--device D ...]` and `gd2p bridge estop [--reason TEXT]`.
 
-selftest: every hardware adapter against a stand-in speaking its protocol (services/robot_bridge/selftest.py);
-exit code 0 only if every device checked is ok.
-estop: publish an EStop on `gd2p/robot_bridge/estop`: every backend of every bridge stops at once.
+selftest: every hardware robot against its protocol fake (services/robot_bridge/selftest.py); devices are
+named as everywhere else: panda (the Franka FR3), xarm7, leap, allegro. Exit code 0 only if every
+device checked is ok.
+estop: publish an EStop on `gd2p/robot_bridge/estop`: every robot of every bridge stops at once.
 """
 from __future__ import annotations
 
@@ -14,15 +15,18 @@ import sys
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from services.robot_bridge.robots import DEVICES
+
     bridge = subparsers.add_parser("bridge", help="robot bridge: hardware self-test, e-stop")
     commands = bridge.add_subparsers(dest="bridge_command", metavar="SUBCOMMAND")
     commands.required = True
-    selftest = commands.add_parser("selftest", help="exercise the FR3, xArm7, LEAP and Allegro adapters without hardware")
+    selftest = commands.add_parser("selftest", help="exercise the panda (Franka FR3), xarm7, leap and allegro robots "
+                                   "without hardware")
     selftest.add_argument("--json", action="store_true", help="print one JSON object (last line)")
-    selftest.add_argument("--device", action="append", choices=["franky", "xarm", "leap", "allegro"],
+    selftest.add_argument("--device", action="append", choices=list(DEVICES),
                           help="check only this device (repeatable; default all four)")
     selftest.set_defaults(func=_selftest)
-    estop = commands.add_parser("estop", help="stop every robot backend now")
+    estop = commands.add_parser("estop", help="stop every robot now")
     estop.add_argument("--reason", default="operator e-stop", help="recorded with the stop")
     from shared.bus import BusConfig
 
@@ -63,7 +67,7 @@ def _selftest(args: argparse.Namespace) -> int:
 def _estop(args: argparse.Namespace) -> int:
     import getpass
 
-    from services.robot_bridge.safety import ESTOP_KEY
+    from services.robot_bridge.bus_safety import ESTOP_KEY
     from shared.bus import BusConfig, BusError, open_session
     from shared.codec import encode
     from shared.messages import EStop

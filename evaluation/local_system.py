@@ -1,22 +1,23 @@
 """The push pipeline's services in this process, for evaluation: same algorithms, no bus.
 
 An evaluation runs thousands of push requests; each worker process holds its own pipeline wired to
-in-process services — the sampler service's handler, the validator's arm rollout, and a simulated
-robot bridge (`SimExecutor`, with its limit checks) — so the measured behaviour is the system's,
-without a router in the loop. The pose source is pluggable (`PoseSource`), which is how the
+in-process services — the sampler service's handler, the validator's arm rollout, and the robot
+bridge's simulated robot behind its safety executor (`executor.Executor`, the same checks as on the
+bus; the request's cancellation releases the command's lease) — so the measured behaviour is the
+system's, without a router in the loop. The pose source is pluggable (`PoseSource`), which is how the
 baselines that have no service of their own (the grasp-pose baseline) enter the same pipeline.
 
 The simulated bridge here also watches the object against the obstacles while a plan runs (the
 bus bridge reports robot contacts only); multi-step evaluation needs both. It executes in the
 trial's execution world (`LocalRobot.execution_world`, `shared.sim.world`): physics and an object
-pose the planner was not told.
+pose the planner was not told. The simulated robot is always reset to the truth, and this module
+computes it (`true_world`): the true object at its true pose, with the world's physics.
 """
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,13 +25,24 @@ from services.planner.cancellation import Cancellation
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.stages import PipelineSettings
-from services.robot_bridge.sim_backend import SimBackend, SimExecutor
+from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
+from services.robot_bridge.robots.sim.config import SimConfig
+from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
 from services.sampler.service import SamplerService
 from services.validator.service import validate
 from shared.bus.errors import ServiceError
-from shared.messages import ExecutionState, ObjectRef, Plan, SampleRequest, SampleResponse, SimWorld, ValidationJob
-from shared.push_outcome import object_pose
-from shared.sim.world import ExecutionWorld, PoseError
+from shared.messages import (
+    ExecutionCommand,
+    ExecutionState,
+    ObjectRef,
+    Plan,
+    SampleRequest,
+    SampleResponse,
+    SimWorld,
+    ValidationJob,
+)
+from shared.push_outcome import object_pose, pose_matrix
+from shared.sim.world import ExecutionWorld
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 
@@ -53,11 +65,32 @@ class Contacts:
         return bool(self.robot_obstacle) or self.object_obstacle
 
 
-class LocalRobot:
-    """Simulated robots (one per arm + hand) executing plans in this process."""
+def true_world(told: SimWorld, execution: ExecutionWorld | None,
+               true_object: tuple[ObjectRef, np.ndarray] | None = None) -> TrueWorld:
+    """The world the simulated robot is reset to, from the world the planner was told: the object at its
+    true pose — `true_object` (a reconstruction was planned on: the library object where it truly
+    stands) or the told object moved by the execution world's pose error — with that world's physics,
+    mass and centre of mass (None: the told world, nominal physics)."""
+    obstacles = tuple((o.x, o.y, o.radius) for o in told.obstacles)
+    if true_object is not None:
+        obj, T_true = true_object
+        # Through an ObjectPose, as the pose travelled when this was a SimWorld: committed results stay
+        # reproducible to the last bit (a quaternion round trip moves the last digit now and then).
+        T_world_O = pose_matrix(object_pose(T_true))
+    else:
+        obj, T_world_O = told.object, pose_matrix(told.object_pose)
+        if execution is not None:
+            T_world_O = execution.pose_error.true_pose(T_world_O)
+    if execution is None:
+        return TrueWorld(obj, T_world_O, obstacles)
+    return TrueWorld(obj, T_world_O, obstacles, execution.physics, execution.mass_scale, execution.com_offset_m)
 
-    def __init__(self):
-        self._executors: dict[tuple[str, str], SimExecutor] = {}
+
+class LocalRobot:
+    """Simulated robots (one per arm + hand) executing plans in this process, each behind an executor."""
+
+    def __init__(self) -> None:
+        self._executors: dict[tuple[str, str], Executor] = {}
         self.contacts = Contacts()
         # The world a reset builds: the physics the robot meets and the object's true pose (None: the
         # planner's own world). Set per trial by the evaluation; the planner never sees it.
@@ -66,46 +99,44 @@ class LocalRobot:
         # reconstruction from a camera cloud): a reset puts this object there. None: the planner's object.
         self.true_object: tuple[ObjectRef, np.ndarray] | None = None
 
-    def executor(self, arm: str, hand: str) -> SimExecutor:
+    def executor(self, arm: str, hand: str) -> Executor:
         key = (arm, hand)
         if key not in self._executors:
-            backend = SimBackend(arm, hand)
-            backend.publish = lambda _state, backend=backend: self._watch_object(backend)
-            backend.connect()
-            self._executors[key] = SimExecutor(backend)
+            robot = SimRobot(SimConfig(arm, hand))
+            watch = robot.publish = lambda _state, robot=robot: self._watch_object(robot)
+            robot.connect()
+            # Nothing here engages the e-stop: only a protective stop could, and the simulated robot measures no effort.
+            self._executors[key] = Executor(arm, hand, [robot], EStopLatch(), publish=watch)
         return self._executors[key]
 
+    def robot(self, arm: str, hand: str) -> SimRobot:
+        robot = self.executor(arm, hand).robots[0]
+        assert isinstance(robot, SimRobot)  # what `executor` builds
+        return robot
+
     def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None) -> Execution:
-        executor = self.executor(plan.arm, plan.hand)
+        executor, robot = self.executor(plan.arm, plan.hand), self.robot(plan.arm, plan.hand)
         if world is not None:
-            executor.backend.reset_world(*self._true_world(world))
-        stop = threading.Event()
-        unregister = cancel.on_cancel(stop.set) if cancel is not None else (lambda: None)
+            robot.reset_world(true_world(world, self.execution_world, self.true_object))
+        lease = LocalLease()
+        unregister = cancel.on_cancel(lambda: lease.release("the request was cancelled")) if cancel is not None else (lambda: None)
         try:
-            state: ExecutionState = executor.execute(plan, REALTIME_FACTOR, stop=stop)
+            command = ExecutionCommand(plan=plan, lease_token="local", realtime_factor=REALTIME_FACTOR)
+            state: ExecutionState = executor.execute(command, lease)
         finally:
             unregister()
-        self.contacts.robot_obstacle.update(link for link, other in executor.backend.collisions if other.startswith("obstacle"))
+        self.contacts.robot_obstacle.update(link for link, other in robot.collisions if other.startswith("obstacle"))
         return Execution(final=state)
 
-    def _true_world(self, told: SimWorld) -> tuple[SimWorld, ExecutionWorld | None]:
-        """The world a reset builds from what the planner sent: the true object at its true pose, when known
-        (its pose error is then already applied)."""
-        if self.true_object is None:
-            return told, self.execution_world
-        obj, T_world_O = self.true_object
-        world = SimWorld(object=obj, object_pose=object_pose(T_world_O), obstacles=told.obstacles)
-        execution = None if self.execution_world is None else replace(self.execution_world, pose_error=PoseError())
-        return world, execution
-
-    def _watch_object(self, backend: SimBackend) -> None:
+    def _watch_object(self, robot: SimRobot) -> None:
         """Called at the state rate during execution: does the object touch an obstacle?"""
-        if backend.scene is not None and not self.contacts.object_obstacle:
-            self.contacts.object_obstacle = backend.scene.object_touches_obstacle()
+        if robot.scene is not None and not self.contacts.object_obstacle:
+            self.contacts.object_obstacle = robot.scene.object_touches_obstacle()
 
     def close(self) -> None:
         for executor in self._executors.values():
-            executor.backend.disconnect()
+            for robot in executor.robots:
+                robot.disconnect()
         self._executors.clear()
 
 

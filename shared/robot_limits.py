@@ -13,7 +13,8 @@ measured torques against them.
 Every violation raises `LimitViolation`, whose message names the limit, the joint (or point), the
 waypoint time and the offending value, e.g.
 "joint velocity limit: panda_joint4 at t=1.240 s moves 3.100 rad/s > 2.175 rad/s".
-`safety.py` builds the hardware devices' limits on this class.
+The robot bridge reads each device's limits from here (`JointLimits`) and narrows them where the real
+device is stricter (services/robot_bridge/limits.py).
 """
 from __future__ import annotations
 
@@ -61,6 +62,36 @@ DEFAULT_WORKSPACE = WorkspaceBox(lower=(-0.4, -0.85, -0.005), upper=(1.0, 0.85, 
 
 
 @dataclass(frozen=True)
+class JointLimits:
+    """The joint limits in one URDF, an arm's or a hand's (its joint order): positions (rad), velocities
+    (rad/s), efforts (N·m)."""
+
+    joint_names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+
+    @classmethod
+    def of_arm(cls, arm: ArmModel | str) -> JointLimits:
+        arm = load_arm(arm) if isinstance(arm, str) else arm
+        return cls(tuple(arm.joint_names), _as_np(arm.joint_lower), _as_np(arm.joint_upper),
+                   _as_np(arm.velocity_limits), _as_np(arm.effort_limits))
+
+    @classmethod
+    def of_hand(cls, hand: HandModel | str) -> JointLimits:
+        hand = load_hand(hand) if isinstance(hand, str) else hand
+        joints = [hand.robot.joint(name) for name in hand.joint_names]
+        return cls(tuple(hand.joint_names), _as_np(hand.joint_lower), _as_np(hand.joint_upper),
+                   np.array([j.velocity for j in joints], dtype=np.float64),
+                   np.array([j.effort for j in joints], dtype=np.float64))
+
+
+def _as_np(t: torch.Tensor) -> np.ndarray:
+    return t.double().numpy()
+
+
+@dataclass(frozen=True)
 class RobotLimits:
     """Joint limits of an arm + hand (joint_names order: arm then hand) and the workspace box."""
 
@@ -89,17 +120,13 @@ class RobotLimits:
             raise ValueError(f"velocity_scale must be in (0, 1], got {velocity_scale}")
         arm = load_arm(arm) if isinstance(arm, str) else arm
         hand = load_hand(hand) if isinstance(hand, str) else hand
-        hand_joints = [hand.robot.joint(name) for name in hand.joint_names]
-
-        def as_np(t: torch.Tensor) -> np.ndarray:
-            return t.double().numpy()
-
+        arm_joints, hand_joints = JointLimits.of_arm(arm), JointLimits.of_hand(hand)
         return cls(
-            joint_names=(*arm.joint_names, *hand.joint_names),
-            lower=np.concatenate([as_np(arm.joint_lower), as_np(hand.joint_lower)]),
-            upper=np.concatenate([as_np(arm.joint_upper), as_np(hand.joint_upper)]),
-            velocity=velocity_scale * np.concatenate([as_np(arm.velocity_limits), [j.velocity for j in hand_joints]]),
-            effort=np.concatenate([as_np(arm.effort_limits), [j.effort for j in hand_joints]]),
+            joint_names=(*arm_joints.joint_names, *hand_joints.joint_names),
+            lower=np.concatenate([arm_joints.lower, hand_joints.lower]),
+            upper=np.concatenate([arm_joints.upper, hand_joints.upper]),
+            velocity=velocity_scale * np.concatenate([arm_joints.velocity, hand_joints.velocity]),
+            effort=np.concatenate([arm_joints.effort, hand_joints.effort]),
             workspace=workspace,
             arm=arm,
             T_flange_hand=mount(arm, hand),

@@ -1,8 +1,8 @@
 """Safety of the hardware bridge: limits before motion, the commander's lease, the e-stop.
 
 The robot is an xArm7 (xarm-python-sdk with a fake controller at its transport boundary) carrying a
-LEAP hand (dynamixel-sdk talking Protocol 2.0 to a responder on a pty), driven by `SafeExecutor` on a
-real Zenoh session through an in-process router.
+LEAP hand (dynamixel-sdk talking Protocol 2.0 to a responder on a pty), driven by the safety `Executor`
+with its commands leased on a real Zenoh session through an in-process router (`LeasedExecutor`).
 """
 from __future__ import annotations
 
@@ -19,23 +19,20 @@ pytest.importorskip("dynamixel_sdk")
 
 import zenoh
 
-from services.robot_bridge import safety
-from services.robot_bridge.adapters.leap import LeapBackend
-from services.robot_bridge.adapters.xarm import XArmBackend
-from services.robot_bridge.backend import MotionStopped
-from services.robot_bridge.devsim import dynamixel as dx
-from services.robot_bridge.devsim.dynamixel import DynamixelBus
-from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api
-from services.robot_bridge.safety import (
-    ESTOP_KEY,
-    LEAP_LIMITS,
-    XARM7_LIMITS,
-    Device,
-    EStopLatch,
-    SafeExecutor,
-    SafetyRefusal,
-    check_command_lease,
-)
+from services.robot_bridge import bus_safety as safety
+from services.robot_bridge.bus_safety import ESTOP_KEY, EStopSubscriber, LeasedExecutor, check_command_lease
+from services.robot_bridge.executor import EStopLatch, Executor
+from services.robot_bridge.limits import SafetyRefusal
+from services.robot_bridge.robot import MotionStopped
+from services.robot_bridge.robots.leap import config as leap_config
+from services.robot_bridge.robots.leap import fake as dx
+from services.robot_bridge.robots.leap.config import LeapConfig
+from services.robot_bridge.robots.leap.fake import DynamixelBus
+from services.robot_bridge.robots.leap.robot import LeapRobot
+from services.robot_bridge.robots.xarm7 import config as xarm7_config
+from services.robot_bridge.robots.xarm7.config import XArm7Config
+from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xarm_api
+from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus.keys import alive_key
 from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present
 from shared.codec import encode
@@ -44,6 +41,7 @@ from shared.messages import ErrorReply, EStop, ExecutionCommand, Plan
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
 HAND_OPEN = np.zeros(16)
 LEASE = lease_key("planner", "planner-test.1")
+XARM7_LIMITS, LEAP_LIMITS = xarm7_config.limits(), leap_config.limits()
 STOP_BOUND_S = 0.5  # the target is 0.2 s; slack for a loaded 2-core CI machine
 
 
@@ -56,7 +54,7 @@ def client(endpoint: str) -> zenoh.Session:
 
 
 class Robot:
-    """xArm7 + LEAP hand stand-ins, connected, behind a SafeExecutor."""
+    """xArm7 + LEAP hand stand-ins, connected, behind the safety executor with leased commands and the e-stop key."""
 
     def __init__(self, endpoint: str, current_limit_ma: float = 550.0, watchdog: bool = False):
         self.session = client(endpoint)
@@ -64,23 +62,23 @@ class Robot:
         self.watchdog = RouterWatchdog(self.session, self.probe, "bridge-test") if watchdog else None
         self.controller = FakeXArmController(initial_rad=XARM_HOME)
         self.bus = DynamixelBus(motor_ids=range(16))
-        self.arm = XArmBackend("192.168.1.201", api_factory=lambda ip: fake_xarm_api(self.controller, ip))
-        self.hand = LeapBackend(self.bus.port_name, current_limit_ma=current_limit_ma)
+        self.arm = XArm7Robot(XArm7Config("192.168.1.201"), api_factory=lambda ip: fake_xarm_api(self.controller, ip))
+        self.hand = LeapRobot(LeapConfig(self.bus.port_name, current_limit_ma=current_limit_ma))
         self.arm.connect()
         self.hand.connect()
         self.published: list = []  # ExecutionStates published while executing
-        self.executor = SafeExecutor(self.session, "xarm7", "leap",
-                                     [Device(self.arm, XARM7_LIMITS), Device(self.hand, LEAP_LIMITS)],
-                                     publish=self.published.append, watchdog=self.watchdog)
+        self.estop = EStopSubscriber(self.session, EStopLatch())
+        self.executor = LeasedExecutor(self.session, Executor("xarm7", "leap", [self.arm, self.hand], self.estop.latch,
+                                                              publish=self.published.append), watchdog=self.watchdog)
         self._connected_at = (len(self.controller.commands), len(self.bus.instructions))
         self.stopped_at: dict[str, float] = {}  # device -> time.monotonic() its execute() ended in MotionStopped
         for backend in (self.arm, self.hand):
-            backend.execute = self._timed(backend.name, backend.execute)
+            backend.send = self._timed(backend.name, backend.send)
 
-    def _timed(self, name: str, execute):
+    def _timed(self, name: str, send):
         def timed(*args, **kwargs):
             try:
-                return execute(*args, **kwargs)
+                return send(*args, **kwargs)
             except MotionStopped:
                 self.stopped_at.setdefault(name, time.monotonic())
                 raise
@@ -98,7 +96,7 @@ class Robot:
         return servo or sync_writes
 
     def close(self) -> None:
-        self.executor.close()
+        self.estop.close()
         if self.watchdog is not None:
             self.watchdog.close()
             self.probe.close()
@@ -210,7 +208,7 @@ def test_a_measured_effort_over_its_limit_stops_every_device_and_latches(robot, 
     assert state.status == "stopped" and "effort" in state.message and "Nm" in state.message
     assert np.max(np.abs(robot.controller.positions - goal)) > 0.2
     assert np.max(np.abs(np.array(robot.bus.positions_rad()) - np.pi - 0.8)) > 0.2  # the hand stopped too
-    here = np.concatenate([robot.arm.state().positions, robot.hand.state().positions])
+    here = np.concatenate([robot.arm.observe().positions, robot.hand.observe().positions])
     refused = robot.executor.execute(command(plan(here[:7], here[7:], arm_start=here[:7], hand_start=here[7:])))
     assert refused.status == "refused" and "protective stop" in refused.message  # latched until an operator resets
 
@@ -374,8 +372,8 @@ def test_an_estop_message_stops_every_backend_at_once_and_latches(robot, planner
     time.sleep(0.2)
     np.testing.assert_allclose(np.array(robot.bus.positions_rad()) - np.pi, hand_now, atol=0.02)  # and holds
 
-    here_arm = robot.arm.state().positions
-    here_hand = robot.hand.state().positions
+    here_arm = robot.arm.observe().positions
+    here_hand = robot.hand.observe().positions
     refused = robot.executor.execute(command(plan(here_arm, here_hand, arm_start=here_arm, hand_start=here_hand)))
     assert refused.status == "refused" and "e-stop is latched" in refused.message
     robot.executor.estop.reset()
@@ -412,7 +410,7 @@ def test_anything_on_the_estop_key_stops_every_device_mid_motion(robot, planner,
     assert latency <= STOP_BOUND_S
     assert robot.controller.state == 4  # xArm: stop state
     assert np.max(np.abs(robot.controller.positions - arm_goal)) > 0.3
-    assert robot.executor.estop.triggered.is_set() and "e-stop key" in robot.executor.estop.reason()
+    assert robot.executor.estop.triggered.is_set() and "e-stop key" in robot.executor.estop.reason
 
 
 def test_the_estop_stops_before_it_decodes_and_whatever_decoding_does(robot, planner, monkeypatch):
@@ -432,7 +430,8 @@ def test_the_estop_stops_before_it_decodes_and_whatever_decoding_does(robot, pla
         raise RuntimeError("decoder crashed")
 
     monkeypatch.setattr(safety, "decode", exploding_decode)
-    latch = EStopLatch(robot.session, [Recorder()])
+    latch = EStopLatch([Recorder()])
+    subscriber = EStopSubscriber(robot.session, latch)
     try:
         time.sleep(0.2)
         session.put(ESTOP_KEY, b"STOP")
@@ -441,9 +440,9 @@ def test_the_estop_stops_before_it_decodes_and_whatever_decoding_does(robot, pla
         while latch.last is None and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
-        latch.close()
+        subscriber.close()
     assert seen_by_decode and all(seen_by_decode)  # this latch's decode, and the robot executor's own latch's
-    assert "RuntimeError: decoder crashed" in latch.reason()
+    assert "RuntimeError: decoder crashed" in latch.reason
 
 
 def test_gd2p_bridge_estop_publishes_an_estop(zenoh_router):
@@ -475,29 +474,31 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
     from franky_sim import SimulationServer
     from franky_sim.mujoco_simulator import MujocoSimulator
 
-    from services.robot_bridge.adapters.allegro import AllegroBackend
-    from services.robot_bridge.adapters.franka import FrankaBackend
-    from services.robot_bridge.devsim.allegro import SimAllegroHand
-    from services.robot_bridge.safety import ALLEGRO_LIMITS, FR3_LIMITS
+    from services.robot_bridge.robots.allegro.config import AllegroConfig
+    from services.robot_bridge.robots.allegro.fake import SimAllegroHand
+    from services.robot_bridge.robots.allegro.robot import AllegroRobot
+    from services.robot_bridge.robots.panda.config import PandaConfig
+    from services.robot_bridge.robots.panda.robot import PandaRobot
 
     channel = f"fr3-test-{uuid.uuid4().hex[:6]}"
     with MujocoSimulator(enable_visualization=False) as sim, SimAllegroHand(channel=channel, initial_rad=np.full(16, 0.3)):
         model = sim.add_robot()
         with SimulationServer(sim) as server, client(zenoh_router) as session, client(zenoh_router) as commander:
             server.run_async()
-            arm = FrankaBackend(model.hostname, realtime=False, relative_dynamics_factor=0.5)
+            arm = PandaRobot(PandaConfig(model.hostname, realtime=False, relative_dynamics_factor=0.5))
             # The simulated hand is a Python thread on a loaded host: allow it longer gaps than a real hand.
-            hand = AllegroBackend(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0)
+            hand = AllegroRobot(AllegroConfig(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0))
             arm.connect()
             hand.connect()
-            executor = SafeExecutor(session, "panda", "allegro", [Device(arm, FR3_LIMITS), Device(hand, ALLEGRO_LIMITS)])
+            estop = EStopSubscriber(session, EStopLatch())
+            executor = LeasedExecutor(session, Executor("panda", "allegro", [arm, hand], estop.latch))
             try:
                 token = commander.liveliness().declare_token(LEASE)
                 wait_for_lease(session)
-                names = [*FR3_LIMITS.joint_names, *ALLEGRO_LIMITS.joint_names]
+                names = [*arm.joint_names, *hand.joint_names]
 
                 def fr3_plan(delta: float, duration_s: float) -> Plan:
-                    start = np.concatenate([arm.state().positions, hand.state().positions])
+                    start = np.concatenate([arm.observe().positions, hand.observe().positions])
                     goal = start + np.concatenate([np.full(7, delta), np.zeros(16)])
                     alphas = np.linspace(0.0, 1.0, 5)[:, None]
                     return Plan(arm="panda", hand="allegro", joint_names=names, positions=start + alphas * (goal - start),
@@ -509,7 +510,7 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
                 stopped = executor.execute(command(fr3_plan(-0.3, 3.0)))
                 assert stopped.status == "stopped" and "lease" in stopped.message, stopped.message
             finally:
-                executor.close()
+                estop.close()
                 arm.disconnect()
                 hand.disconnect()
 
@@ -541,4 +542,4 @@ def test_the_bridge_process_names_a_missing_device_address():
 
     done = subprocess.run([sys.executable, "-m", "services.robot_bridge", "--hardware", "xarm7+leap"],
                           capture_output=True, text=True, timeout=60)
-    assert done.returncode == 2 and "--xarm-ip is required" in done.stderr
+    assert done.returncode == 2 and "--xarm7-ip is required" in done.stderr

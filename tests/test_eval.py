@@ -70,7 +70,7 @@ def test_every_method_faces_the_same_execution_world_and_trials_differ():
 
 
 def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
-    from evaluation.local_system import LocalRobot
+    from evaluation.local_system import true_world
     from shared.messages import SimWorld
     from shared.sim.world import PoseError
 
@@ -80,14 +80,12 @@ def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
     assert np.array_equal(protocol.captured_cloud(episode), request.object.point_cloud.to_numpy())  # seeded
     world = protocol.execution_world(episode)
     assert world.cameras == 1 and world.pose_error == PoseError()  # perception brings its own pose error
-    robot = LocalRobot()
-    robot.execution_world = world
-    robot.true_object = (ObjectRef(library_id="proc-box-001"), protocol.placement(episode))
+    true_object = (ObjectRef(library_id="proc-box-001"), protocol.placement(episode))
     told = SimWorld(object=request.object, object_pose=object_pose(np.eye(4)))
-    true_world, execution = robot._true_world(told)
-    assert true_world.object.library_id == "proc-box-001"
-    assert np.allclose(pose_matrix(true_world.object_pose), protocol.placement(episode))
-    assert execution.physics == world.physics
+    truth = true_world(told, world, true_object)
+    assert truth.obj.library_id == "proc-box-001"
+    assert np.allclose(truth.T_world_O, protocol.placement(episode))
+    assert truth.physics == world.physics
 
 
 def test_a_trial_is_judged_from_where_the_object_truly_started():

@@ -11,11 +11,13 @@ import torch
 
 from conftest import free_port, router_config
 from services.planner.motion import MotionPlanner
-from services.robot_bridge.backend import MotionStopped
-from services.robot_bridge.sim_backend import SimBackend, SimExecutor
+from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
+from services.robot_bridge.robot import MotionStopped
+from services.robot_bridge.robots.sim.config import SimConfig
+from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.hands import load_hand
-from shared.messages import ExecutionState, Plan
+from shared.messages import ExecutionCommand, ExecutionState, Plan
 from shared.objects import load_object, write_object_urdf
 from shared.robot_limits import WorkspaceBox
 from shared.sim.robot_scene import RobotScene
@@ -27,7 +29,7 @@ HAND_JOINTS = 16
 
 @pytest.fixture(scope="module")
 def backend():
-    robot = SimBackend("panda", "allegro")
+    robot = SimRobot(SimConfig("panda", "allegro"))
     robot.connect()
     yield robot
     robot.disconnect()
@@ -37,17 +39,30 @@ def backend():
 def executor(backend):
     backend.recover()
     backend.reset()
-    return SimExecutor(backend)
+    return sim_executor(backend)
 
 
-def start_configuration(backend: SimBackend) -> np.ndarray:
-    return backend.state().positions.copy()
+def sim_executor(robot: SimRobot) -> Executor:
+    """The simulated robot behind the safety executor, as the evaluation runs it (publishing through the robot's hook)."""
+    return Executor(robot.arm_name, robot.hand_name, [robot], EStopLatch(), publish=robot.publish)
+
+
+def execute(executor: Executor, plan: Plan, realtime_factor: float = 1.0, command_id: str | None = None,
+            lease: LocalLease | None = None) -> ExecutionState:
+    command = ExecutionCommand(plan=plan, lease_token="test", realtime_factor=realtime_factor)
+    if command_id is not None:
+        command.id = command_id
+    return executor.execute(command, lease or LocalLease())
+
+
+def start_configuration(backend: SimRobot) -> np.ndarray:
+    return backend.observe().positions.copy()
 
 
 def straight_plan(start: np.ndarray, goal: np.ndarray, duration_s: float, steps: int = 50) -> Plan:
     """A plan moving every joint linearly from `start` to `goal` in `duration_s`."""
     alphas = np.linspace(0.0, 1.0, steps)[:, None]
-    return Plan(arm="panda", hand="allegro", joint_names=list(SimBackend("panda", "allegro").joint_names),
+    return Plan(arm="panda", hand="allegro", joint_names=list(SimRobot(SimConfig("panda", "allegro")).joint_names),
                 positions=start + alphas * (goal - start), times_s=np.linspace(0.0, duration_s, steps))
 
 
@@ -58,17 +73,17 @@ def test_refuses_a_joint_beyond_its_limit(backend, executor):
     start = start_configuration(backend)
     goal = start.copy()
     goal[1] = 1.9  # panda_joint2's upper limit is 1.7628 rad
-    state = executor.execute(straight_plan(start, goal, 10.0), realtime_factor=100.0)
+    state = execute(executor, straight_plan(start, goal, 10.0), realtime_factor=100.0)
     assert state.status == "refused"
     assert "joint position" in state.message and "panda_joint2" in state.message and "t=" in state.message
-    assert np.allclose(backend.state().positions, start, atol=1e-3), "a refused plan must not move the robot"
+    assert np.allclose(backend.observe().positions, start, atol=1e-3), "a refused plan must not move the robot"
 
 
 def test_refuses_a_plan_that_is_too_fast(backend, executor):
     start = start_configuration(backend)
     goal = start.copy()
     goal[3] += 0.5  # panda_joint4 0.5 rad in 0.1 s = 5 rad/s > 2.175 rad/s
-    state = executor.execute(straight_plan(start, goal, 0.1), realtime_factor=100.0)
+    state = execute(executor, straight_plan(start, goal, 0.1), realtime_factor=100.0)
     assert state.status == "refused"
     assert "joint velocity" in state.message and "panda_joint4" in state.message and "rad/s" in state.message
 
@@ -77,12 +92,8 @@ def test_refuses_a_plan_that_leaves_the_workspace_box(backend, executor):
     start = start_configuration(backend)
     goal = start.copy()
     goal[0] += 1.0  # swings the hand ~0.28 m to the left (+y)
-    default = backend.limits
-    backend.limits = replace(default, workspace=WorkspaceBox(lower=(-0.4, -0.2, -0.005), upper=(1.0, 0.2, 1.3)))
-    try:
-        state = executor.execute(straight_plan(start, goal, 10.0), realtime_factor=100.0)
-    finally:
-        backend.limits = default
+    executor.limits = replace(executor.limits, workspace=WorkspaceBox(lower=(-0.4, -0.2, -0.005), upper=(1.0, 0.2, 1.3)))
+    state = execute(executor, straight_plan(start, goal, 10.0), realtime_factor=100.0)
     assert state.status == "refused"
     assert "workspace box" in state.message and "t=" in state.message
 
@@ -91,7 +102,7 @@ def test_refuses_a_plan_that_does_not_start_where_the_robot_is(backend, executor
     start = start_configuration(backend)
     elsewhere = start.copy()
     elsewhere[0] += 0.3
-    state = executor.execute(straight_plan(elsewhere, elsewhere + 0.01, 2.0), realtime_factor=100.0)
+    state = execute(executor, straight_plan(elsewhere, elsewhere + 0.01, 2.0), realtime_factor=100.0)
     assert state.status == "refused" and "panda_joint1" in state.message
 
 
@@ -102,7 +113,7 @@ def test_executes_a_valid_plan_and_ends_at_its_final_configuration(backend):
     states: list[ExecutionState] = []
     backend.publish = states.append
     try:
-        executor = SimExecutor(backend)
+        executor = sim_executor(backend)
         backend.reset()
         start = start_configuration(backend)
         goal = start.copy()
@@ -110,7 +121,7 @@ def test_executes_a_valid_plan_and_ends_at_its_final_configuration(backend):
         goal[7 + 1] = 0.8  # bend the index finger
         plan = straight_plan(start, goal, 2.0)
         started = time.monotonic()
-        state = executor.execute(plan, realtime_factor=4.0, command_id="valid")
+        state = execute(executor, plan, realtime_factor=4.0, command_id="valid")
         elapsed = time.monotonic() - started
     finally:
         backend.publish = None
@@ -123,14 +134,14 @@ def test_executes_a_valid_plan_and_ends_at_its_final_configuration(backend):
 
 
 def test_stop_halts_a_running_plan(backend):
-    executor = SimExecutor(backend)
+    executor = sim_executor(backend)
     backend.reset()
     start = start_configuration(backend)
     goal = start.copy()
     goal[0] += 1.0
-    stop = threading.Event()
-    threading.Timer(0.2, stop.set).start()
-    state = executor.execute(straight_plan(start, goal, 4.0), realtime_factor=1.0, stop=stop)
+    lease = LocalLease()
+    threading.Timer(0.2, lease.release).start()
+    state = execute(executor, straight_plan(start, goal, 4.0), realtime_factor=1.0, lease=lease)
     assert state.status == "stopped"
     assert 0.0 < state.positions.to_numpy()[0] - start[0] < 0.5
 
@@ -153,9 +164,9 @@ def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
         scene.add_object(urdf, T_world_O)
         plan = MotionPlanner(scene).plan_push(T_world_D @ T_D_hand, q_hand, T_world_D[:3, 0], 0.15,
                                               q_hand_start=hand.open_joint_positions.numpy())
-    with SimBackend("panda", "allegro") as robot:
+    with SimRobot(SimConfig("panda", "allegro")) as robot:
         robot.add_object(urdf, T_world_O)
-        state = SimExecutor(robot).execute(plan, realtime_factor=1000.0)
+        state = execute(sim_executor(robot), plan, realtime_factor=1000.0)
         collisions = dict(robot.collisions)
     assert state.status == "done", state.message
     final = state.object_pose
@@ -170,12 +181,12 @@ def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
 
 
 def test_contact_with_an_obstacle_during_execution_is_recorded():
-    with SimBackend("panda", "allegro") as robot:
+    with SimRobot(SimConfig("panda", "allegro")) as robot:
         robot.add_obstacles([(0.45, -0.03, 0.05)])  # a 0.3 m tall cylinder in front of the hand
         start = start_configuration(robot)
         goal = start.copy()
         goal[1] += 0.9  # leans forward: the hand comes down from 0.54 m to below the cylinder's top
-        state = SimExecutor(robot).execute(straight_plan(start, goal, 3.0), realtime_factor=1000.0)
+        state = execute(sim_executor(robot), straight_plan(start, goal, 3.0), realtime_factor=1000.0)
         collisions = dict(robot.collisions)
     assert any(other == "obstacle 0" for _, other in collisions), collisions
     assert "collisions:" in state.message and "obstacle 0" in state.message
@@ -185,7 +196,7 @@ def test_contact_with_an_obstacle_during_execution_is_recorded():
 
 
 def test_bridge_service_executes_a_leased_command_and_publishes_states(zenoh_router):
-    from services.robot_bridge.safety import COMMAND_KEY, ESTOP_KEY
+    from services.robot_bridge.bus_safety import COMMAND_KEY, ESTOP_KEY
     from services.robot_bridge.service import SERVICE, STATE_KEY, run
     from shared.arms import load_arm
     from shared.bus import BusConfig, live_workers, open_session
@@ -278,18 +289,18 @@ class BusBridge:
         self.session, self.commander = bus_session(endpoint), bus_session(endpoint)
         self.probe = bus_session(endpoint) if watchdog else None
         self.bridge = Bridge(self.session, probe=self.probe)
-        self.backend = self.bridge.executor("panda", "allegro").backend
+        self.backend = self.bridge.executor("panda", "allegro").executor.robots[0]
         self.stopped_at: list[float] = []
-        execute = self.backend.execute
+        send = self.backend.send
 
-        def timed_execute(*args, **kwargs):
+        def timed_send(*args, **kwargs):
             try:
-                return execute(*args, **kwargs)
+                return send(*args, **kwargs)
             except MotionStopped:
                 self.stopped_at.append(time.monotonic())
                 raise
 
-        self.backend.execute = timed_execute
+        self.backend.send = timed_send
 
     def lease(self, holder: str) -> tuple[str, object]:
         from shared.bus.lease import lease_key
@@ -386,14 +397,14 @@ def test_only_a_planner_lease_may_command_motion(bus_bridge, key_kind):
 
 def test_a_lease_lost_during_the_world_reset_refuses_the_command(bus_bridge, monkeypatch):
     key, token = bus_bridge.lease("planner-1.cmd-2")
-    reset_world = SimBackend.reset_world
+    reset_world = SimRobot.reset_world
 
-    def reset_and_lose_the_lease(backend, world, execution=None):
-        reset_world(backend, world, execution)
+    def reset_and_lose_the_lease(robot, world):
+        reset_world(robot, world)
         token.undeclare()  # the commander gives up while the world is being reset
         time.sleep(0.1)
 
-    monkeypatch.setattr(SimBackend, "reset_world", reset_and_lose_the_lease)
+    monkeypatch.setattr(SimRobot, "reset_world", reset_and_lose_the_lease)
     state = bus_bridge.bridge.execute(bus_bridge.move(key, world=box_world()))
     assert state.status == "refused" and "lease" in state.message and "lost" in state.message, state.message
     assert abs(bus_bridge.travel(state)) < 0.01
@@ -469,7 +480,7 @@ def test_the_motion_stops_when_the_router_hangs():
 
 @pytest.mark.parametrize("kind", ["empty", "garbage", "wrong encoding", "ErrorReply", "Plan", "valid EStop"])
 def test_anything_on_the_estop_key_stops_the_simulated_robot_and_latches(bus_bridge, kind):
-    from services.robot_bridge.safety import ESTOP_KEY
+    from services.robot_bridge.bus_safety import ESTOP_KEY
     from shared.codec import encode
     from shared.messages import ErrorReply, EStop
 

@@ -1,6 +1,6 @@
 """Who may do what on the bus: a router with mutual TLS and per-identity access control (deploy/secure).
 
-A real bridge stack sits behind the command key: a SafeExecutor driving an xArm7 (fake controller at
+A real bridge stack sits behind the command key: the safety Executor driving an xArm7 (fake controller at
 the SDK boundary) + LEAP hand (Protocol 2.0 responder on a pty). Only the planner's certificate gets a
 command through; another authenticated identity's command is dropped at the router; a session without
 a client certificate cannot even connect.
@@ -33,18 +33,14 @@ from deploy.launcher import SERVICES, Launcher, LaunchError, request_scale
 from deploy.secure import CertificateError, prepare
 from deploy.secure import profile as acl
 from deploy.secure.certs import IDENTITIES, generate
-from services.robot_bridge.adapters.leap import LeapBackend
-from services.robot_bridge.adapters.xarm import XArmBackend
-from services.robot_bridge.devsim.dynamixel import DynamixelBus
-from services.robot_bridge.devsim.xarm import FakeXArmController, fake_xarm_api
-from services.robot_bridge.safety import (
-    COMMAND_KEY,
-    ESTOP_KEY,
-    LEAP_LIMITS,
-    XARM7_LIMITS,
-    Device,
-    SafeExecutor,
-)
+from services.robot_bridge.bus_safety import COMMAND_KEY, ESTOP_KEY, EStopSubscriber, LeasedExecutor
+from services.robot_bridge.executor import EStopLatch, Executor
+from services.robot_bridge.robots.leap.config import LeapConfig
+from services.robot_bridge.robots.leap.fake import DynamixelBus
+from services.robot_bridge.robots.leap.robot import LeapRobot
+from services.robot_bridge.robots.xarm7.config import XArm7Config
+from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xarm_api
+from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus import (
     Dispatcher,
     RemoteError,
@@ -69,6 +65,8 @@ from shared.messages import (
 )
 
 HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
+XARM7_JOINTS = tuple(f"joint{i}" for i in range(1, 8))  # the xArm7 URDF's
+LEAP_JOINTS = tuple(str(i) for i in range(16))
 
 
 @pytest.fixture(scope="module")
@@ -94,11 +92,12 @@ def bridge(secure):
     session = session_as(profile, "robot_bridge")
     controller = FakeXArmController(initial_rad=HOME)
     bus = DynamixelBus(motor_ids=range(16))
-    arm = XArmBackend("192.168.1.201", api_factory=lambda ip: fake_xarm_api(controller, ip))
-    hand = LeapBackend(bus.port_name)
+    arm = XArm7Robot(XArm7Config("192.168.1.201"), api_factory=lambda ip: fake_xarm_api(controller, ip))
+    hand = LeapRobot(LeapConfig(bus.port_name))
     arm.connect()
     hand.connect()
-    executor = SafeExecutor(session, "xarm7", "leap", [Device(arm, XARM7_LIMITS), Device(hand, LEAP_LIMITS)])
+    estop = EStopSubscriber(session, EStopLatch())
+    executor = LeasedExecutor(session, Executor("xarm7", "leap", [arm, hand], estop.latch))
     received: list[str] = []
 
     def answer(query: zenoh.Query) -> None:
@@ -117,7 +116,7 @@ def bridge(secure):
     yield controller, executor, received
     listener.undeclare()
     queryable.undeclare()
-    executor.close()
+    estop.close()
     arm.disconnect()
     hand.disconnect()
     bus.close()
@@ -127,7 +126,7 @@ def bridge(secure):
 def command_from_here(controller: FakeXArmController, lease: str, duration_s: float = 0.3) -> ExecutionCommand:
     start = np.concatenate([controller.positions, np.zeros(16)])
     goal = start + np.concatenate([np.full(7, 0.05), np.zeros(16)])
-    plan = Plan(arm="xarm7", hand="leap", joint_names=[*XARM7_LIMITS.joint_names, *LEAP_LIMITS.joint_names],
+    plan = Plan(arm="xarm7", hand="leap", joint_names=[*XARM7_JOINTS, *LEAP_JOINTS],
                 positions=np.stack([start, goal]), times_s=np.array([0.0, duration_s]))
     return ExecutionCommand(plan=plan, lease_token=lease)
 

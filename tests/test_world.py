@@ -1,5 +1,5 @@
-"""The execution world: drawn apart from what the planner knows, applied by the simulated robot, and one
-control law for rollouts and executions."""
+"""The execution world: drawn apart from what the planner knows, turned into the truth by the evaluation,
+applied by the simulated robot, and one control law for rollouts and executions."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -8,8 +8,10 @@ import numpy as np
 import pybullet as pb
 import pytest
 
+from evaluation.local_system import true_world
 from evaluation.stats import difference_interval, success_interval
-from services.robot_bridge.sim_backend import SimBackend
+from services.robot_bridge.robots.sim.config import SimConfig
+from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
 from shared.messages import ObjectRef, SimWorld
 from shared.objects import load_object
 from shared.push_outcome import object_pose
@@ -51,8 +53,8 @@ def test_the_simulated_robot_executes_in_the_drawn_world_not_the_told_one():
     told[:2, 3] = (0.45, 0.0)
     world = SimWorld(object=ObjectRef(library_id=BOX), object_pose=object_pose(told))
     drawn = replace(sample_world("real", 11, HALF_EXTENTS), pose_error=PoseError(0.02, -0.01, 4.0), mass_scale=1.3)
-    with SimBackend("panda", "allegro") as backend:
-        backend.reset_world(world, drawn)
+    with SimRobot(SimConfig("panda", "allegro")) as backend:
+        backend.reset_world(true_world(world, drawn))
         scene = backend.scene
         true = scene.object.pose()
         assert np.allclose(true[:2, 3], told[:2, 3] + (0.02, -0.01), atol=1e-6)
@@ -63,7 +65,10 @@ def test_the_simulated_robot_executes_in_the_drawn_world_not_the_told_one():
         table = pb.getDynamicsInfo(scene.sim.table.id, -1, physicsClientId=scene.client)[1]
         assert table == pytest.approx(drawn.physics.table_friction)
         assert backend.params.arm_command_latency_s == drawn.physics.arm_command_latency_s
-        backend.reset_world(world)  # without a drawn world: the nominal physics and the told pose again
+        backend.reset_world(true_world(world, None))  # without a drawn world: the nominal physics and the told pose
+        assert np.allclose(backend.scene.object.pose(), told, atol=1e-6)
+        assert backend.params == REFERENCE_PARAMS
+        backend.reset_world(TrueWorld.told(world))  # what the bus bridge does: the same
         assert np.allclose(backend.scene.object.pose(), told, atol=1e-6)
         assert backend.params == REFERENCE_PARAMS
 
@@ -73,15 +78,15 @@ def test_command_latency_delays_the_arm():
     from shared.sim.plan_runner import ArmController
 
     def joint0_after(latency_s: float, steps: int) -> float:
-        with SimBackend("panda", "allegro") as backend:
+        with SimRobot(SimConfig("panda", "allegro")) as backend:
             params = replace(REFERENCE_PARAMS, arm_command_latency_s=latency_s)
-            q0 = backend.state().positions
+            q0 = backend.observe().positions
             target = q0.copy()
             target[0] += 0.2
             controller = ArmController(backend.scene, params, np.array([0.0, 0.01]), np.stack([q0, target]))
             for step in range(1, steps + 1):
                 controller.step(step)
-            return float(backend.state().positions[0] - q0[0])
+            return float(backend.observe().positions[0] - q0[0])
 
     assert joint0_after(0.0, 5) > 0.002  # 5 steps = 21 ms: the arm is on its way
     assert abs(joint0_after(0.02, 4)) < 1e-4  # still waiting for the command

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import sys
 
-from services.robot_bridge.backend import BackendError
 from services.robot_bridge.hardware import HardwareConfigError, HardwareSpec
+from services.robot_bridge.robot import RobotError
 from services.robot_bridge.service import run
 from shared.bus import BusConfig
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
@@ -18,15 +18,13 @@ def main(argv: list[str] | None = None) -> int:
     HardwareSpec.add_cli_args(parser)
     args = parser.parse_args(argv)
     try:
-        hardware = HardwareSpec.from_args(args)
-        if hardware is not None:
-            hardware.devices()  # every address given? (connecting happens in run)
+        hardware = HardwareSpec.from_args(args)  # every address given? (connecting happens in run)
     except HardwareConfigError as exc:
         parser.error(str(exc))
     configure_service_logging()
     try:
         run(BusConfig.from_args(args), worker_id=args.worker_id, hardware=hardware)
-    except BackendError as exc:
+    except RobotError as exc:
         print(f"robot_bridge: cannot drive the hardware: {exc}", file=sys.stderr)
         return 1
     return 0

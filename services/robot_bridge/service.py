@@ -1,27 +1,28 @@
-"""Bus adapter of the robot_bridge service: executes plans on the simulated robot.
+"""Bus adapter of the robot_bridge service: decodes commands, hands them to the executor, publishes states.
 
-- An `ExecutionCommand` queried on `safety.COMMAND_KEY` (the one key the secure profile lets only
-  the planner query) runs on the simulated robot of the plan's arm + hand (`sim_backend.SimExecutor`);
-  the reply is the final `ExecutionState`: status "done", "stopped" (e-stop or lost lease), or
-  "refused" with a message naming the broken limit, joint and time. The worker's own job key does
-  not execute commands (anyone on the bus may query it); it serves health queries and EStop.
+- An `ExecutionCommand` queried on `bus_safety.COMMAND_KEY` (the one key the secure profile lets only
+  the planner query) runs on the robot of the plan's arm + hand behind `executor.Executor`'s checks:
+  the simulated robot (`robots/sim`, one per arm + hand, built on first use), or with `--hardware
+  ARM+HAND` the real devices (`hardware.HardwareSpec`), when a command for any other robot is
+  refused and no simulated world is built. The reply is the final `ExecutionState`: status "done",
+  "stopped" (e-stop or lost lease), "error", or "refused" with a message naming the broken limit, joint
+  and time. The worker's own job key does not execute commands (anyone on the bus may query it); it
+  serves health queries and EStop.
 - The command's `lease_token` must be a planner's lease, `gd2p/lease/planner/<holder>`, held by a live
-  liveliness token (`safety.CommandLease`). It is watched from before the first check until the
+  liveliness token (`bus_safety.CommandLease`). It is watched from before the first check until the
   motion ends: a lease lost at any point — during the checks, the world reset or the motion; the
   commander dropped it, or this bridge lost its router — refuses or stops the command, and the final
   state names the loss and how long the halt took. With a `probe` session (what `run` opens), a
   `RouterWatchdog` also notices a router that hangs without closing the link.
-- Anything published on `safety.ESTOP_KEY` (or an `EStop` job) stops every robot at once and latches:
+- Anything published on `bus_safety.ESTOP_KEY` (or an `EStop` job) stops every robot at once and latches:
   later commands are refused until the bridge restarts (the operator's deliberate action).
 - A command with a `world` first resets the simulation to it (object, obstacles, robot at home);
   without one the plan runs in the world the previous command left (multi-step pushes). A command
   whose lease is lost during the reset is refused before anything moves.
-- While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the backend's state rate.
+- While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the robot's state rate.
 
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
-one executes. With `--hardware ARM+HAND` the bridge drives real devices instead
-(`hardware.HardwareSpec` -> `safety.SafeExecutor`, same lease and e-stop latch); a command for
-any other robot is refused, and no simulated world is built.
+one executes.
 """
 from __future__ import annotations
 
@@ -33,21 +34,16 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
+from services.robot_bridge.bus_safety import COMMAND_KEY, EStopSubscriber, LeasedExecutor
+from services.robot_bridge.executor import EStopLatch, Executor, StatePublisher
 from services.robot_bridge.hardware import HardwareSpec, connect_all
-from services.robot_bridge.safety import (
-    COMMAND_KEY,
-    CommandLease,
-    EStopLatch,
-    SafeExecutor,
-    SafetyRefusal,
-)
-from services.robot_bridge.sim_backend import SimBackend, SimExecutor, StatePublisher
+from services.robot_bridge.robots.sim.config import SimConfig
+from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.codec import CodecError, decode, encode
 from shared.messages import ErrorReply, EStop, ExecutionCommand, ExecutionState, Message
-from shared.objects import ObjectLoadError
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
@@ -56,7 +52,8 @@ log = logging.getLogger("gd2p.robot_bridge")
 
 
 class Bridge:
-    """One simulated robot per (arm, hand), built on first use, behind lease and e-stop checks.
+    """One simulated robot per (arm, hand), built on first use, or the attached hardware, each behind an
+    executor; commands are leased on this session, and the e-stop key engages one latch for all.
 
     `probe`: a second session to the same router; with it a `RouterWatchdog` stops motion when the
     router stops forwarding (hung, or a link that drops packets without closing). The caller keeps
@@ -68,97 +65,61 @@ class Bridge:
         self.session = session
         self.publish = publish
         self.lease_timeout_s = lease_timeout_s
-        self.estop_latch = EStopLatch(session, [])
+        self.estop_latch = EStopLatch()
+        self._estop_subscriber = EStopSubscriber(session, self.estop_latch)
         self.watchdog = (RouterWatchdog(session, probe, f"{SERVICE}-{session.zid()}") if probe is not None
                          else None)
-        self._executors: dict[tuple[str, str], SimExecutor] = {}
+        self._executors: dict[tuple[str, str], LeasedExecutor] = {}
         self._lock = threading.Lock()
-        self.hardware: SafeExecutor | None = None  # set by `attach_hardware`; then no simulated robot is used
+        self.hardware: LeasedExecutor | None = None  # set by `attach_hardware`; then no simulated robot is used
+
+    def _leased(self, executor: Executor) -> LeasedExecutor:
+        return LeasedExecutor(self.session, executor, watchdog=self.watchdog, lease_timeout_s=self.lease_timeout_s)
 
     def attach_hardware(self, spec: HardwareSpec) -> None:
         """Connect the real arm and hand (all or none) and route every command to them."""
-        devices = spec.devices()
-        connect_all(devices)
-        self.hardware = SafeExecutor(self.session, spec.arm, spec.hand, devices, publish=self.publish,
-                                     estop=self.estop_latch, lease_timeout_s=self.lease_timeout_s,
-                                     watchdog=self.watchdog)
+        robots = spec.robots()
+        connect_all(robots)
+        self.hardware = self._leased(Executor(spec.arm, spec.hand, robots, self.estop_latch, publish=self.publish))
 
-    def executor(self, arm: str, hand: str) -> SimExecutor:
+    def executor(self, arm: str, hand: str) -> LeasedExecutor:
+        """The simulated robot of `arm` + `hand` behind its executor (built and connected on first use)."""
         with self._lock:
             if (arm, hand) not in self._executors:
-                backend = SimBackend(arm, hand, publish=self.publish)
-                backend.connect()
-                self.estop_latch.backends.append(backend)
-                self._executors[(arm, hand)] = SimExecutor(backend)
+                robot = SimRobot(SimConfig(arm, hand), publish=self.publish)
+                robot.connect()
+                executor = Executor(arm, hand, [robot], self.estop_latch, publish=self.publish,
+                                    reset_world=robot.reset_told)
+                self._executors[(arm, hand)] = self._leased(executor)
             return self._executors[(arm, hand)]
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
         """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal)."""
-        if self.hardware is not None:
-            return self.hardware.execute(command)  # its own lease, e-stop, limit and workspace checks
-        executor = self.executor(command.plan.arm, command.plan.hand)
-        try:
-            with CommandLease(self.session, command.lease_token, watchdog=self.watchdog,
-                              confirm_timeout_s=self.lease_timeout_s) as lease:
-                self._prepare(executor, command, lease)
-                state = executor.execute(command.plan, command.realtime_factor, command.id, lease.stop)
-                return self._finish(executor, state, lease, time.monotonic())
-        except SafetyRefusal as exc:
-            log.warning("refused command %s: %s", command.id, exc)
-            return executor.backend.execution_state("refused", command.id, str(exc))
-
-    def _prepare(self, executor: SimExecutor, command: ExecutionCommand, lease: CommandLease) -> None:
-        """The checks before the world reset, the reset, and the lease again after it (SafetyRefusal)."""
-        if self.estop_latch.triggered.is_set():
-            raise SafetyRefusal("estop", f"e-stop is latched ({self.estop_latch.reason()}); restart the bridge "
-                                "to clear it")
-        lease.require()
-        if command.world is not None:
-            try:
-                executor.backend.reset_world(command.world)
-            except ObjectLoadError as exc:
-                raise SafetyRefusal("world", str(exc)) from None
-            lease.require()  # lost during the reset: nothing has moved yet
-
-    def _finish(self, executor: SimExecutor, state: ExecutionState, lease: CommandLease,
-                halted_at: float) -> ExecutionState:
-        """Name why a motion stopped (e-stop, lost lease) and make the robot ready after a lease loss."""
-        if state.status == "refused":
-            log.warning("refused command %s: %s", state.command_id, state.message)
-        if state.status != "stopped":
-            return state
-        why = []
-        if self.estop_latch.triggered.is_set():
-            why.append(f"e-stop: {self.estop_latch.reason()}")
-        else:
-            executor.backend.recover()  # a lost lease is not a fault: ready for the next commander
-        if lease.lost:
-            why.append(lease.stop_note(halted_at))
-        return state.model_copy(update={"message": "; ".join([*why, state.message])})
+        executor = self.hardware or self.executor(command.plan.arm, command.plan.hand)
+        return executor.execute(command)
 
     def estop(self, request: EStop) -> ExecutionState:
         """Stop every robot now and latch; the reply is the state of the first robot (if any)."""
-        self.estop_latch.trigger(request)
+        self.estop_latch.engage(request)
         with self._lock:
-            executors = list(self._executors.values())
+            executors = [self.hardware] if self.hardware is not None else list(self._executors.values())
         message = f"e-stop: {request.reason}"
         if not executors:
             return ExecutionState(stamp=time.time(), joint_names=[], positions=np.zeros(0), velocities=np.zeros(0),
                                   status="stopped", command_id=request.id, message=f"{message} (no robot was moving)")
-        return executors[0].backend.execution_state("stopped", request.id, message)
+        return executors[0].executor.state("stopped", request.id, message)
 
     def close(self) -> None:
-        self.estop_latch.close()
+        self._estop_subscriber.close()
         if self.watchdog is not None:
             self.watchdog.close()
-        if self.hardware is not None:
-            for device in self.hardware.devices:
-                device.backend.disconnect()
-            self.hardware = None
         with self._lock:
-            for executor in self._executors.values():
-                executor.backend.disconnect()
+            executors = [*([self.hardware] if self.hardware is not None else []), *self._executors.values()]
+            self.hardware = None
             self._executors.clear()
+        for leased in executors:
+            for robot in leased.executor.robots:
+                robot.disconnect()
 
     def handlers(self) -> dict[type[Message], Callable[[Message], Message]]:
         """Message type -> handler on the worker's job key (commands go to COMMAND_KEY instead)."""

@@ -172,7 +172,7 @@ WORKERS: tuple[Service, ...] = (
             "One push at a time per planner (one robot). The push client waits up to 600 s. A request naming"
             " `client_lease` is cancelled (ErrorReply \"cancelled\") when that lease token disappears.",
             ("services/planner/service.py: PlannerService.handlers", "shared/push_client.py: push")),
-    Service("robot_bridge", "executes plans: simulated robot (default), FR3 / xArm7 / LEAP / Allegro adapters",
+    Service("robot_bridge", "executes plans: simulated robot (default), panda (Franka FR3) / xarm7 / leap / allegro robots",
             (Exchange(EStop, (ExecutionState, ErrorReply)),), frozenset({"cli"}), False,
             "Health queries (cli); an EStop job stops every robot like the e-stop key. Commands do not come"
             " here (anyone could query this key): they go to `gd2p/robot_bridge/command/execute`.",
@@ -224,7 +224,7 @@ def _lease_interface(role: str) -> Interface:
                            " it sends the command and names it in ExecutionCommand.lease_token."),
                           ("The robot bridge (`CommandLease`: a LeaseMonitor from before its first check until"
                            " the motion ends; losing the token stops the robot)."),
-                          ("services/planner/service.py: BusServices.execute", "services/robot_bridge/safety.py")),
+                          ("services/planner/service.py: BusServices.execute", "services/robot_bridge/bus_safety.py: CommandLease")),
               "client": (("The lease of one push client: declared for one request and named in"
                           " PushRequest.client_lease."),
                          ("The planner (a LeaseMonitor while it serves the request; losing the token cancels the"
@@ -258,15 +258,15 @@ _ROBOT = (
               "The robot's joint state (and object pose) with the execution status, streamed while a plan runs.",
               frozenset({"robot_bridge"}), EVERYONE, message=ExecutionState,
               used_by="The planner (the states of its command, by command_id, for the push recording); the recorder.",
-              qos="Published at the backend's state rate while a command executes.",
+              qos="Published at the robot's state rate while a command executes.",
               code=("services/robot_bridge/service.py: run", "services/planner/service.py: BusServices._on_state")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
-              "Stop every robot backend at once. Anything published here stops the robot — a valid EStop, an empty"
+              "Stop every robot at once. Anything published here stops the robot — a valid EStop, an empty"
               " payload, garbage — and latches: later commands are refused until the bridge restarts.",
               EVERYONE, EVERYONE, message=EStop,
-              used_by="`gd2p bridge estop` publishes; the robot bridge's EStopLatch subscribes.",
+              used_by="`gd2p bridge estop` publishes; the robot bridge's EStopSubscriber subscribes.",
               qos="Open to every identity on purpose: stopping must never need the planner.",
-              code=("services/robot_bridge/safety.py: EStopLatch", "cli/bridge.py: _estop")),
+              code=("services/robot_bridge/bus_safety.py: EStopSubscriber", "cli/bridge.py: _estop")),
 )
 _INFRASTRUCTURE = (
     Interface("router watchdog", f"{keys.WATCHDOG_PREFIX}/<name>", "publication",

@@ -1,4 +1,4 @@
-"""A Dynamixel Protocol 2.0 bus on a pseudo-terminal: X-series motors (XC330-M288, as in the LEAP hand).
+"""The LEAP hand's protocol fake: a Dynamixel Protocol 2.0 bus on a pseudo-terminal: X-series motors (XC330-M288, as in the LEAP hand).
 
     with DynamixelBus(motor_ids=range(16)) as bus:
         PortHandler(bus.port_name)   # dynamixel-sdk opens the pty's slave side like a USB2Dynamixel
@@ -7,7 +7,7 @@ The responder owns the pty's master side. It parses instruction packets (header 
 length, instruction, parameters with byte stuffing, CRC-16) and answers status packets (instruction
 0x55, error byte) for PING, READ, WRITE, REBOOT, SYNC READ (one status packet per listed id, in
 order) and SYNC WRITE (no answer). Each motor has a control table with the X-series addresses the
-LEAP adapter uses; EEPROM items (address < 64) are writable only while torque is off (Access Error,
+LEAP robot uses; EEPROM items (address < 64) are writable only while torque is off (Access Error,
 as on the real motors). With torque on, the motor tracks Goal Position with a first-order response
 limited to `max_speed_rad_s`; its present current is proportional to the tracking error and clipped
 at Goal Current in current-based position mode (operating mode 5).

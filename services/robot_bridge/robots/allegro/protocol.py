@@ -18,7 +18,7 @@ src/allegro_hand_driver/src/candrv/candef.h, socket_can.cpp and AllegroHandDrv.c
 
 Firmware variants: Wonik's driver notes that the V5 "H-inf" firmware takes position targets on the
 SET_TORQUE ids (0x60 + f, wire 0x180 + 4f; `command_set_pose_direct`), disambiguated by its control
-mode. The adapter sends SET_POSE by default and the SET_TORQUE ids when told the hand runs that firmware.
+mode. The robot sends SET_POSE by default and the SET_TORQUE ids when told the hand runs that firmware.
 
 HAND_INFO status bits (Wonik's v4_spec.hpp `data_info_t`, kept in V5): bit 0 servo on, bit 1
 high-temperature fault, bit 2 internal communication fault.

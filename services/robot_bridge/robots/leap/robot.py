@@ -1,4 +1,4 @@
-"""LEAP hand over dynamixel-sdk (Protocol 2.0): 16 X-series motors in current-based position mode.
+"""The hand `leap`: a LEAP hand over dynamixel-sdk (Protocol 2.0): 16 X-series motors in current-based position mode.
 
 Connect sequence (per motor, ids 0..15 = LEAP joints '0'..'15'):
   ping (model number) -> torque off -> Operating Mode (addr 11) = 5, current-based position control
@@ -14,17 +14,18 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from services.robot_bridge.backend import (
-    BackendError,
+from services.robot_bridge.robot import (
     DeviceRefused,
     DeviceUnavailable,
-    JointState,
-    StreamingBackend,
+    Observation,
+    RobotError,
+    StreamingRobot,
 )
+from services.robot_bridge.robots.leap.config import LeapConfig, limits
 
 ADDR_OPERATING_MODE, ADDR_CURRENT_LIMIT, ADDR_TORQUE_ENABLE, ADDR_HARDWARE_ERROR = 11, 38, 64, 70
 ADDR_GOAL_CURRENT, ADDR_GOAL_POSITION = 102, 116
@@ -33,11 +34,10 @@ LEN_GOAL_POSITION, LEN_PRESENT_STATE = 4, 10  # present current(2) + velocity(4)
 CURRENT_BASED_POSITION_MODE = 5
 TICKS_PER_RAD = 4096 / (2 * math.pi)
 VELOCITY_UNIT_RAD_S = 0.229 * 2 * math.pi / 60
-LEAP_JOINTS: tuple[str, ...] = tuple(str(i) for i in range(16))
 LEAP_ZERO_OFFSET_RAD = math.pi
 
 
-def _sdk():
+def _sdk() -> Any:
     try:
         import dynamixel_sdk
     except ImportError:
@@ -45,25 +45,28 @@ def _sdk():
     return dynamixel_sdk
 
 
-class LeapBackend(StreamingBackend):
-    """The LEAP hand on a serial port (e.g. /dev/ttyUSB0), motors ids = `motor_ids` in joint order."""
+class LeapRobot(StreamingRobot):
+    """The LEAP hand of `config` (joints '0'..'15' = limits.joint_names)."""
 
     name = "leap"
     reports_effort = True  # Present Current, mA
 
-    def __init__(self, port: str, baudrate: int = 4_000_000, motor_ids: Sequence[int] = tuple(range(16)),
-                 joint_names: Sequence[str] = LEAP_JOINTS, current_limit_ma: float = 550.0,
-                 command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02, settle_timeout_s: float = 1.0,
-                 retries: int = 3):
-        super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
-        self.retries = retries
-        if len(motor_ids) != len(self.joint_names):
-            raise ValueError(f"LEAP: {len(motor_ids)} motor ids for {len(self.joint_names)} joints")
-        self.port, self.baudrate = port, baudrate
-        self.motor_ids = [int(i) for i in motor_ids]
-        self.effort_cap = np.full(len(self.motor_ids), float(current_limit_ma))
+    def __init__(self, config: LeapConfig):
+        device_limits = limits()
+        super().__init__(device_limits.joint_names, device_limits, config.command_rate_hz,
+                         config.settle_tolerance_rad, config.settle_timeout_s)
+        self.config = config
+        self.retries = config.retries
+        if len(config.motor_ids) != len(self.joint_names):
+            raise ValueError(f"LEAP: {len(config.motor_ids)} motor ids for {len(self.joint_names)} joints")
+        self.port, self.baudrate = config.port, config.baudrate
+        self.motor_ids = [int(i) for i in config.motor_ids]
+        self.effort_cap = np.full(len(self.motor_ids), float(config.current_limit_ma))
         self._io = threading.Lock()  # one transaction on the half-duplex bus at a time
-        self._port = self._packets = self._writer = self._reader = None
+        self._port: Any = None
+        self._packets: Any = None
+        self._writer: Any = None
+        self._reader: Any = None
 
     @property
     def connected(self) -> bool:
@@ -77,7 +80,7 @@ class LeapBackend(StreamingBackend):
         self._open_port()
         try:
             self._configure(_sdk())
-        except BackendError:
+        except RobotError:
             self._close_port()
             raise
 
@@ -97,7 +100,7 @@ class LeapBackend(StreamingBackend):
         if missing:
             raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
                                     f"(power, cabling, ids or baud rate {self.baudrate})")
-        caps = [int(round(c)) for c in self.effort_cap]
+        caps = [int(round(self.config.current_limit_ma))] * len(self.motor_ids)
         for motor, cap in zip(self.motor_ids, caps, strict=False):
             self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)  # EEPROM items below are writable only with torque off
             self._write(motor, ADDR_OPERATING_MODE, 1, CURRENT_BASED_POSITION_MODE)
@@ -150,7 +153,7 @@ class LeapBackend(StreamingBackend):
         try:
             for motor in self.motor_ids:
                 self._write(motor, ADDR_TORQUE_ENABLE, 1, 0)
-        except BackendError:
+        except RobotError:
             pass  # leaving anyway; the port closes below
         finally:
             self._close_port()
@@ -172,7 +175,7 @@ class LeapBackend(StreamingBackend):
         if result != 0:
             raise DeviceUnavailable(f"LEAP hand: goal-position sync write failed: {self._packets.getTxRxResult(result)}")
 
-    def state(self) -> JointState:
+    def observe(self) -> Observation:
         self.require_connected()
         with self._io:
             for _ in range(self.retries + 1):  # a lost status packet is retried, as on a real USB-serial link
@@ -185,7 +188,7 @@ class LeapBackend(StreamingBackend):
                     self._reader.getData(m, ADDR_PRESENT_POSITION, 4)) for m in self.motor_ids]
         current, velocity, position = (np.array([_signed(v[k], (2, 4, 4)[k]) for v in raw], dtype=np.float64)
                                        for k in range(3))
-        return JointState(time.time(), self.joint_names, position / TICKS_PER_RAD - LEAP_ZERO_OFFSET_RAD,
+        return Observation(time.time(), self.joint_names, position / TICKS_PER_RAD - LEAP_ZERO_OFFSET_RAD,
                           velocity * VELOCITY_UNIT_RAD_S, current)
 
     def recover(self) -> None:
@@ -204,7 +207,7 @@ class LeapBackend(StreamingBackend):
                 if result != 0:
                     raise DeviceUnavailable(f"LEAP motor {motor}: reboot failed: {self._packets.getTxRxResult(result)}")
             self._configure(sdk)
-        except BackendError:
+        except RobotError:
             if opened_here:
                 self._close_port()
             raise

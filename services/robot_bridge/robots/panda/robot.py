@@ -1,4 +1,4 @@
-"""Franka Research 3 over franky-control (libfranka protocol; franky-sim serves it on loopback).
+"""The arm `panda`: a Franka Research 3 over franky-control (libfranka protocol; franky-sim serves it on loopback).
 
 Connect: franky.Robot(host) -> recover if the robot reports errors -> collision thresholds (the
 external-torque reflex that halts the arm, per joint, from the effort cap) -> dynamics factor.
@@ -13,25 +13,20 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from services.robot_bridge.backend import (
-    Backend,
+from services.robot_bridge.robot import (
     DeviceRefused,
     DeviceUnavailable,
     ExecutionReport,
-    JointState,
     JointTrajectory,
     MotionStopped,
+    Observation,
+    Robot,
 )
-
-# Plans name the arm's joints like the Panda model in shared/arms.py (same kinematic structure as the FR3).
-FR3_JOINTS: tuple[str, ...] = tuple(f"panda_joint{i}" for i in range(1, 8))
-# External-torque reflex thresholds (Nm): libfranka's default-behaviour values (20, 20, 18, 18, 16, 14, 12)
-# capped at each joint's rated torque (12 Nm for joints 5-7), so the cap never exceeds the effort limit.
-DEFAULT_COLLISION_TORQUE_NM: tuple[float, ...] = (20.0, 20.0, 18.0, 18.0, 12.0, 12.0, 12.0)
+from services.robot_bridge.robots.panda.config import PandaConfig, limits
 
 
 def _franky():
@@ -42,25 +37,23 @@ def _franky():
     return franky
 
 
-class FrankaBackend(Backend):
-    """The FR3 at `host` (its FCI address, or 127.0.0.1 for franky-sim)."""
+class PandaRobot(Robot):
+    """The FR3 of `config` (its joints named as the Panda model's: limits.joint_names)."""
 
-    name = "fr3"
+    name = "panda"
     reports_effort = True
 
-    def __init__(self, host: str, joint_names: Sequence[str] = FR3_JOINTS, relative_dynamics_factor: float = 0.2,
-                 collision_torque_nm: Sequence[float] = DEFAULT_COLLISION_TORQUE_NM, realtime: bool = True,
-                 settle_tolerance_rad: float = 0.01, poll_period_s: float = 0.01):
-        super().__init__(joint_names)
-        if len(self.joint_names) != 7:
-            raise ValueError(f"FR3: 7 joints expected, got {len(self.joint_names)}")
-        self.host = host
-        self.relative_dynamics_factor = relative_dynamics_factor
-        self.effort_cap = np.asarray(collision_torque_nm, dtype=np.float64)  # reflex threshold per joint
-        self.realtime = realtime  # False only for simulators / non-RT kernels (libfranka's RealtimeConfig.Ignore)
-        self.settle_tolerance_rad = settle_tolerance_rad
-        self.poll_period_s = poll_period_s
-        self._robot = None
+    def __init__(self, config: PandaConfig):
+        device_limits = limits()
+        super().__init__(device_limits.joint_names, device_limits)
+        self.config = config
+        self.host = config.host
+        self.relative_dynamics_factor = config.relative_dynamics_factor
+        self.effort_cap = np.asarray(config.collision_torque_nm, dtype=np.float64)  # reflex threshold per joint
+        self.realtime = config.realtime
+        self.settle_tolerance_rad = config.settle_tolerance_rad
+        self.poll_period_s = config.poll_period_s
+        self._robot: Any = None
         self._lock = threading.Lock()
 
     @property
@@ -79,7 +72,7 @@ class FrankaBackend(Backend):
         try:
             if robot.has_errors and not robot.recover_from_errors():
                 raise DeviceRefused(f"Franka at {self.host}: reports errors that automatic recovery cannot clear")
-            robot.set_collision_behavior(list(self.effort_cap), [30.0] * 6)
+            robot.set_collision_behavior(list(self.config.collision_torque_nm), [30.0] * 6)
             robot.relative_dynamics_factor = self.relative_dynamics_factor
         except franky.Exception as exc:
             raise DeviceRefused(f"Franka at {self.host}: configuration refused: {exc}") from None
@@ -94,15 +87,15 @@ class FrankaBackend(Backend):
             pass  # the link may already be gone; dropping the Robot closes it
         self._robot = None
 
-    def state(self) -> JointState:
+    def observe(self) -> Observation:
         self.require_connected()
         try:
             joint_state = self._robot.current_joint_state
             torques = np.asarray(self._robot.state.tau_J, dtype=np.float64)
         except Exception as exc:
             raise DeviceUnavailable(f"Franka at {self.host}: state read failed: {exc}") from None
-        return JointState(time.time(), self.joint_names, np.asarray(joint_state.position, dtype=np.float64),
-                          np.asarray(joint_state.velocity, dtype=np.float64), torques)
+        return Observation(time.time(), self.joint_names, np.asarray(joint_state.position, dtype=np.float64),
+                           np.asarray(joint_state.velocity, dtype=np.float64), torques)
 
     def _motion(self, trajectory: JointTrajectory):
         franky = _franky()
@@ -116,22 +109,20 @@ class FrankaBackend(Backend):
                                                   minimum_time=franky.Duration(duration_ms)))
         return franky.JointWaypointMotion(waypoints)
 
-    def execute(self, trajectory: JointTrajectory, stop: threading.Event | None = None) -> ExecutionReport:
-        self.require_connected()
-        if self._stop_requested.is_set():
-            raise DeviceRefused(f"{self.name}: stopped; call recover() before executing again")
-        own = self._own(trajectory)
+    def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
+             command_id: str | None = None) -> ExecutionReport:
+        own = self._prepare_send(trajectory, realtime_factor)
         franky = _franky()
         start = time.monotonic()
         try:
             self._robot.move(self._motion(own), asynchronous=True)
             while not self._robot.join_motion(timeout=self.poll_period_s):
-                if self._stop_requested.is_set() or (stop is not None and stop.is_set()):
+                if self._stopped(stop):
                     self._halt()
                     raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
                                         f"{own.duration_s:.2f} s trajectory")
         except franky.Exception as exc:
-            if self._stop_requested.is_set() or (stop is not None and stop.is_set()):
+            if self._stopped(stop):
                 # stop() from another thread preempts the motion; libfranka reports that as an exception
                 raise MotionStopped(f"{self.name}: stopped {time.monotonic() - start:.2f} s into a "
                                     f"{own.duration_s:.2f} s trajectory") from None
@@ -146,10 +137,10 @@ class FrankaBackend(Backend):
     def _settled_positions(self, timeout_s: float = 0.5, still_rad_s: float = 0.01) -> np.ndarray:
         """Positions once the arm has come to rest (the motion generator ends before the joints settle)."""
         deadline = time.monotonic() + timeout_s
-        state = self.state()
+        state = self.observe()
         while np.max(np.abs(state.velocities)) > still_rad_s and time.monotonic() < deadline:
             time.sleep(self.poll_period_s)
-            state = self.state()
+            state = self.observe()
         return state.positions
 
     def _halt(self) -> None:

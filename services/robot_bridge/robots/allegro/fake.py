@@ -1,7 +1,7 @@
-"""A simulated Allegro hand V5 on a python-can bus (the V5 CAN protocol of adapters/allegro_protocol.py).
+"""The Allegro hand's protocol fake: a simulated V5 hand on a python-can bus (the V5 CAN protocol of protocol.py).
 
     hand = SimAllegroHand(interface="virtual", channel="allegro-test")
-    ... AllegroBackend(interface="virtual", channel="allegro-test") talks to it ...
+    ... AllegroRobot(AllegroConfig(interface="virtual", channel="allegro-test")) talks to it ...
     hand.close()
 
 It answers HAND_INFO requests, streams FINGER_POSE and FINGER_CURRENT frames every SET_PERIOD ms,
@@ -16,7 +16,7 @@ import time
 import can
 import numpy as np
 
-from services.robot_bridge.adapters import allegro_protocol as proto
+from services.robot_bridge.robots.allegro import protocol as proto
 
 
 class SimAllegroHand:

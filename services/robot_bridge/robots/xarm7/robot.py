@@ -1,4 +1,4 @@
-"""UFactory xArm7 over xarm-python-sdk, streaming joint targets in servo mode (mode 1, `set_servo_angle_j`).
+"""The arm `xarm7`: a UFactory xArm7 over xarm-python-sdk, streaming joint targets in servo mode (mode 1, `set_servo_angle_j`).
 
 Connect: XArmAPI(ip, is_radian=True) -> connect -> refuse if the controller reports an error code ->
 clean warnings -> motion enable -> mode 1 (servo) -> state 0 (ready).
@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
-from services.robot_bridge.backend import DeviceRefused, DeviceUnavailable, JointState, StreamingBackend
+from services.robot_bridge.robot import DeviceRefused, DeviceUnavailable, Observation, StreamingRobot
+from services.robot_bridge.robots.xarm7.config import XArm7Config, limits
 
-XARM7_JOINTS: tuple[str, ...] = tuple(f"joint{i}" for i in range(1, 8))
 SERVO_MODE, STATE_READY, STATE_STOP = 1, 0, 4
 # Return codes that mean the link failed, not that the controller refused (xarm.x3.code.APIState):
 # NOT_CONNECTED -1, reply timeout 3, reply length/number/protocol/function mismatch 4-7, send error 8.
@@ -25,7 +26,7 @@ SERVO_MODE, STATE_READY, STATE_STOP = 1, 0, 4
 LINK_ERROR_CODES = frozenset({-1, 3, 4, 5, 6, 7, 8})
 
 
-def _default_api(ip: str):
+def _default_api(ip: str) -> Any:
     try:
         from xarm.wrapper import XArmAPI
     except ImportError:
@@ -33,23 +34,23 @@ def _default_api(ip: str):
     return XArmAPI(ip, is_radian=True, do_not_open=True)
 
 
-class XArmBackend(StreamingBackend):
-    """The xArm7 controller at `ip`. `api_factory(ip)` returns an unopened XArmAPI (tests pass a fake)."""
+class XArm7Robot(StreamingRobot):
+    """The xArm7 controller of `config`. `api_factory(ip)` returns an unopened XArmAPI (tests pass a fake,
+    robots/xarm7/fake.py)."""
 
     name = "xarm7"
     reports_effort = True
 
-    def __init__(self, ip: str, joint_names: Sequence[str] = XARM7_JOINTS,
-                 api_factory: Callable[[str], object] = _default_api, command_rate_hz: float = 100.0,
-                 settle_tolerance_rad: float = 0.01, settle_timeout_s: float = 2.0):
-        super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
-        if len(self.joint_names) != 7:
-            raise ValueError(f"xArm7: 7 joints expected, got {len(self.joint_names)}")
-        self.ip = ip
+    def __init__(self, config: XArm7Config, *, api_factory: Callable[[str], Any] = _default_api):
+        device_limits = limits()
+        super().__init__(device_limits.joint_names, device_limits, config.command_rate_hz,
+                         config.settle_tolerance_rad, config.settle_timeout_s)
+        self.config = config
+        self.ip = config.ip
         self._api_factory = api_factory
-        self._api = None
+        self._api: Any = None
         self._io = threading.Lock()
-        self.effort_cap = None  # the controller enforces its own torque limits; measured torques are monitored
+        # effort_cap stays None: the controller enforces its own torque limits; measured torques are monitored
 
     @property
     def connected(self) -> bool:
@@ -116,11 +117,11 @@ class XArmBackend(StreamingBackend):
         with self._io:
             self._api.set_state(STATE_STOP)
 
-    def state(self) -> JointState:
+    def observe(self) -> Observation:
         self.require_connected()
         _, (positions, velocities, efforts) = self._call("get_joint_states", self._api.get_joint_states,
                                                          is_radian=True, num=3)
-        return JointState(time.time(), self.joint_names, np.asarray(positions[:7], dtype=np.float64),
+        return Observation(time.time(), self.joint_names, np.asarray(positions[:7], dtype=np.float64),
                           np.asarray(velocities[:7], dtype=np.float64), np.asarray(efforts[:7], dtype=np.float64))
 
     def recover(self) -> None:

@@ -1,4 +1,4 @@
-"""A fake xArm7 controller at the xarm-python-sdk transport boundary (there is no xArm simulator).
+"""The xArm7's protocol fake: a controller at the xarm-python-sdk transport boundary (there is no xArm simulator).
 
 `fake_xarm_api(controller)` builds a real `XArmAPI(ip, do_not_open=True)` and replaces its transport:
 the link (`_stream`, reporting connected) and the command layer (`arm_cmd`, the SDK's UxbusCmd that

@@ -1,4 +1,4 @@
-"""Allegro hand V5 over python-can (the V5 CAN protocol: see allegro_protocol.py for ids and sources).
+"""The hand `allegro`: an Allegro hand V5 over python-can (the V5 CAN protocol: see protocol.py for ids and sources).
 
 Connect: open the bus -> SYSTEM_OFF -> HAND_INFO request -> SET_PERIOD (position reports every
 `report_period_ms`) -> wait for the hand's info and all four fingers' positions (DeviceUnavailable if
@@ -14,18 +14,18 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
-from services.robot_bridge.adapters import allegro_protocol as proto
-from services.robot_bridge.backend import DeviceRefused, DeviceUnavailable, JointState, StreamingBackend
+from services.robot_bridge.robot import DeviceRefused, DeviceUnavailable, Observation, StreamingRobot
+from services.robot_bridge.robots.allegro import protocol as proto
+from services.robot_bridge.robots.allegro.config import AllegroConfig, limits
 
-ALLEGRO_JOINTS: tuple[str, ...] = tuple(f"joint_{i}.0" for i in range(16))
 VELOCITY_FILTER_HZ = 30.0  # the cut-off Wonik's driver uses for its joint-velocity low-pass (v4_spec.hpp)
 
 
-def _can():
+def _can() -> Any:
     try:
         import can
     except ImportError:
@@ -33,26 +33,25 @@ def _can():
     return can
 
 
-class AllegroBackend(StreamingBackend):
-    """The Allegro hand V5 on a CAN interface (e.g. interface='socketcan', channel='can0', 1 Mbit/s)."""
+class AllegroRobot(StreamingRobot):
+    """The Allegro hand V5 of `config` (joints 'joint_0.0'..'joint_15.0' = limits.joint_names)."""
 
     name = "allegro"
     reports_effort = True
 
-    def __init__(self, interface: str = "socketcan", channel: str = "can0", bitrate: int | None = 1_000_000,
-                 joint_names: Sequence[str] = ALLEGRO_JOINTS, report_period_ms: int = 5, connect_timeout_s: float = 1.0,
-                 stale_after_s: float = 0.2, command_rate_hz: float = 100.0, settle_tolerance_rad: float = 0.02,
-                 settle_timeout_s: float = 1.0, h_inf_firmware: bool = False):
-        super().__init__(joint_names, command_rate_hz, settle_tolerance_rad, settle_timeout_s)
-        if len(self.joint_names) != 16:
-            raise ValueError(f"Allegro: 16 joints expected, got {len(self.joint_names)}")
-        self.interface, self.channel, self.bitrate = interface, channel, bitrate
-        self.report_period_ms, self.connect_timeout_s, self.stale_after_s = report_period_ms, connect_timeout_s, stale_after_s
+    def __init__(self, config: AllegroConfig):
+        device_limits = limits()
+        super().__init__(device_limits.joint_names, device_limits, config.command_rate_hz,
+                         config.settle_tolerance_rad, config.settle_timeout_s)
+        self.config = config
+        self.interface, self.channel, self.bitrate = config.interface, config.channel, config.bitrate
+        self.report_period_ms = config.report_period_ms
+        self.connect_timeout_s, self.stale_after_s = config.connect_timeout_s, config.stale_after_s
         # Which message carries position targets: SET_POSE, or SET_TORQUE's ids on H-inf firmware.
-        self.pose_message_id = proto.ID_CMD_SET_TORQUE if h_inf_firmware else proto.ID_CMD_SET_POSE
-        self.effort_cap = None  # position mode: the firmware's own current limit applies; measured current is monitored
-        self._bus = None
-        self._notifier = None
+        self.pose_message_id = proto.ID_CMD_SET_TORQUE if config.h_inf_firmware else proto.ID_CMD_SET_POSE
+        # effort_cap stays None: position mode, the firmware's own current limit applies; measured current is monitored
+        self._bus: Any = None
+        self._notifier: Any = None
         self._lock = threading.Lock()
         self._positions = np.zeros(16)
         self._velocities = np.zeros(16)
@@ -94,7 +93,7 @@ class AllegroBackend(StreamingBackend):
             if time.monotonic() > deadline:
                 raise DeviceUnavailable(f"Allegro hand on {self.interface}:{self.channel} sends no joint positions")
             time.sleep(0.005)
-        self._send_positions(self.state().positions)  # hold here: servo-on must not jump to a stale target
+        self._send_positions(self.observe().positions)  # hold here: servo-on must not jump to a stale target
         self._servo_on()
 
     def _servo_on(self) -> None:
@@ -177,14 +176,14 @@ class AllegroBackend(StreamingBackend):
             self._stamp[finger] = now
 
     # ---------------------------------------------------------------- contract
-    def state(self) -> JointState:
+    def observe(self) -> Observation:
         self.require_connected()
         with self._lock:
             age = time.monotonic() - self._stamp.min()
             if age > self.stale_after_s:
                 raise DeviceUnavailable(f"Allegro hand: no joint positions for {age:.2f} s (CAN link lost?)")
-            return JointState(time.time(), self.joint_names, self._positions.copy(), self._velocities.copy(),
-                              self._currents.copy())
+            return Observation(time.time(), self.joint_names, self._positions.copy(), self._velocities.copy(),
+                               self._currents.copy())
 
     def _send_positions(self, q: np.ndarray) -> None:
         self.require_connected()
@@ -198,5 +197,5 @@ class AllegroBackend(StreamingBackend):
         self.require_connected()
         self._send(proto.ID_CMD_SYSTEM_OFF)
         self._check_status(self._request_info())
-        self._send_positions(self.state().positions)
+        self._send_positions(self.observe().positions)
         self._servo_on()

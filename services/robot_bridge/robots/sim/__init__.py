@@ -1,0 +1,1 @@
+"""The simulated arm + hand (PyBullet), the bridge's default robot (config.py, robot.py)."""
