@@ -88,6 +88,7 @@ def candidate_rollouts(object_id: str, direction_deg: float, n_poses: int, max_p
             robust = ranking.score_rollout(ranked, float(l_dir[index]))
             rows.append({"l_goal": nominal.l_goal, "l_goal_robust": robust.l_goal, "l_coll": nominal.l_coll,
                          "l_dir": nominal.l_dir, "nominal_success": bool(ranked.success.to_numpy()[0]),
+                         "draws_succeeded": robust.draws_succeeded,
                          "success": float(truth.draws.success.to_numpy().mean())})
     return rows
 
@@ -95,6 +96,15 @@ def candidate_rollouts(object_id: str, direction_deg: float, n_poses: int, max_p
 def pick_rates(requests: list[list[dict]], alpha: float, beta: float, gamma: float, goal: str = "l_goal") -> dict:
     """The truth success and collision rate of the plans V picks, with L_goal read from `goal`."""
     picked = [min(rows, key=lambda r: alpha * r[goal] + beta * r["l_coll"] + gamma * r["l_dir"]) for rows in requests]
+    return {"success": round(float(np.mean([p["success"] for p in picked])), 3),
+            "collided": round(float(np.mean([p["l_coll"] > 0 for p in picked])), 3)}
+
+
+def pick_by_draws(requests: list[list[dict]]) -> dict:
+    """The truth success of picking the plan that succeeded in the most rank worlds (ties: the shipped V)."""
+    def key(r: dict) -> tuple[float, float]:
+        return -r["draws_succeeded"], ranking.ALPHA * r["l_goal"] + ranking.BETA * r["l_coll"] + ranking.GAMMA * r["l_dir"]
+    picked = [min(rows, key=key) for rows in requests]
     return {"success": round(float(np.mean([p["success"] for p in picked])), 3),
             "collided": round(float(np.mean([p["l_coll"] > 0 for p in picked])), 3)}
 
@@ -129,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         "dir_only": pick_rates(requests, 0.0, 0.0, 1.0),
         "robust": {"rank_draws": args.rank_draws,
                    **pick_rates(requests, ranking.ALPHA, ranking.BETA, ranking.GAMMA, goal="l_goal_robust")},
+        "robust_most_draws": pick_by_draws(requests),
         "robust_grid": {f"a{a}_b{b}_g{g}": pick_rates(requests, a, b, g, goal="l_goal_robust")
                         for a, b, g in itertools.product(*GRID.values())},
         "truth_worlds": args.truth_worlds, "objects": list(OBJECTS), "directions_deg": list(DIRECTIONS_DEG),
