@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from evaluation import push_protocol as protocol
-from evaluation.report import markdown_table, write_experiment
+from evaluation.report import CODE_AT_START, markdown_table, write_experiment
 from evaluation.stats import success_interval
 from evaluation.store import ResultStore
 from shared.frames import make_transform, yaw_rotation
@@ -123,6 +123,7 @@ def run_one(run: Run) -> dict[str, Any]:
                       object_obstacle_contact=contacts.object_obstacle)
     record["path_xy"] = _object_path(the_request, executed)
     record["seconds"] = round(time.perf_counter() - started, 2)
+    record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
     return record
 
 
@@ -174,7 +175,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
           r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
     return write_experiment(directory, TITLE.format(world=world), body, {"success_rate": rate, "interval_95": interval.as_dict(),
                                                 "runs": len(records), "settings": settings},
-                            time.perf_counter() - started, quick)
+                            time.perf_counter() - started, quick, records)
 
 
 def _plot(records: list[dict[str, Any]], scenarios, path: Path) -> None:

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from evaluation.report import CODE_AT_START
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
 from shared.objects import load_object, split_of
@@ -238,6 +239,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
     record["seconds"] = round(time.perf_counter() - started, 2)
+    record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
     return record
 
 

@@ -12,6 +12,7 @@ import platform
 import shlex
 import subprocess
 import sys
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -86,16 +87,21 @@ def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str
 
 
 def write_experiment(directory: str | os.PathLike, title: str, body_markdown: str, summary: dict[str, Any],
-                     wall_time_s: float, quick: bool) -> Path:
-    """Write report.md and summary.json of one experiment; returns the report's path."""
+                     wall_time_s: float, quick: bool, records: Sequence[dict[str, Any]] = ()) -> Path:
+    """Write report.md and summary.json of one experiment; returns the report's path. `records`: the
+    trials reported, whose own code stamps (`record["code"]`) the header counts."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     total = wall_time_s + _earlier_wall_time(directory)
     meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
             "machine": machine(), "code": CODE_AT_START, "quick": quick}
+    if records:
+        meta["records_code"] = dict(Counter(r.get("code", "not recorded") for r in records))
     resumed = f" summed over the invocations that ran (this one {wall_time_s / 60:.1f} min)" if total - wall_time_s >= 1 else ""
+    made_by = ("\n- trials run by code: " + ", ".join(f"{c} ({n})" for c, n in meta["records_code"].items())
+               if records else "")
     header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
-              f"- machine: {meta['machine']}\n- code: {meta['code']}\n"
+              f"- machine: {meta['machine']}\n- code: {meta['code']}{made_by}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
               + "\n")
     atomic_write_text(directory / REPORT_FILE, header + body_markdown)
