@@ -34,7 +34,7 @@ CONNECT_TIMEOUT_MS = 3000
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
          "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler", "choice": "--choice",
-         "physics_draws": "--physics-draws"}
+         "physics_draws": "--physics-draws", "corrections": "--corrections"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -70,6 +70,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "and the given pose (friction, mass, centre of mass, controller, pose off by up to 1 cm / "
                              "5 deg) besides the nominal one, and rank by the mean L_goal (0-16; default 0: the "
                              "nominal rollout only; each draw costs about 0.4 s of CPU per plan)")
+    parser.add_argument("--corrections", type=non_negative_int, default=0, metavar="N",
+                        help="closed loop at the scale of pushes (with --direction-deg): when a push leaves the "
+                             "object more than 3 cm from the target, upright and turned no more than 45 deg, push "
+                             "again from where the robot saw it, up to N times (0-5; default 0)")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
@@ -114,7 +118,7 @@ def build_request(args: argparse.Namespace):
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
                        k=args.k, choice=args.choice, seed=args.seed, method=args.method,
-                       sampler=args.sampler, physics_draws=args.physics_draws)
+                       sampler=args.sampler, physics_draws=args.physics_draws, corrections=args.corrections)
 
 
 def run_push(args: argparse.Namespace) -> int:
@@ -200,6 +204,7 @@ def describe(response) -> str:
         if s.draws is not None:
             lines.append(f"its rollouts succeeded in {s.draws_succeeded} of {s.draws} physics worlds "
                          "(the nominal one and the drawn ones)")
+    lines += [step.reason for step in response.steps if step.reason] + response.notes
     lines.append("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in response.timings_s.items()))
     if response.recording_path:
         lines.append(f"recording: {response.recording_path}")

@@ -77,15 +77,18 @@ class Method:
     source: str  # "gd2p" | "nearest" | "fixed" (the planner's PushRequest.method) or "grasp" (grasp_baseline)
     choice: PlanChoice
     physics_draws: int = 0  # PushRequest.physics_draws: rank by rollouts in this many drawn worlds too
+    corrections: int = 0  # PushRequest.corrections: corrective pushes after a miss
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
+CORRECTIONS = 2  # the corrected method's corrective pushes at most
 
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p", "GD2P", "gd2p", "ranked"),
     Method("gd2p-unranked", "GD2P w/o ranking", "gd2p", "unranked"),
     Method("gd2p-random", "Diffusion, random feasible", "gd2p", "random"),
     Method("gd2p-robust", "GD2P, robust ranking", "gd2p", "ranked", ROBUST_DRAWS),
+    Method("gd2p-corrected", "GD2P + corrective pushes", "gd2p", "ranked", corrections=CORRECTIONS),
     Method("nearest", "Nearest Neighbor", "nearest", "random"),
     Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
     Method("fixed", "Fixed spatula", "fixed", "random"),
@@ -169,7 +172,7 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
-                  physics_draws=method.physics_draws)
+                  physics_draws=method.physics_draws, corrections=method.corrections)
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
@@ -236,6 +239,9 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
+            if len(response.steps) > 1:  # corrective pushes: how many, and how far the first push left it
+                record["pushes"] = len(response.steps)
+                record["first_push_error_m"] = round(response.steps[0].result.position_error_m, 4)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
     record["seconds"] = round(time.perf_counter() - started, 2)

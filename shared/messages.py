@@ -65,6 +65,7 @@ PoseMethod = Literal["gd2p", "nearest", "fixed"]
 # - "random": a random kinematically feasible pose, planned and executed with no prescreen, rollout or
 #   ranking (the pose source's quality on its own).
 PlanChoice = Literal["ranked", "unranked", "random"]
+MAX_CORRECTIONS = 5  # corrective pushes per direction request
 MAX_PHYSICS_DRAWS = 16  # rollouts per plan for robust ranking: each costs about half a second of CPU
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
@@ -660,6 +661,10 @@ class PushRequest(Message):
     # and score its mean L_goal. 0: the paper's single nominal rollout.
     physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
     max_steps: int = Field(default=10, ge=1, le=100)
+    # Closed loop at the scale of pushes (direction requests): when the executed push leaves the object
+    # more than the success tolerance from the target but upright and turned no more than the success
+    # bound allows, push again from where the robot bridge observed it, up to this many times.
+    corrections: int = Field(default=0, ge=0, le=MAX_CORRECTIONS)
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
@@ -679,6 +684,9 @@ class PushRequest(Message):
             raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
         if self.physics_draws and self.choice == "random":
             raise ValueError("physics_draws ranks rolled-out plans; choice 'random' rolls none out")
+        if self.corrections and self.goal_xy is not None:
+            raise ValueError("corrections are for a direction push: a goal_xy request already pushes again from "
+                             "where the object is, up to max_steps")
         _check_pair(self.hand, self.arm)
         return self
 
@@ -718,6 +726,9 @@ class PushStep(Value):
     plan: Plan
     score: ScoreTerms | None = None  # None when ranking is off
     result: ExecutionResult
+    # Why this push was made, when it is not the request's first: e.g. a correction, with how far from
+    # the target the object was left.
+    reason: str | None = Field(default=None, max_length=500)
 
 
 class PushResponse(Message):
@@ -731,6 +742,8 @@ class PushResponse(Message):
     score: ScoreTerms | None = None  # None when ranking is off
     result: ExecutionResult  # the final outcome of the whole request
     steps: list[PushStep] = Field(default_factory=list)  # every push of a multi-step request
+    # What else the user should know, e.g. why a correction the request allowed was not made.
+    notes: list[str] = Field(default_factory=list)
     recording_path: str | None = None
     timings_s: dict[str, NonNegFloat] = Field(default_factory=dict)  # by stage: sampling, ik, planning, ...
 

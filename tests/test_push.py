@@ -382,6 +382,68 @@ def _one_plan_settings():
     return PipelineSettings(max_plans=1, prescreen=0, max_plan_rounds=1)
 
 
+def _push_with_a_displaced_first_outcome(displace, corrections=2):
+    """A push of the box by spatula poses whose first executed push is followed by `displace(T_world_O)`:
+    the simulated object is moved there (a slip the planner did not predict) and the robot reports it there.
+    The response (or PushError) and the T_world_O the first push left before the displacement."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.outcome import Execution
+    from services.planner.pipeline import PushPipeline
+    from services.planner.pipeline import PushServices as Services
+    from services.planner.stages import PipelineSettings
+    from shared.push_outcome import object_pose, pose_matrix
+
+    robot = LocalRobot()
+    left = []
+
+    def execute(plan, world, cancel):
+        execution = robot.execute(plan, world, cancel)
+        if left:
+            return execution
+        left.append(pose_matrix(execution.final.object_pose))
+        moved = displace(left[0])
+        robot.robot(plan.arm, plan.hand).scene.object.reset_pose(moved)
+        return Execution(final=execution.final.model_copy(update={"object_pose": object_pose(moved)}))
+
+    pipeline = PushPipeline(Services(sample=_spatula_poses, validate=validate_here, execute=execute),
+                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
+    try:
+        outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                           direction_deg=90.0, k=8, corrections=corrections))
+        return outcome.response, left[0]
+    finally:
+        pipeline.close()
+        robot.close()
+
+
+def test_a_push_that_stops_short_is_corrected_from_where_the_object_was_seen():
+    """The first push 'slips' 6 cm short of the target; the next push is planned from there to the target."""
+    def short(T):
+        moved = T.copy()
+        moved[1, 3] -= 0.06  # the push goes along +y (90°)
+        return moved
+
+    response, _ = _push_with_a_displaced_first_outcome(short)
+    assert len(response.steps) == 2 and response.steps[0].reason is None
+    assert response.steps[1].reason.startswith("correction 1: push 1 left the object 6.")
+    assert response.steps[0].result.position_error_m > 0.05  # judged where it was seen, not where it slid to
+    assert response.success and response.result.position_error_m <= 0.03  # judged from the first start
+    assert response.plan == response.steps[0].plan  # the response's plan is still the first push's
+
+
+def test_an_object_turned_past_the_success_bound_is_not_pushed_again():
+    from shared.frames import yaw_rotation
+
+    def turned(T):  # 6 cm short and turned 60° about the vertical
+        moved = T.copy()
+        moved[:3, :3] = yaw_rotation(np.radians(60.0)) @ T[:3, :3]
+        moved[1, 3] -= 0.06
+        return moved
+
+    response, _ = _push_with_a_displaced_first_outcome(turned)
+    assert len(response.steps) == 1 and not response.success and response.result.rotation_deg > 45.0
+
+
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
     from services.planner.outcome import PushError
     from shared.messages import NDArray

@@ -59,7 +59,7 @@ from shared.ik import ArmIK
 from shared.messages import ExecutionResult, PushRequest, PushResponse
 from shared.object_refs import captured_object, load_object_ref
 from shared.objects import ObjectLoadError, ObjectModel, write_object_urdf
-from shared.push_outcome import judge_push, pose_matrix
+from shared.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix
 from shared.robot_limits import RobotLimits
 from shared.sim.robot_scene import RobotScene
 
@@ -102,8 +102,7 @@ class PushPipeline:
             if request.goal_xy is None:
                 push = Push(state.T_world_O.copy(), direction_xy(request.direction_deg), request.distance_m)
                 self._push_once(state, push)
-                final = judge_push(state.records[0].T_world_O_start, push.target_xy,
-                                   state.records[-1].step.result.final_object_pose)
+                final = self._corrected(state, push)
             else:
                 final = self._multi_step(state)
         except PushError as exc:
@@ -113,7 +112,8 @@ class PushPipeline:
         state.timings["total"] = time.perf_counter() - started
         response = PushResponse(request_id=request.id, success=final.success, chosen_pose=first.chosen_pose,
                                 chosen_pose_world=first.chosen_pose_world, plan=first.plan, score=first.score,
-                                result=final, steps=[r.step for r in state.records], timings_s=state.timings)
+                                result=final, steps=[r.step for r in state.records], notes=state.notes,
+                                timings_s=state.timings)
         return PushOutcome(response, list(state.records))
 
     @staticmethod
@@ -169,10 +169,39 @@ class PushPipeline:
         state.timings["object_path"] = sum(p.planning_s for p in outcome.paths)
         return final
 
+    def _corrected(self, state: RequestState, push: Push) -> ExecutionResult:
+        """The outcome of a direction push after up to `request.corrections` corrective pushes.
+
+        A push that left the object more than the success tolerance from the target, upright and turned
+        no more than the success bound, is followed by a push from where the robot bridge observed the
+        object straight to the target (planned like any push, from its own samples). Corrections stop
+        at success, at an outcome no push can mend (toppled, turned too far), or when a correction
+        cannot be planned: the pushes made stand, and the outcome is judged as they left it.
+        """
+        start = state.records[0].T_world_O_start
+        final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose)
+        for _ in range(state.request.corrections):
+            if final.success or not correctable(final):
+                break
+            offset = push.target_xy - state.T_world_O[:2, 3]
+            reason = (f"correction {len(state.records)}: push {len(state.records)} left the object "
+                      f"{final.position_error_m * 100:.1f} cm from the target")
+            try:
+                self._push_once(state, Push(state.T_world_O.copy(), offset / np.linalg.norm(offset),
+                                            float(np.linalg.norm(offset))), reason)
+            except PushError as exc:
+                if exc.code != "infeasible":
+                    raise
+                state.notes.append(f"no correction after push {len(state.records)}: {exc.message}")
+                break
+            final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose)
+        return final
+
     # ------------------------------------------------------------------------------- one push
 
-    def _push_once(self, state: RequestState, push: Push) -> None:
-        """Plan, rank and execute one push from where the object is now (`state.advance`s by it)."""
+    def _push_once(self, state: RequestState, push: Push, reason: str | None = None) -> None:
+        """Plan, rank and execute one push from where the object is now (`state.advance`s by it);
+        `reason`: why it is made, when it is not the request's first push."""
         request = state.request
         candidates = stages.candidate_poses(state, push, self.services.sample)
         with self.scene(request.arm, request.hand) as scene:
@@ -185,7 +214,7 @@ class PushPipeline:
                 chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
-        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute))
+        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, reason))
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an
@@ -244,6 +273,12 @@ class PushPipeline:
         for scene in self._scenes.values():
             scene.close()
         self._scenes.clear()
+
+
+def correctable(result: ExecutionResult) -> bool:
+    """Whether another push can still make `result` a success: the object stands and has not turned past
+    the success bound (a push moves it, it does not turn it back)."""
+    return not result.toppled and result.rotation_deg <= SUCCESS_MAX_ROTATION_DEG
 
 
 def _footprint_radius(obj: ObjectModel) -> float:

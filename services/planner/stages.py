@@ -92,6 +92,7 @@ class RequestState:
     q_robot: np.ndarray | None = None  # None: the bridge world is (re)set, robot at home, hand open
     timings: dict[str, float] = field(default_factory=dict)
     records: list[StepRecord] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # what the response should tell besides its steps
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -416,7 +417,7 @@ def wait_for_results(futures: list[Future], timeout_s: float,
 
 
 def execute(state: RequestState, push: Push, candidates: Candidates, chosen: RankedPlan,
-            run_plan: Execute) -> StepRecord:
+            run_plan: Execute, reason: str | None = None) -> StepRecord:
     """Execute `chosen` on the robot bridge (`run_plan`); the record of the push, its outcome judged
     from the object pose the bridge observed. PushError when the bridge did not execute it."""
     request = state.request
@@ -437,5 +438,5 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     result = judge_push(push.T_world_O, push.target_xy, final.object_pose)
     index = chosen.index
     step = PushStep(chosen_pose=candidates.poses_d[index], chosen_pose_world=candidates.poses_world[index],
-                    plan=chosen.plan, score=chosen.score, result=result)
+                    plan=chosen.plan, score=chosen.score, result=result, reason=reason)
     return StepRecord(step, push.T_world_O, execution, world)
