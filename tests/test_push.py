@@ -444,6 +444,17 @@ def test_an_object_turned_past_the_success_bound_is_not_pushed_again():
     assert len(response.steps) == 1 and not response.success and response.result.rotation_deg > 45.0
 
 
+def test_a_correction_that_cannot_be_planned_leaves_the_push_as_it_was_and_says_why():
+    def out_of_reach(T):  # the object slid (in the simulation too) to where the arm cannot reach
+        moved = T.copy()
+        moved[0, 3] = 1.3
+        return moved
+
+    response, _ = _push_with_a_displaced_first_outcome(out_of_reach)
+    assert len(response.steps) == 1 and not response.success
+    assert len(response.notes) == 1 and response.notes[0].startswith("no correction after push 1: ")
+
+
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
     from services.planner.outcome import PushError
     from shared.messages import NDArray
