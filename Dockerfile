@@ -26,6 +26,8 @@ RUN if [ -n "$TORCH_INDEX_URL" ]; then \
 WORKDIR /opt/gd2p
 COPY pyproject.toml README.md ./
 COPY shared ./shared
+COPY visualisation ./visualisation
+COPY client ./client
 COPY services ./services
 COPY deploy ./deploy
 COPY cli ./cli

@@ -30,8 +30,8 @@ if REPO_DIR not in sys.path:
     sys.path.insert(0, REPO_DIR)
 
 from shared.bus import BusConfig, Dispatcher, job_key, open_session, run_worker  # noqa: E402
-from shared.codec import decode, encode  # noqa: E402
-from shared.messages import Message  # noqa: E402
+from shared.contracts.codec import decode, encode  # noqa: E402
+from shared.contracts.messages import Message  # noqa: E402
 
 SERVICE = "busbench"
 

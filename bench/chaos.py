@@ -44,7 +44,7 @@ import numpy as np  # noqa: E402
 
 from shared.bus import BusConfig, Dispatcher, open_session, run_worker  # noqa: E402
 from shared.bus.worker import check_deadline  # noqa: E402
-from shared.messages import ErrorReply, Message  # noqa: E402
+from shared.contracts.messages import ErrorReply, Message  # noqa: E402
 
 SERVICE = "chaos"
 STOP_TARGET_S = 0.2  # --stop-target
@@ -248,7 +248,7 @@ def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, 
     """A robot bridge (simulated Panda + Allegro) on `endpoint` executing a 4 s move of joint 0 under the
     lease `lease_holder` holds; yields (bridge, motion, start)."""
     from services.robot_bridge.service import Bridge
-    from shared.messages import ExecutionCommand, Plan
+    from shared.contracts.messages import ExecutionCommand, Plan
 
     session, probe = client(endpoint), client(endpoint)
     bridge = Bridge(session, probe=probe)  # as services/robot_bridge/service.run builds it: with its router watchdog
@@ -341,8 +341,8 @@ def router_hung(quick: bool) -> Figure:
 
 def estop_garbage(quick: bool) -> Figure:
     from shared.bus.keys import ROBOT_ESTOP_KEY
-    from shared.codec import encode
-    from shared.messages import ErrorReply as Wrong
+    from shared.contracts.codec import encode
+    from shared.contracts.messages import ErrorReply as Wrong
 
     payloads = {"empty": (b"", None), "garbage": (b"\xff\x00garbage", "application/msgpack;EStop"),
                 "wrong type": encode(Wrong(code="internal", message="not a stop"))}

@@ -46,8 +46,8 @@ def run_batch(object_id: str, hand: str, batch: int, iterations: int | None, see
     from services.generator.plots import plot_energy_history
     from services.generator.scene import PushScene
     from services.generator.synthesis import generate
-    from shared.hands import load_hand
-    from shared.objects import load_object
+    from shared.robots.hands import load_hand
+    from shared.world.objects import load_object
 
     config = GenerationConfig(batch_size=batch).replace(iterations=iterations)
     scene = PushScene.from_object(load_object(object_id), surface_points=config.object_points,
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     objects = [o for o in args.objects.split(",") if o]
     # Warm the object caches (geometry, SDF) so neither measurement pays for them.
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     for object_id in objects:
         _ = load_object(object_id).sdf  # the property builds and caches the SDF

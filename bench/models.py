@@ -24,8 +24,8 @@ import trimesh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from shared.bps import BasisPointSet
-from shared.objects import load_object
+from shared.world.bps import BasisPointSet
+from shared.world.objects import load_object
 
 
 def _timed_ms(function, repeats: int, warmup: int = 3) -> dict:
@@ -107,11 +107,11 @@ def bench_mesh_load(closed: bool) -> dict:
 
 
 def bench_fk(repeats: int = 50) -> dict:
-    """FK of a [1024, 25] batch with shared.hands (reported as skipped when that module is absent)."""
+    """FK of a [1024, 25] batch with shared.robots.hands (reported as skipped when that module is absent)."""
     try:
-        from shared.hands import load_hand
+        from shared.robots.hands import load_hand
     except ImportError as exc:
-        return {"skipped": f"shared.hands not importable: {exc}"}
+        return {"skipped": f"shared.robots.hands not importable: {exc}"}
     results = {}
     for name in ("allegro", "leap"):
         try:

@@ -27,13 +27,13 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from services.planner.ik import ArmIK
 from services.planner.motion import MotionPlanner
-from shared.fixed_poses import spatula_pose
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
-from shared.hands import load_hand
-from shared.ik import ArmIK
-from shared.objects import load_object, write_object_urdf
-from shared.sim.robot_scene import RobotScene
+from shared.robots.hands import load_hand
+from shared.world.fixed_poses import spatula_pose
+from shared.world.objects import load_object, write_object_urdf
+from shared.world.sim.robot_scene import RobotScene
 
 
 def push_like_hand_poses(count: int, seed: int = 0) -> np.ndarray:

@@ -4,14 +4,14 @@
     python bench/perception.py --quick                 # 3 objects, for a smoke run
 
 Each library object rests in its default pose at (0.55, 0) turned by 0.3 rad, and is captured by
-shared.sim.camera (D435-class noise, 848 x 480, seed 0) with 1 camera (the head camera) and with 3.
-The same table removal and object cluster (shared.perception.reconstruct) feed every method:
+shared.world.sim.camera (D435-class noise, 848 x 480, seed 0) with 1 camera (the head camera) and with 3.
+The same table removal and object cluster (shared.world.perception.reconstruct) feed every method:
 
     extrude       the product's solid: the seen surface extruded down to the table (a height map),
-                  cut into convex pieces (shared.perception.decompose); the mesh is their union
+                  cut into convex pieces (shared.world.perception.decompose); the mesh is their union
     extrude_mc    the same height map meshed by marching cubes (PyMCubes): the product's surface
                   before the convex pieces, with every detail of the height map
-    extrude_vhacd V-HACD's pieces of extrude_mc (shared/objects/physics.py's decomposition, 200k
+    extrude_vhacd V-HACD's pieces of extrude_mc (shared/world/objects/physics.py's decomposition, 200k
                   voxels): the shape physics simulated before the convex pieces; its seconds are V-HACD's
     hull          convex hull of the cloud and its footprint on the table (the trivial baseline)
     poisson       screened Poisson (open3d, depth 8) of the cloud + footprint points with normals
@@ -24,7 +24,7 @@ are carried over from the last run that measured them (marked so in the tables) 
 dropped (put them on PYTHONPATH to measure them again).
 
 Metrics against the true mesh in the world (both meshes' insides from the same ray-vote voxel fill,
-shared.objects.sdf.inside_mask, 2 mm nodes): volume IoU; Chamfer distance (mean of both directions'
+shared.world.objects.sdf.inside_mask, 2 mm nodes): volume IoU; Chamfer distance (mean of both directions'
 nearest-surface distances, 20k area samples each) and Hausdorff distance (max of both directions);
 volume error; centre-of-mass error; watertight; faces; convex pieces (for the methods that give
 them); seconds from the object's points to the mesh (one core).
@@ -50,10 +50,10 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from shared.frames import make_transform
-from shared.objects import load_object
-from shared.objects.sdf import inside_mask, node_axes
-from shared.perception.cloud import voxel_downsample
-from shared.perception.reconstruct import (
+from shared.world.objects import load_object
+from shared.world.objects.sdf import inside_mask, node_axes
+from shared.world.perception.cloud import voxel_downsample
+from shared.world.perception.reconstruct import (
     ReconstructionSettings,
     height_map,
     hull_with_footprint,
@@ -61,7 +61,7 @@ from shared.perception.reconstruct import (
     remove_table,
     solid,
 )
-from shared.sim.camera import capture_object
+from shared.world.sim.camera import capture_object
 
 OBJECTS = ["proc-box-000", "proc-box-001", "proc-box-002", "proc-cylinder-000", "proc-cylinder-001", "proc-cone-000",
            "proc-cone-002", "proc-ellipsoid-001", "pb-mug", "pb-duck"]
@@ -146,12 +146,12 @@ def marching_cubes_extrusion(points: np.ndarray, pitch: float, hole_fill_m: floa
 
 
 def method_extrude_vhacd(scene: Scene) -> Candidate:
-    """V-HACD of the marching-cubes solid, as shared/objects/physics.py runs it; timed alone."""
+    """V-HACD of the marching-cubes solid, as shared/world/objects/physics.py runs it; timed alone."""
     import tempfile
 
     import pybullet
 
-    from shared.objects.physics import VHACD_RESOLUTION, _quiet_stdout
+    from shared.world.objects.physics import VHACD_RESOLUTION, _quiet_stdout
 
     settings = ReconstructionSettings()
     surface = marching_cubes_extrusion(voxel_downsample(scene.points, settings.voxel_m), settings.mesh_pitch_m,
@@ -310,7 +310,7 @@ def markdown(summary: list[dict[str, Any]], rows: list[dict[str, Any]], command:
         "# Closing the unseen side: reconstruction methods against the true mesh",
         "",
         (f"`{command}` on {platform.node() or 'this machine'} ({platform.processor() or platform.machine()}), "
-         f"{time.strftime('%Y-%m-%d')}. Capture: shared.sim.camera, D435-class noise, {SIZE[0]}x{SIZE[1]}, seed 0; "
+         f"{time.strftime('%Y-%m-%d')}. Capture: shared.world.sim.camera, D435-class noise, {SIZE[0]}x{SIZE[1]}, seed 0; "
          f"object at {POSITION} turned {YAW_RAD} rad. IoU on 2 mm nodes; Chamfer = mean of both directions' mean "
          "nearest-surface distance; Hausdorff = max; seconds = object points to mesh, one core (extrude_vhacd: "
          "V-HACD alone)."),

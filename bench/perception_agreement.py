@@ -16,7 +16,7 @@ Per object, as the evaluation places it: resting in its default pose at OBJECT_X
    itself pushes with (the planner's K = 200 candidates are exactly these samples), so both the
    successes and the failures are the ones the reconstruction has to predict; generator poses
    cost seconds each, and the fixed spatula pose is one pose.
-2. Captures: `shared.sim.camera.capture_object` with 1 and with 3 cameras (default size, D435-class
+2. Captures: `shared.world.sim.camera.capture_object` with 1 and with 3 cameras (default size, D435-class
    noise, seeded per object and camera count), thinned as a request carries it
    (`cloud_for_request`), reconstructed and modelled as every service does (`object_from_cloud`).
 3. Pushes: the validator's floating-hand push (`services.validator.push.PushSimulator`, default
@@ -32,7 +32,7 @@ the robot would meet). Checked for every pose set: the reconstruction stands on 
 point within 2 mm of z = 0), upright, and the two footprints in D overlap (IoU of their convex
 outlines >= 0.5, centres within 3 cm); `--quick` asserts it, full runs record it (`frame_ok`).
 
-Reported: the fraction of poses with the same outcome (success or not, `shared.push_outcome.judge_push`
+Reported: the fraction of poses with the same outcome (success or not, `shared.world.push_outcome.judge_push`
 via PushSimulator) per object and camera count, pooled over the objects (overall and per group:
 evaluation / held-out), the objects at >= 90 %, and the success rates on the true object and the
 reconstructions (agreement means little when almost every push fails). A reconstruction that fails
@@ -103,7 +103,7 @@ def family(object_id: str) -> str:
 
 def held_out_objects(count: int) -> list[str]:
     """`count` test-split objects not among the evaluation's, round-robin over families (see the docstring)."""
-    from shared.objects import list_object_ids
+    from shared.world.objects import list_object_ids
 
     pool = [i for i in list_object_ids("test") if i not in EVALUATION_OBJECTS]
     families: dict[str, list[str]] = {}
@@ -160,14 +160,14 @@ def _init_worker() -> None:
 def run_object(job: Job, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Everything measured for one object (one JSON line); see the module docstring."""
     from services.validator.push import PushSimulator, TableObject
+    from shared.contracts.messages import DirectionFrame
     from shared.frames import invert_transform, make_transform
-    from shared.hands import load_hand
-    from shared.messages import DirectionFrame
-    from shared.objects import load_object, write_object_urdf
-    from shared.perception import PerceptionError, cloud_for_request, object_from_cloud
-    from shared.push_outcome import object_pose
-    from shared.sim import c_stdout_to_stderr
-    from shared.sim.camera import capture_object
+    from shared.robots.hands import load_hand
+    from shared.world.objects import load_object, write_object_urdf
+    from shared.world.perception import PerceptionError, cloud_for_request, object_from_cloud
+    from shared.world.push_outcome import object_pose
+    from shared.world.sim import c_stdout_to_stderr
+    from shared.world.sim.camera import capture_object
 
     started = time.perf_counter()
     tick = progress or (lambda n: None)
@@ -378,11 +378,11 @@ def time_capture_to_mesh(objects: Sequence[str] = EVALUATION_OBJECTS, repeats: i
     import torch
 
     from shared.frames import make_transform
-    from shared.objects import load_object, write_object_urdf
-    from shared.perception import reconstruct
-    from shared.perception.object_model import object_from_reconstruction
-    from shared.sim import c_stdout_to_stderr
-    from shared.sim.camera import DEFAULT_SIZE, capture_object
+    from shared.world.objects import load_object, write_object_urdf
+    from shared.world.perception import reconstruct
+    from shared.world.perception.object_model import object_from_reconstruction
+    from shared.world.sim import c_stdout_to_stderr
+    from shared.world.sim.camera import DEFAULT_SIZE, capture_object
 
     affinity = os.sched_getaffinity(0)
     threads = torch.get_num_threads()

@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from client.push_client import PushFailed, push
 from deploy.launcher import Launcher, free_loopback_endpoint
 from shared.bus import BusConfig
-from shared.messages import ObjectRef, PushRequest
-from shared.push_client import PushFailed, push
+from shared.contracts.messages import ObjectRef, PushRequest
 
 OBJECTS = ("proc-box-013", "proc-box-000", "proc-cylinder-000")  # test split
 DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 m in front of the robot

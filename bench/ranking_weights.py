@@ -39,12 +39,12 @@ from services.planner import ranking
 from services.planner.motion import MotionPlanner, PlanningError
 from services.validator.rollout import rollout
 from services.validator.service import DEFAULT_PARAMS
+from shared.contracts.messages import DirectionFrame, ObjectRef, ValidationJob
 from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
-from shared.hands import load_hand
-from shared.messages import DirectionFrame, ObjectRef, ValidationJob
-from shared.objects import load_object, write_object_urdf
-from shared.push_outcome import object_pose
-from shared.sim.robot_scene import RobotScene
+from shared.robots.hands import load_hand
+from shared.world.objects import load_object, write_object_urdf
+from shared.world.push_outcome import object_pose
+from shared.world.sim.robot_scene import RobotScene
 
 OBJECTS = ("proc-box-010", "proc-cylinder-006", "proc-cone-006", "proc-hull-006", "proc-capsule-016", "rnd-002")
 DIRECTIONS_DEG = (90.0, -90.0)

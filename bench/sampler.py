@@ -44,8 +44,8 @@ from services.sampler.diffusion import PoseNormalizer, denoising_loss, make_ema,
 from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count  # noqa: E402
 from services.sampler.sampling import PoseSampler, default_frame  # noqa: E402
 from services.sampler.train import hand_joint_limits  # noqa: E402
-from shared.bps import BasisPointSet  # noqa: E402
-from shared.objects import list_object_ids, load_object  # noqa: E402
+from shared.world.bps import BasisPointSet  # noqa: E402
+from shared.world.objects import list_object_ids, load_object  # noqa: E402
 
 LATENCY_OBJECT = "proc-box-001"
 K = 200

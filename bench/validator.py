@@ -51,8 +51,8 @@ REFERENCE = (50, 240)
 
 def candidate_poses(hand, obj, count: int, seed: int) -> np.ndarray:
     """The spatula pose and `count - 1` perturbations of it, alternately mild and strong."""
-    from shared.fixed_poses import spatula_pose
     from shared.frames import matrix_to_pose25, pose25_to_matrix
+    from shared.world.fixed_poses import spatula_pose
 
     rng = np.random.default_rng(seed)
     base, joints = pose25_to_matrix(spatula_pose(hand, obj.vertices_d))
@@ -72,7 +72,7 @@ def generator_poses(object_id: str, hand_name: str, count: int) -> np.ndarray:
     from services.generator.config import GenerationConfig
     from services.generator.scene import PushScene
     from services.generator.synthesis import generate
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     config = GenerationConfig(batch_size=count, record_history=False)
     return generate(PushScene.from_object(load_object(object_id)), hand_name, count, seed=1, config=config).poses
@@ -81,8 +81,8 @@ def generator_poses(object_id: str, hand_name: str, count: int) -> np.ndarray:
 def episode_set(object_ids: list[str], per_object: int, source: str) -> list[tuple[str, str, np.ndarray]]:
     """(object id, hand, poses [per_object, 25]) for every object and hand; deterministic."""
     from services.validator.push import table_object
-    from shared.hands import load_hand
-    from shared.objects import load_object
+    from shared.robots.hands import load_hand
+    from shared.world.objects import load_object
 
     out = []
     for object_id in object_ids:
@@ -111,9 +111,9 @@ def run_chunk(task: tuple) -> dict:
     object_id, hand_name, poses, solver, augment = task
     from services.validator.push import table_object
     from services.validator.validator import Validator
-    from shared.hands import load_hand
-    from shared.objects import load_object
-    from shared.sim import PhysicsParams, c_stdout_to_stderr
+    from shared.robots.hands import load_hand
+    from shared.world.objects import load_object
+    from shared.world.sim import PhysicsParams, c_stdout_to_stderr
 
     params = dataclasses.replace(PhysicsParams(), solver_iterations=solver[0], time_step_s=1.0 / solver[1])
     cpu_started = time.process_time()
@@ -127,7 +127,7 @@ def run_chunk(task: tuple) -> dict:
 def _warm_worker(_: int) -> None:
     """Import the simulator and load both hands in a pool worker, so the timing excludes start-up."""
     import services.validator.validator  # noqa: F401  (the import is the warm-up)
-    from shared.hands import load_hand
+    from shared.robots.hands import load_hand
 
     for hand in HANDS:
         load_hand(hand)
@@ -184,7 +184,7 @@ def parse_solver(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from shared.sim import PhysicsParams
+    from shared.world.sim import PhysicsParams
 
     defaults = PhysicsParams()
     chosen = (defaults.solver_iterations, round(1.0 / defaults.time_step_s))

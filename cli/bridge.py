@@ -69,8 +69,8 @@ def _estop(args: argparse.Namespace) -> int:
 
     from services.robot_bridge.bus_safety import ESTOP_KEY
     from shared.bus import BusConfig, BusError, open_session
-    from shared.codec import encode
-    from shared.messages import EStop
+    from shared.contracts.codec import encode
+    from shared.contracts.messages import EStop
 
     payload, encoding = encode(EStop(reason=args.reason, issued_by=getpass.getuser()))
     try:

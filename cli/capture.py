@@ -66,8 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_capture(args: argparse.Namespace) -> int:
-    from shared.objects import ObjectLoadError
-    from shared.perception import PerceptionError
+    from shared.world.objects import ObjectLoadError
+    from shared.world.perception import PerceptionError
 
     try:
         summary = capture(args)
@@ -85,7 +85,7 @@ def run_capture(args: argparse.Namespace) -> int:
 
 def capture(args: argparse.Namespace) -> dict:
     """Check the arguments, capture, write the cloud (and plot); returns the summary."""
-    from shared.perception import CLOUD_SUFFIXES, save_cloud
+    from shared.world.perception import CLOUD_SUFFIXES, save_cloud
 
     size = parse_size(args.size)
     if args.out.suffix.lower() not in CLOUD_SUFFIXES:
@@ -109,9 +109,9 @@ def capture(args: argparse.Namespace) -> dict:
 
 def _capture(object_arg: str, pose: tuple[float, float, float], cameras: int, seed: int, size: tuple[int, int], noisy: bool):
     from shared.frames import make_transform
-    from shared.objects import load_object
-    from shared.sim import c_stdout_to_stderr
-    from shared.sim.camera import StereoDepthNoise, capture_object
+    from shared.world.objects import load_object
+    from shared.world.sim import c_stdout_to_stderr
+    from shared.world.sim.camera import StereoDepthNoise, capture_object
 
     with c_stdout_to_stderr():  # PyBullet prints on file descriptor 1
         obj = load_object(object_arg)

@@ -81,7 +81,7 @@ def _register_stats(commands: argparse._SubParsersAction) -> None:
 # ============================================================================= build
 def run_build(args: argparse.Namespace) -> int:
     from services.validator.data_engine import BuildError, BuildSettings, select_objects
-    from shared.dataset_store import DatasetStore, StoreError
+    from shared.data.dataset_store import DatasetStore, StoreError
 
     try:
         check_build_flags(args)
@@ -109,7 +109,7 @@ def run_build(args: argparse.Namespace) -> int:
 
 def check_build_flags(args: argparse.Namespace) -> None:
     """FlagError (naming the flags) unless every job the build will send is within the services' limits."""
-    from shared.messages import GenerationJob
+    from shared.contracts.messages import GenerationJob
 
     validate_fields(GenerationJob, {"batch_size": args.per_object, "iterations": args.iterations, "hand": args.hand},
                     GENERATION_FLAGS, command="dataset build")
@@ -240,7 +240,7 @@ def _print_build_summary(s: dict) -> None:
 
 # ============================================================================= stats
 def run_stats(args: argparse.Namespace) -> int:
-    from shared.dataset_store import DatasetStore, StoreError
+    from shared.data.dataset_store import DatasetStore, StoreError
 
     try:
         store = DatasetStore.open(args.directory)
@@ -318,7 +318,7 @@ def plot_joint_histograms(store, path: Path) -> None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from shared.hands import load_hand
+    from shared.robots.hands import load_hand
 
     table = store.rows(columns=["pose"])
     poses = (np.asarray(table.column("pose").combine_chunks().flatten().to_numpy(zero_copy_only=False),

@@ -11,7 +11,7 @@
 
 World (`--world`, methods / leap / multistep): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
-the object off its told pose (shared/sim/world.py documents each range); `exact` executes in the
+the object off its told pose (shared/world/sim/world.py documents each range); `exact` executes in the
 planner's own world. Results go to `<out>/<experiment>-<world>/`.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and

@@ -44,7 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_generate(args: argparse.Namespace) -> int:
-    from shared.messages import GenerationJob
+    from shared.contracts.messages import GenerationJob
 
     try:
         validate_fields(GenerationJob, {"seed": args.seed, "iterations": args.iterations, "contacts_per_pose": args.contacts},
@@ -60,7 +60,7 @@ def run_generate(args: argparse.Namespace) -> int:
     from services.generator.plots import plot_energy_history
     from services.generator.scene import PushScene
     from services.generator.synthesis import GenerationError, generate
-    from shared.objects import ObjectLoadError, load_object
+    from shared.world.objects import ObjectLoadError, load_object
 
     torch.set_num_threads(args.threads)
     try:

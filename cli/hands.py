@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def hand_info(name: str) -> dict:
     """The `hands info` record for one hand (importable for other tools)."""
-    from shared.hands import load_hand  # heavy (torch, pytorch_kinematics): only when the command runs
+    from shared.robots.hands import load_hand  # heavy (torch, pytorch_kinematics): only when the command runs
 
     hand = load_hand(name)
     regions = hand.contact_candidates.indices_by_region()
@@ -41,7 +41,7 @@ def hand_info(name: str) -> dict:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from shared.hands import HandModelError
+    from shared.robots.hands import HandModelError
 
     try:
         info = hand_info(args.name)

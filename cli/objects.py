@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _list(args: argparse.Namespace) -> int:
-    from shared.objects import list_objects
+    from shared.world.objects import list_objects
 
     infos = list_objects(args.split, progress=sys.stderr.isatty())
     if args.json:

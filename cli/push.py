@@ -83,8 +83,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def object_ref(args: argparse.Namespace):
     """The ObjectRef of --object (library id or mesh file) or --cloud (CloudFileError for a bad file)."""
-    from shared.messages import MeshBlob, ObjectRef
-    from shared.perception import cloud_for_request, load_cloud
+    from shared.contracts.messages import MeshBlob, ObjectRef
+    from shared.world.perception import cloud_for_request, load_cloud
 
     if getattr(args, "cloud", None) is not None:
         return ObjectRef(point_cloud=cloud_for_request(load_cloud(args.cloud).points))
@@ -100,10 +100,10 @@ def build_request(args: argparse.Namespace):
 
     import numpy as np
 
+    from shared.contracts.messages import CircleObstacle, PushRequest
     from shared.frames import make_transform
-    from shared.messages import CircleObstacle, PushRequest
-    from shared.object_refs import load_object_ref
-    from shared.push_outcome import object_pose
+    from shared.world.object_refs import load_object_ref
+    from shared.world.push_outcome import object_pose
 
     ref = object_ref(args)
     if ref.point_cloud is not None and args.position is not None:
@@ -125,10 +125,10 @@ def run_push(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from cli.args import describe_validation_error
+    from client.push_client import PushFailed, PushOutcomeUnknown, push
     from shared.bus import BusConfig
     from shared.bus.errors import BusError
-    from shared.objects import ObjectLoadError
-    from shared.push_client import PushFailed, PushOutcomeUnknown, push
+    from shared.world.objects import ObjectLoadError
 
     try:
         request = build_request(args)
@@ -170,7 +170,7 @@ def response_json(response) -> dict:
     import numpy as np
     from pydantic import BaseModel
 
-    from shared.messages import NDArray, Plan
+    from shared.contracts.messages import NDArray, Plan
 
     def convert(value):
         if isinstance(value, Plan):

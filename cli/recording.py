@@ -8,7 +8,7 @@ import sys
 import time
 
 from cli.args import non_negative_float
-from shared.recording import Record, RecordingError, read_records, replay
+from visualisation.recording import Record, RecordingError, read_records, replay
 
 CLI_CONNECT_TIMEOUT_MS = 5000
 

@@ -202,7 +202,7 @@ def run_sample(args: argparse.Namespace) -> int:
 
 def check_sample_flags(args: argparse.Namespace) -> None:
     """FlagError (naming the flags) unless the options are within the sampler service's limits (SampleRequest)."""
-    from shared.messages import SampleRequest
+    from shared.contracts.messages import SampleRequest
 
     validate_fields(SampleRequest, {"k": args.n, "steps": args.steps, "seed": args.seed, "sampler": args.sampler},
                     SAMPLE_FLAGS, command="sample")
@@ -240,11 +240,11 @@ def _object_and_frame(args: argparse.Namespace) -> tuple:
     """(ObjectModel, DirectionFrame, what the sampler encodes): a library object or mesh in its default
     placement; a point cloud reconstructed where it stands, its own points encoded."""
     from services.sampler.sampling import default_frame
-    from shared.messages import DirectionFrame, ObjectRef
-    from shared.object_refs import captured_object
-    from shared.objects import ObjectLoadError, load_object
-    from shared.perception import PerceptionError, bps_points, cloud_for_request, load_cloud
-    from shared.push_outcome import object_pose
+    from shared.contracts.messages import DirectionFrame, ObjectRef
+    from shared.world.object_refs import captured_object
+    from shared.world.objects import ObjectLoadError, load_object
+    from shared.world.perception import PerceptionError, bps_points, cloud_for_request, load_cloud
+    from shared.world.push_outcome import object_pose
 
     try:
         if args.cloud is None:
@@ -315,8 +315,8 @@ def validate_sampled_poses(obj, hand_name: str, poses_d: np.ndarray, frame, prog
     from services.validator.push import table_object
     from services.validator.validator import Validator
     from shared.frames import object_yaw_in_d
-    from shared.hands import load_hand
-    from shared.sim import c_stdout_to_stderr
+    from shared.robots.hands import load_hand
+    from shared.world.sim import c_stdout_to_stderr
 
     hand = load_hand(hand_name)
     with c_stdout_to_stderr():  # PyBullet prints on file descriptor 1

@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from shared.render import RenderError
+    from visualisation.render import RenderError
 
     try:
         path, summary = show(args)
@@ -66,8 +66,8 @@ def run_show(args: argparse.Namespace) -> int:
 
 def show(args: argparse.Namespace) -> tuple[Path, str]:
     """Build the scene described by the arguments and write the PNG; returns (path, summary)."""
-    from shared.render import render_scene, views_by_name
-    from shared.sim import c_stdout_to_stderr
+    from shared.world.sim import c_stdout_to_stderr
+    from visualisation.render import render_scene, views_by_name
 
     size = parse_size(args.size)
     views = views_by_name([v.strip() for v in args.views.split(",") if v.strip()])
@@ -105,7 +105,7 @@ def show_scene(obj, T_D_O: np.ndarray, hand, poses_d: np.ndarray, labels: list[s
     Several hands are drawn see-through (alpha MULTI_POSE_ALPHA) so the object stays visible.
     """
     from shared.frames import direction_frame, poses_d_to_world
-    from shared.render import (
+    from visualisation.render import (
         CANDIDATE_COLORS,
         HAND_COLORS,
         MARKER_RGBA,
@@ -153,7 +153,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def _load_object(object_id: str):
-    from shared.objects import ObjectLoadError, load_object
+    from shared.world.objects import ObjectLoadError, load_object
 
     try:
         return load_object(object_id)
@@ -187,7 +187,7 @@ def _hand_and_poses(args: argparse.Namespace, object_vertices_d: np.ndarray):
         return None, np.zeros((0, 25)), []
     hand = _load_hand(args.hand)
     if args.fixed_pose is not None:
-        from shared.fixed_poses import spatula_pose
+        from shared.world.fixed_poses import spatula_pose
 
         return hand, spatula_pose(hand, object_vertices_d)[None], [0]
     poses = _read_poses(args.poses)
@@ -195,7 +195,7 @@ def _hand_and_poses(args: argparse.Namespace, object_vertices_d: np.ndarray):
 
 
 def _load_hand(name: str):
-    from shared.hands import HandModelError, load_hand
+    from shared.robots.hands import HandModelError, load_hand
 
     try:
         return load_hand(name)

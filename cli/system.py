@@ -79,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def worker_statuses(session, service: str | None = None, worker_id: str | None = None, timeout: float = 5.0) -> list:
     """WorkerStatus of every worker of `service` (of `worker_id` only, if given) that answers in time."""
     from shared.bus import health
-    from shared.messages import WorkerStatus
+    from shared.contracts.messages import WorkerStatus
 
     statuses = [s for s in health(session, service, timeout=timeout) if isinstance(s, WorkerStatus)]
     return [s for s in statuses if worker_id is None or s.worker_id == worker_id]
@@ -263,9 +263,9 @@ def run_demo(args: argparse.Namespace) -> int:
 
 def _demo_push(launcher, method: str) -> bool:
     from cli.push import describe
+    from client.push_client import PushFailed, push
     from shared.bus import BusConfig
-    from shared.messages import ObjectRef, PushRequest
-    from shared.push_client import PushFailed, push
+    from shared.contracts.messages import ObjectRef, PushRequest
 
     request = PushRequest(object=ObjectRef(library_id=DEMO_OBJECT), direction_deg=DEMO_DIRECTION_DEG,
                           distance_m=DEMO_DISTANCE_M, method=method)

@@ -70,10 +70,10 @@ def run_validate(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> dict:
     from services.validator.push import table_object
     from services.validator.validator import Validator, placement_offsets
-    from shared.fixed_poses import spatula_pose
-    from shared.hands import load_hand
-    from shared.objects import ObjectLoadError, load_object
-    from shared.sim import PhysicsParams, c_stdout_to_stderr
+    from shared.robots.hands import load_hand
+    from shared.world.fixed_poses import spatula_pose
+    from shared.world.objects import ObjectLoadError, load_object
+    from shared.world.sim import PhysicsParams, c_stdout_to_stderr
 
     params = _params(PhysicsParams(), args)
     with c_stdout_to_stderr():  # PyBullet and V-HACD print on file descriptor 1
@@ -124,7 +124,7 @@ def read_poses(path: Path) -> np.ndarray:
 
 def check_flags(args: argparse.Namespace) -> None:
     """FlagError (naming the flags) unless the options are within the validator service's limits."""
-    from shared.messages import PhysicsSettings, ValidationJob
+    from shared.contracts.messages import PhysicsSettings, ValidationJob
 
     problems = []
     for model, values, flags in ((ValidationJob, {"push_distance_m": args.distance, "seed": args.seed}, JOB_FLAGS),

@@ -39,8 +39,8 @@ import zenoh
 from shared.bus import DEFAULT_ROUTER_ENDPOINT, BusConfig, BusError, RemoteError, live_workers, open_session
 from shared.bus.interfaces import LAUNCHER_CONTROL_KEY as CONTROL_KEY  # the control key, as the registry spells it
 from shared.bus.interfaces import SERVICES  # the services the launcher runs, in start order
-from shared.codec import CodecError, decode, encode
-from shared.messages import ErrorReply, Message, ScaleReply, ScaleRequest
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import ErrorReply, Message, ScaleReply, ScaleRequest
 
 log = logging.getLogger("gd2p.launcher")
 

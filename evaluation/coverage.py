@@ -229,7 +229,7 @@ def _validator():
 
 
 def _hand(name: str):
-    from shared.hands import load_hand
+    from shared.robots.hands import load_hand
 
     hands = _WORKER_STATE.setdefault("hands", {})
     if name not in hands:
@@ -242,7 +242,7 @@ def measure_object(source: PoseSource, object_id: str, settings: CoverageSetting
     from services.sampler.sampling import default_frame
     from services.validator.push import table_object
     from shared.frames import object_yaw_in_d
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     started = time.perf_counter()
     obj = load_object(object_id)

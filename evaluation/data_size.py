@@ -80,7 +80,7 @@ QUICK = DataSizeSettings(fractions=(0.2, 1.0), seeds=(0,), train_steps=200, test
 
 def object_subset(count: int, seed: int = SUBSET_SEED) -> list[str]:
     """A fixed, seeded subset of `count` test-split objects (a larger count extends a smaller one)."""
-    from shared.objects import list_object_ids
+    from shared.world.objects import list_object_ids
 
     ids = list_object_ids("test")
     if not 1 <= count <= len(ids):

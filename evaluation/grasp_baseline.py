@@ -20,10 +20,10 @@ import numpy as np
 from services.generator.config import GenerationConfig
 from services.generator.synthesis import generate
 from shared.atomic import atomic_writer
+from shared.contracts.messages import SampleRequest, SampleResponse
 from shared.frames import direction_frame, direction_xy, invert_transform, poses_d_to_world, transform_poses
-from shared.messages import SampleRequest, SampleResponse
-from shared.objects import load_object
-from shared.push_outcome import pose_matrix
+from shared.world.objects import load_object
+from shared.world.push_outcome import pose_matrix
 
 GENERATED = 64
 OFFERED = 16

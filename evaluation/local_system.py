@@ -9,7 +9,7 @@ baselines that have no service of their own (the grasp-pose baseline) enter the 
 
 The simulated bridge here also watches the object against the obstacles while a plan runs (the
 bus bridge reports robot contacts only); multi-step evaluation needs both. It executes in the
-trial's execution world (`LocalRobot.execution_world`, `shared.sim.world`): physics and an object
+trial's execution world (`LocalRobot.execution_world`, `shared.world.sim.world`): physics and an object
 pose the planner was not told. The simulated robot is always reset to the truth, and this module
 computes it (`true_world`): the true object at its true pose, with the world's physics.
 """
@@ -31,7 +31,7 @@ from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
 from services.sampler.service import SamplerService
 from services.validator.service import validate
 from shared.bus.errors import ServiceError
-from shared.messages import (
+from shared.contracts.messages import (
     ExecutionCommand,
     ExecutionState,
     ObjectRef,
@@ -41,8 +41,8 @@ from shared.messages import (
     SimWorld,
     ValidationJob,
 )
-from shared.push_outcome import object_pose, pose_matrix
-from shared.sim.world import ExecutionWorld
+from shared.world.push_outcome import object_pose, pose_matrix
+from shared.world.sim.world import ExecutionWorld
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 

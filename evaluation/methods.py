@@ -22,8 +22,8 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import ResultStore
-from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M
-from shared.sim.world import WorldLevel
+from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M
+from shared.world.sim.world import WorldLevel
 
 QUICK_OBJECTS = ("proc-box-001", "pb-mug")
 # For tuning (`--split val`): two val objects of each procedural family and two random shapes, as many
@@ -224,7 +224,7 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
                        ("All avg.", "success_rate")):
         rows.append([f"**{label}**"] + [_share(averages[m][key], ".2f") if d == spec.directions[0] else ""
                                         for m in spec.methods for d in spec.directions])
-    text = (f"World `{spec.world}` (`shared.sim.world`): "
+    text = (f"World `{spec.world}` (`shared.world.sim.world`): "
             + ("each trial executes in physics the planner does not know"
                + ("" if spec.cameras else ", with the object off the told pose") + ". "
                if spec.world == "real" else "each trial executes in the planner's own world. ")

@@ -6,7 +6,7 @@ plane around the obstacle, then one GD2P push per path edge, each planned from t
 observed after the previous one. Success: the object's centre ends within 0.03 m of the goal, it
 did not topple, and nothing — robot or object — touched the obstacle (watched in the simulated
 robot while every plan runs). Each run executes in its own execution world (`--world`, as the
-methods experiment: `shared.sim.world`), drawn once for all its pushes.
+methods experiment: `shared.world.sim.world`), drawn once for all its pushes.
 """
 from __future__ import annotations
 
@@ -24,11 +24,11 @@ from evaluation import push_protocol as protocol
 from evaluation.report import CODE_AT_START, markdown_table, write_experiment
 from evaluation.stats import success_interval
 from evaluation.store import ResultStore
+from shared.contracts.messages import CircleObstacle, ObjectRef, PushRequest
 from shared.frames import make_transform, yaw_rotation
-from shared.messages import CircleObstacle, ObjectRef, PushRequest
-from shared.objects import load_object
-from shared.push_outcome import SUCCESS_POSITION_TOLERANCE_M, object_pose, pose_matrix
-from shared.sim.world import ExecutionWorld, WorldLevel, sample_world
+from shared.world.objects import load_object
+from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, object_pose, pose_matrix
+from shared.world.sim.world import ExecutionWorld, WorldLevel, sample_world
 
 TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`"
 PLOT_FILE = "object_paths.png"
@@ -159,7 +159,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
                      sum(r["outcome"] in ("infeasible", "error") for r in rs)])
     interval = success_interval(records)
     rate = interval.value
-    body = (f"World `{world}` (`shared.sim.world`). Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
+    body = (f"World `{world}` (`shared.world.sim.world`). Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
             f"at most {MAX_PUSH_M:.2f} m, at most {MAX_STEPS} pushes. Success: within "
             f"{SUCCESS_POSITION_TOLERANCE_M:.2f} m of the goal, not toppled, no robot or object contact with the "
             f"obstacle.\n\n**Success: {rate:.0%}** ({sum(r['success'] for r in records)}/{len(records)}; 95% interval clustered "

@@ -6,17 +6,17 @@ directions evenly spread around a circle, one of them the pull toward the robot 
 per direction with the object placed again each time (a few mm and degrees of placement noise, as a
 person re-placing it), a 0.20 m push planned and executed with the arm. A trial succeeds when the
 object's centre ends within 0.03 m of the target, it turned ≤ 45° and did not topple
-(`shared.push_outcome.judge_push`, from the object's true start); "–" marks a trial with no
+(`shared.world.push_outcome.judge_push`, from the object's true start); "–" marks a trial with no
 kinematically feasible plan, counted as a failure. The hand keeping contact throughout is not
 judged separately: a 0.20 m push that ends within 3 cm of its target has kept the object in front
 of the hand.
 
-The execution world (`--world`, `shared.sim.world`): each trial draws one from its own seed — the
+The execution world (`--world`, `shared.world.sim.world`): each trial draws one from its own seed — the
 same draw for every method, so methods face identical trials. Under `real` the robot executes in
 physics the planner does not know (friction, mass, centre of mass, controller) and the object
 stands where the planner was not told (±1 cm, ±5°); under `exact` it executes in the planner's world.
 With `--cameras N` (1-3) the system is not told the object at all: it receives the point cloud N
-simulated depth cameras capture of the object at its true pose (`shared.sim.camera`, seeded per
+simulated depth cameras capture of the object at its true pose (`shared.world.sim.camera`, seeded per
 trial) and plans around its own reconstruction; the robot still executes on the true object.
 
 Methods: every pose source runs through the same pipeline, (a) with the plans ranked by arm rollouts
@@ -49,12 +49,12 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
+from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
 from shared.frames import direction_xy, make_transform, yaw_rotation
-from shared.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
-from shared.objects import load_object, split_of
-from shared.push_outcome import judge_push, object_pose
-from shared.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
-from shared.sim.world import half_extents as world_half_extents
+from shared.world.objects import load_object, split_of
+from shared.world.push_outcome import judge_push, object_pose
+from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
+from shared.world.sim.world import half_extents as world_half_extents
 
 PROCEDURAL_OBJECTS = ("proc-box-000", "proc-box-001", "proc-box-002", "proc-cylinder-000", "proc-cylinder-001",
                       "proc-ellipsoid-001", "proc-cone-000", "proc-hull-001")
@@ -181,8 +181,8 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
 
 def captured_cloud(episode: Episode) -> np.ndarray:
     """The cloud `episode.cameras` depth cameras capture of the object at its true pose (seeded per trial)."""
-    from shared.perception import cloud_for_request
-    from shared.sim.camera import capture_object
+    from shared.world.perception import cloud_for_request
+    from shared.world.sim.camera import capture_object
 
     T_true = execution_world(episode).pose_error.true_pose(placement(episode))
     capture = capture_object(load_object(episode.object_id), T_true, n_cameras=episode.cameras, seed=episode.world_seed)

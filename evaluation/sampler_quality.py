@@ -74,7 +74,7 @@ def nearest_neighbor_index(cache_dir: Path, dataset_dir: Path = DEFAULT_DATASET,
 
 def quality_objects(quick: bool = False) -> list[str]:
     """The test split's object ids (the first QUICK_OBJECTS with `quick`)."""
-    from shared.objects import list_object_ids
+    from shared.world.objects import list_object_ids
 
     ids = list_object_ids("test")
     return ids[:QUICK_OBJECTS] if quick else ids

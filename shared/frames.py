@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from typing_extensions import TypeIs
 
 if TYPE_CHECKING:
-    from shared.messages import DirectionFrame
+    from shared.contracts.messages import DirectionFrame
 
 Array = np.ndarray | torch.Tensor
 A = TypeVar("A", np.ndarray, torch.Tensor)  # the functions on both kinds return the kind they are given
@@ -302,7 +302,7 @@ def direction_yaw_deg(T_world_D: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------- DirectionFrame messages
 # (duck-typed: anything with `object_pose.position`, `object_pose.quaternion_xyzw`, `yaw_deg` and
-# `direction_xy`, i.e. shared.messages.DirectionFrame, which this module does not import)
+# `direction_xy`, i.e. shared.contracts.messages.DirectionFrame, which this module does not import)
 
 
 def frame_transform(frame: DirectionFrame) -> np.ndarray:

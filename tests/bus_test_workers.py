@@ -13,7 +13,7 @@ import time
 
 from shared.bus import BusConfig, ServiceError, run_worker
 from shared.bus.worker import check_deadline
-from shared.messages import Message
+from shared.contracts.messages import Message
 
 SERVICE = "bustest"
 TESTS_DIR = os.path.dirname(os.path.abspath(__file__))

@@ -6,7 +6,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from shared.dataset_store import DatasetStore
+from shared.data.dataset_store import DatasetStore
 
 
 def write_pose_store(directory: Path, rows: pa.Table) -> Path:

@@ -9,7 +9,8 @@ import torch
 from pybullet_utils.bullet_client import BulletClient
 from scipy.spatial.transform import Rotation
 
-from shared.arms import (
+from shared.frames import matrix_to_pose25
+from shared.robots.arms import (
     ADAPTER_THICKNESS_M,
     ArmModelError,
     combined_urdf,
@@ -17,8 +18,7 @@ from shared.arms import (
     mount,
     mount_joint_name,
 )
-from shared.frames import matrix_to_pose25
-from shared.hands import load_hand
+from shared.robots.hands import load_hand
 
 ARMS = ("panda", "xarm7")
 

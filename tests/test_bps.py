@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from shared.bps import DEFAULT_BASIS_SIZE, DEFAULT_RADIUS_M, BasisPointSet, BPSError
+from shared.world.bps import DEFAULT_BASIS_SIZE, DEFAULT_RADIUS_M, BasisPointSet, BPSError
 
 
 def cloud(n: int = 2048, seed: int = 0, scale: float = 0.08) -> np.ndarray:

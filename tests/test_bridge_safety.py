@@ -35,8 +35,8 @@ from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xar
 from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus.keys import alive_key
 from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present
-from shared.codec import encode
-from shared.messages import ErrorReply, EStop, ExecutionCommand, Plan
+from shared.contracts.codec import encode
+from shared.contracts.messages import ErrorReply, EStop, ExecutionCommand, Plan
 
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
 HAND_OPEN = np.zeros(16)
@@ -447,7 +447,7 @@ def test_the_estop_stops_before_it_decodes_and_whatever_decoding_does(robot, pla
 
 def test_gd2p_bridge_estop_publishes_an_estop(zenoh_router):
     from cli.main import main
-    from shared.codec import decode
+    from shared.contracts.codec import decode
 
     received: list[EStop] = []
     with client(zenoh_router) as listener:

@@ -29,8 +29,8 @@ from shared.bus import (
     parse_alive_key,
     status_key,
 )
-from shared.codec import decode, encode
-from shared.messages import ErrorReply, HealthQuery, WorkerStatus
+from shared.contracts.codec import decode, encode
+from shared.contracts.messages import ErrorReply, HealthQuery, WorkerStatus
 
 pytestmark = pytest.mark.timeout(60)
 

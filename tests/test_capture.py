@@ -1,4 +1,4 @@
-"""Simulated RGB-D capture (shared.sim.camera) and `gd2p capture`: metric depth, the documented
+"""Simulated RGB-D capture (shared.world.sim.camera) and `gd2p capture`: metric depth, the documented
 noise model, reproducibility by seed, and the files the command writes."""
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import trimesh
 
 from cli.main import main
 from shared.frames import make_transform
-from shared.objects import load_object
-from shared.perception import load_cloud, reconstruct
-from shared.sim.camera import DEFAULT_SIZE, StereoDepthNoise, capture_object, default_cameras
+from shared.world.objects import load_object
+from shared.world.perception import load_cloud, reconstruct
+from shared.world.sim.camera import DEFAULT_SIZE, StereoDepthNoise, capture_object, default_cameras
 
 SIZE = (160, 120)
 

@@ -83,7 +83,7 @@ def test_generate_yaw_nan_exits_2_without_a_traceback():
 
 # ----------------------------------------------------------------------------- model errors named by flag
 def test_a_request_models_validation_error_is_described_by_flag():
-    from shared.messages import CircleObstacle, ObjectRef, PushRequest
+    from shared.contracts.messages import CircleObstacle, ObjectRef, PushRequest
 
     with pytest.raises(ValidationError) as caught:
         PushRequest(object=ObjectRef(library_id=BOX), distance_m=2.0, k=0,
@@ -98,7 +98,7 @@ def test_a_request_models_validation_error_is_described_by_flag():
 
 
 def test_validate_fields_checks_only_the_given_fields_with_the_models_limits():
-    from shared.messages import PhysicsSettings, SampleRequest
+    from shared.contracts.messages import PhysicsSettings, SampleRequest
 
     assert validate_fields(SampleRequest, {"k": 1000, "seed": 0}, {"k": "--n"}) == {"k": 1000, "seed": 0}
     with pytest.raises(FlagError) as caught:

@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from shared import messages as m
-from shared.codec import CodecError, check_payload_size, decode, encode, encoding_for, payload_limit
+from shared.contracts import messages as m
+from shared.contracts.codec import CodecError, check_payload_size, decode, encode, encoding_for, payload_limit
 
 # --- strategies --------------------------------------------------------------------------------
 
@@ -409,7 +409,7 @@ def test_oversized_payload_is_refused_before_unpacking(monkeypatch):
 
     limit = m.DEFAULT_MAX_PAYLOAD_BYTES
     big = b"\x00" * (limit + 1)
-    monkeypatch.setattr("shared.codec.msgpack.unpackb", unpack)
+    monkeypatch.setattr("shared.contracts.codec.msgpack.unpackb", unpack)
     with pytest.raises(CodecError, match=f"ValidationJob payload of {limit + 1} bytes exceeds the limit of {limit} bytes"):
         decode(big, encoding_for(m.ValidationJob))
     with pytest.raises(CodecError, match="exceeds the limit"):

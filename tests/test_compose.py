@@ -8,6 +8,7 @@ override (deploy/secure/docker-compose.secure.yml) gives each container only its
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib.metadata
 import importlib.util
 import json
@@ -109,6 +110,19 @@ def test_dockerfile_installs_pinned_cpu_torch_first_and_runs_unprivileged():
     assert torch_at < project_at
     users = re.findall(r"^USER\s+(\S+)", dockerfile, re.M)
     assert users and users[-1] not in ("root", "0")
+
+
+def test_the_image_holds_every_project_package_a_service_imports():
+    copied = set(re.findall(r"^COPY\s+(\w+)\s+\./\1\s*$", (ROOT / "Dockerfile").read_text(), re.M))
+    project = {p.name for p in ROOT.iterdir() if (p / "__init__.py").is_file()}
+    imported = set()
+    for path in (ROOT / "services").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                imported.add(node.module.split(".")[0])
+    assert {"shared", "services", "visualisation"} <= imported & project <= copied
 
 
 def test_compose_scale_command():

@@ -22,7 +22,7 @@ import pytest
 from cli.main import main as gd2p
 from services.sampler.dataset import load_pose_dataset
 from services.validator.data_engine import SCHEMA, BuildError, select_objects
-from shared.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
+from shared.data.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
 
 REPO = Path(__file__).resolve().parents[1]
 OBJECTS = ["proc-box-003", "proc-box-004", "proc-cylinder-003"]

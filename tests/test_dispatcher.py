@@ -9,7 +9,7 @@ import pytest
 
 import bus_test_workers as tw
 from shared.bus import BusConfig, BusError, Dispatcher, DispatchError, RemoteError, alive_key, job_key, open_session
-from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply
+from shared.contracts.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply
 
 pytestmark = pytest.mark.timeout(60)
 

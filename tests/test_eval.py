@@ -11,10 +11,10 @@ from evaluation import push_protocol as protocol
 from evaluation.grasp_baseline import GraspPoseSource
 from evaluation.report import markdown_table, write_experiment, write_index
 from evaluation.store import ResultStore, ResultStoreError
+from shared.contracts.messages import DirectionFrame, ObjectRef, SampleRequest
 from shared.frames import direction_frame, direction_xy, invert_transform, pose25_to_matrix
-from shared.messages import DirectionFrame, ObjectRef, SampleRequest
-from shared.objects import load_object
-from shared.push_outcome import object_pose, pose_matrix
+from shared.world.objects import load_object
+from shared.world.push_outcome import object_pose, pose_matrix
 
 
 def test_store_resumes_and_survives_a_torn_line(tmp_path):
@@ -71,8 +71,8 @@ def test_every_method_faces_the_same_execution_world_and_trials_differ():
 
 def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
     from evaluation.local_system import true_world
-    from shared.messages import SimWorld
-    from shared.sim.world import PoseError
+    from shared.contracts.messages import SimWorld
+    from shared.world.sim.world import PoseError
 
     episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0, cameras=1)
     request = protocol.push_request(episode)
@@ -93,7 +93,7 @@ def test_a_trial_is_judged_from_where_the_object_truly_started():
     ends 2 cm from the target the planner computed from the told pose."""
     from dataclasses import replace
 
-    from shared.sim.world import PoseError
+    from shared.world.sim.world import PoseError
 
     episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0)
     world = replace(protocol.execution_world(episode), pose_error=PoseError(0.02, 0.0, 0.0))
@@ -157,7 +157,7 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
     from evaluation import multistep
     from evaluation.local_system import Contacts
     from services.planner.outcome import PushError
-    from shared.messages import ObjectPose
+    from shared.contracts.messages import ObjectPose
 
     moved = [SimpleNamespace(step=SimpleNamespace(result=SimpleNamespace(final_object_pose=ObjectPose(position=p))))
              for p in [(0.45, 0.0, 0.04), (0.47, 0.1, 0.04)]]

@@ -18,9 +18,9 @@ from evaluation.store import ResultStore, ResultStoreError
 from services.validator.augment import halton_perturbations
 from services.validator.push import table_object
 from services.validator.validator import Validator
-from shared.fixed_poses import spatula_pose
-from shared.hands import load_hand
-from shared.objects import load_object, split_of
+from shared.robots.hands import load_hand
+from shared.world.fixed_poses import spatula_pose
+from shared.world.objects import load_object, split_of
 
 BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm: the spatula pose pushes it to the goal
 

@@ -19,7 +19,7 @@ from services.generator.init import initial_poses, palm_center_base, sample_cont
 from services.generator.optimizer import AnnealingOptimizer
 from services.generator.scene import PushScene
 from services.generator.synthesis import generate, hand_geometry
-from shared.hands import load_hand
+from shared.robots.hands import load_hand
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -49,7 +49,7 @@ def box_file(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def box(box_file, cache_dir):
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     return PushScene.from_object(load_object(box_file, cache_dir=cache_dir))
 
@@ -287,7 +287,7 @@ def test_optimising_a_box_gives_low_energy_push_poses(box, hand):
 
 
 def _job(box_file, **changes):
-    from shared.messages import GenerationJob, MeshBlob, ObjectRef
+    from shared.contracts.messages import GenerationJob, MeshBlob, ObjectRef
 
     fields = dict(object=ObjectRef(mesh=MeshBlob.from_file(str(box_file))), hand="allegro", batch_size=3, seed=7,
                   iterations=10)
@@ -297,7 +297,7 @@ def _job(box_file, **changes):
 
 def test_service_answers_a_job_deterministically(box_file, cache_dir, monkeypatch):
     from services.generator.service import handlers
-    from shared.messages import GenerationJob, GenerationResult
+    from shared.contracts.messages import GenerationJob, GenerationResult
 
     monkeypatch.setenv("GD2P_CACHE_DIR", str(cache_dir))
     handle = handlers()[GenerationJob]
@@ -312,7 +312,7 @@ def test_service_answers_a_job_deterministically(box_file, cache_dir, monkeypatc
 def test_service_rejects_a_point_cloud_with_a_clear_error():
     from services.generator.service import run_job
     from shared.bus import ServiceError
-    from shared.messages import GenerationJob, ObjectRef
+    from shared.contracts.messages import GenerationJob, ObjectRef
 
     job = GenerationJob(object=ObjectRef(point_cloud=np.zeros((5, 3), np.float32)), hand="allegro", batch_size=2)
     with pytest.raises(ServiceError, match="point cloud"):
@@ -322,7 +322,7 @@ def test_service_rejects_a_point_cloud_with_a_clear_error():
 @pytest.mark.slow
 def test_generation_job_through_the_dispatcher(zenoh_router, box_file, cache_dir, box):
     from shared.bus import BusConfig, Dispatcher, open_session
-    from shared.messages import GenerationResult
+    from shared.contracts.messages import GenerationResult
 
     env = dict(os.environ, GD2P_CACHE_DIR=str(cache_dir), PYTHONPATH=REPO)
     worker = subprocess.Popen([sys.executable, "-m", "services.generator", "--connect", zenoh_router,
@@ -359,7 +359,7 @@ def test_cli_writes_the_documented_json_and_plot(box_file, cache_dir, tmp_path, 
 def test_initialisation_starts_behind_objects_whose_push_side_is_a_sliver(hand):
     """rnd-648's push side is a sliver of its inflated hull (1 of 8 start points by plain rejection,
     which failed its dataset build): start poses are still found, all behind the object."""
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     scene = PushScene.from_object(load_object("rnd-648"))
     for seed in (1, 3, 8):  # seeds on which plain rejection sampling found too few start points

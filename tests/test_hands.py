@@ -13,9 +13,9 @@ from pybullet_utils.bullet_client import BulletClient
 from scipy.spatial.transform import Rotation
 
 from shared.frames import matrix_to_r6
-from shared.hands import HandModelError, load_hand
-from shared.hands.leap_urdf import ASSET_PATH, build_leap_urdf
-from shared.hands.urdf import xyz_rpy_to_matrix
+from shared.robots.hands import HandModelError, load_hand
+from shared.robots.hands.leap_urdf import ASSET_PATH, build_leap_urdf
+from shared.robots.hands.urdf import xyz_rpy_to_matrix
 
 HANDS = ("allegro", "leap")
 
@@ -250,7 +250,7 @@ def test_allegro_primitives_cover_its_visual_meshes():
 
 
 def test_leap_asset_matches_its_generator():
-    assert ASSET_PATH.read_text() == build_leap_urdf(), "run: python -m shared.hands.leap_urdf"
+    assert ASSET_PATH.read_text() == build_leap_urdf(), "run: python -m shared.robots.hands.leap_urdf"
 
 
 def test_pybullet_base_conversion_round_trips():

@@ -3,7 +3,7 @@
 - offline: every key of shared/bus/keys.py has its row; every row's declarers and callers are exactly
   what the secure profile's rules allow, and the rules grant nothing more than the rows (but the grants
   listed in UNUSED_GRANTS); the launcher's and compose's service lists; every message of
-  shared/messages.py travels somewhere; docs/interfaces.md is the generated text; the documented example
+  shared/contracts/messages.py travels somewhere; docs/interfaces.md is the generated text; the documented example
   map decodes; examples/raw_zenoh_push.py imports only zenoh, msgpack and the standard library;
 - live, on the conftest router with a worker of every service in threads (planner, validator and
   robot bridge as in tests/test_push.py, plus generator, sampler and recorder): the example pushes the
@@ -28,8 +28,8 @@ from shared.bus import BusConfig, health, keys, live_workers, open_session
 from shared.bus import interfaces as registry
 from shared.bus.interfaces import INTERFACES, WORKERS, interface
 from shared.bus.lease import LEASE_ROLES, lease_key
-from shared.codec import ENCODING_PREFIX, decode, encode
-from shared.messages import MESSAGE_TYPES, ErrorReply, HealthQuery, PushRequest, ScaleRequest
+from shared.contracts.codec import ENCODING_PREFIX, decode, encode
+from shared.contracts.messages import MESSAGE_TYPES, ErrorReply, HealthQuery, PushRequest, ScaleRequest
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "raw_zenoh_push.py"
@@ -94,7 +94,7 @@ def test_every_key_of_keys_py_has_its_row():
 
 
 def test_every_message_travels_on_some_key_and_the_documented_map_decodes():
-    ours = {name for name, cls in MESSAGE_TYPES.items() if cls.__module__ == "shared.messages"}
+    ours = {name for name, cls in MESSAGE_TYPES.items() if cls.__module__ == "shared.contracts.messages"}
     assert ours <= {m.__name__ for m in registry.message_types()}
     request = decode(msgpack.packb(registry.EXAMPLE_PUSH_REQUEST, use_bin_type=True), f"{ENCODING_PREFIX}PushRequest")
     assert isinstance(request, PushRequest) and request.object.library_id == "proc-box-013"

@@ -29,7 +29,7 @@ from deploy.launcher import (
     scale_limits,
 )
 from shared.bus import BusConfig, Dispatcher, RemoteError, live_workers, open_session
-from shared.messages import GenerationJob, ObjectRef
+from shared.contracts.messages import GenerationJob, ObjectRef
 
 pytestmark = pytest.mark.timeout(120)
 PROJECT_ROOT = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from shared import messages as m
+from shared.contracts import messages as m
 
 BOX = m.ObjectRef(library_id="box")
 POSE0 = m.ObjectPose(position=(0.5, 0.0, 0.05))

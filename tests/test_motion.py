@@ -7,12 +7,12 @@ import torch
 
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
-from shared.fixed_poses import spatula_pose
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
-from shared.hands import load_hand
-from shared.objects import load_object, write_object_urdf
-from shared.robot_limits import RobotLimits
-from shared.sim.robot_scene import Collision, RobotScene
+from shared.robots.hands import load_hand
+from shared.robots.robot_limits import RobotLimits
+from shared.world.fixed_poses import spatula_pose
+from shared.world.objects import load_object, write_object_urdf
+from shared.world.sim.robot_scene import Collision, RobotScene
 
 torch.set_num_threads(1)
 

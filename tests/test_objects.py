@@ -12,10 +12,10 @@ import pytest
 import torch
 import trimesh
 
-from shared.bps import BasisPointSet
-from shared.messages import MeshBlob, ObjectRef
-from shared.object_refs import load_object_ref, uploaded_mesh_path
-from shared.objects import (
+from shared.contracts.messages import MeshBlob, ObjectRef
+from shared.world.bps import BasisPointSet
+from shared.world.object_refs import load_object_ref, uploaded_mesh_path
+from shared.world.objects import (
     FAMILIES,
     HELD_OUT_PER_FAMILY,
     PER_FAMILY,
@@ -30,9 +30,9 @@ from shared.objects import (
     split_of,
     write_object_urdf,
 )
-from shared.objects.cache import cache_root
-from shared.objects.model import load_library_object
-from shared.objects.procedural import procedural_spec
+from shared.world.objects.cache import cache_root
+from shared.world.objects.model import load_library_object
+from shared.world.objects.procedural import procedural_spec
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -99,7 +99,7 @@ def test_same_id_gives_the_same_mesh_across_runs(cache, tmp_path):
     ids = ["proc-hull-005", "rnd-003", "pb-duck"]
     here = {i: load_object(i, cache_dir=cache).mesh_hash for i in ids}
     assert here == {i: load_object(i, cache_dir=tmp_path / "fresh").mesh_hash for i in ids}
-    script = f"from shared.objects import load_object\nfor i in {ids!r}: print(load_object(i, cache_dir={str(tmp_path / 'other')!r}).mesh_hash)"
+    script = f"from shared.world.objects import load_object\nfor i in {ids!r}: print(load_object(i, cache_dir={str(tmp_path / 'other')!r}).mesh_hash)"
     out = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.split() == [here[i] for i in ids]
 
@@ -254,7 +254,7 @@ def test_sdf_cache_is_hit_on_second_load(cache, tmp_path, monkeypatch):
     def no_recompute(*args, **kwargs):
         raise AssertionError("SDF recomputed despite the cache")
 
-    monkeypatch.setattr("shared.objects.model.compute_sdf_grid", no_recompute)
+    monkeypatch.setattr("shared.world.objects.model.compute_sdf_grid", no_recompute)
     second = load_object(path, sdf_resolution=20, cache_dir=cache)
     np.testing.assert_array_equal(second.sdf.values, values)
     assert second.provenance == {"geometry": "cache", "sdf": "cache"}

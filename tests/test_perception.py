@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from shared.bps import BasisPointSet
 from shared.frames import direction_frame, make_transform
-from shared.objects import load_object
-from shared.perception import (
+from shared.world.bps import BasisPointSet
+from shared.world.objects import load_object
+from shared.world.perception import (
     Cloud,
     CloudFileError,
     PerceptionError,
@@ -23,9 +23,9 @@ from shared.perception import (
     reconstruct,
     save_cloud,
 )
-from shared.perception.decompose import OVERLAP_M, convex_pieces
-from shared.perception.reconstruct import ReconstructionSettings, remove_table
-from shared.sim.camera import capture_object
+from shared.world.perception.decompose import OVERLAP_M, convex_pieces
+from shared.world.perception.reconstruct import ReconstructionSettings, remove_table
+from shared.world.sim.camera import capture_object
 
 POSITION = (0.55, 0.0)
 SIZE = (424, 240)  # half the capture default (848 x 480), a quarter of its render time; dense enough for a box
@@ -172,8 +172,8 @@ def test_unusable_clouds_are_refused_with_the_reason(box):
 
 def test_a_five_million_point_scan_is_thinned_before_it_travels(box):
     """A dense scan is voxel-thinned to a bounded message; what is left still reconstructs the box."""
-    from shared.perception import cloud_for_request
-    from shared.perception.cloud import MAX_REQUEST_POINTS
+    from shared.world.perception import cloud_for_request
+    from shared.world.perception.cloud import MAX_REQUEST_POINTS
 
     cloud = box[2].cloud
     rng = np.random.default_rng(0)

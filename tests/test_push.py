@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from client.push_client import PushFailed, push
 from shared.bus import BusConfig, live_workers, open_session
-from shared.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest
-from shared.push_client import PushFailed, push
+from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest
 
 BOX = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg (test split)
 
@@ -103,10 +103,10 @@ def test_a_point_cloud_is_pushed_through_the_system_and_recorded(system):
     uses one reconstruction (cached by the cloud's content), the MCAP shows the cloud."""
     from mcap.reader import make_reader
 
-    from shared.object_refs import captured_object
-    from shared.objects import load_object
-    from shared.perception import cloud_for_request
-    from shared.sim.camera import capture_object
+    from shared.world.object_refs import captured_object
+    from shared.world.objects import load_object
+    from shared.world.perception import cloud_for_request
+    from shared.world.sim.camera import capture_object
 
     cfg, _ = system
     box = load_object(BOX)
@@ -147,10 +147,10 @@ def test_an_unreachable_object_gets_the_infeasible_error_with_its_reason(system)
 
 
 def test_a_multi_step_push_goes_around_the_obstacle_without_touching_it(system):
-    from shared.codec import decode
-    from shared.objects import load_object
-    from shared.push_outcome import pose_matrix
-    from shared.recording import read_records
+    from shared.contracts.codec import decode
+    from shared.world.objects import load_object
+    from shared.world.push_outcome import pose_matrix
+    from visualisation.recording import read_records
 
     cfg, _ = system
     obstacle = CircleObstacle(x=0.66, y=0.0, radius=0.04)  # the straight line x = 0.50 passes 0.16 m from it:
@@ -176,7 +176,7 @@ def test_a_multi_step_push_goes_around_the_obstacle_without_touching_it(system):
 
 
 def _pose(T: np.ndarray) -> ObjectPose:
-    from shared.push_outcome import object_pose
+    from shared.world.push_outcome import object_pose
 
     return object_pose(T)
 
@@ -199,10 +199,10 @@ def test_gd2p_push_json_reports_an_infeasible_request_and_exits_2(system, capsys
 
 def test_l_dir_is_minus_one_for_a_palm_facing_the_push_and_plus_one_facing_back():
     from services.planner.ranking import direction_costs, score
-    from shared.fixed_poses import spatula_pose
     from shared.frames import make_transform, matrix_to_pose25, pose25_to_matrix, yaw_rotation
-    from shared.hands import load_hand
-    from shared.objects import load_object
+    from shared.robots.hands import load_hand
+    from shared.world.fixed_poses import spatula_pose
+    from shared.world.objects import load_object
 
     hand = load_hand("allegro")
     box = load_object(BOX)
@@ -217,7 +217,7 @@ def test_l_dir_is_minus_one_for_a_palm_facing_the_push_and_plus_one_facing_back(
 
 
 def test_a_push_that_tips_the_object_over_is_judged_toppled_and_failed():
-    from shared.push_outcome import judge_push, object_pose
+    from shared.world.push_outcome import judge_push, object_pose
 
     start = np.eye(4)
     start[:3, 3] = (0.5, 0.0, 0.04)
@@ -245,7 +245,7 @@ def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss
 
 def _box_at(x: float, y: float) -> np.ndarray:
     """T_world_O of the box resting at (x, y)."""
-    from shared.objects import load_object
+    from shared.world.objects import load_object
 
     T_world_O = np.eye(4)
     T_world_O[:3, 3] = (x, y, 0.0)
@@ -254,12 +254,12 @@ def _box_at(x: float, y: float) -> np.ndarray:
 
 def _spatula_poses(request):
     """A pose source of 8 spatula poses behind the box (shifted sideways by up to 2 cm) in the request's frame."""
-    from shared.fixed_poses import spatula_pose
+    from shared.contracts.messages import SampleResponse
     from shared.frames import frame_transform, invert_transform, poses_d_to_world
-    from shared.hands import load_hand
-    from shared.messages import SampleResponse
-    from shared.objects import load_object
-    from shared.push_outcome import pose_matrix
+    from shared.robots.hands import load_hand
+    from shared.world.fixed_poses import spatula_pose
+    from shared.world.objects import load_object
+    from shared.world.push_outcome import pose_matrix
 
     hand, box = load_hand("allegro"), load_object(BOX)
     T_world_D = frame_transform(request.frame)
@@ -308,7 +308,7 @@ def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0, p
 
 def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranked_with_the_first():
     """Rollouts of the first round all 'miss' (overridden); the pipeline plans a second round and picks from both."""
-    from shared.messages import NDArray
+    from shared.contracts.messages import NDArray
 
     def first_round_missing(i, result):  # both plans of the first round "miss by 10 cm"
         return result.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) if i < 2 else result
@@ -323,7 +323,7 @@ def test_the_ranking_ablation_keeps_every_rollout_and_drops_only_the_score():
     """choice="unranked": the same plans are made and rolled out as when ranked, but the executed one is
     drawn at random among them, so the worse-scored plan can run."""
     from services.planner.stages import PipelineSettings
-    from shared.messages import NDArray
+    from shared.contracts.messages import NDArray
 
     def second_plan_missing(i, result):  # the second rolled-out plan "misses by 10 cm"
         return result.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) if i == 1 else result
@@ -341,7 +341,7 @@ def test_robust_ranking_executes_the_plan_that_works_in_the_drawn_worlds_not_onl
     the nominal world (its draws overridden to miss by 10 cm), the second in all three: the second runs,
     although ranking by the nominal rollout alone would pick the first (its nominal error is lower)."""
     from services.planner.stages import PipelineSettings
-    from shared.messages import NDArray
+    from shared.contracts.messages import NDArray
 
     real_draws = []
 
@@ -391,7 +391,7 @@ def _push_with_a_displaced_first_outcome(displace, corrections=2):
     from services.planner.pipeline import PushPipeline
     from services.planner.pipeline import PushServices as Services
     from services.planner.stages import PipelineSettings
-    from shared.push_outcome import object_pose, pose_matrix
+    from shared.world.push_outcome import object_pose, pose_matrix
 
     robot = LocalRobot()
     left = []
@@ -457,7 +457,7 @@ def test_a_correction_that_cannot_be_planned_leaves_the_push_as_it_was_and_says_
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
     from services.planner.outcome import PushError
-    from shared.messages import NDArray
+    from shared.contracts.messages import NDArray
 
     def touching(result):
         return result.model_copy(update={"obstacle_contact": NDArray.from_numpy(np.ones(1, dtype=bool))})
@@ -482,7 +482,7 @@ def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_
 
     from services.planner.motion import PlanningError
     from services.planner.stages import within_limits
-    from shared.robot_limits import LimitViolation
+    from shared.robots.robot_limits import LimitViolation
 
     class Limits:  # the first `broken` plans leave the workspace
         def __init__(self, broken):
@@ -554,7 +554,7 @@ def _push_cancelled_when(system, drop_when, lease: str):
     the first time it is true. Returns (reply, robot states as (monotonic time, state), time of the drop)."""
     from shared.bus import Dispatcher
     from shared.bus.keys import ROBOT_STATE_KEY
-    from shared.codec import decode
+    from shared.contracts.codec import decode
 
     cfg, _ = system
     states: list = []
@@ -583,7 +583,7 @@ def _push_cancelled_when(system, drop_when, lease: str):
 
 def test_a_client_that_gives_up_mid_motion_cancels_the_push_and_the_robot_stops(system):
     from shared.bus.lease import lease_key
-    from shared.messages import ErrorReply
+    from shared.contracts.messages import ErrorReply
 
     reply, states, dropped_at = _push_cancelled_when(system, lambda s: s.status == "executing",
                                                      lease_key("client", "gives-up-mid-motion"))
@@ -599,7 +599,7 @@ def test_a_client_that_gives_up_mid_motion_cancels_the_push_and_the_robot_stops(
 
 def test_a_request_whose_client_is_already_gone_never_moves_the_robot(system):
     from shared.bus.lease import lease_key
-    from shared.messages import ErrorReply
+    from shared.contracts.messages import ErrorReply
 
     cfg, _ = system
     gone = lease_key("client", "already-gone")  # nobody holds it

@@ -17,9 +17,9 @@ import pytest
 from mcap.reader import make_reader
 
 from services.recorder.recorder import RecorderError, RotatingRecorder, recover_unfinished
-from shared import messages as m
-from shared.codec import CodecError, decode, encode
-from shared.recording import (
+from shared.contracts import messages as m
+from shared.contracts.codec import CodecError, decode, encode
+from visualisation.recording import (
     McapWriter,
     MessageDecoderFactory,
     Record,

@@ -11,11 +11,11 @@ from PIL import Image
 
 from cli.main import main
 from cli.show import show_scene
-from shared.fixed_poses import spatula_pose
 from shared.frames import transform_points
-from shared.hands import load_hand
-from shared.objects import load_object
-from shared.render import (
+from shared.robots.hands import load_hand
+from shared.world.fixed_poses import spatula_pose
+from shared.world.objects import load_object
+from visualisation.render import (
     CANDIDATE_COLORS,
     HAND_COLORS,
     OBJECT_RGBA,

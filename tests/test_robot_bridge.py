@@ -15,12 +15,12 @@ from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
 from services.robot_bridge.robot import MotionStopped
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot
+from shared.contracts.messages import ExecutionCommand, ExecutionState, Plan
 from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
-from shared.hands import load_hand
-from shared.messages import ExecutionCommand, ExecutionState, Plan
-from shared.objects import load_object, write_object_urdf
-from shared.robot_limits import WorkspaceBox
-from shared.sim.robot_scene import RobotScene
+from shared.robots.hands import load_hand
+from shared.robots.robot_limits import WorkspaceBox
+from shared.world.objects import load_object, write_object_urdf
+from shared.world.sim.robot_scene import RobotScene
 
 torch.set_num_threads(1)
 
@@ -151,7 +151,7 @@ def test_stop_halts_a_running_plan(backend):
 
 def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
     """The open, spatula-like hand pushes a box 0.15 m sideways with the planner's IK + RRT + Cartesian push."""
-    from shared.fixed_poses import spatula_pose
+    from shared.world.fixed_poses import spatula_pose
 
     box = load_object("proc-box-013")  # 13.9 x 4.6 x 7.5 cm, 0.24 kg
     T_world_D = direction_frame(np.array([0.55, 0.0, 0.0]), 90.0)
@@ -198,11 +198,11 @@ def test_contact_with_an_obstacle_during_execution_is_recorded():
 def test_bridge_service_executes_a_leased_command_and_publishes_states(zenoh_router):
     from services.robot_bridge.bus_safety import COMMAND_KEY, ESTOP_KEY
     from services.robot_bridge.service import SERVICE, STATE_KEY, run
-    from shared.arms import load_arm
     from shared.bus import BusConfig, live_workers, open_session
     from shared.bus.lease import lease_key
-    from shared.codec import decode, encode
-    from shared.messages import EStop, ExecutionCommand
+    from shared.contracts.codec import decode, encode
+    from shared.contracts.messages import EStop, ExecutionCommand
+    from shared.robots.arms import load_arm
 
     cfg = BusConfig(mode="client", connect=[zenoh_router], connect_timeout_ms=5000)
     stop = threading.Event()
@@ -268,13 +268,13 @@ def bus_session(endpoint: str):
 
 
 def home_configuration() -> np.ndarray:
-    from shared.arms import load_arm
+    from shared.robots.arms import load_arm
 
     return np.concatenate([load_arm("panda").home.numpy(), load_hand("allegro").open_joint_positions.numpy()])
 
 
 def box_world():
-    from shared.messages import ObjectPose, ObjectRef, SimWorld
+    from shared.contracts.messages import ObjectPose, ObjectRef, SimWorld
 
     return SimWorld(object=ObjectRef(library_id="proc-box-013"), object_pose=ObjectPose(position=(0.35, -0.45, 0.04)))
 
@@ -309,7 +309,7 @@ class BusBridge:
         return key, self.commander.liveliness().declare_token(key)
 
     def move(self, lease: str, world=None, duration_s: float = 3.0):
-        from shared.messages import ExecutionCommand
+        from shared.contracts.messages import ExecutionCommand
 
         start = home_configuration()
         if world is None:
@@ -481,8 +481,8 @@ def test_the_motion_stops_when_the_router_hangs():
 @pytest.mark.parametrize("kind", ["empty", "garbage", "wrong encoding", "ErrorReply", "Plan", "valid EStop"])
 def test_anything_on_the_estop_key_stops_the_simulated_robot_and_latches(bus_bridge, kind):
     from services.robot_bridge.bus_safety import ESTOP_KEY
-    from shared.codec import encode
-    from shared.messages import ErrorReply, EStop
+    from shared.contracts.codec import encode
+    from shared.contracts.messages import ErrorReply, EStop
 
     payload, encoding = {
         "empty": (b"", None),

@@ -23,8 +23,8 @@ from services.robot_bridge.robots.allegro import config as allegro_config
 from services.robot_bridge.robots.leap import config as leap_config
 from services.robot_bridge.robots.panda import config as panda_config
 from services.robot_bridge.robots.xarm7 import config as xarm7_config
-from shared.messages import ARMS, HANDS, EStop, ExecutionCommand, Plan
-from shared.robot_limits import JointLimits
+from shared.contracts.messages import ARMS, HANDS, EStop, ExecutionCommand, Plan
+from shared.robots.robot_limits import JointLimits
 
 ROOT = Path(__file__).resolve().parents[1]
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])

@@ -33,9 +33,9 @@ from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
 from services.sampler.train import RunOptions, TrainConfig, TrainingError, hand_joint_limits, train
+from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
 from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
-from shared.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
-from shared.objects import list_object_ids, load_object
+from shared.world.objects import list_object_ids, load_object
 
 torch.set_num_threads(1)
 

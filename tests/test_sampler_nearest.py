@@ -24,9 +24,9 @@ from services.sampler.nearest_neighbor import (
     default_nn_index_path,
     half_precision_agreement,
 )
+from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
 from shared.frames import direction_frame, matrix_to_pos_quat, poses_d_to_world
-from shared.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
-from shared.objects import list_object_ids, load_object
+from shared.world.objects import list_object_ids, load_object
 
 HAND = "allegro"
 YAWS = (0.0, 1.2)
@@ -205,13 +205,13 @@ def test_shipped_index_matches_its_manifest_and_serves_its_own_training_frames(h
 def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zenoh_router, monkeypatch, tmp_path):
     """Planner + validator + robot bridge + sampler (shipped allegro index) on a router of its own (the module's
     router also has the tiny-index worker): `method="nearest"`."""
+    from client.push_client import push
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
     from services.sampler import service as sampler
     from services.validator import service as validator
     from shared.bus import BusConfig, live_workers, open_session, run_worker
-    from shared.messages import PushRequest
-    from shared.push_client import push
+    from shared.contracts.messages import PushRequest
 
     monkeypatch.delenv("GD2P_SAMPLER_NN_INDEX_ALLEGRO", raising=False)
     if not default_nn_index_path("allegro").is_file():

@@ -51,8 +51,8 @@ from shared.bus import (
     live_workers,
 )
 from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key
-from shared.codec import decode, encode
-from shared.messages import (
+from shared.contracts.codec import decode, encode
+from shared.contracts.messages import (
     EStop,
     ExecutionCommand,
     ExecutionState,

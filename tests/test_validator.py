@@ -15,13 +15,13 @@ from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
 from shared.bus import BusConfig, ServiceError, Worker, job_key, live_workers, open_session
 from shared.bus.worker import timeout_attachment
-from shared.codec import decode, encode
-from shared.fixed_poses import SPATULA_GAP_M, spatula_pose
+from shared.contracts.codec import decode, encode
+from shared.contracts.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
 from shared.frames import make_transform, pose25_to_matrix
-from shared.hands import load_hand
-from shared.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
-from shared.objects import load_object
-from shared.push_outcome import object_pose
+from shared.robots.hands import load_hand
+from shared.world.fixed_poses import SPATULA_GAP_M, spatula_pose
+from shared.world.objects import load_object
+from shared.world.push_outcome import object_pose
 
 BOX_ID = "proc-box-001"  # 19 x 11 x 8 cm, 0.86 kg, volumetric
 

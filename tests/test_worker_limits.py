@@ -9,8 +9,15 @@ import pytest
 import bus_test_workers as tw
 from shared.bus import BusConfig, Worker, job_key, live_workers, open_session
 from shared.bus.worker import timeout_attachment
-from shared.codec import decode, encode
-from shared.messages import DEFAULT_MAX_PAYLOAD_BYTES, ErrorReply, GenerationJob, GenerationResult, Message, ObjectRef
+from shared.contracts.codec import decode, encode
+from shared.contracts.messages import (
+    DEFAULT_MAX_PAYLOAD_BYTES,
+    ErrorReply,
+    GenerationJob,
+    GenerationResult,
+    Message,
+    ObjectRef,
+)
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -12,11 +12,11 @@ from evaluation.local_system import true_world
 from evaluation.stats import difference_interval, success_interval
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
-from shared.messages import ObjectRef, SimWorld
-from shared.objects import load_object
-from shared.push_outcome import object_pose
-from shared.sim.params import REFERENCE_PARAMS
-from shared.sim.world import REAL_RANGES, PoseError, rollout_worlds, sample_world
+from shared.contracts.messages import ObjectRef, SimWorld
+from shared.world.objects import load_object
+from shared.world.push_outcome import object_pose
+from shared.world.sim.params import REFERENCE_PARAMS
+from shared.world.sim.world import REAL_RANGES, PoseError, rollout_worlds, sample_world
 
 BOX = "proc-box-001"
 HALF_EXTENTS = np.array([0.05, 0.03, 0.04])
@@ -75,7 +75,7 @@ def test_the_simulated_robot_executes_in_the_drawn_world_not_the_told_one():
 
 def test_command_latency_delays_the_arm():
     """The one control law: a joint step commanded at t = 0 is followed later under 20 ms latency."""
-    from shared.sim.plan_runner import ArmController
+    from shared.world.sim.plan_runner import ArmController
 
     def joint0_after(latency_s: float, steps: int) -> float:
         with SimRobot(SimConfig("panda", "allegro")) as backend:

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 
 from services.generator.config import TERMS, GenerationConfig
-from shared.hands import HandModel, HandState
-from shared.hands.primitives import surface_samples
+from shared.robots.hands import HandModel, HandState
+from shared.robots.hands.primitives import surface_samples
 
 _FAR_AWAY_M = 1.0e3  # distance reported for points that no primitive's bounding sphere reaches
 _SURFACE_SAMPLE_SEED = 1234
-_KINDS = ("box", "sphere", "cylinder")  # the primitive kinds shared.hands.primitives produces
+_KINDS = ("box", "sphere", "cylinder")  # the primitive kinds shared.robots.hands.primitives produces
 
 
 class ObjectField(Protocol):

@@ -19,7 +19,7 @@ import torch
 import trimesh
 
 from services.generator.config import InitSettings
-from shared.hands import HandModel
+from shared.robots.hands import HandModel
 
 _POOL_FACTOR = 4  # hull points drawn per pose before the push-side / height filter
 _MAX_DRAWS = 16

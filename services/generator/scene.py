@@ -1,6 +1,6 @@
 """The object as the optimiser sees it: resting on the table in the direction frame D.
 
-The object library (`shared.objects`) gives the mesh and a voxel SDF in the object frame O and the
+The object library (`shared.world.objects`) gives the mesh and a voxel SDF in the object frame O and the
 resting poses; a resting pose and a yaw give T_D_O - the object on the table with its centre of
 mass above D's origin, the placement the validator uses too. Everything here is in D.
 """
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from shared.objects import ObjectModel
+from shared.world.objects import ObjectModel
 
 SURFACE_SAMPLE_SEED = 0
 

@@ -20,10 +20,10 @@ from services.generator.scene import PushScene
 from services.generator.synthesis import GenerationError, GenerationOutput, generate
 from shared.bus import ServiceError
 from shared.bus.worker import check_deadline
-from shared.hands import load_hand
-from shared.messages import GenerationJob, GenerationResult, Message, ObjectRef
-from shared.object_refs import load_object_ref
-from shared.objects import ObjectLoadError, ObjectModel
+from shared.contracts.messages import GenerationJob, GenerationResult, Message, ObjectRef
+from shared.robots.hands import load_hand
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import ObjectLoadError, ObjectModel
 
 SERVICE = "generator"
 _SCENES: dict[str, PushScene] = {}  # per object id: SDF and samples are reused by later jobs

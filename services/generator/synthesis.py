@@ -20,8 +20,8 @@ from services.generator.init import initial_poses, sample_contacts
 from services.generator.optimizer import AnnealingOptimizer
 from services.generator.scene import PushScene
 from shared.frames import matrix_to_r6, r6_to_matrix
-from shared.hands import HandModel, load_hand
-from shared.objects import ObjectModel
+from shared.robots.hands import HandModel, load_hand
+from shared.world.objects import ObjectModel
 
 ProgressCallback = Callable[[int], None]  # called with the number of iterations just finished
 TOTAL = "total"

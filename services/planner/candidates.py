@@ -14,10 +14,10 @@ from functools import cached_property
 import numpy as np
 
 from services.planner import ranking
+from shared.contracts.messages import DirectionFrame, Plan, ScoreTerms
 from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
-from shared.hands import HandModel
-from shared.messages import DirectionFrame, Plan, ScoreTerms
-from shared.push_outcome import object_pose
+from shared.robots.hands import HandModel
+from shared.world.push_outcome import object_pose
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ collision check of each pre-contact configuration). Then, per pose, `plan_push`:
 2. approach: OMPL RRTConnect in arm joint space from the start (home) to the configuration that
    puts the hand a standoff behind (against the push direction) and a lift above the pre-contact
    pose (the first workable pair of `approaches`), with the PyBullet scene
-   (`shared.sim.robot_scene`) as the state validity checker, then OMPL's path simplification; then
+   (`shared.world.sim.robot_scene`) as the state validity checker, then OMPL's path simplification; then
    two straight Cartesian lines: down, and in along the push direction to the pre-contact pose.
    Free-space motion keeps `clearance_m` from everything; the last few centimetres near the table
    and the object cannot, so they are straight lines (where the hand goes is known), checked with a
@@ -40,9 +40,9 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
-from shared.ik import ArmIK
-from shared.messages import Plan, PlanSegment
-from shared.sim.robot_scene import RobotScene
+from services.planner.ik import ArmIK
+from shared.contracts.messages import Plan, PlanSegment
+from shared.world.sim.robot_scene import RobotScene
 
 ou.setLogLevel(ou.LogLevel.LOG_ERROR)
 

@@ -46,7 +46,7 @@ class Disc:
 
     @classmethod
     def of(cls, obstacle) -> Disc:
-        """From a Disc, a shared.messages.CircleObstacle or an (x, y, radius) tuple."""
+        """From a Disc, a shared.contracts.messages.CircleObstacle or an (x, y, radius) tuple."""
         if isinstance(obstacle, Disc):
             return obstacle
         if hasattr(obstacle, "radius"):

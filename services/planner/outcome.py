@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.messages import ExecutionState, PushResponse, PushStep, SimWorld
+from shared.contracts.messages import ExecutionState, PushResponse, PushStep, SimWorld
 
 
 @dataclass

@@ -49,19 +49,19 @@ import numpy as np
 from services.planner import stages
 from services.planner.cancellation import Cancellation
 from services.planner.candidates import Feasible, Push, RankedPlan
+from services.planner.ik import ArmIK
 from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.multistep import push_along_path
 from services.planner.outcome import PushError, PushOutcome
 from services.planner.stages import PipelineSettings, RequestState
+from shared.contracts.messages import ExecutionResult, PushRequest, PushResponse
 from shared.frames import direction_xy, make_transform
-from shared.hands import load_hand
-from shared.ik import ArmIK
-from shared.messages import ExecutionResult, PushRequest, PushResponse
-from shared.object_refs import captured_object, load_object_ref
-from shared.objects import ObjectLoadError, ObjectModel, write_object_urdf
-from shared.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix
-from shared.robot_limits import RobotLimits
-from shared.sim.robot_scene import RobotScene
+from shared.robots.hands import load_hand
+from shared.robots.robot_limits import RobotLimits
+from shared.world.object_refs import captured_object, load_object_ref
+from shared.world.objects import ObjectLoadError, ObjectModel, write_object_urdf
+from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix
+from shared.world.sim.robot_scene import RobotScene
 
 DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base: sideways pushes reach well; pulls toward the robot need
 # the object nearer (at 0.50 m most pull poses have no IK solution; at 0.40 m all three evaluation directions plan)

@@ -36,10 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shared.contracts.messages import ScoreTerms, ValidationResult
 from shared.frames import pose25_to_matrix
-from shared.hands import HandModel
-from shared.messages import ScoreTerms, ValidationResult
-from shared.push_outcome import SUCCESS_MAX_ROTATION_DEG, SUCCESS_POSITION_TOLERANCE_M, TOPPLED_TILT_DEG
+from shared.robots.hands import HandModel
+from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, SUCCESS_POSITION_TOLERANCE_M, TOPPLED_TILT_DEG
 
 FAILED_PUSH_PENALTY_M = 0.1  # a rotated or toppled rollout ranks behind any clean miss of up to 10 cm
 ALPHA = 10.0

@@ -5,10 +5,10 @@
   its reconstruction -, the table, the obstacles), `/cloud` (PointCloud: the received point cloud,
   world frame, when the object came as one), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
   robot state), `/joint_states` (JointStates);
-- the bus messages as they travel (msgpack, `shared.recording`): the PushRequest, every executed
+- the bus messages as they travel (msgpack, `visualisation.recording`): the PushRequest, every executed
   Plan, the robot's ExecutionStates and the PushResponse.
 `<record_dir>/push-<request id>.png` is the storyboard: one row per push — start, pre-contact
-(the first waypoint of the push segment) and end — drawn by `shared.render` from one camera. The
+(the first waypoint of the push segment) and end — drawn by `visualisation.render` from one camera. The
 planner service renders it after answering (it takes about as long as a push); it appears complete.
 """
 from __future__ import annotations
@@ -26,15 +26,15 @@ import trimesh
 from foxglove import messages as fg
 
 from services.planner.outcome import PushOutcome, StepRecord
-from shared.arms import combined_urdf
-from shared.messages import ExecutionState, PushRequest
-from shared.object_refs import load_object_ref
-from shared.objects import write_object_urdf
-from shared.push_outcome import pose_matrix
-from shared.recording import McapWriter
-from shared.render import VIEWS, UrdfItem, compose_png, mesh_item, render_views
-from shared.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
-from shared.sim.scene import transform_to_pos_quat
+from shared.contracts.messages import ExecutionState, PushRequest
+from shared.robots.arms import combined_urdf
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import write_object_urdf
+from shared.world.push_outcome import pose_matrix
+from shared.world.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
+from shared.world.sim.scene import transform_to_pos_quat
+from visualisation.recording import McapWriter
+from visualisation.render import VIEWS, UrdfItem, compose_png, mesh_item, render_views
 
 WORLD_FRAME = "world"
 OBJECT_FRAME = "object"
@@ -161,7 +161,7 @@ def _write_state(writer: McapWriter, scene: RobotScene, state: ExecutionState) -
 
 
 def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, path: Path) -> Callable[[], Path]:
-    """A function that writes the storyboard PNG (`shared.render`): per push, the start, the pre-contact
+    """A function that writes the storyboard PNG (`visualisation.render`): per push, the start, the pre-contact
     configuration and the end, all from one camera.
 
     What needs `scene` (forward kinematics for the camera's framing) is done now; the returned function

@@ -38,8 +38,8 @@ from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, Servic
 from shared.bus.errors import DispatchError
 from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import LeaseError, LeaseMonitor, lease_key, parse_lease_key
-from shared.codec import CodecError, decode, encode
-from shared.messages import (
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import (
     ErrorReply,
     ExecutionCommand,
     ExecutionState,

@@ -32,10 +32,7 @@ from services.planner.cancellation import Cancellation
 from services.planner.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
 from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.outcome import Execution, PushError, StepRecord
-from shared.fixed_poses import FixedPoseError, spatula_pose
-from shared.frames import invert_transform
-from shared.hands import HandModel
-from shared.messages import (
+from shared.contracts.messages import (
     Plan,
     PushRequest,
     PushStep,
@@ -45,9 +42,12 @@ from shared.messages import (
     ValidationJob,
     ValidationResult,
 )
-from shared.objects import ObjectModel
-from shared.push_outcome import judge_push, object_pose, pose_matrix
-from shared.robot_limits import LimitViolation, RobotLimits
+from shared.frames import invert_transform
+from shared.robots.hands import HandModel
+from shared.robots.robot_limits import LimitViolation, RobotLimits
+from shared.world.fixed_poses import FixedPoseError, spatula_pose
+from shared.world.objects import ObjectModel
+from shared.world.push_outcome import judge_push, object_pose, pose_matrix
 
 SCREEN_CHUNK = 50  # candidates per batched IK screen (`screen`)
 PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers

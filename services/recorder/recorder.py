@@ -7,7 +7,7 @@ is a finished, readable file.
 
 A recorder that dies without closing its file (SIGKILL, OOM kill, power loss) leaves a `.part` with
 no MCAP footer. The next recorder on the directory finalises it at start (`recover_unfinished`):
-every complete chunk is copied into `<name>.mcap` (see `shared.recording.recover_mcap`) and the
+every complete chunk is copied into `<name>.mcap` (see `visualisation.recording.recover_mcap`) and the
 `.part` is removed; the log says how many messages were recovered. The writer holds an exclusive
 `flock` on its `.part` while it writes, so a recorder starting beside a live one leaves that one's
 file alone. A `.part` that is not MCAP at all is renamed `<name>.unrecoverable` and kept.
@@ -25,7 +25,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO
 
-from shared.recording import McapWriter, RecordingError, is_complete_mcap, recover_mcap
+from visualisation.recording import McapWriter, RecordingError, is_complete_mcap, recover_mcap
 
 log = logging.getLogger("gd2p.recorder")
 

@@ -42,8 +42,8 @@ from services.robot_bridge.robot import (
     RobotError,
     TrajectoryError,
 )
-from shared.messages import EStop, ExecutionCommand, ExecutionState, ExecutionStatus, SimWorld
-from shared.robot_limits import DEFAULT_WORKSPACE, WorkspaceBox
+from shared.contracts.messages import EStop, ExecutionCommand, ExecutionState, ExecutionStatus, SimWorld
+from shared.robots.robot_limits import DEFAULT_WORKSPACE, WorkspaceBox
 
 log = logging.getLogger("gd2p.robot_bridge.executor")
 

@@ -23,7 +23,7 @@ from services.robot_bridge.robots.panda.config import PandaConfig
 from services.robot_bridge.robots.panda.robot import PandaRobot
 from services.robot_bridge.robots.xarm7.config import XArm7Config
 from services.robot_bridge.robots.xarm7.robot import XArm7Robot
-from shared.messages import HAND_ARM_PAIRS
+from shared.contracts.messages import HAND_ARM_PAIRS
 
 ArmConfig = PandaConfig | XArm7Config
 HandConfig = LeapConfig | AllegroConfig

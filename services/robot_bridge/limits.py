@@ -1,6 +1,6 @@
 """The limits a command is checked against before anything moves, and the refusal that names the broken one.
 
-- `DeviceLimits`: one device's per-joint limits, read from its URDF (`shared.robot_limits.JointLimits`);
+- `DeviceLimits`: one device's per-joint limits, read from its URDF (`shared.robots.robot_limits.JointLimits`);
   a device's config (`robots/<name>/config.py`) types only what the URDF lacks or the real device
   differs on (the FR3's ranges and speeds against the Panda model's, a hand's current cap in mA),
   each with its source.
@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.robot_bridge.robot import RobotError
-from shared.messages import Plan
-from shared.robot_limits import (
+from shared.contracts.messages import Plan
+from shared.robots.robot_limits import (
     DEFAULT_WORKSPACE,
     WORKSPACE_STEP_RAD,
     JointLimits,

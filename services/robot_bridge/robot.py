@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from shared.messages import ObjectPose
+from shared.contracts.messages import ObjectPose
 
 if TYPE_CHECKING:  # limits.py builds its SafetyRefusal on this module's errors
     from services.robot_bridge.limits import DeviceLimits
@@ -85,7 +85,7 @@ class JointTrajectory:
 
     @classmethod
     def from_plan(cls, plan, realtime_factor: float = 1.0) -> JointTrajectory:
-        """All joints of a `shared.messages.Plan`; time is divided by `realtime_factor` (2 = twice as fast)."""
+        """All joints of a `shared.contracts.messages.Plan`; time is divided by `realtime_factor` (2 = twice as fast)."""
         if realtime_factor <= 0:
             raise TrajectoryError(f"realtime_factor must be > 0, got {realtime_factor}")
         return cls(tuple(plan.joint_names), plan.positions.to_numpy(), plan.times_s.to_numpy() / realtime_factor)

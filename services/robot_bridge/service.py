@@ -42,8 +42,8 @@ from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
 from shared.bus.keys import ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
-from shared.codec import CodecError, decode, encode
-from shared.messages import ErrorReply, EStop, ExecutionCommand, ExecutionState, Message
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import ErrorReply, EStop, ExecutionCommand, ExecutionState, Message
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY

@@ -28,7 +28,7 @@ import torch
 from services.sampler.diffusion import PoseNormalizer
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from shared.atomic import atomic_write_text, atomic_writer
-from shared.bps import BasisPointSet
+from shared.world.bps import BasisPointSet
 
 CHECKPOINT_FORMAT = "gd2p-sampler-v1"
 TRAINING_STATE_FORMAT = "gd2p-sampler-train-v1"

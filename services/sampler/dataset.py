@@ -1,6 +1,6 @@
 """Reading the data engine's pose store for training, and the BPS of each training frame.
 
-The store (`shared.dataset_store`: Parquet shards listed in a `manifest.json` with their checksums)
+The store (`shared.data.dataset_store`: Parquet shards listed in a `manifest.json` with their checksums)
 is opened and verified through `DatasetStore`, the one reader of its layout: a shard that is
 missing, modified or not in the manifest is never read. Columns used here:
 
@@ -32,11 +32,11 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from shared.bps import BasisPointSet, BPSError
-from shared.dataset_store import DatasetStore, StoreError
+from shared.data.dataset_store import DatasetStore, StoreError
 from shared.frames import POSE_DIM
-from shared.objects import ObjectLoadError, load_object, split_of
-from shared.objects.catalog import library_ids
+from shared.world.bps import BasisPointSet, BPSError
+from shared.world.objects import ObjectLoadError, load_object, split_of
+from shared.world.objects.catalog import library_ids
 
 REQUIRED_COLUMNS = ("object_id", "hand", "pose")
 OPTIONAL_COLUMNS = ("pose_index", "yaw_rad")

@@ -31,10 +31,10 @@ from services.sampler.checkpoint import SHIPPED_DIR, checkpoint_id, manifest_pat
 from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED, Frame, PoseDataset, frame_bps, load_pose_dataset
 from services.sampler.sampling import ObjectInput, ObjectPoints, SampleResult, SamplerInputError, check_count_and_seed
 from shared.atomic import atomic_write_text
-from shared.bps import BasisPointSet, BPSError
+from shared.contracts.messages import DirectionFrame
 from shared.frames import poses_d_to_world
-from shared.messages import DirectionFrame
-from shared.objects.cache import save_npz
+from shared.world.bps import BasisPointSet, BPSError
+from shared.world.objects.cache import save_npz
 
 INDEX_FORMAT = "gd2p-nn-v1"
 NN_INDEX_ENV = "GD2P_SAMPLER_NN_INDEX_{hand}"  # e.g. GD2P_SAMPLER_NN_INDEX_ALLEGRO=/path/to/allegro_nn.npz

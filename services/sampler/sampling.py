@@ -35,7 +35,7 @@ import torch
 
 from services.sampler.checkpoint import SamplerCheckpoint, checkpoint_id, load_checkpoint
 from services.sampler.diffusion import DiffusionConfigError, resolve_steps, sample_normalized
-from shared.bps import BPSError
+from shared.contracts.messages import DirectionFrame, ObjectPose
 from shared.frames import (
     JOINTS,
     ROTATION_6D,
@@ -49,8 +49,8 @@ from shared.frames import (
     r6_to_matrix,
     transform_points,
 )
-from shared.messages import DirectionFrame, ObjectPose
-from shared.objects import ObjectLoadError, ObjectModel, load_object
+from shared.world.bps import BPSError
+from shared.world.objects import ObjectLoadError, ObjectModel, load_object
 
 ObjectInput = str | Path | ObjectModel | np.ndarray
 MAX_POSES_PER_REQUEST = 1000

@@ -11,7 +11,7 @@ given to `handlers`), loaded on first use; the reply holds the stored poses of t
 nearest to the object in BPS space, and its `checkpoint_id` names the index file and that object.
 
 Objects: a library id (loaded as an id, never as a path), a mesh (cached by its hash once it
-loaded, as the validator does: shared/object_refs.py) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
+loaded, as the validator does: shared/world/object_refs.py) or a point cloud in the world frame. Scaled objects are refused, as by the validator: a pose
 sampled for a scaled object could not be validated or executed on the same geometry.
 """
 from __future__ import annotations
@@ -24,10 +24,10 @@ from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.bus import ServiceError
-from shared.messages import Message, ObjectRef, SampleRequest, SampleResponse
-from shared.object_refs import captured_object, load_uploaded_mesh
-from shared.objects import ObjectLoadError
-from shared.objects.model import load_library_object
+from shared.contracts.messages import Message, ObjectRef, SampleRequest, SampleResponse
+from shared.world.object_refs import captured_object, load_uploaded_mesh
+from shared.world.objects import ObjectLoadError
+from shared.world.objects.model import load_library_object
 
 SERVICE = "sampler"
 
@@ -129,7 +129,7 @@ def object_input(ref: ObjectRef) -> ObjectInput:
     except ObjectLoadError as exc:
         raise SamplerInputError(str(exc)) from exc
     assert ref.point_cloud is not None
-    from shared.perception import bps_points
+    from shared.world.perception import bps_points
 
     try:
         captured = captured_object(ref)

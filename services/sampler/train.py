@@ -51,7 +51,7 @@ from services.sampler.dataset import (
 )
 from services.sampler.diffusion import PoseNormalizer, denoising_loss, make_ema, make_noise_scheduler
 from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count
-from shared.bps import BasisPointSet
+from shared.world.bps import BasisPointSet
 
 log = logging.getLogger(__name__)
 
@@ -382,8 +382,8 @@ class _Run:
 
 def hand_joint_limits(hand: str) -> tuple[torch.Tensor, torch.Tensor]:
     """[16] lower and upper joint limits of `hand` from its URDF, in the pose vector's joint order."""
-    from shared.hands import HAND_SPECS
-    from shared.hands.urdf import read_urdf
+    from shared.robots.hands import HAND_SPECS
+    from shared.robots.hands.urdf import read_urdf
 
     if hand not in HAND_SPECS:
         raise TrainingError(f"unknown hand {hand!r}; known hands: {sorted(HAND_SPECS)}")

@@ -37,8 +37,7 @@ import numpy as np
 import pyarrow as pa
 
 from shared.bus import Dispatcher, DispatchError
-from shared.dataset_store import COUNT_KEYS, DatasetStore
-from shared.messages import (
+from shared.contracts.messages import (
     ErrorReply,
     GenerationJob,
     GenerationResult,
@@ -47,8 +46,9 @@ from shared.messages import (
     ValidationJob,
     ValidationResult,
 )
-from shared.objects import list_object_ids, split_of
-from shared.sim import PhysicsParams
+from shared.data.dataset_store import COUNT_KEYS, DatasetStore
+from shared.world.objects import list_object_ids, split_of
+from shared.world.sim import PhysicsParams
 
 TRAINING_SPLIT = "train"
 ENERGY_TERMS = ("fc", "dis", "pen", "spen", "joints", "ff", "fp", "tpen", "dir", "arm", "total")

@@ -6,7 +6,7 @@ pose's angles, the base driven kinematically through a fixed constraint whose ta
 `push_distance_m` along +x at `PhysicsParams.push_speed_mps`, then holds for `settle_s` while the
 object comes to rest.
 
-Success (paper, "Hand Pose Validation in Simulation"): judged by `shared.push_outcome.judge_push`, the
+Success (paper, "Hand Pose Validation in Simulation"): judged by `shared.world.push_outcome.judge_push`, the
 one judge of every push (validation, rollouts, executions): the object's centre (centre of mass)
 ends within 3 cm (table plane) of start + push_distance_m * x, turned at most 45° and did not topple.
 The other metrics are reported, not judged.
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from shared.frames import FrameError, pose25_to_matrix, quat_xyzw_to_matrix
-from shared.hands import HandModel
-from shared.objects import ObjectModel, write_object_urdf
-from shared.push_outcome import judge_push, object_pose
-from shared.sim import PhysicsParams, SimScene, pos_quat_to_transform
+from shared.robots.hands import HandModel
+from shared.world.objects import ObjectModel, write_object_urdf
+from shared.world.push_outcome import judge_push, object_pose
+from shared.world.sim import PhysicsParams, SimScene, pos_quat_to_transform
 
 DEFAULT_PUSH_DISTANCE_M = 0.20
 # Contact "kept" if the hand touched the object in >= 80% of the push steps: successful pushes of 384

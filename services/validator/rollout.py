@@ -3,7 +3,7 @@
 The planner sends one `ValidationJob(with_arm=True)` per feasible plan. Each rollout builds the
 world the robot bridge will execute in — table, the arm + hand at the plan's first waypoint, the
 object resting at `frame.object_pose`, the obstacles — and follows the plan with the same control
-law as the simulated robot (`shared.sim.plan_runner`). Measured:
+law as the simulated robot (`shared.world.sim.plan_runner`). Measured:
 
 - L_goal: distance (table plane) of the object's final position from the target, i.e. the start
   plus `push_distance_m` along the push direction;
@@ -15,7 +15,7 @@ law as the simulated robot (`shared.sim.plan_runner`). Measured:
   kept through at least 80% of the push segment; hand-table contact).
 
 Robust ranking (`job.physics_draws` = N): the plan is also played in N worlds drawn around the
-nominal one (`shared.sim.world.rollout_worlds`: friction, mass, centre of mass, controller gain and
+nominal one (`shared.world.sim.world.rollout_worlds`: friction, mass, centre of mass, controller gain and
 latency, the object off its told pose by up to 1 cm / 5 deg), seeded by the job's seed so every plan
 of a request meets the same N worlds; their outcomes come back as `draws`, one row each. The scene
 is reused: only friction changes between worlds (`RobotScene.use_contact_physics`) and the object is
@@ -39,15 +39,15 @@ import numpy as np
 import pybullet as pb
 
 from shared.bus import ServiceError
+from shared.contracts.messages import ExecutionResult, PushOutcomes, ValidationJob, ValidationResult
 from shared.frames import direction_xy
-from shared.messages import ExecutionResult, PushOutcomes, ValidationJob, ValidationResult
-from shared.object_refs import load_object_ref
-from shared.objects import ObjectLoadError, write_object_urdf
-from shared.push_outcome import judge_push, object_pose, pose_matrix
-from shared.sim import PhysicsParams
-from shared.sim.plan_runner import PlanRun, PlanRunError, prepare_robot, run_plan
-from shared.sim.robot_scene import RobotScene
-from shared.sim.world import half_extents, rollout_worlds
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import ObjectLoadError, write_object_urdf
+from shared.world.push_outcome import judge_push, object_pose, pose_matrix
+from shared.world.sim import PhysicsParams
+from shared.world.sim.plan_runner import PlanRun, PlanRunError, prepare_robot, run_plan
+from shared.world.sim.robot_scene import RobotScene
+from shared.world.sim.world import half_extents, rollout_worlds
 
 CONTACT_KEPT_MIN_FRACTION = 0.8  # as the floating-hand validator
 LEAD_S = 1.5  # simulated before the push: the Cartesian approach (2 x 5 cm at 0.1 m/s) and some margin

@@ -27,12 +27,19 @@ from services.validator.rollout import rollout
 from services.validator.validator import ValidationRun, Validator
 from shared.bus import ServiceError
 from shared.bus.worker import check_deadline
+from shared.contracts.messages import (
+    AugmentedOutcomes,
+    Message,
+    ObjectRef,
+    PhysicsSettings,
+    ValidationJob,
+    ValidationResult,
+)
 from shared.frames import object_yaw_in_d
-from shared.hands import load_hand
-from shared.messages import AugmentedOutcomes, Message, ObjectRef, PhysicsSettings, ValidationJob, ValidationResult
-from shared.object_refs import load_object_ref
-from shared.objects import ObjectLoadError, ObjectModel
-from shared.sim import PhysicsParams, SimError
+from shared.robots.hands import load_hand
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import ObjectLoadError, ObjectModel
+from shared.world.sim import PhysicsParams, SimError
 
 SERVICE = "validator"
 DEFAULT_PARAMS = PhysicsParams()

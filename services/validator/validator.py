@@ -15,8 +15,8 @@ import numpy as np
 
 from services.validator.augment import COPIES_PER_SUCCESS, halton_perturbations
 from services.validator.push import DEFAULT_PUSH_DISTANCE_M, PushOutcome, PushSimulator, TableObject
-from shared.hands import HandModel
-from shared.sim import PhysicsParams
+from shared.robots.hands import HandModel
+from shared.world.sim import PhysicsParams
 
 PLACEMENT_NOISE_XY_M = 0.005  # trials: object centre moved within this radius ...
 PLACEMENT_NOISE_YAW_DEG = 5.0  # ... and turned about the vertical by up to this angle

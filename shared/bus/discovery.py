@@ -5,8 +5,8 @@ import zenoh
 
 from shared.bus.errors import BusError
 from shared.bus.keys import PREFIX, alive_pattern, check_chunk, parse_alive_key
-from shared.codec import CodecError, decode, encode
-from shared.messages import HealthQuery, WorkerStatus
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import HealthQuery, WorkerStatus
 
 
 def live_workers(session: zenoh.Session, service: str | None = None, timeout: float = 1.0) -> dict[str, list[str]]:

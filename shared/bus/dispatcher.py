@@ -42,8 +42,8 @@ import zenoh
 from shared.bus.errors import BusError, DispatchError, RemoteError
 from shared.bus.keys import alive_pattern, check_chunk, job_key, parse_alive_key
 from shared.bus.worker import payload_digest, timeout_attachment
-from shared.codec import CodecError, decode, encode
-from shared.messages import ErrorReply, Message
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import ErrorReply, Message
 
 log = logging.getLogger("gd2p.bus.dispatcher")
 
@@ -139,7 +139,7 @@ class Dispatcher:
         submitted again returns its first future; a different job with a known id raises `BusError`.
         """
         if not isinstance(job, Message):
-            raise TypeError(f"jobs must be shared.messages.Message instances, got {type(job).__name__}")
+            raise TypeError(f"jobs must be shared.contracts.messages.Message instances, got {type(job).__name__}")
         payload, encoding = encode(job)
         digest = payload_digest(payload, encoding)
         with self._lock:

@@ -1,7 +1,7 @@
 """Exceptions of the bus layer."""
 from __future__ import annotations
 
-from shared.messages import ErrorReply
+from shared.contracts.messages import ErrorReply
 
 
 class BusError(RuntimeError):

@@ -2,7 +2,7 @@
 
 `INTERFACES` is one table of `Interface` rows, built from the key builders of shared/bus/keys.py (a key
 is spelled there and nowhere else, the launcher's control key aside: `LAUNCHER_CONTROL_KEY` below) and
-the models of shared/messages.py. A row says
+the models of shared/contracts/messages.py. A row says
 - `key`: the key expression, `<name>` marking a chunk that varies (`pattern` turns each into `*`);
 - `kind`: "queryable" (queried with `get`, answered with replies), "publication" (put, subscribed to)
   or "liveliness" (a token, watched with liveliness subscribers and queries);
@@ -36,11 +36,11 @@ from pydantic import AfterValidator, BaseModel
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
-from shared import messages
 from shared.bus import keys
 from shared.bus.lease import LEASE_ROLES, lease_key
-from shared.codec import ENCODING_PREFIX
-from shared.messages import (
+from shared.contracts import messages
+from shared.contracts.codec import ENCODING_PREFIX
+from shared.contracts.messages import (
     SCHEMA_VERSION,
     ErrorReply,
     EStop,
@@ -167,11 +167,11 @@ WORKERS: tuple[Service, ...] = (
             ("services/sampler/service.py: handlers()", "services/planner/service.py: BusServices.sample")),
     Service("planner", "push/pull requests: IK, RRTConnect, rollouts, ranking, multi-step",
             (Exchange(PushRequest, (PushResponse, ErrorReply)),), frozenset({"cli"}), True,
-            "`gd2p push`, `gd2p demo` and the Python push client (shared/push_client.py), through a Dispatcher"
+            "`gd2p push`, `gd2p demo` and the Python push client (client/push_client.py), through a Dispatcher"
             " with one attempt; examples/raw_zenoh_push.py (zenoh + msgpack only).",
             "One push at a time per planner (one robot). The push client waits up to 600 s. A request naming"
             " `client_lease` is cancelled (ErrorReply \"cancelled\") when that lease token disappears.",
-            ("services/planner/service.py: PlannerService.handlers", "shared/push_client.py: push")),
+            ("services/planner/service.py: PlannerService.handlers", "client/push_client.py: push")),
     Service("robot_bridge", "executes plans: simulated robot (default), panda (Franka FR3) / xarm7 / leap / allegro robots",
             (Exchange(EStop, (ExecutionState, ErrorReply)),), frozenset({"cli"}), False,
             "Health queries (cli); an EStop job stops every robot like the e-stop key. Commands do not come"
@@ -229,7 +229,7 @@ def _lease_interface(role: str) -> Interface:
                           " PushRequest.client_lease."),
                          ("The planner (a LeaseMonitor while it serves the request; losing the token cancels the"
                           " request and stops the robot if it moves)."),
-                         ("shared/push_client.py: push", "services/planner/service.py: BusServices.watch_client"))}
+                         ("client/push_client.py: push", "services/planner/service.py: BusServices.watch_client"))}
     summary, used_by, code = detail[role]
     return Interface(f"{role} lease", lease_key(role, "<holder>"), "liveliness", summary,
                      frozenset({holder}), EVERYONE, payload="none (a token)", used_by=used_by,
@@ -327,7 +327,7 @@ def open_put_keys() -> tuple[str, ...]:
 
 # ------------------------------------------------------------------------------------------ field tables
 def array_aliases() -> dict[str, dict[str, typing.Any]]:
-    """Name of each NDArray type of shared/messages.py (PoseBatch, ...) -> its `array_of` constraints
+    """Name of each NDArray type of shared/contracts/messages.py (PoseBatch, ...) -> its `array_of` constraints
     (shape, dtypes, min_rows, max_rows, finite), read from the validator that enforces them."""
     aliases = {}
     for name, obj in vars(messages).items():
@@ -599,12 +599,12 @@ edit the registry, not this file (tests/test_interfaces.py compares the two). --
 
 ## Introduction
 
-GD2P's services exchange pydantic messages (shared/messages.py) over one Zenoh router. This document
+GD2P's services exchange pydantic messages (shared/contracts/messages.py) over one Zenoh router. This document
 lists every key expression of the bus: which messages travel on it, who declares it and who calls it,
 which liveliness it relies on, its QoS, and how to build its messages without the project's code.
 It is generated from the interface registry, shared/bus/interfaces.py, from which the secure
 profile's access rules (deploy/secure/profile.py) are built and against which they are tested.
-From Python, `shared.bus` does all of this (`Worker`, `Dispatcher`, `shared.push_client.push`);
+From Python, `shared.bus` does all of this (`Worker`, `Dispatcher`, `client.push_client.push`);
 examples/raw_zenoh_push.py does it with zenoh and msgpack alone, following this document.
 
 ## Brief overview

@@ -1,7 +1,7 @@
 """The robots of the bridge, one folder each (config + robot + protocol fake), and their one vocabulary.
 
 Messages, flags, folders, self-test entries and limits all name an arm `panda` or `xarm7` and a hand
-`allegro` or `leap` (`shared.messages.ARMS` / `HANDS`). `DEVICES` is the one place that says which
+`allegro` or `leap` (`shared.contracts.messages.ARMS` / `HANDS`). `DEVICES` is the one place that says which
 hardware and driver stand behind each name — e.g. the arm `panda` is a Franka Research 3 (FR3) driven
 through franky-control: plans use the Panda model, which has the FR3's kinematic chain.
 

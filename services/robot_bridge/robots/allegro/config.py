@@ -1,6 +1,6 @@
 """The Allegro hand V5 (hand `allegro`): its config and its device limits.
 
-Joint ranges and speeds are its URDF's (example-robot-data's allegro_right_hand.urdf, shared/hands).
+Joint ranges and speeds are its URDF's (example-robot-data's allegro_right_hand.urdf, shared/robots/hands).
 The effort limit is the V5 driver's torque-command clamp, +-240 in its CAN units (~mA;
 AllegroHandDrv.cpp), which is what the hand reports and we monitor; the URDF gives torques instead.
 """
@@ -10,7 +10,7 @@ import functools
 from dataclasses import dataclass
 
 from services.robot_bridge.limits import DeviceLimits
-from shared.robot_limits import JointLimits
+from shared.robots.robot_limits import JointLimits
 
 CURRENT_CLAMP = 240.0
 

@@ -1,6 +1,6 @@
 """The LEAP hand (hand `leap`): its config and its device limits.
 
-Joint ranges and speeds are its URDF's (LEAP_Hand_Sim robot.urdf, shared/hands). The effort limit is
+Joint ranges and speeds are its URDF's (LEAP_Hand_Sim robot.urdf, shared/robots/hands). The effort limit is
 the Dynamixel goal-current cap in mA, which the URDF (torques) does not give: current-based position
 mode never exceeds it, and 550 mA is the LEAP authors' setting for the full hand.
 """
@@ -10,7 +10,7 @@ import functools
 from dataclasses import dataclass
 
 from services.robot_bridge.limits import DeviceLimits
-from shared.robot_limits import JointLimits
+from shared.robots.robot_limits import JointLimits
 
 CURRENT_LIMIT_MA = 550.0
 

@@ -1,6 +1,6 @@
 """The Franka Research 3 behind the arm name `panda`: its config and its device limits.
 
-Plans name the arm's joints as the Panda model does (shared/arms.py), which has the FR3's kinematic
+Plans name the arm's joints as the Panda model does (shared/robots/arms.py), which has the FR3's kinematic
 chain; the real FR3's joint ranges and speeds differ from that model's URDF (joints 4 and 6 most), so
 those are typed here from the FR3's own description. Efforts (Nm) are the URDF's.
 """
@@ -10,7 +10,7 @@ import functools
 from dataclasses import dataclass
 
 from services.robot_bridge.limits import DeviceLimits
-from shared.robot_limits import JointLimits
+from shared.robots.robot_limits import JointLimits
 
 # External-torque reflex thresholds (Nm): libfranka's default-behaviour values (20, 20, 18, 18, 16, 14, 12)
 # capped at each joint's rated torque (12 Nm for joints 5-7), so the cap never exceeds the effort limit.

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.robot_bridge.limits import DeviceLimits
-from shared.robot_limits import JointLimits
-from shared.sim.params import REFERENCE_PARAMS, PhysicsParams
+from shared.robots.robot_limits import JointLimits
+from shared.world.sim.params import REFERENCE_PARAMS, PhysicsParams
 
 
 @dataclass(frozen=True)

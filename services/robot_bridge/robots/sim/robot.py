@@ -5,10 +5,10 @@ observe / send / stop / recover / disconnect), one robot for the arm and hand to
 one physics world, stepped by one thread. `executor.Executor` runs commands on it behind the same
 checks as on hardware (the bus bridge and the evaluation alike).
 
-- Control: `shared.sim.plan_runner.ArmController`, the control law the planner's rollouts predict
+- Control: `shared.world.sim.plan_runner.ArmController`, the control law the planner's rollouts predict
   with (POSITION_CONTROL tracking the linearly interpolated trajectory, velocity feed-forward, URDF
   efforts as torque caps); its gain, latency and settling come from the robot's `PhysicsParams`,
-  which a reset sets to the world's (an evaluation's drawn execution world, `shared.sim.world`).
+  which a reset sets to the world's (an evaluation's drawn execution world, `shared.world.sim.world`).
 - World: `reset_world(TrueWorld)` builds a fresh simulation with the object as it truly is, where it
   truly stands. The bus bridge knows only the world it is told (`reset_told`); the evaluation computes
   the truth it keeps from the planner (evaluation/local_system.py).
@@ -34,14 +34,14 @@ from services.robot_bridge.executor import StatePublisher
 from services.robot_bridge.limits import SafetyRefusal
 from services.robot_bridge.robot import ExecutionReport, JointTrajectory, MotionStopped, Observation, Robot
 from services.robot_bridge.robots.sim.config import SimConfig, limits
+from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, SimWorld
 from shared.frames import matrix_to_quat_xyzw
-from shared.messages import ExecutionState, ObjectPose, ObjectRef, SimWorld
-from shared.object_refs import load_object_ref
-from shared.objects import ObjectLoadError, write_object_urdf
-from shared.push_outcome import pose_matrix
-from shared.sim.params import PhysicsParams
-from shared.sim.plan_runner import ArmController, prepare_robot
-from shared.sim.robot_scene import RobotScene
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import ObjectLoadError, write_object_urdf
+from shared.world.push_outcome import pose_matrix
+from shared.world.sim.params import PhysicsParams
+from shared.world.sim.plan_runner import ArmController, prepare_robot
+from shared.world.sim.robot_scene import RobotScene
 
 
 @dataclass(frozen=True)
@@ -143,7 +143,7 @@ class SimRobot(Robot):
             raise SafetyRefusal("world", str(exc)) from None
 
     def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> None:
-        """Place the object to push (URDF from `shared.objects.write_object_urdf`) with frame O at T_world_O."""
+        """Place the object to push (URDF from `shared.world.objects.write_object_urdf`) with frame O at T_world_O."""
         scene = self._scene()
         with self._lock:
             scene.add_object(urdf_path, T_world_O)

@@ -1,6 +1,6 @@
 """The UFactory xArm7 (arm `xarm7`): its config and its device limits.
 
-Every limit is its URDF's (xarm_description's xarm7.urdf, shared/arms.py): joint ranges, speeds and
+Every limit is its URDF's (xarm_description's xarm7.urdf, shared/robots/arms.py): joint ranges, speeds and
 efforts in Nm, the unit the SDK reports measured torques in.
 """
 from __future__ import annotations
@@ -9,7 +9,7 @@ import functools
 from dataclasses import dataclass
 
 from services.robot_bridge.limits import DeviceLimits
-from shared.robot_limits import JointLimits
+from shared.robots.robot_limits import JointLimits
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""The wire contract: every bus message (`messages`) and how it travels (`codec`: msgpack + Zenoh encoding)."""
