@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from shared.data.dataset_store import DatasetStore, StoreError
@@ -120,11 +119,9 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     """All poses of `hand` in the store, grouped into frames. Refuses test-split library objects."""
     directory = Path(directory)
     store = open_store(directory)
-    paths = store.shard_paths()
-    if not paths:
+    if not store.shard_paths():
         raise DatasetError(f"{directory}: the store holds no poses yet")
-    tables = [_read_shard(path) for path in paths]
-    table = pa.concat_tables(tables, promote_options="default") if len(tables) > 1 else tables[0]
+    table = _read_rows(store)
     rows = pc.fill_null(pc.equal(table.column("hand"), hand), False)
     if not pc.any(rows).as_py():
         present = sorted(h for h in pc.unique(table.column("hand")).to_pylist() if h is not None)
@@ -139,17 +136,16 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     return PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store))
 
 
-def _read_shard(path: Path) -> pa.Table:
+def _read_rows(store: DatasetStore) -> pa.Table:
+    """The store's rows (read by the store, the one reader of its shards), the columns training uses."""
     try:
-        schema = pq.read_schema(path)
-        columns = [c for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS if c in schema.names]
-        table = pq.read_table(path, columns=columns)
+        table = store.rows()
     except (OSError, pa.ArrowException) as exc:
-        raise DatasetError(f"{path}: not a readable Parquet shard: {exc}") from exc
+        raise DatasetError(f"{store.directory}: a shard is not readable Parquet: {exc}") from exc
     missing = [c for c in REQUIRED_COLUMNS if c not in table.column_names]
     if missing:
-        raise DatasetError(f"{path}: missing column(s) {missing}; a shard needs {list(REQUIRED_COLUMNS)}")
-    return table
+        raise DatasetError(f"{store.directory}: missing column(s) {missing}; a shard needs {list(REQUIRED_COLUMNS)}")
+    return table.select([c for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS if c in table.column_names])
 
 
 def _pose_matrix(table: pa.Table, directory: Path) -> np.ndarray:
