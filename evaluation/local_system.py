@@ -17,10 +17,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from services.planner import ranking
 from services.planner.cancellation import Cancellation
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
@@ -171,13 +172,17 @@ class LocalSystem:
         self.sampler = SamplerService()
         self._pipelines: dict[str, PushPipeline] = {}
 
-    def pipeline(self, source_name: str, source: PoseSource | None = None) -> PushPipeline:
-        """The pipeline whose pose source is `source` (default: the sampler service)."""
-        if source_name not in self._pipelines:
+    def pipeline(self, source_name: str, source: PoseSource | None = None,
+                 weights: ranking.Weights | None = None) -> PushPipeline:
+        """The pipeline whose pose source is `source` (default: the sampler service), ranking with
+        `weights` (default: the settings')."""
+        settings = self.settings if weights is None else replace(self.settings, weights=weights)
+        key = f"{source_name}/{settings.weights}"
+        if key not in self._pipelines:
             services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)
-            self._pipelines[source_name] = PushPipeline(services, self.settings)
-        return self._pipelines[source_name]
+            self._pipelines[key] = PushPipeline(services, settings)
+        return self._pipelines[key]
 
     def close(self) -> None:
         for pipeline in self._pipelines.values():

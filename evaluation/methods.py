@@ -36,7 +36,8 @@ VAL_OBJECTS = ("proc-box-010", "proc-box-017", "proc-cylinder-006", "proc-cylind
 LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
 # Compared in the report's differences: GD2P against each baseline with the same pipeline stages.
 COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked"), ("gd2p", "nearest-ranked"),
-               ("gd2p-random", "nearest"), ("gd2p-robust", "gd2p"), ("gd2p-corrected", "gd2p"))
+               ("gd2p-random", "nearest"), ("gd2p-robust", "gd2p"), ("gd2p-corrected", "gd2p"),
+               ("gd2p-a30", "gd2p"))
 
 
 @dataclass(frozen=True)
