@@ -31,7 +31,7 @@ from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
 from services.sampler.service import SamplerService
 from services.validator.service import validate
-from shared.bus.errors import ServiceError
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     ExecutionCommand,
     ExecutionState,

@@ -11,8 +11,9 @@ import sys
 import threading
 import time
 
-from shared.bus import BusConfig, ServiceError, run_worker
+from shared.bus import BusConfig, run_worker
 from shared.bus.worker import check_deadline
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import Message
 
 SERVICE = "bustest"

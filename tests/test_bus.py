@@ -19,7 +19,6 @@ from shared.bus import (
     BusError,
     Dispatcher,
     RouterUnreachable,
-    ServiceError,
     Worker,
     alive_key,
     health,
@@ -30,6 +29,7 @@ from shared.bus import (
     status_key,
 )
 from shared.contracts.codec import decode, encode
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import ErrorReply, HealthQuery, WorkerStatus
 
 pytestmark = pytest.mark.timeout(60)

@@ -311,7 +311,7 @@ def test_service_answers_a_job_deterministically(box_file, cache_dir, monkeypatc
 
 def test_service_rejects_a_point_cloud_with_a_clear_error():
     from services.generator.service import run_job
-    from shared.bus import ServiceError
+    from shared.contracts.errors import ServiceError
     from shared.contracts.messages import GenerationJob, ObjectRef
 
     job = GenerationJob(object=ObjectRef(point_cloud=np.zeros((5, 3), np.float32)), hand="allegro", batch_size=2)

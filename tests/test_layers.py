@@ -58,3 +58,20 @@ def test_every_layer_imports_only_the_layers_below_it():
             assert layer in ALLOWED, f"{path.relative_to(ROOT)}: a new layer, give it a row in ALLOWED"
             wrong = {name for name in _project_imports(path) if _layer(name) not in ALLOWED[layer] | {layer}}
             assert not wrong, f"{path.relative_to(ROOT)} ({layer}) imports {sorted(wrong)}"
+
+
+# The algorithm modules of each service: plain modules that know nothing of Zenoh (only a service's
+# bus adapter, its service.py, and the robot bridge's bus_safety.py load it).
+ALGORITHMS = ("services.planner.pipeline", "services.planner.ranking", "services.planner.multistep",
+              "services.validator.validator", "services.validator.rollout", "services.validator.augment",
+              "services.sampler.sampling", "services.sampler.train", "services.sampler.nearest_neighbor",
+              "services.generator.synthesis", "services.robot_bridge.executor")
+
+
+def test_no_algorithm_module_loads_zenoh_even_through_its_imports():
+    import subprocess
+    import sys
+
+    code = f"import sys, {', '.join(ALGORITHMS)}; loaded = 'zenoh' in sys.modules; print(loaded); sys.exit(loaded)"
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=300, capture_output=True, text=True)
+    assert done.returncode == 0, f"an algorithm module loads zenoh: {done.stdout}{done.stderr[-2000:]}"

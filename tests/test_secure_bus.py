@@ -44,7 +44,6 @@ from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus import (
     Dispatcher,
     RemoteError,
-    ServiceError,
     Worker,
     health,
     keys,
@@ -52,6 +51,7 @@ from shared.bus import (
 )
 from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key
 from shared.contracts.codec import decode, encode
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     EStop,
     ExecutionCommand,

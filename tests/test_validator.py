@@ -13,9 +13,10 @@ from services.validator.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRAN
 from services.validator.push import PushSimulator, table_object
 from services.validator.service import validate
 from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
-from shared.bus import BusConfig, ServiceError, Worker, job_key, live_workers, open_session
+from shared.bus import BusConfig, Worker, job_key, live_workers, open_session
 from shared.bus.worker import timeout_attachment
 from shared.contracts.codec import decode, encode
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
 from shared.frames import make_transform, pose25_to_matrix
 from shared.robots.hands import load_hand

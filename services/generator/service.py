@@ -18,8 +18,8 @@ from services.generator.config import GenerationConfig, GenerationConfigError
 from services.generator.init import InitialisationError
 from services.generator.scene import PushScene
 from services.generator.synthesis import GenerationError, GenerationOutput, generate
-from shared.bus import ServiceError
 from shared.bus.worker import check_deadline
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import GenerationJob, GenerationResult, Message, ObjectRef
 from shared.robots.hands import load_hand
 from shared.world.object_refs import load_object_ref

@@ -34,11 +34,12 @@ from services.planner.cancellation import Cancellation, RequestCancelled
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.recording import record_push
-from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, ServiceError, Worker, open_session
+from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, Worker, open_session
 from shared.bus.errors import DispatchError
 from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import LeaseError, LeaseMonitor, lease_key, parse_lease_key
 from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     ErrorReply,
     ExecutionCommand,

@@ -23,7 +23,7 @@ from pathlib import Path
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
-from shared.bus import ServiceError
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import Message, ObjectRef, SampleRequest, SampleResponse
 from shared.world.object_refs import captured_object, load_uploaded_mesh
 from shared.world.objects import ObjectLoadError

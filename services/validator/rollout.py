@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pybullet as pb
 
-from shared.bus import ServiceError
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import ExecutionResult, PushOutcomes, ValidationJob, ValidationResult
 from shared.frames import direction_xy
 from shared.world.object_refs import load_object_ref

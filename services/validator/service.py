@@ -25,8 +25,8 @@ import numpy as np
 from services.validator.push import PushInputError, PushOutcome, table_object
 from services.validator.rollout import rollout
 from services.validator.validator import ValidationRun, Validator
-from shared.bus import ServiceError
 from shared.bus.worker import check_deadline
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     AugmentedOutcomes,
     Message,

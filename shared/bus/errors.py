@@ -16,20 +16,6 @@ class OpenCancelled(BusError):
     """The stop event was set while `open_session` was still waiting for a router."""
 
 
-class ServiceError(Exception):
-    """Raised by a service handler to answer with a specific `ErrorReply` code.
-
-    `code` must be one of `ErrorReply.CODES` (e.g. "infeasible", "not_implemented").
-    """
-
-    def __init__(self, code: str, message: str):
-        if code not in ErrorReply.CODES:
-            raise ValueError(f"ServiceError code {code!r} is not one of {', '.join(ErrorReply.CODES)}")
-        super().__init__(message)
-        self.code = code
-        self.message = message
-
-
 class RemoteError(Exception):
     """A worker answered with an `ErrorReply`; raised on the caller side (e.g. by `Dispatcher.call`)."""
 

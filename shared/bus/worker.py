@@ -53,9 +53,10 @@ import msgpack
 import zenoh
 
 from shared.bus.config import BusConfig, open_session
-from shared.bus.errors import OpenCancelled, ServiceError
+from shared.bus.errors import OpenCancelled
 from shared.bus.keys import alive_key, check_chunk, job_key, status_key
 from shared.contracts.codec import CodecError, check_payload_size, decode, encode
+from shared.contracts.errors import ServiceError
 from shared.contracts.messages import ErrorReply, HealthQuery, Message, WorkerStatus
 
 log = logging.getLogger("gd2p.bus.worker")
