@@ -70,10 +70,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "and the given pose (friction, mass, centre of mass, controller, pose off by up to 1 cm / "
                              "5 deg) besides the nominal one, and rank by the mean L_goal (0-16; default 0: the "
                              "nominal rollout only; each draw costs about 0.4 s of CPU per plan)")
-    parser.add_argument("--corrections", type=non_negative_int, default=0, metavar="N",
+    parser.add_argument("--corrections", type=non_negative_int, default=None, metavar="N",
                         help="closed loop at the scale of pushes (with --direction-deg): when a push leaves the "
                              "object more than 3 cm from the target, upright and turned no more than 45 deg, push "
-                             "again from where the robot saw it, up to N times (0-5; default 0)")
+                             "again from where the robot saw it, up to N times (0-5; default 2; 0: open loop, as the "
+                             "paper)")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
@@ -118,7 +119,8 @@ def build_request(args: argparse.Namespace):
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
                        k=args.k, choice=args.choice, seed=args.seed, method=args.method,
-                       sampler=args.sampler, physics_draws=args.physics_draws, corrections=args.corrections)
+                       sampler=args.sampler, physics_draws=args.physics_draws,
+                       **({} if args.corrections is None else {"corrections": args.corrections}))
 
 
 def run_push(args: argparse.Namespace) -> int:

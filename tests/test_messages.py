@@ -145,7 +145,9 @@ def test_corrections_are_bounded_and_only_for_a_direction_push():
         m.PushRequest(object=BOX, direction_deg=0, corrections=6)
     with pytest.raises(ValidationError, match="corrections are for a direction push"):
         m.PushRequest(object=BOX, goal_xy=(0.6, 0.2), corrections=1)
-    assert m.PushRequest(object=BOX, direction_deg=0, corrections=2).corrections == 2
+    assert m.PushRequest(object=BOX, goal_xy=(0.6, 0.2)).corrections == 2  # the default is not a request for them
+    assert m.PushRequest(object=BOX, direction_deg=0).corrections == 2  # on by default (val: +10.7 points)
+    assert m.PushRequest(object=BOX, direction_deg=0, corrections=0).corrections == 0  # open loop, as the paper
 
 
 def test_unknown_hand_and_bad_pair():

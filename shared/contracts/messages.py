@@ -664,7 +664,10 @@ class PushRequest(Message):
     # Closed loop at the scale of pushes (direction requests): when the executed push leaves the object
     # more than the success tolerance from the target but upright and turned no more than the success
     # bound allows, push again from where the robot bridge observed it, up to this many times.
-    corrections: int = Field(default=0, ge=0, le=MAX_CORRECTIONS)
+    # On by default: on val objects under the evaluation's `real` world, 2 corrections raised GD2P from
+    # 71.4% to 82.1% at the same median time per trial (results/methods-real-val). Needs the object's pose
+    # after each push: the simulated robot sees it; on hardware a tracker must publish it.
+    corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
@@ -684,7 +687,7 @@ class PushRequest(Message):
             raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
         if self.physics_draws and self.choice == "random":
             raise ValueError("physics_draws ranks rolled-out plans; choice 'random' rolls none out")
-        if self.corrections and self.goal_xy is not None:
+        if "corrections" in self.model_fields_set and self.corrections and self.goal_xy is not None:
             raise ValueError("corrections are for a direction push: a goal_xy request already pushes again from "
                              "where the object is, up to max_steps")
         _check_pair(self.hand, self.arm)
