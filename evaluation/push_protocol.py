@@ -41,7 +41,7 @@ import math
 import multiprocessing as mp
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, astuple, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +94,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
+    Method("gd2p-a10", "GD2P, α=10 (the weights before val tuning)", "gd2p", "ranked", weights=(10.0, 1.0, 0.1)),
     Method("nearest", "Nearest Neighbor", "nearest", "random"),
     Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
     Method("fixed", "Fixed spatula", "fixed", "random"),
@@ -259,6 +260,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
     record["seconds"] = round(time.perf_counter() - started, 2)
     record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
+    record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     return record
 
 

@@ -97,9 +97,15 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
             "machine": machine(), "code": CODE_AT_START, "quick": quick}
     if records:
         meta["records_code"] = dict(Counter(r.get("code", "not recorded") for r in records))
+        if any("ranking_weights" in r for r in records):
+            meta["records_ranking_weights"] = dict(Counter(str(r.get("ranking_weights", "not recorded"))
+                                                           for r in records))
     resumed = f" summed over the invocations that ran (this one {wall_time_s / 60:.1f} min)" if total - wall_time_s >= 1 else ""
     made_by = ("\n- trials run by code: " + ", ".join(f"{c} ({n})" for c, n in meta["records_code"].items())
                if records else "")
+    if "records_ranking_weights" in meta:
+        made_by += "\n- ranking weights (α, β, γ) of the trials: " + ", ".join(
+            f"{w} ({n})" for w, n in meta["records_ranking_weights"].items())
     header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
               f"- machine: {meta['machine']}\n- code: {meta['code']}{made_by}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")
