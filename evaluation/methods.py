@@ -37,7 +37,7 @@ LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
 # Compared in the report's differences: GD2P against each baseline with the same pipeline stages.
 COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked"), ("gd2p", "nearest-ranked"),
                ("gd2p-random", "nearest"), ("gd2p-robust", "gd2p"), ("gd2p-corrected", "gd2p"),
-               ("gd2p-a30", "gd2p"))
+               ("gd2p-a30", "gd2p"), ("gd2p-corrected", "nearest-corrected"), ("gd2p-corrected", "fixed-corrected"))
 
 
 @dataclass(frozen=True)

@@ -98,6 +98,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("nearest", "Nearest Neighbor", "nearest", "random"),
     Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
     Method("fixed", "Fixed spatula", "fixed", "random"),
+    # The baselines with the same corrective pushes as GD2P + corrective pushes (the same pipeline stages).
+    Method("nearest-corrected", "Nearest Neighbor + corrective pushes", "nearest", "random", corrections=CORRECTIONS),
+    Method("fixed-corrected", "Fixed spatula + corrective pushes", "fixed", "random", corrections=CORRECTIONS),
     Method("grasp", "Grasp pose", "grasp", "random"),
     Method("grasp-ranked", "Grasp pose + ranking", "grasp", "ranked"),
 )}
