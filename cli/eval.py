@@ -58,7 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="methods / leap: the 14 test objects (default, for reporting) or 14 val objects (for "
                              "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test)")
     parser.add_argument("--methods", type=_method_list, default=None,
-                        help="methods / leap: comma-separated methods to run (default: the experiment's all); "
+                        help="methods / leap: comma-separated methods to run (default: every method but the tuning "
+                             "candidates gd2p-robust, gd2p-a30, gd2p-a10); "
                              "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-a30, gd2p-a10, nearest, nearest-corrected, fixed-corrected, nearest-ranked, fixed, grasp, "
                              "grasp-ranked")
     parser.set_defaults(func=run)

@@ -80,7 +80,7 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
     on_val = ", val objects (tuning)" if split == "val" else ""
     if name == "methods":
         return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`{on_val}", "allegro",
-                        tuple(methods or protocol.METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras,
+                        tuple(methods or protocol.DEFAULT_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras,
                         split)
     if name == "leap":
         return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`{on_val}", "leap",

@@ -106,6 +106,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 )}
 
 
+# Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
+TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10"})
+DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
+
+
 @dataclass(frozen=True)
 class Episode:
     method: str
