@@ -106,6 +106,9 @@ def build_request(args: argparse.Namespace):
     from shared.world.object_refs import load_object_ref
     from shared.world.push_outcome import object_pose
 
+    if args.goal and args.corrections is not None:
+        raise ValueError("--corrections: a --goal request already pushes again from where the object was seen, up "
+                         "to its step limit; corrections are for --direction-deg")
     ref = object_ref(args)
     if ref.point_cloud is not None and args.position is not None:
         raise ValueError("--position: the point cloud shows where the object stands; leave --position out")

@@ -140,12 +140,9 @@ def test_physics_draws_are_bounded_and_only_for_rolled_out_plans():
     assert m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="unranked").physics_draws == 4
 
 
-def test_corrections_are_bounded_and_only_for_a_direction_push():
+def test_corrections_are_bounded_and_on_by_default():
     with pytest.raises(ValidationError, match=r"corrections\n.*less than or equal to 5"):
         m.PushRequest(object=BOX, direction_deg=0, corrections=6)
-    with pytest.raises(ValidationError, match="corrections are for a direction push"):
-        m.PushRequest(object=BOX, goal_xy=(0.6, 0.2), corrections=1)
-    assert m.PushRequest(object=BOX, goal_xy=(0.6, 0.2)).corrections == 2  # the default is not a request for them
     assert m.PushRequest(object=BOX, direction_deg=0).corrections == 2  # on by default (val: +10.7 points)
     assert m.PushRequest(object=BOX, direction_deg=0, corrections=0).corrections == 0  # open loop, as the paper
 

@@ -660,3 +660,11 @@ def test_gd2p_push_names_the_flag_of_a_bad_value_without_a_traceback(flags, says
         code = exit_.code
     err = capsys.readouterr().err
     assert code == 2 and says in err and "Traceback" not in err, err
+
+
+def test_gd2p_push_refuses_corrections_for_a_goal_request(capsys):
+    from cli.main import main
+
+    code = main(["push", "--object", BOX, "--goal", "0.5", "0.1", "--corrections", "1", "--connect", "tcp/127.0.0.1:9"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--corrections: a --goal request already pushes again" in err and "Traceback" not in err
