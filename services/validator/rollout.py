@@ -68,10 +68,12 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
     scene = _scene(job.arm, job.hand, params)
     nominal = _play(scene, job, write_object_urdf(obj), pose_matrix(job.frame.object_pose), params,
                     with_penetration=True)
-    worlds = rollout_worlds(job.seed, job.physics_draws, half_extents(obj.mesh.vertices), params)
-    drawn = [_play(scene, job, write_object_urdf(obj, w.mass_scale, w.com_offset_m),
-                   w.pose_error.true_pose(pose_matrix(job.frame.object_pose)), w.physics) for w in worlds]
-    scene.use_contact_physics(params)  # the cached scene is the nominal world again
+    drawn = []
+    if job.physics_draws:  # robust ranking only: the nominal rollout needs no draws
+        worlds = rollout_worlds(job.seed, job.physics_draws, half_extents(obj.mesh.vertices), params)
+        drawn = [_play(scene, job, write_object_urdf(obj, w.mass_scale, w.com_offset_m),
+                       w.pose_error.true_pose(pose_matrix(job.frame.object_pose)), w.physics) for w in worlds]
+        scene.use_contact_physics(params)  # the cached scene is the nominal world again
     hand_link_names = {scene.link_names[i] for i in scene.hand_links}
     collided = bool(nominal.run.collisions)
     touched_obstacle = (nominal.run.object_obstacle_contact
