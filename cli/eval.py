@@ -4,12 +4,13 @@
     gd2p eval methods --world exact           # ... executed in the planner's own world (for comparison)
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
+    gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
 
-World (`--world`, methods / leap / multistep): `real` (default) executes every plan in a world drawn
+World (`--world`, methods / leap / closed-loop / multistep): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
 the object off its told pose (shared/world/sim/world.py documents each range); `exact` executes in the
 planner's own world. Results go to `<out>/<experiment>-<world>/`.
@@ -30,12 +31,13 @@ from pathlib import Path
 EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers) -> report path"
     "methods": "evaluation.methods:run_methods",
     "leap": "evaluation.methods:run_leap",
+    "closed-loop": "evaluation.methods:run_closed_loop",
     "multistep": "evaluation.multistep:run",
     "data-size": "evaluation.data_size:run",
     "sampler-quality": "evaluation.sampler_quality:run",
 }
-TRIAL_EXPERIMENTS = ("methods", "leap")
-WORLD_EXPERIMENTS = ("methods", "leap", "multistep")
+TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
+WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -46,22 +48,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--quick", action="store_true", help="a small slice of the protocol (minutes, for CI)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2: one per core here)")
     parser.add_argument("--trials", type=int, default=None,
-                        help="methods / leap: trials per object and direction (default: the paper's 5); a run can "
+                        help="methods / leap / closed-loop: trials per object and direction (default: the paper's 5); a run can "
                              "later be extended to more trials in the same --out")
     parser.add_argument("--world", choices=("real", "exact"), default="real",
-                        help="methods / leap / multistep: the execution world (default real; see above)")
+                        help="methods / leap / closed-loop / multistep: the execution world (default real; see above)")
     parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=0,
-                        help="methods / leap: 0 (default) tells the system the object's mesh and a pose off by the "
+                        help="methods / leap / closed-loop: 0 (default) tells the system the object's mesh and a pose off by the "
                              "world's pose error; 1-3: the system sees the object only through that many simulated "
                              "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
     parser.add_argument("--split", choices=("test", "val"), default="test",
-                        help="methods / leap: the 14 test objects (default, for reporting) or 14 val objects (for "
+                        help="methods / leap / closed-loop: the 14 test objects (default, for reporting) or 14 val objects (for "
                              "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test)")
     parser.add_argument("--methods", type=_method_list, default=None,
-                        help="methods / leap: comma-separated methods to run (default: every method but the tuning "
-                             "candidates gd2p-robust, gd2p-a30, gd2p-a10); "
-                             "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-a30, gd2p-a10, nearest, nearest-corrected, fixed-corrected, nearest-ranked, fixed, grasp, "
-                             "grasp-ranked")
+                        help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
+                             "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-loose); "
+                             "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-closed, "
+                             "gd2p-closed-tight, gd2p-closed-loose, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
+                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked")
+    parser.add_argument("--closed-loop", action="store_true",
+                        help="multistep: watch every push and stop it when the object strays from its predicted "
+                             "path (PushRequest.closed_loop), into <out>/multistep-<world>-closed/")
     parser.set_defaults(func=run)
 
 
@@ -105,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
             options["cameras"] = args.cameras
         if args.split != "test" and name in TRIAL_EXPERIMENTS:
             options["split"] = args.split
+        if args.closed_loop and name == "multistep":
+            options["closed_loop"] = True
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except ResultStoreError as exc:

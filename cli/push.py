@@ -34,7 +34,7 @@ CONNECT_TIMEOUT_MS = 3000
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
          "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler", "choice": "--choice",
-         "physics_draws": "--physics-draws", "corrections": "--corrections"}
+         "physics_draws": "--physics-draws", "corrections": "--corrections", "closed_loop": "--closed-loop"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -75,6 +75,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "object more than 3 cm from the target, upright and turned no more than 45 deg, push "
                              "again from where the robot saw it, up to N times (0-5; default 2; 0: open loop, as the "
                              "paper)")
+    parser.add_argument("--closed-loop", action=argparse.BooleanOptionalAction, default=None,
+                        help="watch the object while each push runs (the robot bridge's object tracking) and stop "
+                             "the push when it strays from the path the chosen plan's rollout predicted; the robot "
+                             "backs out and, within --corrections, pushes again from where it saw the object "
+                             "(default: the request's default; plans chosen with --choice random have no predicted "
+                             "path and run open loop)")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
@@ -123,7 +129,8 @@ def build_request(args: argparse.Namespace):
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
                        k=args.k, choice=args.choice, seed=args.seed, method=args.method,
                        sampler=args.sampler, physics_draws=args.physics_draws,
-                       **({} if args.corrections is None else {"corrections": args.corrections}))
+                       **({} if args.corrections is None else {"corrections": args.corrections}),
+                       **({} if args.closed_loop is None else {"closed_loop": args.closed_loop}))
 
 
 def run_push(args: argparse.Namespace) -> int:

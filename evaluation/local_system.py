@@ -23,6 +23,7 @@ import numpy as np
 
 from services.planner import ranking
 from services.planner.cancellation import Cancellation
+from services.planner.monitor import MonitorThresholds, PushMonitor
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.stages import PipelineSettings
@@ -35,6 +36,7 @@ from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     ExecutionCommand,
     ExecutionState,
+    ObjectPose,
     ObjectRef,
     Plan,
     SampleRequest,
@@ -84,7 +86,8 @@ def true_world(told: SimWorld, execution: ExecutionWorld | None,
             T_world_O = execution.pose_error.true_pose(T_world_O)
     if execution is None:
         return TrueWorld(obj, T_world_O, obstacles)
-    return TrueWorld(obj, T_world_O, obstacles, execution.physics, execution.mass_scale, execution.com_offset_m)
+    return TrueWorld(obj, T_world_O, obstacles, execution.physics, execution.mass_scale, execution.com_offset_m,
+                     tracker_seed=execution.seed)
 
 
 class LocalRobot:
@@ -99,12 +102,13 @@ class LocalRobot:
         # The true object and its true pose (T_world_O), when the planner plans around something else (a
         # reconstruction from a camera cloud): a reset puts this object there. None: the planner's object.
         self.true_object: tuple[ObjectRef, np.ndarray] | None = None
+        self._watching: tuple[PushMonitor, LocalLease] | None = None  # the executing push's monitor, and its lease
 
     def executor(self, arm: str, hand: str) -> Executor:
         key = (arm, hand)
         if key not in self._executors:
             robot = SimRobot(SimConfig(arm, hand))
-            watch = robot.publish = lambda _state, robot=robot: self._watch_object(robot)
+            watch = robot.publish = lambda state, robot=robot: self._on_state(robot, state)
             robot.connect()
             # Nothing here engages the e-stop: only a protective stop could, and the simulated robot measures no effort.
             self._executors[key] = Executor(arm, hand, [robot], EStopLatch(), publish=watch)
@@ -115,24 +119,42 @@ class LocalRobot:
         assert isinstance(robot, SimRobot)  # what `executor` builds
         return robot
 
-    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None) -> Execution:
+    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None,
+                monitor: PushMonitor | None = None) -> Execution:
+        """Run `plan` (in a fresh `world`, if given); a lost lease — the request cancelled, or `monitor`
+        finding a reason to stop (closed loop) — stops it."""
         executor, robot = self.executor(plan.arm, plan.hand), self.robot(plan.arm, plan.hand)
         if world is not None:
             robot.reset_world(true_world(world, self.execution_world, self.true_object))
         lease = LocalLease()
         unregister = cancel.on_cancel(lambda: lease.release("the request was cancelled")) if cancel is not None else (lambda: None)
+        self._watching = (monitor, lease) if monitor is not None else None
         try:
             command = ExecutionCommand(plan=plan, lease_token="local", realtime_factor=REALTIME_FACTOR)
             state: ExecutionState = executor.execute(command, lease)
         finally:
             unregister()
+            self._watching = None
         self.contacts.robot_obstacle.update(link for link, other in robot.collisions if other.startswith("obstacle"))
         return Execution(final=state)
 
-    def _watch_object(self, robot: SimRobot) -> None:
-        """Called at the state rate during execution: does the object touch an obstacle?"""
+    def true_object_pose(self, arm: str, hand: str) -> ObjectPose:
+        """Where the object truly is now (what the evaluation judges; the planner sees the tracker's pose)."""
+        pose = self.robot(arm, hand).true_object_pose()
+        if pose is None:
+            raise RuntimeError(f"the simulated {arm} + {hand} has no object")
+        return pose
+
+    def _on_state(self, robot: SimRobot, state: ExecutionState) -> None:
+        """Each state the robot publishes while it moves (on its thread): does the object touch an obstacle;
+        closed loop, does the monitor stop the push?"""
         if robot.scene is not None and not self.contacts.object_obstacle:
             self.contacts.object_obstacle = robot.scene.object_touches_obstacle()
+        if self._watching is not None:
+            monitor, lease = self._watching
+            reason = monitor.observe_state(state)
+            if reason is not None:
+                lease.release(f"closed loop: {reason}")
 
     def close(self) -> None:
         for executor in self._executors.values():
@@ -172,12 +194,13 @@ class LocalSystem:
         self.sampler = SamplerService()
         self._pipelines: dict[str, PushPipeline] = {}
 
-    def pipeline(self, source_name: str, source: PoseSource | None = None,
-                 weights: ranking.Weights | None = None) -> PushPipeline:
+    def pipeline(self, source_name: str, source: PoseSource | None = None, weights: ranking.Weights | None = None,
+                 monitor: MonitorThresholds | None = None) -> PushPipeline:
         """The pipeline whose pose source is `source` (default: the sampler service), ranking with
-        `weights` (default: the settings')."""
-        settings = self.settings if weights is None else replace(self.settings, weights=weights)
-        key = f"{source_name}/{settings.weights}"
+        `weights` and stopping closed-loop pushes at `monitor` (default: the settings')."""
+        settings = replace(self.settings, weights=weights or self.settings.weights,
+                           monitor=monitor or self.settings.monitor)
+        key = f"{source_name}/{settings.weights}/{settings.monitor}"
         if key not in self._pipelines:
             services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)

@@ -20,7 +20,7 @@ from typing import Any
 
 from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
-from evaluation.stats import difference_interval, success_interval
+from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import ResultStore
 from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M
 from shared.world.sim.world import WorldLevel
@@ -37,7 +37,12 @@ LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
 # Compared in the report's differences: GD2P against each baseline with the same pipeline stages.
 COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked"), ("gd2p", "nearest-ranked"),
                ("gd2p-random", "nearest"), ("gd2p-robust", "gd2p"), ("gd2p-corrected", "gd2p"),
-               ("gd2p-a30", "gd2p"), ("gd2p-corrected", "nearest-corrected"), ("gd2p-corrected", "fixed-corrected"))
+               ("gd2p-a30", "gd2p"), ("gd2p-corrected", "nearest-corrected"), ("gd2p-corrected", "fixed-corrected"),
+               ("gd2p-closed", "gd2p"), ("gd2p-closed", "gd2p-corrected"), ("gd2p-closed-tight", "gd2p-closed"),
+               ("gd2p-closed-loose", "gd2p-closed"))
+# The closed-loop experiment (`gd2p eval closed-loop`): open loop, corrective pushes after a push, and
+# pushes watched and stopped mid-way, run together on one commit.
+CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed")
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,10 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
     if name == "leap":
         return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`{on_val}", "leap",
                         tuple(methods or ("gd2p",)), objects, protocol.DIRECTIONS_DEG, trials, world, cameras, split)
+    if name == "closed-loop":
+        return Protocol(name, f"Closed loop (Allegro + Panda), world `{world}`{on_val}", "allegro",
+                        tuple(methods or CLOSED_LOOP_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world,
+                        cameras, split)
     raise ValueError(f"unknown protocol {name!r}")
 
 
@@ -119,6 +128,12 @@ def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | Non
              world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
              split: str = "test") -> Path:
     return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split)
+
+
+def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
+                    world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
+                    split: str = "test") -> Path:
+    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split)
 
 
 def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
@@ -192,10 +207,22 @@ def summarise(records: Sequence[dict[str, Any]], spec: Protocol) -> dict[str, An
             "failure_causes": dict(causes),
             "trials": len(rs),
             "median_seconds": sorted(r["seconds"] for r in rs)[len(rs) // 2] if rs else None,
+            "corrections_per_trial": mean_interval(rs, corrections).as_dict(),
+            "stopped_per_trial": mean_interval(rs, lambda r: len(r.get("stopped_pushes", ()))).as_dict(),
         }
     differences = {f"{a} - {b}": difference_interval(by_method[a], by_method[b]).as_dict()
                    for a, b in COMPARISONS if a in spec.methods and b in spec.methods}
     return {"methods": methods, "differences_95": differences}
+
+
+def corrections(record: dict[str, Any]) -> float:
+    """Pushes made after the first (corrective pushes) in a trial."""
+    return float(record.get("pushes", 1) - 1) if record["outcome"] in ("success", "failure") else 0.0
+
+
+def _corrects(spec: Protocol) -> bool:
+    """Whether any method of `spec` may push more than once (the report then counts the pushes)."""
+    return any(protocol.METHODS[m].corrections for m in spec.methods)
 
 
 def _cell(records: Sequence[dict[str, Any]]) -> str:
@@ -207,6 +234,10 @@ def _cell(records: Sequence[dict[str, Any]]) -> str:
 def _share(rate: float, spec: str = ".1%") -> str:
     """A rate as text; "–" when there was nothing to count (e.g. no everyday object among val objects)."""
     return "–" if math.isnan(rate) else format(rate, spec)
+
+
+def _per_trial(interval: dict[str, float]) -> str:
+    return f"{interval['value']:.2f} [{interval['low']:.2f}, {interval['high']:.2f}]"
 
 
 def method_label(method: str) -> str:
@@ -253,10 +284,14 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
                             + [_share(s['procedural_success_rate']), _share(s['everyday_success_rate']),
                                _share(s['feasible_success_rate'])]
                             + [f"{s['by_direction'][f'{d:g}']:.1%}" for d in spec.directions]
-                            + [o.get("infeasible", 0), o.get("error", 0), s["trials"], s["median_seconds"]])
+                            + [o.get("infeasible", 0), o.get("error", 0), s["trials"], s["median_seconds"]]
+                            + ([_per_trial(s["corrections_per_trial"]), _per_trial(s["stopped_per_trial"])]
+                               if _corrects(spec) else []))
     text += markdown_table(["method", "all [95% CI]"] + (["exact"] if exact else []) + ["3D", "DO", "when feasible"]
                            + [f"{d:g}°" for d in spec.directions]
-                           + ["infeasible", "errors", "trials", "median s/trial"], summary_rows)
+                           + ["infeasible", "errors", "trials", "median s/trial"]
+                           + (["corrections/trial [95% CI]", "pushes stopped/trial [95% CI]"] if _corrects(spec) else []),
+                           summary_rows)
     if summary["differences_95"]:
         text += "\n### Differences (percentage points, paired by object, 95% interval)\n\n"
         text += markdown_table(["comparison", "difference"],

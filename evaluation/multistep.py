@@ -27,10 +27,10 @@ from evaluation.store import ResultStore
 from shared.contracts.messages import CircleObstacle, ObjectRef, PushRequest
 from shared.frames import make_transform, yaw_rotation
 from shared.world.objects import load_object
-from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, object_pose, pose_matrix
+from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, judge_push, object_pose, pose_matrix
 from shared.world.sim.world import ExecutionWorld, WorldLevel, sample_world
 
-TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`"
+TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`{loop}"
 PLOT_FILE = "object_paths.png"
 MAX_PUSH_M = 0.15  # longest single push along the path
 MAX_STEPS = 6
@@ -63,6 +63,7 @@ class Run:
     trial: int
     hand: str = "allegro"
     world: WorldLevel = "real"
+    closed_loop: bool = False
 
     @property
     def key(self) -> str:
@@ -87,7 +88,7 @@ def request(run: Run) -> PushRequest:
     return PushRequest(object=ObjectRef(library_id=run.object_id), object_pose=object_pose(T_world_O),
                        goal_xy=run.scenario.goal_xy, obstacles=[CircleObstacle(x=ox, y=oy, radius=radius)],
                        distance_m=MAX_PUSH_M, max_steps=MAX_STEPS, hand=run.hand, arm=protocol.ROBOTS[run.hand],
-                       seed=run.seed)
+                       seed=run.seed, closed_loop=run.closed_loop)
 
 
 def run_one(run: Run) -> dict[str, Any]:
@@ -115,12 +116,18 @@ def run_one(run: Run) -> dict[str, Any]:
     else:
         response, executed = outcome.response, outcome.records
         contacts = system.robot.contacts
-        success = response.result.success and not contacts.any  # at the goal, standing, the obstacle untouched
+        # Judged where the object truly started and truly is (the planner knows what its tracker saw).
+        true_start = world.pose_error.true_pose(pose_matrix(the_request.object_pose))
+        result = judge_push(true_start, np.asarray(run.scenario.goal_xy),
+                            system.robot.true_object_pose(the_request.arm, the_request.hand), max_rotation_deg=None)
+        success = result.success and not contacts.any  # at the goal, standing, the obstacle untouched
         record.update(outcome="success" if success else "failure", success=success,
-                      goal_error_m=response.result.position_error_m,
-                      toppled=response.result.toppled, rotation_deg=response.result.rotation_deg,
+                      goal_error_m=result.position_error_m, toppled=result.toppled, rotation_deg=result.rotation_deg,
                       pushes=len(response.steps), robot_obstacle_contact=sorted(contacts.robot_obstacle),
                       object_obstacle_contact=contacts.object_obstacle)
+        stopped = [i for i, step in enumerate(response.steps) if step.stopped]
+        if stopped:
+            record["stopped_pushes"] = stopped
     record["path_xy"] = _object_path(the_request, executed)
     record["seconds"] = round(time.perf_counter() - started, 2)
     record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
@@ -133,13 +140,14 @@ def _object_path(the_request: PushRequest, steps) -> list[list[float]]:
     return [[round(float(v), 4) for v in pose_matrix(p)[:2, 3]] for p in poses]
 
 
-def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "real") -> Path:
+def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "real", closed_loop: bool = False) -> Path:
+    """The multi-step experiment into `<out>/multistep-<world>[-closed]/`; `closed_loop`: every push watched."""
     scenarios, objects, trials = (SCENARIOS[:1], OBJECTS[:1], 1) if quick else (SCENARIOS, OBJECTS, TRIALS)
-    runs = [Run(s, o, t, world=world) for s in scenarios for o in objects for t in range(trials)]
-    directory = Path(out) / f"multistep-{world}"
+    runs = [Run(s, o, t, world=world, closed_loop=closed_loop) for s in scenarios for o in objects for t in range(trials)]
+    directory = Path(out) / (f"multistep-{world}" + ("-closed" if closed_loop else ""))
     settings = {"scenarios": [vars(s) for s in scenarios], "objects": list(objects), "trials": trials,
                 "max_push_m": MAX_PUSH_M, "max_steps": MAX_STEPS, "placement_noise_m": protocol.PLACEMENT_NOISE_M,
-                "world": world}
+                "world": world, **({"closed_loop": True} if closed_loop else {})}
     store = ResultStore(directory, settings)
     started = time.perf_counter()
     protocol.run_in_workers([r for r in runs if not store.done(r.key)], run_one, store, workers,
@@ -173,7 +181,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
         [[r["scenario"], r["object_id"], r["trial"], r["outcome"], _fmt(r.get("goal_error_m")), r.get("pushes", ""),
           ", ".join(r.get("robot_obstacle_contact") or []) + (" object" if r.get("object_obstacle_contact") else ""),
           r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
-    return write_experiment(directory, TITLE.format(world=world), body, {"success_rate": rate, "interval_95": interval.as_dict(),
+    return write_experiment(directory, TITLE.format(world=world, loop=", closed loop" if closed_loop else ""), body, {"success_rate": rate, "interval_95": interval.as_dict(),
                                                 "runs": len(records), "settings": settings},
                             time.perf_counter() - started, quick, records)
 

@@ -9,7 +9,7 @@ same draw of objects for both).
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,19 +36,30 @@ class Interval:
         return {"value": self.value, "low": self.low, "high": self.high}
 
 
-def _per_object(records: Sequence[dict[str, Any]], cluster: str) -> dict[str, tuple[int, int]]:
-    """(successes, trials) per object."""
-    counts: dict[str, list[int]] = defaultdict(lambda: [0, 0])
+def _succeeded(record: dict[str, Any]) -> float:
+    return float(bool(record["success"]))
+
+
+def _per_object(records: Sequence[dict[str, Any]], cluster: str,
+                value: Callable[[dict[str, Any]], float] = _succeeded) -> dict[str, tuple[float, int]]:
+    """(sum of `value`, trials) per object: (successes, trials) by default."""
+    counts: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
     for r in records:
-        counts[r[cluster]][0] += int(bool(r["success"]))
+        counts[r[cluster]][0] += value(r)
         counts[r[cluster]][1] += 1
-    return {k: (v[0], v[1]) for k, v in counts.items()}
+    return {k: (v[0], int(v[1])) for k, v in counts.items()}
 
 
 def success_interval(records: Sequence[dict[str, Any]], cluster: str = "object_id", draws: int = DRAWS,
                      seed: int = SEED) -> Interval:
     """The pooled success rate of `records` with its object-clustered 95% bootstrap interval."""
-    counts = _per_object(records, cluster)
+    return mean_interval(records, _succeeded, cluster, draws, seed)
+
+
+def mean_interval(records: Sequence[dict[str, Any]], value: Callable[[dict[str, Any]], float],
+                  cluster: str = "object_id", draws: int = DRAWS, seed: int = SEED) -> Interval:
+    """The mean of `value` over `records` (e.g. corrections per trial) with its object-clustered 95% interval."""
+    counts = _per_object(records, cluster, value)
     if not counts:
         return Interval(float("nan"), float("nan"), float("nan"))
     successes, trials = (np.array(v, dtype=np.float64) for v in zip(*counts.values(), strict=True))

@@ -214,7 +214,7 @@ def execution_states(draw) -> m.ExecutionState:
         stamp=draw(non_negative), joint_names=[f"j{i}" for i in range(n)], positions=draw(float_array((n,))),
         velocities=draw(float_array((n,))), object_pose=draw(st.none() | object_poses),
         status=draw(st.sampled_from(["idle", "executing", "done", "refused", "stopped", "error"])),
-        command_id=draw(st.none() | ids), message=draw(st.text(max_size=30)),
+        command_id=draw(st.none() | ids), message=draw(st.text(max_size=30)), plan_time_s=draw(st.none() | non_negative),
     )
 
 
@@ -239,6 +239,8 @@ STRATEGIES: dict[type[m.Message], st.SearchStrategy] = {
     m.ExecutionCommand: st.builds(m.ExecutionCommand, plan=plans(), lease_token=text, realtime_factor=st.floats(1e-3, 1000.0)),
     m.ExecutionState: execution_states(),
     m.EStop: st.builds(m.EStop, reason=text, issued_by=st.none() | text),
+    m.ObjectTrack: st.builds(m.ObjectTrack, stamp=non_negative, pose=object_poses, source=text,
+                             command_id=st.none() | ids, plan_time_s=st.none() | non_negative),
     m.ScaleRequest: st.builds(m.ScaleRequest, service=text, count=st.integers(0, 1024)),
     m.ScaleReply: st.builds(m.ScaleReply, service=text, count=st.integers(0, 1024), started=st.lists(text, max_size=3),
                             stopped=st.lists(text, max_size=3)),

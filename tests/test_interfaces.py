@@ -72,6 +72,7 @@ def test_every_key_of_keys_py_has_its_row():
         "ROBOT_COMMAND_KEY": lambda: interface(keys.ROBOT_COMMAND_KEY),
         "ROBOT_STATE_KEY": lambda: interface(keys.ROBOT_STATE_KEY),
         "ROBOT_ESTOP_KEY": lambda: interface(keys.ROBOT_ESTOP_KEY),
+        "OBJECT_TRACK_KEY": lambda: interface(keys.OBJECT_TRACK_KEY),
         "alive_key": lambda: interface(keys.alive_key("sampler", "w-1")),
         "alive_pattern": lambda: next(r for r in INTERFACES if r.pattern == keys.alive_pattern("sampler")),
         "job_key": lambda: interface(keys.job_key("sampler", "w-1")),

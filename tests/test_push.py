@@ -399,8 +399,8 @@ def _push_with_a_displaced_first_outcome(displace, corrections=2):
     robot = LocalRobot()
     left = []
 
-    def execute(plan, world, cancel):
-        execution = robot.execute(plan, world, cancel)
+    def execute(plan, world, cancel, monitor=None):
+        execution = robot.execute(plan, world, cancel, monitor)
         if left:
             return execution
         left.append(pose_matrix(execution.final.object_pose))

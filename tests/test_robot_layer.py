@@ -220,3 +220,41 @@ def test_services_never_import_each_other():
             others = {name.split(".")[1] for name in _imports(path)
                       if name.startswith("services.") and name.split(".")[1] != service.name}
             assert not others, f"{path.relative_to(ROOT)} imports services {sorted(others)}"
+
+
+def test_hardware_states_carry_a_users_tracker_pose_and_the_plan_time(zenoh_router):
+    """On hardware the object's pose comes from the user's tracker on the object-track key: the bridge folds
+    its latest pose into the states it publishes while a plan runs (where the closed-loop monitor reads it)."""
+    from services.robot_bridge.service import TRACK_FRESH_S, TRACK_KEY, TrackSubscriber
+    from shared.bus import BusConfig, open_session
+    from shared.contracts.codec import encode
+    from shared.contracts.messages import ObjectPose, ObjectTrack
+
+    cfg = BusConfig(mode="client", connect=[zenoh_router], connect_timeout_ms=5000)
+    seen = ObjectPose(position=(0.42, 0.05, 0.03))
+    with open_session(cfg) as bridge_session, open_session(cfg) as tracker_session:
+        tracks = TrackSubscriber(bridge_session)
+        quiet = threading.Event()
+
+        def track() -> None:  # the user's tracker, at 20 Hz
+            while not quiet.is_set():
+                payload, encoding = encode(ObjectTrack(stamp=time.time(), pose=seen, source="apriltag-cam"))
+                tracker_session.put(TRACK_KEY, payload, encoding=encoding)
+                time.sleep(0.05)
+
+        threading.Thread(target=track, daemon=True).start()
+        deadline = time.monotonic() + 5.0
+        while tracks.latest() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        states = []
+        arm, hand = devices()
+        executor = Executor("xarm7", "leap", [arm, hand], EStopLatch(), publish=states.append,
+                            tracked_object=tracks.latest)
+        assert executor.execute(command(XARM_HOME + 0.1, 0.4), LocalLease()).status == "done"
+        quiet.set()
+        tracks.close()
+    executing = [s for s in states if s.status == "executing"]
+    assert executing and all(s.object_pose == seen for s in executing)
+    assert np.all(np.diff([s.plan_time_s for s in executing]) > 0)
+    time.sleep(TRACK_FRESH_S + 0.1)
+    assert tracks.latest() is None  # a tracker gone quiet is not believed

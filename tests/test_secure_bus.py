@@ -479,6 +479,8 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
         ],
         "ROBOT_STATE_KEY": [("ingress", "put", keys.ROBOT_STATE_KEY, frozenset({"robot_bridge"})),
                             ("ingress", "declare_subscriber", keys.ROBOT_STATE_KEY, ALL)],
+        "OBJECT_TRACK_KEY": [("ingress", "put", keys.OBJECT_TRACK_KEY, frozenset({"robot_bridge", "tracker"})),
+                             ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
         # Router watchdog beats (shared/bus/lease.py): open on purpose, see profile.OPEN_PUT_KEYS.

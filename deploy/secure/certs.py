@@ -35,8 +35,9 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 # (push, generate, validate, sample, dataset build, status, health, e-stop), which may not command motion;
 # "operator" is the only one that may reach the launcher's control key (scaling processes is host
 # administration: the "cli" certificate is handed to every push or dataset client, this one is not).
+# "tracker" is a user's object tracker beside real hardware: it may publish only the object track.
 IDENTITIES: tuple[str, ...] = ("planner", "robot_bridge", "generator", "validator", "sampler", "recorder",
-                               "launcher", "cli", "operator")
+                               "launcher", "cli", "operator", "tracker")
 ROUTER_IDENTITY = "router"
 DEFAULT_ROUTER_HOSTS: tuple[str, ...] = ("localhost", "127.0.0.1", "router")
 

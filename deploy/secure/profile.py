@@ -17,6 +17,8 @@ rules are default-deny, and each key space has an owner:
   (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli).
 - `gd2p/launcher/**`: only CN "operator" queries it (scaling is host administration, kept apart from
   the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
+- `gd2p/robot_bridge/object_track`: besides the bridge (its namespace), CN "tracker" may put: a user's
+  object tracker beside real hardware.
 - `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner);
   so may it on `gd2p/watchdog/*` (router watchdog beats, see OPEN_PUT_KEYS).
 - every identity may subscribe, liveliness-subscribe and liveliness-query `gd2p/**` (observers: the
@@ -43,6 +45,7 @@ from shared.bus.keys import (
     ALIVE_PREFIX,
     ALL_KEYS,
     LEASE_PREFIX,
+    OBJECT_TRACK_KEY,
     PREFIX,
     ROBOT_COMMAND_KEY,
     STATUS_PREFIX,
@@ -52,6 +55,7 @@ COMMAND_KEYS = f"{ROBOT_COMMAND_KEY.rsplit('/', 1)[0]}/**"  # gd2p/robot_bridge/
 COMMANDER_IDENTITY = "planner"
 BRIDGE_IDENTITY = "robot_bridge"
 OPERATOR_IDENTITY = "operator"
+TRACKER_IDENTITY = "tracker"
 LAUNCHER_IDENTITY = "launcher"
 LAUNCHER_KEYS = f"{PREFIX}/{LAUNCHER_IDENTITY}/**"  # the launcher's control key gd2p/launcher/control
 # Processes that run workers: a liveliness token, a status heartbeat and a worker queryable each.
@@ -121,6 +125,7 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("launcher-control", "ingress", ["query"], [LAUNCHER_KEYS]),
         _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),
     ]
+    by_subject[TRACKER_IDENTITY].append(_rule("object-track", "ingress", ["put"], [OBJECT_TRACK_KEY]))
     return by_subject
 
 

@@ -14,7 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from services.planner import ranking
-from shared.contracts.messages import DirectionFrame, Plan, ScoreTerms
+from shared.contracts.messages import DirectionFrame, ObjectPath, Plan, ScoreTerms
 from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
 from shared.robots.hands import HandModel
 from shared.world.push_outcome import object_pose
@@ -101,15 +101,16 @@ class CandidatePlan:
     index: int
     plan: Plan
 
-    def ranked(self, score: ScoreTerms | None) -> RankedPlan:
-        return RankedPlan(self.index, self.plan, score)
+    def ranked(self, score: ScoreTerms | None, predicted: ObjectPath | None = None) -> RankedPlan:
+        return RankedPlan(self.index, self.plan, score, predicted)
 
 
 @dataclass(frozen=True)
 class RankedPlan:
-    """A plan chosen or ranked for execution: candidate `index`, its plan, and the score of its arm
-    rollout (None when the request is not ranked)."""
+    """A plan chosen or ranked for execution: candidate `index`, its plan, the score of its arm rollout
+    (None when the request is not ranked) and the object's path in that rollout (plan times)."""
 
     index: int
     plan: Plan
     score: ScoreTerms | None
+    predicted: ObjectPath | None = None

@@ -184,8 +184,9 @@ class PushPipeline:
             if final.success or not correctable(final):
                 break
             offset = push.target_xy - state.T_world_O[:2, 3]
-            reason = (f"correction {len(state.records)}: push {len(state.records)} left the object "
-                      f"{final.position_error_m * 100:.1f} cm from the target")
+            last = len(state.records)
+            how = "was stopped with" if state.records[-1].step.stopped else "left"
+            reason = f"correction {last}: push {last} {how} the object {final.position_error_m * 100:.1f} cm from the target"
             try:
                 self._push_once(state, Push(state.T_world_O.copy(), offset / np.linalg.norm(offset),
                                             float(np.linalg.norm(offset))), reason)
@@ -214,7 +215,7 @@ class PushPipeline:
                 chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
-        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, reason))
+        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, self.settings, reason))
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an

@@ -31,6 +31,7 @@ from pathlib import Path
 import zenoh
 
 from services.planner.cancellation import Cancellation, RequestCancelled
+from services.planner.monitor import PushMonitor
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.recording import record_push
@@ -74,6 +75,7 @@ class BusServices:
         self.validator = Dispatcher(session, "validator", timeout_s=ROLLOUT_TIMEOUT_S, max_in_flight_per_worker=1)
         self.worker_id = worker_id
         self._states: dict[str, list[ExecutionState]] = {}
+        self._monitors: dict[str, tuple[PushMonitor, Cancellation]] = {}  # command id -> closed-loop monitor, lease
         self._lock = threading.Lock()
         self._subscriber = session.declare_subscriber(ROBOT_STATE_KEY, self._on_state)
 
@@ -112,22 +114,30 @@ class BusServices:
         self.validator.submit(job).add_done_callback(settle)
         return outcome
 
-    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation) -> Execution:
-        """Query the bridge with `plan` under a lease of this command alone; cancelling drops the lease."""
+    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation,
+                monitor: PushMonitor | None = None) -> Execution:
+        """Query the bridge with `plan` under a lease of this command alone; cancelling drops the lease, and
+        so does `monitor` (closed loop) when the states' tracked object poses give it a reason to stop."""
         command_id = new_id()
         command = ExecutionCommand(id=command_id, plan=plan, lease_token=lease_key(SERVICE, f"{self.worker_id}.{command_id}"),
                                    realtime_factor=REALTIME_FACTOR, world=world)
+        stop = Cancellation()  # this command's lease: dropped by the request's cancellation or by the monitor
+        unlink = cancel.on_cancel(lambda: stop.cancel("the request was cancelled"))
         with self._lock:
             self._states[command.id] = []
+            if monitor is not None:
+                self._monitors[command.id] = (monitor, stop)
         payload, encoding = encode(command)
         try:
             # Declared on this session before the query: the router has the token when the command arrives.
-            with _held_lease(self.session, command.lease_token, cancel):
+            with _held_lease(self.session, command.lease_token, stop):
                 replies = list(self.session.get(ROBOT_COMMAND_KEY, payload=payload, encoding=encoding,
                                                 timeout=EXECUTION_TIMEOUT_S))
         finally:
+            unlink()
             with self._lock:
                 states = self._states.pop(command.id)
+                self._monitors.pop(command.id, None)
         answers = [r.ok for r in replies if r.ok is not None]
         if not answers:
             raise PushError("unavailable", "no robot bridge answered the execution command")
@@ -164,6 +174,12 @@ class BusServices:
         with self._lock:
             if state.command_id in self._states:
                 self._states[state.command_id].append(state)
+            watching = self._monitors.get(state.command_id) if state.command_id is not None else None
+        if watching is not None:
+            monitor, stop = watching
+            reason = monitor.observe_state(state)
+            if reason is not None:
+                stop.cancel(f"closed loop: {reason}")
 
 
 def _no_watch(_request: PushRequest, _cancel: Cancellation) -> contextlib.AbstractContextManager:

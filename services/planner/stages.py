@@ -30,6 +30,7 @@ import numpy as np
 from services.planner import ranking
 from services.planner.cancellation import Cancellation
 from services.planner.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
+from services.planner.monitor import MonitorThresholds, PushMonitor, backed_out
 from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.outcome import Execution, PushError, StepRecord
 from shared.contracts.messages import (
@@ -56,7 +57,9 @@ Sample = Callable[[SampleRequest], SampleResponse]
 # A validation job (floating-hand pushes or an arm rollout) sent to the validator farm; the future
 # holds its result, or the error that stopped it.
 Validate = Callable[[ValidationJob], Future]
-Execute = Callable[[Plan, SimWorld | None, Cancellation], Execution]
+# Execute a plan on the robot bridge (resetting its world to the SimWorld first, when one is given); cancelling
+# the request must stop the motion, and so must the monitor (closed loop), when it finds a reason to stop.
+Execute = Callable[[Plan, SimWorld | None, Cancellation, PushMonitor | None], Execution]
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,7 @@ class PipelineSettings:
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
+    monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
 
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
@@ -300,7 +304,7 @@ class ArmPlanning:
                                                    self.push.offset),
                                  self.limits, 1 + self.settings.limit_retries, failures, "way back")
             if full is not None:
-                return RankedPlan(choice.index, full, choice.score)
+                return RankedPlan(choice.index, full, choice.score, choice.predicted)
         raise PushError("infeasible", f"no way back to the start for any of the {len(ranked)} ranked plan(s) "
                         f"({_counted(failures)})")
 
@@ -349,7 +353,7 @@ def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future]
         if result.obstacle_contact is not None and bool(result.obstacle_contact.to_numpy()[0]):
             continue
         terms = ranking.score_rollout(result, float(l_dir[candidate.index]), settings.weights)
-        scored.append(candidate.ranked(terms))
+        scored.append(candidate.ranked(terms, result.object_paths[0] if result.object_paths else None))
     if errors and len(errors) == len(plans):
         raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
     return best_first(scored)
@@ -417,18 +421,28 @@ def wait_for_results(futures: list[Future], timeout_s: float,
 
 
 def execute(state: RequestState, push: Push, candidates: Candidates, chosen: RankedPlan,
-            run_plan: Execute, reason: str | None = None) -> StepRecord:
+            run_plan: Execute, settings: PipelineSettings, reason: str | None = None) -> StepRecord:
     """Execute `chosen` on the robot bridge (`run_plan`); the record of the push, its outcome judged
-    from the object pose the bridge observed. PushError when the bridge did not execute it."""
+    from the object pose the bridge observed. PushError when the bridge did not execute it.
+
+    Closed loop (`request.closed_loop`): a monitor follows the tracked object against the path the plan's
+    rollout predicted; when it stops the push, the robot backs out the way it came (`_backed_out`) and
+    the push is judged where it left the object."""
     request = state.request
     world = None
     if state.q_robot is None:
         world = SimWorld(object=request.object, object_pose=object_pose(push.T_world_O), obstacles=request.obstacles)
+    monitor = None
+    if request.closed_loop and chosen.predicted is not None:  # unranked choices have no rollout to follow
+        monitor = PushMonitor(chosen.plan, chosen.predicted, push.direction[:2], settings.monitor)
     state.cancel.check()
     started = time.perf_counter()
-    execution = run_plan(chosen.plan, world, state.cancel)
-    state.time("execution", time.perf_counter() - started)
+    execution = run_plan(chosen.plan, world, state.cancel, monitor)
     state.cancel.check()  # a motion stopped by the cancellation is the cancellation's outcome
+    stopped = monitor.stop_reason if monitor is not None and execution.final.status == "stopped" else None
+    if stopped is not None:
+        execution = _backed_out(state, chosen.plan, monitor, execution, run_plan)
+    state.time("execution", time.perf_counter() - started)
     final = execution.final
     if final.status != "done":
         code = "infeasible" if final.status == "refused" else "internal"
@@ -438,5 +452,19 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     result = judge_push(push.T_world_O, push.target_xy, final.object_pose)
     index = chosen.index
     step = PushStep(chosen_pose=candidates.poses_d[index], chosen_pose_world=candidates.poses_world[index],
-                    plan=chosen.plan, score=chosen.score, result=result, reason=reason)
+                    plan=chosen.plan, score=chosen.score, result=result, reason=reason, stopped=stopped)
     return StepRecord(step, push.T_world_O, execution, world)
+
+
+def _backed_out(state: RequestState, plan: Plan, monitor: PushMonitor, stopped: Execution, run_plan: Execute) -> Execution:
+    """After the monitor stopped `plan`: the robot backs out the way it came, to where the plan started.
+    The execution of both, ending where the way back left the robot and the object."""
+    assert monitor.stop_time_s is not None
+    way_back = backed_out(plan, monitor.stop_time_s, stopped.final.positions.to_numpy())
+    back = run_plan(way_back, None, state.cancel, None)
+    state.cancel.check()
+    if back.final.status != "done":
+        raise PushError("internal", f"the push was stopped ({monitor.stop_reason}), but backing out failed "
+                        f"({back.final.status}): {back.final.message}")
+    state.notes.append(f"push {len(state.records) + 1} stopped: {monitor.stop_reason}")
+    return Execution(final=back.final, states=[*stopped.states, *back.states])

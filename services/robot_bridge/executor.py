@@ -42,7 +42,7 @@ from services.robot_bridge.robot import (
     RobotError,
     TrajectoryError,
 )
-from shared.contracts.messages import EStop, ExecutionCommand, ExecutionState, ExecutionStatus, SimWorld
+from shared.contracts.messages import EStop, ExecutionCommand, ExecutionState, ExecutionStatus, ObjectPose, SimWorld
 from shared.robots.robot_limits import DEFAULT_WORKSPACE, WorkspaceBox
 
 log = logging.getLogger("gd2p.robot_bridge.executor")
@@ -221,7 +221,8 @@ class Executor:
     def __init__(self, arm: str, hand: str, robots: Sequence[Robot], estop: EmergencyStop, *,
                  workspace: WorkspaceBox | None = DEFAULT_WORKSPACE, T_world_base: np.ndarray | None = None,
                  start_tolerance_rad: float = START_TOLERANCE_RAD, state_rate_hz: float = 50.0,
-                 publish: StatePublisher | None = None, reset_world: Callable[[SimWorld], None] | None = None):
+                 publish: StatePublisher | None = None, reset_world: Callable[[SimWorld], None] | None = None,
+                 tracked_object: Callable[[], ObjectPose | None] | None = None):
         self.arm, self.hand = arm, hand
         self.robots = list(robots)
         self.limits = plan_limits(arm, hand, [r.limits for r in self.robots], workspace, T_world_base)
@@ -234,6 +235,9 @@ class Executor:
         self.state_period_s = 1.0 / state_rate_hz
         self.publish = publish
         self.reset_world = reset_world
+        # Where a tracker outside the robots last saw the object (a user's tracker on hardware), for the
+        # states of robots that do not see it themselves.
+        self.tracked_object = tracked_object
         self._streams = any(r.streams_states for r in self.robots)
         self._busy = threading.Lock()
 
@@ -330,7 +334,8 @@ class Executor:
         """Until every robot is done, each state tick: stop all on lease loss, e-stop, an effort over its
         limit or a failing robot, and publish the state (unless the robots publish their own)."""
         stopped = False
-        next_tick = time.monotonic()
+        next_tick = started = time.monotonic()
+        plan_rate = self.robots[0].time_scale(command.realtime_factor)  # plan seconds per wall second
         while not finished.is_set():
             observations = self._observe()
             if not stopped and (watch.stop.is_set() or self.estop.engaged or self._protective_stop(observations)):
@@ -338,7 +343,8 @@ class Executor:
                 stop_all(self.robots)
                 stopped = True
             if self.publish is not None and observations and not self._streams:
-                self.publish(self.state("executing", command.id, "", observations))
+                self.publish(self.state("executing", command.id, "", observations,
+                                        plan_time_s=(time.monotonic() - started) * plan_rate))
             next_tick += self.state_period_s
             finished.wait(max(0.0, next_tick - time.monotonic()))
 
@@ -400,8 +406,9 @@ class Executor:
         return self.state("done", command.id, "; ".join(r.message for r in finished if r.message))
 
     def state(self, status: ExecutionStatus, command_id: str | None, message: str,
-              observations: Mapping[str, Observation] | None = None) -> ExecutionState:
-        """The robots' joint state (and the object pose, if one observes it) with `status` and `message`."""
+              observations: Mapping[str, Observation] | None = None, plan_time_s: float | None = None) -> ExecutionState:
+        """The robots' joint state (and the object pose, if one observes it or a tracker saw it) with `status`
+        and `message`."""
         names: list[str] = []
         positions: list[float] = []
         velocities: list[float] = []
@@ -411,6 +418,8 @@ class Executor:
             positions.extend(observation.positions.tolist())
             velocities.extend(observation.velocities.tolist())
             object_pose = object_pose or observation.object_pose
+        if object_pose is None and self.tracked_object is not None:
+            object_pose = self.tracked_object()
         return ExecutionState(stamp=time.time(), joint_names=names, positions=np.asarray(positions, dtype=np.float64),
                               velocities=np.asarray(velocities, dtype=np.float64), object_pose=object_pose,
-                              status=status, command_id=command_id, message=message)
+                              status=status, command_id=command_id, message=message, plan_time_s=plan_time_s)

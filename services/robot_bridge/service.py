@@ -19,7 +19,12 @@
 - A command with a `world` first resets the simulation to it (object, obstacles, robot at home);
   without one the plan runs in the world the previous command left (multi-step pushes). A command
   whose lease is lost during the reset is refused before anything moves.
-- While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the robot's state rate.
+- While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the robot's state rate, with the
+  plan time and the object's tracked pose.
+- The object's pose while a plan runs comes from a tracker on `TRACK_KEY` (ObjectTrack): the simulated
+  robot's own tracker publishes there; with hardware, a user's tracker does, and the bridge folds its
+  latest pose (if under `TRACK_FRESH_S` old) into the states it publishes, where the planner's
+  closed-loop monitor reads it.
 
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
 one executes.
@@ -40,15 +45,49 @@ from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
-from shared.bus.keys import ROBOT_STATE_KEY
+from shared.bus.keys import OBJECT_TRACK_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.contracts.codec import CodecError, decode, encode
-from shared.contracts.messages import ErrorReply, EStop, ExecutionCommand, ExecutionState, Message
+from shared.contracts.messages import (
+    ErrorReply,
+    EStop,
+    ExecutionCommand,
+    ExecutionState,
+    Message,
+    ObjectPose,
+    ObjectTrack,
+)
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
+TRACK_KEY = OBJECT_TRACK_KEY
+TRACK_FRESH_S = 0.5  # an external tracker's pose older than this is not folded into the states
 
 log = logging.getLogger("gd2p.robot_bridge")
+
+
+class TrackSubscriber:
+    """The latest ObjectTrack a tracker outside the robots (a user's, on hardware) published on TRACK_KEY."""
+
+    def __init__(self, session: zenoh.Session):
+        self._latest: tuple[float, ObjectPose] | None = None
+        self._subscriber = session.declare_subscriber(TRACK_KEY, self._on_track)
+
+    def _on_track(self, sample: zenoh.Sample) -> None:  # zenoh callback: quick
+        try:
+            track = decode(sample.payload.to_bytes(), str(sample.encoding), ObjectTrack)
+        except CodecError:
+            return
+        if isinstance(track, ObjectTrack):
+            self._latest = (time.monotonic(), track.pose)
+
+    def latest(self) -> ObjectPose | None:
+        """The last pose received, unless it is older than TRACK_FRESH_S."""
+        latest = self._latest
+        return latest[1] if latest is not None and time.monotonic() - latest[0] <= TRACK_FRESH_S else None
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
 
 
 class Bridge:
@@ -61,9 +100,11 @@ class Bridge:
     """
 
     def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0,
-                 probe: zenoh.Session | None = None):
+                 probe: zenoh.Session | None = None, publish_track: Callable[[ObjectTrack], None] | None = None):
         self.session = session
         self.publish = publish
+        self.publish_track = publish_track  # the simulated robots' tracker frames
+        self.tracks: TrackSubscriber | None = None  # with hardware: a user's tracker
         self.lease_timeout_s = lease_timeout_s
         self.estop_latch = EStopLatch()
         self._estop_subscriber = EStopSubscriber(session, self.estop_latch)
@@ -80,13 +121,16 @@ class Bridge:
         """Connect the real arm and hand (all or none) and route every command to them."""
         robots = spec.robots()
         connect_all(robots)
-        self.hardware = self._leased(Executor(spec.arm, spec.hand, robots, self.estop_latch, publish=self.publish))
+        self.tracks = TrackSubscriber(self.session)
+        self.hardware = self._leased(Executor(spec.arm, spec.hand, robots, self.estop_latch, publish=self.publish,
+                                              tracked_object=self.tracks.latest))
 
     def executor(self, arm: str, hand: str) -> LeasedExecutor:
         """The simulated robot of `arm` + `hand` behind its executor (built and connected on first use)."""
         with self._lock:
             if (arm, hand) not in self._executors:
                 robot = SimRobot(SimConfig(arm, hand), publish=self.publish)
+                robot.track = self.publish_track
                 robot.connect()
                 executor = Executor(arm, hand, [robot], self.estop_latch, publish=self.publish,
                                     reset_world=robot.reset_told)
@@ -111,6 +155,8 @@ class Bridge:
 
     def close(self) -> None:
         self._estop_subscriber.close()
+        if self.tracks is not None:
+            self.tracks.close()
         if self.watchdog is not None:
             self.watchdog.close()
         with self._lock:
@@ -169,18 +215,24 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     try:
         probe = open_session(cfg, stop=stop) if cfg.mode == "client" else None
         publisher = session.declare_publisher(STATE_KEY)
+        track_publisher = session.declare_publisher(TRACK_KEY)
 
         def publish(state: ExecutionState) -> None:
             payload, encoding = encode(state)
             publisher.put(payload, encoding=encoding)
 
-        bridge = Bridge(session, publish, probe=probe)
+        def publish_track(track: ObjectTrack) -> None:
+            payload, encoding = encode(track)
+            track_publisher.put(payload, encoding=encoding)
+
+        bridge = Bridge(session, publish, probe=probe, publish_track=None if hardware is not None else publish_track)
         if hardware is not None:
             bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()
         Worker(SERVICE, bridge.handlers(), cfg, worker_id, stop=stop, session=session).run()
         commands.undeclare()
         publisher.undeclare()
+        track_publisher.undeclare()
     except OpenCancelled:
         log.info("robot_bridge stopped while opening its watchdog session")
     finally:

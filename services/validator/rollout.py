@@ -82,6 +82,7 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
                             goal_error_m=np.array([nominal.result.position_error_m]),
                             collision_cost=np.array([float(collided)]), obstacle_contact=np.array([touched_obstacle]),
                             final_object_poses=[nominal.result.final_object_pose],
+                            object_paths=[nominal.run.object_path] if nominal.run.object_path is not None else None,
                             draws=_outcomes(drawn, hand_link_names) if drawn else None,
                             elapsed_s=time.perf_counter() - started,
                             **_fields(_outcomes([nominal], hand_link_names)))

@@ -50,6 +50,7 @@ from shared.contracts.messages import (
     GenerationResult,
     HealthQuery,
     Message,
+    ObjectTrack,
     PushRequest,
     PushResponse,
     SampleRequest,
@@ -190,6 +191,8 @@ TOOLS: dict[str, str] = {
     "cli": "the operator's everyday tools: `gd2p push/generate/validate/sample/dataset/status/health`, "
            "`gd2p bridge estop`, the Python push client, examples/raw_zenoh_push.py",
     "operator": "host administration: `deploy/scale_validators.py` (the launcher's control key)",
+    "tracker": "a user's object tracker next to real hardware (RGB-D pose tracker, markers, motion capture): "
+               "publishes the object's pose while the robot pushes it",
 }
 PARTICIPANTS: dict[str, str] = {s.name: f"service: {s.summary}" for s in WORKERS} | TOOLS
 EVERYONE: frozenset[str] = frozenset(PARTICIPANTS)
@@ -255,11 +258,25 @@ _ROBOT = (
               code=("services/robot_bridge/service.py: Bridge.serve_commands",
                     "services/planner/service.py: BusServices.execute")),
     Interface("robot state", keys.ROBOT_STATE_KEY, "publication",
-              "The robot's joint state (and object pose) with the execution status, streamed while a plan runs.",
+              "The robot's joint state, the plan time and the object's tracked pose with the execution status,"
+              " streamed while a plan runs.",
               frozenset({"robot_bridge"}), EVERYONE, message=ExecutionState,
-              used_by="The planner (the states of its command, by command_id, for the push recording); the recorder.",
+              used_by="The planner (the states of its command, by command_id: the push recording, and the"
+                      " closed-loop monitor, which compares their object poses with the rollout's); the recorder.",
               qos="Published at the robot's state rate while a command executes.",
               code=("services/robot_bridge/service.py: run", "services/planner/service.py: BusServices._on_state")),
+    Interface("object track", keys.OBJECT_TRACK_KEY, "publication",
+              "The pushed object's pose as a tracker sees it while a plan runs (stamp, pose, and — when the"
+              " publisher knows them — the command and its plan time).",
+              frozenset({"robot_bridge", "tracker"}), EVERYONE, message=ObjectTrack,
+              used_by="The simulated robot bridge publishes its tracker's frames (20 Hz, noisy and one frame late:"
+                      " services/robot_bridge/robots/sim/tracker.py). With hardware a user's tracker publishes here"
+                      " and the bridge folds the latest pose into its ExecutionStates (with their plan time), where"
+                      " the planner's closed-loop monitor reads it; the recorder records both.",
+              qos="Publish at the tracker's rate (10-30 Hz) while the robot moves; a pose older than 0.5 s is not"
+                  " folded into a state.",
+              code=("services/robot_bridge/robots/sim/robot.py: SimRobot._track_frame",
+                    "services/robot_bridge/service.py: TrackSubscriber")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
               "Stop every robot at once. Anything published here stops the robot — a valid EStop, an empty"
               " payload, garbage — and latches: later commands are refused until the bridge restarts.",

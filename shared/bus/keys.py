@@ -6,6 +6,7 @@
     gd2p/robot_bridge/command/execute            ExecutionCommand queries            ROBOT_COMMAND_KEY
     gd2p/robot_bridge/state                      ExecutionState stream               ROBOT_STATE_KEY
     gd2p/robot_bridge/estop                      EStop                               ROBOT_ESTOP_KEY
+    gd2p/robot_bridge/object_track               ObjectTrack stream                  OBJECT_TRACK_KEY
     gd2p/lease/<role>/<holder>                   a lease token (lease.py)            LEASE_PREFIX
     gd2p/watchdog/<name>                         router watchdog beats (lease.py)    WATCHDOG_PREFIX
 
@@ -25,6 +26,7 @@ ALL_KEYS = f"{PREFIX}/**"
 ROBOT_COMMAND_KEY = f"{PREFIX}/robot_bridge/command/execute"
 ROBOT_STATE_KEY = f"{PREFIX}/robot_bridge/state"
 ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
+OBJECT_TRACK_KEY = f"{PREFIX}/robot_bridge/object_track"
 LEASE_PREFIX = f"{PREFIX}/lease"
 WATCHDOG_PREFIX = f"{PREFIX}/watchdog"
 _FORBIDDEN = set("/*$?#")

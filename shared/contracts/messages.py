@@ -350,6 +350,24 @@ class ObjectPose(Value):
         return _unit(q, "quaternion_xyzw")  # type: ignore[return-value]
 
 
+class ObjectPath(Value):
+    """An object's poses over time: plan times (s), positions [T, 3] (m) and unit quaternions [T, 4] (x, y, z, w)."""
+
+    times_s: FloatVector
+    positions: Matrix
+    quaternions_xyzw: Matrix
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ObjectPath:
+        n = self.times_s.shape[0]
+        if tuple(self.positions.shape) != (n, 3) or tuple(self.quaternions_xyzw.shape) != (n, 4):
+            raise ValueError(f"ObjectPath: {n} times need positions [{n}, 3] and quaternions_xyzw [{n}, 4], got "
+                             f"{self.positions.shape} and {self.quaternions_xyzw.shape}")
+        if np.any(np.diff(self.times_s.to_numpy()) <= 0):
+            raise ValueError("ObjectPath: times_s must increase strictly")
+        return self
+
+
 class DirectionFrame(Value):
     """Where the object is and which way to push it: defines the direction frame D."""
 
@@ -578,6 +596,9 @@ class ValidationResult(PushOutcomes, Message):
     collision_cost: FloatVector | None = None  # arm rollouts: L_coll
     obstacle_contact: BoolVector | None = None  # arm rollouts: the robot or the pushed object touched an obstacle
     final_object_poses: list[ObjectPose] | None = None  # arm rollouts: object pose after the push
+    # Arm rollouts: the object's path while the plan was played (plan times), what a closed-loop
+    # execution compares the tracked object with.
+    object_paths: list[ObjectPath] | None = None
     # Arm rollouts with physics_draws: the push's outcome in each drawn world (one row per draw).
     draws: PushOutcomes | None = None
     elapsed_s: NonNegFloat = 0.0
@@ -591,6 +612,8 @@ class ValidationResult(PushOutcomes, Message):
                       obstacle_contact=self.obstacle_contact)
         if self.final_object_poses is not None and len(self.final_object_poses) != n:
             raise ValueError(f"ValidationResult: final_object_poses has {len(self.final_object_poses)} entries but there are {n} poses")
+        if self.object_paths is not None and len(self.object_paths) != n:
+            raise ValueError(f"ValidationResult: object_paths has {len(self.object_paths)} entries but there are {n} poses")
         if self.draws is not None:
             self.draws._outcome_rows("ValidationResult.draws")
         return self
@@ -670,6 +693,10 @@ class PushRequest(Message):
     # the val objects (where it was chosen) and from 82.5% to 88.9% on the test objects (results/). Needs
     # the object's pose after each push: the simulated robot sees it; on hardware a tracker must publish it.
     corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
+    # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
+    # strays from the path the chosen plan's rollout predicted (services/planner/monitor.py); the push is
+    # backed out and, within `corrections`, pushed again from where the object was seen.
+    closed_loop: bool = False
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
@@ -731,6 +758,8 @@ class PushStep(Value):
     # Why this push was made, when it is not the request's first: e.g. a correction, with how far from
     # the target the object was left.
     reason: str | None = Field(default=None, max_length=500)
+    # Why the closed-loop monitor stopped this push before its end (it was then backed out along its way in).
+    stopped: str | None = Field(default=None, max_length=500)
 
 
 class PushResponse(Message):
@@ -783,10 +812,11 @@ class ExecutionState(Message):
     joint_names: list[str]
     positions: FloatVector
     velocities: FloatVector
-    object_pose: ObjectPose | None = None
+    object_pose: ObjectPose | None = None  # the tracker's latest pose of the object, when one is seen
     status: ExecutionStatus = "idle"
     command_id: str | None = None
     message: str = ""
+    plan_time_s: NonNegFloat | None = None  # while a plan runs: how far into the plan's own time the robot is
 
     @model_validator(mode="after")
     def _consistent(self) -> ExecutionState:
@@ -795,6 +825,17 @@ class ExecutionState(Message):
             if getattr(self, name).shape[0] != n:
                 raise ValueError(f"ExecutionState: {name} has {getattr(self, name).shape[0]} values for {n} joints")
         return self
+
+
+class ObjectTrack(Message):
+    """The object's pose as a tracker saw it, while a plan runs (the simulated robot's tracker, or a user's
+    tracker on hardware: see docs/interfaces.md)."""
+
+    stamp: FiniteFloat  # seconds since the Unix epoch, when the pose was seen
+    pose: ObjectPose
+    source: str = Field(min_length=1, max_length=128)  # which tracker: "sim-tracker", or the user's name for it
+    command_id: str | None = None  # the command executing when it was seen, if the publisher knows it
+    plan_time_s: NonNegFloat | None = None  # how far into that command's plan, if the publisher knows it
 
 
 class EStop(Message):

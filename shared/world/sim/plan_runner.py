@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pybullet as pb
 
-from shared.contracts.messages import Plan
+from shared.contracts.messages import ObjectPath, Plan
+from shared.frames import matrix_to_quat_xyzw
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.robot_scene import RobotScene
 
@@ -91,6 +92,9 @@ class ArmController:
         self.command(positions, np.zeros(len(positions)))
 
 
+OBJECT_PATH_PERIOD_S = 0.05  # the predicted object path's sampling (20 Hz, the simulated tracker's rate)
+
+
 class PlanRunError(ValueError):
     """A plan that does not fit the scene's robot."""
 
@@ -105,6 +109,7 @@ class PlanRun:
     push_contact_fraction: float = 0.0  # of the "push" segment's physics steps with hand-object contact
     max_tilt_deg: float = 0.0  # how far the object's up axis leaned at worst
     object_obstacle_contact: bool = False  # the object touched an obstacle
+    object_path: ObjectPath | None = None  # the object's poses every OBJECT_PATH_PERIOD_S (plan times)
 
 
 def robot_efforts(scene: RobotScene) -> np.ndarray:
@@ -143,12 +148,17 @@ def run_plan(scene: RobotScene, plan: Plan, params: PhysicsParams,
     up_in_object = scene.object.pose()[:3, :3].T[:, 2] if scene.object is not None else None
     push_steps = contact_steps = 0
     min_up = 1.0
+    path_every = max(1, round(OBJECT_PATH_PERIOD_S / params.time_step_s))
+    path: list[tuple[float, np.ndarray]] = []
     for step in range(1, controller.step_count + 1):
         t = controller.step(step)
         for contact in scene.contacts(allow_hand_object=True):
             run.collisions.setdefault((contact.robot_link, contact.other), t - controller.start_s)
         if scene.object is not None:
-            min_up = min(min_up, float(scene.object.pose()[:3, :3][2] @ up_in_object))
+            pose = scene.object.pose()
+            if step % path_every == 0:
+                path.append((t, pose))
+            min_up = min(min_up, float(pose[:3, :3][2] @ up_in_object))
             run.object_obstacle_contact = run.object_obstacle_contact or scene.object_touches_obstacle()
             if push_window[0] <= t <= push_window[1]:
                 push_steps += 1
@@ -157,4 +167,12 @@ def run_plan(scene: RobotScene, plan: Plan, params: PhysicsParams,
     run.final_q = scene.joint_state()[0]
     run.push_contact_fraction = contact_steps / push_steps if push_steps else 0.0
     run.max_tilt_deg = float(np.degrees(np.arccos(np.clip(min_up, -1.0, 1.0))))
+    run.object_path = _object_path(path)
     return run
+
+
+def _object_path(path: list[tuple[float, np.ndarray]]) -> ObjectPath | None:
+    if not path:
+        return None
+    return ObjectPath(times_s=np.array([t for t, _ in path]), positions=np.array([T[:3, 3] for _, T in path]),
+                      quaternions_xyzw=np.array([matrix_to_quat_xyzw(T[:3, :3]) for _, T in path]))

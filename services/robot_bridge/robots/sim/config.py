@@ -1,4 +1,4 @@
-"""The simulated robot's config: which arm + hand, where its base stands, the physics it runs.
+"""The simulated robot's config: which arm + hand, where its base stands, the physics it runs, its tracker.
 
 Its limits are its URDFs' (`limits`): a simulation has no datasheet to be stricter than them.
 """
@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.robot_bridge.limits import DeviceLimits
+from services.robot_bridge.robots.sim.tracker import TrackerConfig
 from shared.robots.robot_limits import JointLimits
 from shared.world.sim.params import REFERENCE_PARAMS, PhysicsParams
 
@@ -21,6 +22,7 @@ class SimConfig:
     T_world_base: np.ndarray | None = None  # the arm's base in the world (None: at the origin)
     params: PhysicsParams = REFERENCE_PARAMS  # the physics of a world reset without its own
     state_rate_hz: float = 50.0  # states published per second of robot time
+    tracker: TrackerConfig = TrackerConfig()  # how the robot sees the object (tracker.py)
 
     def __post_init__(self) -> None:
         if self.state_rate_hz <= 0:

@@ -15,8 +15,12 @@ checks as on hardware (the bus bridge and the evaluation alike).
 - Time: physics follows the trajectory's own times (a push at the planned speed, `time_scale` 1); the
   wall clock is paced `realtime_factor` times faster (a large factor runs as fast as the CPU allows).
   A device, by contrast, moves the time-scaled trajectory.
-- State: published through `publish` (an ExecutionState with the object pose) every
-  1/`state_rate_hz` seconds of robot time; `observe()` (joints and object pose) is safe from any thread.
+- State: published through `publish` (an ExecutionState with the plan time and the tracked object
+  pose) every 1/`state_rate_hz` seconds of robot time; `observe()` (joints and object pose) is safe
+  from any thread.
+- The object is seen through a simulated tracker (`tracker.py`: late, noisy, at a camera's rate), as a
+  real bridge sees it: every pose the robot reports is the tracker's, each of its frames also goes to
+  `track` (an ObjectTrack, for the bus). `true_object_pose()` is the truth, for the evaluation's judge.
 - Collisions: robot contacts with the table, obstacles or (arm links) the object during a motion are
   recorded in `collisions` (hand-object contact is the push) and named in the report's message.
 """
@@ -24,7 +28,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,11 +38,11 @@ from services.robot_bridge.executor import StatePublisher
 from services.robot_bridge.limits import SafetyRefusal
 from services.robot_bridge.robot import ExecutionReport, JointTrajectory, MotionStopped, Observation, Robot
 from services.robot_bridge.robots.sim.config import SimConfig, limits
-from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, SimWorld
-from shared.frames import matrix_to_quat_xyzw
+from services.robot_bridge.robots.sim.tracker import SimTracker
+from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack, SimWorld
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, write_object_urdf
-from shared.world.push_outcome import pose_matrix
+from shared.world.push_outcome import object_pose, pose_matrix
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.plan_runner import ArmController, prepare_robot
 from shared.world.sim.robot_scene import RobotScene
@@ -55,6 +59,7 @@ class TrueWorld:
     physics: PhysicsParams | None = None  # None: the robot's nominal physics (its config's)
     mass_scale: float = 1.0
     com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the object's frame O
+    tracker_seed: int = 0  # the tracker's noise draws
 
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
@@ -78,6 +83,9 @@ class SimRobot(Robot):
         self.params = config.params
         self.state_rate_hz = config.state_rate_hz
         self.publish = publish
+        self.tracker = SimTracker(config.tracker)
+        self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
+        self._tracked: ObjectPose | None = None  # the tracker's latest pose while a plan runs
         self.scene: RobotScene | None = None
         self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
         # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
@@ -133,6 +141,7 @@ class SimRobot(Robot):
             self.connect()
         self.add_object(urdf, world.T_world_O)
         self.add_obstacles(world.obstacles)
+        self.tracker.reset(world.tracker_seed)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -165,22 +174,37 @@ class SimRobot(Robot):
         scene = self._scene()
         with self._lock:
             positions, velocities = scene.joint_state()
-        return Observation(time.time(), self.joint_names, positions, velocities, object_pose=self.object_pose())
+        true = self._true_pose()
+        return Observation(time.time(), self.joint_names, positions, velocities,
+                           object_pose=None if true is None else self.tracker.noisy(true))
 
-    def object_pose(self) -> ObjectPose | None:
-        """The object's frame O in the world (None without an object)."""
+    def true_object_pose(self) -> ObjectPose | None:
+        """Where the object's frame O truly is in the world (None without an object): no tracker sees this."""
+        true = self._true_pose()
+        return None if true is None else object_pose(true)
+
+    def _true_pose(self) -> np.ndarray | None:
         scene = self._scene()
         with self._lock:
-            if scene.object is None:
-                return None
-            pose = scene.object.pose()
-        return ObjectPose(position=tuple(pose[:3, 3]), quaternion_xyzw=tuple(matrix_to_quat_xyzw(pose[:3, :3])))
+            return None if scene.object is None else scene.object.pose()
 
-    def _executing_state(self, command_id: str | None) -> ExecutionState:
-        seen = self.observe()
-        return ExecutionState(stamp=seen.stamp, joint_names=list(seen.joint_names), positions=seen.positions,
-                              velocities=seen.velocities, object_pose=seen.object_pose, status="executing",
-                              command_id=command_id)
+    def _track_frame(self, plan_time_s: float, command_id: str | None) -> None:
+        """One tracker frame: the pose it reports becomes the robot's, and goes to `track`."""
+        true = self._true_pose()
+        if true is None:
+            return
+        self._tracked = self.tracker.frame(true)
+        if self.track is not None:
+            self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
+                                   command_id=command_id, plan_time_s=plan_time_s))
+
+    def _executing_state(self, command_id: str | None, plan_time_s: float) -> ExecutionState:
+        scene = self._scene()
+        with self._lock:
+            positions, velocities = scene.joint_state()
+        return ExecutionState(stamp=time.time(), joint_names=list(self.joint_names), positions=positions,
+                              velocities=velocities, object_pose=self._tracked, status="executing",
+                              command_id=command_id, plan_time_s=plan_time_s)
 
     # ------------------------------------------------------------------------------------------ send
 
@@ -197,8 +221,11 @@ class SimRobot(Robot):
         scene = self._scene()
         controller = ArmController(scene, self.params, own.times_s, own.positions)
         publish_every = max(1, round(1.0 / (self.state_rate_hz * self.params.time_step_s)))
+        track_every = self.tracker.steps_per_frame(self.params.time_step_s)
         wall_start = time.monotonic()
         self.collisions = {}
+        self._tracked = None
+        self._track_frame(controller.time_of(0), command_id)
         for step in range(1, controller.step_count + 1):
             elapsed = step * self.params.time_step_s
             if self._stopped(stop):
@@ -209,8 +236,10 @@ class SimRobot(Robot):
                 controller.step(step)
                 for contact in scene.contacts(allow_hand_object=True):
                     self.collisions.setdefault((contact.robot_link, contact.other), elapsed)
+            if step % track_every == 0:
+                self._track_frame(controller.time_of(step), command_id)
             if self.publish is not None and step % publish_every == 0:
-                self.publish(self._executing_state(command_id))
+                self.publish(self._executing_state(command_id, controller.time_of(step)))
             ahead = elapsed / realtime_factor - (time.monotonic() - wall_start)
             if ahead > 0.0:
                 time.sleep(ahead)

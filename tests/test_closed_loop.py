@@ -1,0 +1,227 @@
+"""Closed-loop pushing: the robot's object tracking, the planner's monitor, stopping, backing out, correcting."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.contracts.messages import ExecutionState, ObjectPath, ObjectRef, Plan, PlanSegment, PushRequest
+from shared.frames import yaw_rotation
+from shared.world.push_outcome import object_pose, pose_matrix
+
+BOX = "proc-box-013"  # as tests/test_push.py
+
+
+# ------------------------------------------------------------------------------------------ the monitor
+
+
+def _plan() -> Plan:
+    """A 7-joint plan: 2 s of approach, a 4 s push, 2 s of retreat (one waypoint every 0.1 s)."""
+    times = np.arange(81) * 0.1
+    return Plan(arm="panda", hand="allegro", joint_names=[f"j{i}" for i in range(7)],
+                positions=np.outer(times, np.ones(7)) * 0.01, times_s=times,
+                segments=[PlanSegment(label="approach", start=0, stop=20), PlanSegment(label="push", start=20, stop=61),
+                          PlanSegment(label="retreat", start=61, stop=81)])
+
+
+def _straight_path() -> ObjectPath:
+    """The predicted path: at rest at (0.5, 0) until 2 s, then 5 cm/s along +x until 6 s, then at rest."""
+    times = np.arange(1, 161) * 0.05
+    x = 0.5 + 0.05 * np.clip(times - 2.0, 0.0, 4.0)
+    return ObjectPath(times_s=times, positions=np.stack([x, np.zeros_like(x), np.full_like(x, 0.03)], axis=1),
+                      quaternions_xyzw=np.tile([0.0, 0.0, 0.0, 1.0], (len(times), 1)))
+
+
+def _seen(x: float, y: float = 0.0, yaw_deg: float = 0.0):
+    T = np.eye(4)
+    T[:3, :3] = yaw_rotation(np.radians(yaw_deg))
+    T[:3, 3] = (x, y, 0.03)
+    return object_pose(T)
+
+
+def _monitor(**thresholds):
+    from services.planner.monitor import MonitorThresholds, PushMonitor
+
+    return PushMonitor(_plan(), _straight_path(), np.array([1.0, 0.0]), MonitorThresholds(**thresholds))
+
+
+def test_an_object_following_its_predicted_path_from_another_start_is_not_stopped():
+    monitor = _monitor()
+    offset = 0.008  # the object truly stands 8 mm off where the planner was told: displacements still agree
+    for t in np.arange(1.0, 8.0, 0.05):
+        assert monitor.observe(t, _seen(0.5 + offset + 0.05 * np.clip(t - 2.0, 0.0, 4.0), 0.004)) is None
+    assert monitor.stop_reason is None and monitor.observed > 70
+
+
+@pytest.mark.parametrize("seen_at, says", [
+    (lambda t: _seen(0.5 + 0.02 * (t - 2.0)), "behind the predicted path"),  # slipping off the hand: lags
+    (lambda t: _seen(0.5 + 0.05 * (t - 2.0), 0.03 * (t - 2.0)), "beside the predicted path"),  # sliding sideways
+    (lambda t: _seen(0.5 + 0.05 * (t - 2.0), 0.0, 12.0 * (t - 2.0)), "turned"),  # spinning
+])
+def test_an_object_straying_from_its_predicted_path_stops_the_push_with_the_reason(seen_at, says):
+    monitor = _monitor()
+    assert monitor.observe(1.0, _seen(0.5)) is None  # at rest before the push: the reference
+    reasons = [monitor.observe(t, seen_at(t)) for t in np.arange(2.0, 6.0, 0.05)]
+    stop = next(r for r in reasons if r is not None)
+    assert says in stop and monitor.stop_reason == stop
+    assert 2.0 < monitor.stop_time_s < 6.0
+    assert all(r is None for r in reasons[reasons.index(stop) + 1:])  # one verdict
+
+
+def test_the_monitor_watches_only_the_push_itself():
+    monitor = _monitor()
+    assert monitor.observe(0.5, _seen(0.5)) is None
+    assert monitor.observe(1.5, _seen(0.6)) is None  # before the push: nothing to compare yet
+    assert monitor.observe(7.0, _seen(0.9)) is None  # after it: the hand backs off, stopping gains nothing
+    assert monitor.observed == 0
+
+
+def test_a_state_repeating_the_last_tracked_pose_is_not_compared_again():
+    monitor = _monitor()
+
+    def state(t: float, x: float) -> ExecutionState:
+        return ExecutionState(stamp=0.0, joint_names=[], positions=np.zeros(0), velocities=np.zeros(0),
+                              object_pose=_seen(x), status="executing", plan_time_s=t)
+
+    monitor.observe_state(state(1.0, 0.5))
+    monitor.observe_state(state(2.5, 0.525))
+    monitor.observe_state(state(2.52, 0.525))  # the tracker's frame repeated in the next state
+    assert monitor.observed == 1
+    no_time = state(3.0, 0.55).model_copy(update={"plan_time_s": None})
+    assert monitor.observe_state(no_time) is None and monitor.observed == 1
+
+
+def test_backing_out_retraces_the_plan_from_where_the_robot_stopped_to_its_start():
+    from services.planner.monitor import BACK_OUT_LEAD_S, backed_out
+
+    plan = _plan()
+    q_now = np.full(7, 0.0352)  # stopped a little behind the command at 3.55 s
+    back = backed_out(plan, 3.55, q_now)
+    positions, times = back.positions.to_numpy(), back.times_s.to_numpy()
+    assert np.allclose(positions[0], q_now) and np.allclose(positions[-1], plan.positions.to_numpy()[0])
+    assert np.all(np.diff(times) > 0) and times[1] >= BACK_OUT_LEAD_S
+    # At the plan's own pace: the way back takes as long as the way there did.
+    assert times[-1] == pytest.approx(3.55)
+    assert [s.label for s in back.segments] == ["retreat"]
+
+
+# ------------------------------------------------------------------------------------------ the tracker
+
+
+def test_the_simulated_tracker_reports_the_pose_late_and_noisy_and_repeats_with_its_seed():
+    from services.robot_bridge.robots.sim.tracker import SimTracker, TrackerConfig
+
+    tracker = SimTracker(TrackerConfig(position_sigma_m=0.002, yaw_sigma_deg=1.0), seed=3)
+    poses = [np.eye(4) for _ in range(400)]
+    for i, T in enumerate(poses):
+        T[0, 3] = 0.01 * i
+    reported = [pose_matrix(tracker.frame(T)) for T in poses]
+    errors = np.array([reported[i][:3, 3] - poses[i - 1][:3, 3] for i in range(1, 400)])  # one frame late
+    assert 0.0015 < errors.std() < 0.0025 and abs(errors.mean()) < 0.0005
+    tracker.reset(3)
+    assert np.allclose(pose_matrix(tracker.frame(poses[0])), reported[0])
+    exact = SimTracker(TrackerConfig(position_sigma_m=0.0, yaw_sigma_deg=0.0, latency_frames=0))
+    assert np.allclose(pose_matrix(exact.frame(poses[5])), poses[5])
+    with pytest.raises(ValueError, match="rate_hz"):
+        TrackerConfig(rate_hz=0.0)
+
+
+def test_the_simulated_robot_publishes_tracked_poses_at_the_tracker_rate_with_the_plan_time():
+    from services.robot_bridge.robot import JointTrajectory
+    from services.robot_bridge.robots.sim.config import SimConfig
+    from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
+
+    tracks, states = [], []
+    robot = SimRobot(SimConfig("panda", "allegro"), publish=states.append)
+    robot.track = tracks.append
+    with robot:
+        T_true = np.eye(4)
+        T_true[:3, 3] = (0.5, 0.3, 0.0)
+        from shared.world.objects import load_object
+
+        T_true = T_true @ load_object(BOX).T_D_O()
+        robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true, tracker_seed=1))
+        q = robot.observe().positions
+        trajectory = JointTrajectory(robot.joint_names, np.stack([q, q]), np.array([0.0, 2.0]))
+        robot.send(trajectory, realtime_factor=1000.0, command_id="c1")
+        true = pose_matrix(robot.true_object_pose())
+        seen = pose_matrix(robot.observe().object_pose)
+    duration = 2.0 + robot.params.arm_command_latency_s + robot.params.arm_settle_s
+    assert abs(len(tracks) - duration * 20.0) <= 2  # 20 Hz of robot time
+    assert all(t.command_id == "c1" and t.source == "sim-tracker" for t in tracks)
+    assert np.all(np.diff([t.plan_time_s for t in tracks]) > 0)
+    assert all(s.plan_time_s is not None and s.object_pose is not None for s in states)
+    # What the robot reports is the tracker's: near the truth, never exactly it.
+    assert 0 < np.linalg.norm(seen[:3, 3] - true[:3, 3]) < 0.02
+    assert np.allclose(true[:3, 3], T_true[:3, 3], atol=0.002)
+
+
+# ------------------------------------------------------------------------------------------ closed loop, end to end
+
+
+def _box_at(x: float, y: float) -> np.ndarray:
+    from shared.world.objects import load_object
+
+    T = np.eye(4)
+    T[:3, 3] = (x, y, 0.0)
+    return T @ load_object(BOX).T_D_O()
+
+
+def _push_with_a_mid_push_slip(closed_loop: bool):
+    """A push of the box along +y whose object slides 5 cm sideways (+x) once it has moved 4 cm: a slip the
+    planner's rollout did not predict. The response, the robot's joints after each executed command."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
+    from tests.test_push import _spatula_poses
+
+    start = _box_at(0.5, 0.0)
+    slipped = []
+    joints_after = []
+
+    class SlippingRobot(LocalRobot):
+        def _on_state(self, robot, state):
+            if not slipped:
+                T = pose_matrix(robot.true_object_pose())
+                if T[1, 3] - start[1, 3] > 0.04:
+                    T[0, 3] += 0.05
+                    robot.scene.object.reset_pose(T)
+                    slipped.append(T)
+            super()._on_state(robot, state)
+
+        def execute(self, plan, world, cancel=None, monitor=None):
+            execution = super().execute(plan, world, cancel, monitor)
+            joints_after.append((plan, execution.final.positions.to_numpy()))
+            return execution
+
+    robot = SlippingRobot()
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate_here, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
+    try:
+        outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=object_pose(start),
+                                           direction_deg=90.0, k=8, corrections=1, closed_loop=closed_loop))
+        return outcome.response, joints_after, slipped
+    finally:
+        pipeline.close()
+        robot.close()
+
+
+def test_a_push_whose_object_slips_sideways_is_stopped_backed_out_and_corrected():
+    response, commands, slipped = _push_with_a_mid_push_slip(closed_loop=True)
+    assert slipped
+    first = response.steps[0]
+    assert first.stopped is not None and "beside the predicted path" in first.stopped
+    assert response.notes and response.notes[0].startswith("push 1 stopped: ")
+    # The robot backed out the way it came: the second command ends where the first plan started.
+    (push_plan, _), (back_plan, back_end) = commands[0], commands[1]
+    assert [s.label for s in back_plan.segments] == ["retreat"]
+    assert np.allclose(back_end, push_plan.positions.to_numpy()[0], atol=0.02)
+    # The stopped push left the object short of the target; the correction pushed it from where it was seen.
+    assert len(response.steps) == 2 and response.steps[1].reason.startswith("correction 1: push 1 was stopped with")
+    assert first.result.position_error_m > 0.03
+
+
+def test_the_same_slip_open_loop_runs_the_push_to_its_end():
+    response, commands, slipped = _push_with_a_mid_push_slip(closed_loop=False)
+    assert slipped and response.steps[0].stopped is None and not response.notes[:1] == ["push 1 stopped"]
+    assert all(s.stopped is None for s in response.steps)
+    assert [s.label for s in commands[0][0].segments] == ["approach", "push", "retreat"]
