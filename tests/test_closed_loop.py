@@ -67,6 +67,26 @@ def test_an_object_straying_from_its_predicted_path_stops_the_push_with_the_reas
     assert all(r is None for r in reasons[reasons.index(stop) + 1:])  # one verdict
 
 
+def test_an_object_turning_less_than_predicted_or_a_little_the_other_way_is_not_stopped():
+    from services.planner.monitor import MonitorThresholds, PushMonitor
+
+    turning = _straight_path()
+    times = turning.times_s.to_numpy()
+    yaw = np.radians(8.0 * np.clip(times - 2.0, 0.0, 4.0))  # predicted: turning to +32° over the push
+    turning = ObjectPath(times_s=times, positions=turning.positions.to_numpy(),
+                         quaternions_xyzw=np.stack([np.zeros_like(yaw), np.zeros_like(yaw), np.sin(yaw / 2),
+                                                    np.cos(yaw / 2)], axis=1))
+    for seen_yaw_per_s in (0.0, -3.0, 10.0):  # straight on; a little the other way; a little further
+        monitor = PushMonitor(_plan(), turning, np.array([1.0, 0.0]), MonitorThresholds())
+        for t in np.arange(1.0, 6.0, 0.05):
+            x = 0.5 + 0.05 * np.clip(t - 2.0, 0.0, 4.0)
+            assert monitor.observe(t, _seen(x, 0.0, seen_yaw_per_s * max(t - 2.0, 0.0))) is None
+    monitor = PushMonitor(_plan(), turning, np.array([1.0, 0.0]), MonitorThresholds())
+    reasons = [monitor.observe(t, _seen(0.5 + 0.05 * max(t - 2.0, 0.0), 0.0, -14.0 * max(t - 2.0, 0.0)))
+               for t in np.arange(1.0, 6.0, 0.05)]
+    assert any(r and "turned" in r for r in reasons)  # the other way and further than predicted: stopped
+
+
 def test_the_monitor_watches_only_the_push_itself():
     monitor = _monitor()
     assert monitor.observe(0.5, _seen(0.5)) is None

@@ -136,6 +136,44 @@ def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
     assert response.result.success, response.result
 
 
+def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_robot(system):
+    """A closed-loop push whose object follows its prediction is not stopped; a monitor that finds a reason
+    to stop drops the command's lease and the bridge halts the robot, naming the reason."""
+    from services.planner.cancellation import Cancellation
+    from services.planner.service import BusServices
+    from shared.contracts.messages import SimWorld
+
+    cfg, _ = system
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", closed_loop=True)
+    response = push(request, cfg, timeout_s=240.0)
+    assert response.success and [s.stopped for s in response.steps] == [None]
+
+    class StopAfterOneSecond:
+        def __init__(self):
+            self.stop_reason = self.stop_time_s = None
+            self.seen = []
+
+        def observe_state(self, state):
+            if state.object_pose is None or state.plan_time_s is None or self.stop_reason is not None:
+                return None
+            self.seen.append(state.plan_time_s)
+            if state.plan_time_s > 1.0:
+                self.stop_reason, self.stop_time_s = "the test saw enough", state.plan_time_s
+            return self.stop_reason
+
+    monitor = StopAfterOneSecond()
+    world = SimWorld(object=request.object, object_pose=_pose(_box_at(0.55, 0.0)))
+    with open_session(cfg) as session:
+        services = BusServices(session, "closed-loop-test")
+        try:
+            execution = services.execute(response.plan, world, Cancellation(), monitor)
+        finally:
+            services.close()
+    # The bridge hears of it as its command's lease lost (the reason stays with the planner's monitor).
+    assert execution.final.status == "stopped" and "lost" in execution.final.message
+    assert monitor.seen and monitor.stop_time_s < response.plan.times_s.to_numpy()[-1] / 2
+
+
 def test_an_unreachable_object_gets_the_infeasible_error_with_its_reason(system):
     cfg, _ = system
     far = ObjectPose(position=(2.0, 0.0, 0.0375))
@@ -385,7 +423,7 @@ def _one_plan_settings():
     return PipelineSettings(max_plans=1, prescreen=0, max_plan_rounds=1)
 
 
-def _push_with_a_displaced_first_outcome(displace, corrections=2):
+def _push_with_a_displaced_first_outcome(displace, corrections=2, sample=None):
     """A push of the box by spatula poses whose first executed push is followed by `displace(T_world_O)`:
     the simulated object is moved there (a slip the planner did not predict) and the robot reports it there.
     The response (or PushError) and the T_world_O the first push left before the displacement."""
@@ -408,7 +446,7 @@ def _push_with_a_displaced_first_outcome(displace, corrections=2):
         robot.robot(plan.arm, plan.hand).scene.object.reset_pose(moved)
         return Execution(final=execution.final.model_copy(update={"object_pose": object_pose(moved)}))
 
-    pipeline = PushPipeline(Services(sample=_spatula_poses, validate=validate_here, execute=execute),
+    pipeline = PushPipeline(Services(sample=sample or _spatula_poses, validate=validate_here, execute=execute),
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
@@ -432,6 +470,29 @@ def test_a_push_that_stops_short_is_corrected_from_where_the_object_was_seen():
     assert response.steps[0].result.position_error_m > 0.05  # judged where it was seen, not where it slid to
     assert response.success and response.result.position_error_m <= 0.03  # judged from the first start
     assert response.plan == response.steps[0].plan  # the response's plan is still the first push's
+
+
+def test_a_correction_that_sees_the_object_as_the_first_push_did_reuses_its_candidates():
+    """Short by 6 cm on the push's own line: the object sits in the correction's frame D as it did in the
+    first push's, so the sampler is not asked again; turned 30°, it is."""
+    from shared.frames import yaw_rotation
+
+    def short(T, turn_deg=0.0):
+        moved = T.copy()
+        moved[:3, :3] = yaw_rotation(np.radians(turn_deg)) @ T[:3, :3]
+        moved[1, 3] -= 0.06
+        return moved
+
+    for turn_deg, samplings in ((0.0, 1), (30.0, 2)):
+        asked: list = []
+
+        def counted(request, asked=asked):
+            asked.append(request)
+            return _spatula_poses(request)
+
+        response, _ = _push_with_a_displaced_first_outcome(lambda T, turn_deg=turn_deg: short(T, turn_deg),
+                                                           sample=counted)
+        assert len(response.steps) == 2 and len(asked) == samplings
 
 
 def test_an_object_turned_past_the_success_bound_is_not_pushed_again():

@@ -27,7 +27,7 @@ class MonitorThresholds:
     """How far the tracked object may stray from the predicted path before the push is stopped."""
 
     position_m: float = 0.03  # the displacement's gap, as the success tolerance
-    rotation_deg: float = 15.0  # the gap in yaw turned
+    rotation_deg: float = 15.0  # turned this much further than predicted (in magnitude, either way)
     tilt_deg: float = 20.0  # the object's up axis leaning (a topple starting), beyond what was predicted
 
 
@@ -104,8 +104,10 @@ class PushMonitor:
             return (f"{when} the object was {gap_m * 100:.1f} cm {way} the predicted path "
                     f"(moved {np.linalg.norm(seen.displacement) * 100:.1f} cm, predicted "
                     f"{np.linalg.norm(expected.displacement) * 100:.1f} cm)")
-        turn = abs((seen.yaw_deg - expected.yaw_deg + 180.0) % 360.0 - 180.0)
-        if turn > limits.rotation_deg:
+        # Turning is judged by how far, not which way: an object that turns less than predicted, or a
+        # little the other way, is no reason to stop; one that turns further than predicted heads for the
+        # 45° a push cannot undo.
+        if abs(seen.yaw_deg) - abs(expected.yaw_deg) > limits.rotation_deg:
             return (f"{when} the object had turned {seen.yaw_deg:+.0f}° against a predicted "
                     f"{expected.yaw_deg:+.0f}°")
         if seen.tilt_deg - expected.tilt_deg > limits.tilt_deg:

@@ -50,6 +50,9 @@ from shared.world.fixed_poses import FixedPoseError, spatula_pose
 from shared.world.objects import ObjectModel
 from shared.world.push_outcome import judge_push, object_pose, pose_matrix
 
+# A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
+# this from how it sat in the last one's (the sampler would be asked the same question).
+REUSE_SAMPLES_DEG = 10.0
 SCREEN_CHUNK = 50  # candidates per batched IK screen (`screen`)
 PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers
 
@@ -97,6 +100,8 @@ class RequestState:
     timings: dict[str, float] = field(default_factory=dict)
     records: list[StepRecord] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # what the response should tell besides its steps
+    # The last sampled candidates of the request (poses in D) and how the object sat in that D (R_D_O).
+    sampled: tuple[np.ndarray, np.ndarray] | None = None
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -118,7 +123,11 @@ class RequestState:
 
 
 def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidates:
-    """The request's pose source's candidates for `push` (`PushRequest.method`)."""
+    """The request's pose source's candidates for `push` (`PushRequest.method`).
+
+    Candidates are poses in D, the frame of the object and the push direction: a later push of the request
+    (a correction, the next push of a multi-step request) that sees the object in its D turned no more
+    than REUSE_SAMPLES_DEG from how the last sampled push saw it reuses that push's candidates."""
     request = state.request
     started = time.perf_counter()
     if request.method == "fixed":
@@ -129,16 +138,26 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
         except FixedPoseError as exc:
             raise PushError("bad_request", str(exc)) from exc
     else:
-        sampler = "nearest" if request.method == "nearest" else request.sampler
-        reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
-                                     sampler=sampler, seed=state.seed))
-        poses_d = reply.poses_d.to_numpy().astype(np.float64)
+        R_D_O = (invert_transform(push.T_world_D) @ push.T_world_O)[:3, :3]  # how the object sits in D
+        if state.sampled is not None and _turn_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG:
+            poses_d = state.sampled[1]  # a later push sees the object in D as the last one did: same candidates
+        else:
+            sampler = "nearest" if request.method == "nearest" else request.sampler
+            reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
+                                         sampler=sampler, seed=state.seed))
+            poses_d = reply.poses_d.to_numpy().astype(np.float64)
+            state.sampled = (R_D_O, poses_d)
     state.time("sampling", time.perf_counter() - started)
     state.cancel.check()
     return Candidates.in_frame(poses_d, push, state.hand)
 
 
 # ------------------------------------------------------------------------------- 2. IK and screening
+
+
+def _turn_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """The angle of the rotation between two orientations."""
+    return math.degrees(math.acos(float(np.clip((np.trace(R_a.T @ R_b) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, push: Push,
