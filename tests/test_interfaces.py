@@ -33,6 +33,7 @@ from shared.contracts.messages import MESSAGE_TYPES, ErrorReply, HealthQuery, Pu
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "raw_zenoh_push.py"
+TRACKER_EXAMPLE = ROOT / "examples" / "object_tracker.py"
 
 # (flow, message) of the router's access rules that each role of a row needs, by the row's kind.
 ROLE_MESSAGES = {
@@ -119,11 +120,26 @@ def test_the_launcher_and_compose_run_the_registry_services():
     assert set(compose["services"]) == {"router", *registry.SERVICES}
 
 
-def test_the_example_imports_nothing_of_the_project():
-    tree = ast.parse(EXAMPLE.read_text())
+@pytest.mark.parametrize("example", [EXAMPLE, TRACKER_EXAMPLE], ids=lambda p: p.name)
+def test_the_examples_import_nothing_of_the_project(example):
+    tree = ast.parse(example.read_text())
     imported = {alias.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
     imported |= {node.module.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
     assert imported - set(sys.stdlib_module_names) == {"zenoh", "msgpack"}
+
+
+def test_the_tracker_examples_message_is_an_object_track_on_its_key():
+    import importlib.util
+
+    from shared.contracts.messages import ObjectTrack
+
+    spec = importlib.util.spec_from_file_location("object_tracker", TRACKER_EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.KEY == keys.OBJECT_TRACK_KEY and module.ENCODING == f"{ENCODING_PREFIX}ObjectTrack"
+    track = decode(msgpack.packb(module.track_message([0.5, 0.0, 0.04], [0.0, 0.0, 0.0, 1.0], "t"), use_bin_type=True),
+                   module.ENCODING)
+    assert isinstance(track, ObjectTrack) and track.pose.position == (0.5, 0.0, 0.04)
 
 
 # ------------------------------------------------------------------------------ the access rules

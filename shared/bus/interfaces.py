@@ -272,7 +272,8 @@ _ROBOT = (
               used_by="The simulated robot bridge publishes its tracker's frames (20 Hz, noisy and one frame late:"
                       " services/robot_bridge/robots/sim/tracker.py). With hardware a user's tracker publishes here"
                       " and the bridge folds the latest pose into its ExecutionStates (with their plan time), where"
-                      " the planner's closed-loop monitor reads it; the recorder records both.",
+                      " the planner's closed-loop monitor reads it (examples/object_tracker.py publishes one from"
+                      " zenoh and msgpack alone); the recorder records both.",
               qos="Publish at the tracker's rate (10-30 Hz) while the robot moves; a pose older than 0.5 s is not"
                   " folded into a state.",
               code=("services/robot_bridge/robots/sim/robot.py: SimRobot._track_frame",

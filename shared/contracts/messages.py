@@ -691,7 +691,8 @@ class PushRequest(Message):
     # many times.
     # On by default: under the evaluation's `real` world, 2 corrections raised GD2P from 71.4% to 82.1% on
     # the val objects (where it was chosen) and from 82.5% to 88.9% on the test objects (results/). Needs
-    # the object's pose after each push: the simulated robot sees it; on hardware a tracker must publish it.
+    # the object's pose after each push: the simulated robot's tracker sees it; on hardware a tracker must
+    # publish it on gd2p/robot_bridge/object_track (docs/interfaces.md).
     corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
     # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
     # strays from the path the chosen plan's rollout predicted (services/planner/monitor.py); the push is
