@@ -104,15 +104,15 @@ MUG_MASS_KG = (0.25, 0.40)
 # Bananas: USDA size classes from under 6 inches to 9 inches and longer, 81-152 g without the peel
 # (https://visualfoodie.com/banana-calorie-content-by-weight-and-size); a whole Cavendish fruit 180.56 g
 # against 114.54 g of pulp (https://ntro.it.com/how-much-is-1-banana-in-grams), so whole fruits of about
-# 81/0.634 = 128 g to 152/0.634 = 240 g. Chosen, not cited: the upper length 25 cm, diameters 3.4-4.4 cm,
+# 81/0.634 = 128 g to 152/0.634 = 240 g (the range below rounds these outward). Chosen, not cited: the upper length 25 cm, diameters 3.4-4.4 cm,
 # the bend (50-100 degrees of arc), density 900-1050 kg/m^3.
 BANANA_LENGTH_M = (0.15, 0.25)  # along the centre line
 BANANA_MASS_KG = (0.125, 0.245)
 # Lying cans and bottles. Cans: 500 ml cans are 66.1 mm x 168 mm (https://www.yorkshire-escapes.com/post/24502),
 # a 12 oz (355 ml) can 4.83 inches (123 mm) tall (https://thefoodiesite.com/?p=32740) and 15 g empty
 # (https://www.cgcreativeshop.com/chi-sono/digital-graphics/2462-drink-aluminum-cans-3d-objects-download.html):
-# 355 ml in 66 x 123 mm and 500 ml in 66.1 x 168 mm are 85% and 87% of the outer volume. Bottles as
-# above. Chosen, not cited: cans and jars 5-8.5 cm across, 1.2-3.5 diameters and at most 24 cm long,
+# 500 ml in 66.1 x 168 mm, and 355 ml in 123 mm of the same diameter (assumed: the page gives the lid's),
+# are 87% and 85% of the outer volume. Bottles as above. Chosen, not cited: cans and jars 5-8.5 cm across, 1.2-3.5 diameters and at most 24 cm long,
 # filled 25-100%.
 CAN_DIAMETER_M = (0.05, 0.085)
 CAN_LENGTH_MAX_M = 0.24
