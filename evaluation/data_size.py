@@ -79,13 +79,15 @@ QUICK = DataSizeSettings(fractions=(0.2, 1.0), seeds=(0,), train_steps=200, test
 
 
 def object_subset(count: int, seed: int = SUBSET_SEED) -> list[str]:
-    """A fixed, seeded subset of `count` test-split objects (a larger count extends a smaller one)."""
-    from shared.world.objects import list_object_ids
+    """A fixed, seeded subset of `count` test-split objects (a larger count extends a smaller one;
+    the everyday procedural families rank after the rest of the library, so the subsets chosen
+    before they existed stay the same)."""
+    from shared.world.objects import library_generation, list_object_ids
 
     ids = list_object_ids("test")
     if not 1 <= count <= len(ids):
         raise CoverageError(f"the test split has {len(ids)} objects; cannot take {count}")
-    rank = {i: hashlib.sha256(f"gd2p-data-size:{seed}:{i}".encode()).hexdigest() for i in ids}
+    rank = {i: (library_generation(i), hashlib.sha256(f"gd2p-data-size:{seed}:{i}".encode()).hexdigest()) for i in ids}
     return sorted(ids, key=lambda i: rank[i])[:count]
 
 

@@ -19,6 +19,7 @@ from shared.world.objects import (
     FAMILIES,
     HELD_OUT_PER_FAMILY,
     PER_FAMILY,
+    PRIMITIVE_FAMILIES,
     PYBULLET_OBJECTS,
     ObjectLoadError,
     SplitError,
@@ -83,11 +84,12 @@ def test_split_is_deterministic_disjoint_and_holds_out_the_evaluation_objects():
 
 
 def test_procedural_dimensions_are_pushable_and_classes_match_the_geometry(cache):
+    """The primitive families (the everyday ones: tests/test_families.py)."""
     for object_id in list_object_ids():
-        if object_id.startswith("proc-"):
+        if object_id.startswith("proc-") and procedural_spec(object_id).family in PRIMITIVE_FAMILIES:
             a, b, height = procedural_spec(object_id).dims
             assert 0.04 <= a <= 0.25 and 0.015 <= b <= a and 0.015 <= height <= 0.25, object_id
-    for family in FAMILIES:
+    for family in PRIMITIVE_FAMILIES:
         for index in range(3):
             obj = load_object(f"proc-{family}-{index:03d}", cache_dir=cache)
             assert obj.info.shape_class == procedural_spec(obj.id).shape_class, obj

@@ -47,7 +47,7 @@ from shared.contracts.messages import (
     ValidationResult,
 )
 from shared.data.dataset_store import COUNT_KEYS, DatasetStore
-from shared.world.objects import list_object_ids, split_of
+from shared.world.objects import library_generation, list_object_ids, split_of
 from shared.world.sim import PhysicsParams
 
 TRAINING_SPLIT = "train"
@@ -115,8 +115,9 @@ def code_version() -> str:
 
 
 # ----------------------------------------------------------------------------- object selection
-def _object_rank(object_id: str) -> str:
-    return hashlib.sha256(f"gd2p-dataset-order:{object_id}".encode()).hexdigest()
+def _object_rank(object_id: str) -> tuple[int, str]:
+    """The library's first generation before the everyday families, each in a fixed hash order."""
+    return library_generation(object_id), hashlib.sha256(f"gd2p-dataset-order:{object_id}".encode()).hexdigest()
 
 
 def select_objects(split: str, count: int | None = None, object_ids: Sequence[str] | None = None,
@@ -125,7 +126,9 @@ def select_objects(split: str, count: int | None = None, object_ids: Sequence[st
 
     Explicit `object_ids` must all belong to `split`; otherwise the first `count` objects of the
     split in a fixed hash order (which mixes the random and procedural families, and lets a larger
-    `count` extend a smaller build). Data for a split other than train is refused unless
+    `count` extend a smaller build), the everyday procedural families after the rest of the library
+    (`library_generation`): a count chosen before they existed picks the same objects. A build of
+    the whole split (no count) has them all. Data for a split other than train is refused unless
     `allow_split`: test objects are never used for training.
     """
     if split != TRAINING_SPLIT and not allow_split:

@@ -53,6 +53,8 @@ from .sdf import DEFAULT_RESOLUTION, SdfGrid, compute_sdf_grid
 PIPELINE_VERSION = 2  # bump when any cached artefact would change
 DEFAULT_DENSITY = 500.0  # kg/m^3: wood / plastic-like household objects
 MASS_LIMITS_KG = (0.05, 1.5)  # what a hand can push; hollow or huge meshes would say otherwise
+# An object with a designed mass (the everyday procedural families: a real category's mass, e.g. a
+# 3 g bottle cap or a 0.35 kg ceramic mug) keeps it: it is not a guess from a shape, so not clamped.
 
 
 @dataclass(eq=False)
@@ -150,8 +152,8 @@ class ObjectModel:
     """
 
     def __init__(
-        self, source: ObjectSource, key: str, geometry: _Geometry, *, density: float, sdf_resolution: int, cache_dir: Path,
-        provenance: dict[str, str | None],
+        self, source: ObjectSource, key: str, geometry: _Geometry, *, density: float | None, sdf_resolution: int,
+        cache_dir: Path, provenance: dict[str, str | None],
     ) -> None:
         self.id = source.object_id
         self.source = source.source
@@ -167,8 +169,12 @@ class ObjectModel:
         self.watertight = geometry.watertight
         self.mass_from_voxels = geometry.mass_from_voxels
         self.volume = geometry.volume
-        self.density = density
-        self.mass = float(np.clip(density * geometry.volume, *MASS_LIMITS_KG))
+        if density is None and source.mass_kg is not None:  # the designed mass, spread uniformly over the solid
+            self.mass = float(source.mass_kg)
+            self.density = self.mass / geometry.volume
+        else:
+            self.density = DEFAULT_DENSITY if density is None else density
+            self.mass = float(np.clip(self.density * geometry.volume, *MASS_LIMITS_KG))
         self.inertia = geometry.unit_inertia * (self.mass / geometry.volume)
         self.resting_poses: list[RestingPose] = geometry.poses
         self.default_pose_index = geometry.default_pose_index
@@ -257,12 +263,14 @@ def _mesh_id_index(root: Path, object_id: str) -> Path:
 def load_object(
     path_or_id: str | Path,
     *,
-    density: float = DEFAULT_DENSITY,
+    density: float | None = None,
     sdf_resolution: int = DEFAULT_RESOLUTION,
     cache_dir: str | Path | None = None,
 ) -> ObjectModel:
     """Load a library object by id, or a user mesh (OBJ/STL/PLY/GLB in metres) by path.
 
+    Mass: `density` (kg/m^3) times the volume, clamped to MASS_LIMITS_KG; without a density, an
+    object's designed mass (everyday procedural families), else DEFAULT_DENSITY.
     A `mesh-<hash>` id works for a mesh file loaded before on this machine (its cached geometry).
     Raises ObjectLoadError (naming the id or file and the problem) for anything unusable.
     """
@@ -274,7 +282,7 @@ def load_object(
 def load_library_object(
     object_id: str,
     *,
-    density: float = DEFAULT_DENSITY,
+    density: float | None = None,
     sdf_resolution: int = DEFAULT_RESOLUTION,
     cache_dir: str | Path | None = None,
 ) -> ObjectModel:
@@ -286,13 +294,13 @@ def load_library_object(
     return _load_source(resolve_library_id(object_id), root, density, sdf_resolution)
 
 
-def _checked_density(density: float) -> float:
-    if density <= 0:
+def _checked_density(density: float | None) -> float | None:
+    if density is not None and density <= 0:
         raise ValueError(f"density must be positive, got {density}")
     return density
 
 
-def _load_source(source: ObjectSource, root: Path, density: float, sdf_resolution: int) -> ObjectModel:
+def _load_source(source: ObjectSource, root: Path, density: float | None, sdf_resolution: int) -> ObjectModel:
     _checked_density(density)
     key = _object_key(source)
     directory = root / key
@@ -309,7 +317,7 @@ def _load_source(source: ObjectSource, root: Path, density: float, sdf_resolutio
     return ObjectModel(source, key, geometry, density=density, sdf_resolution=sdf_resolution, cache_dir=directory, provenance=provenance)
 
 
-def _load_known_mesh_id(object_id: str, root: Path, density: float, sdf_resolution: int) -> ObjectModel:
+def _load_known_mesh_id(object_id: str, root: Path, density: float | None, sdf_resolution: int) -> ObjectModel:
     index = _mesh_id_index(root, object_id)
     try:
         entry = json.loads(index.read_text())

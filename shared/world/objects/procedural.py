@@ -1,4 +1,6 @@
-"""Procedural objects with exact meshes: boxes, cylinders, cones, ellipsoids, capsules, convex hulls.
+"""Procedural objects with exact meshes: primitives (boxes, cylinders, cones, ellipsoids, capsules,
+convex hulls) and families modelled on everyday household categories (everyday.py: spatulas, small
+items, bottles, mugs, bananas, cans and bottles lying on their side).
 
 Ids are `proc-<family>-<NNN>` (NNN = 000..PER_FAMILY-1). Everything about an object follows from
 its id: the target shape class cycles with the index (flat / volumetric / tall, as the family
@@ -7,12 +9,17 @@ whose height-to-footprint ratio is within 15% of a class boundary, so the class 
 mesh (geometry.shape_class) is the designed one. Sizes are pushable by a robot hand: footprint
 sides 4–25 cm, heights 2–25 cm.
 
-Every shape is modelled upright (its base on z = const, +z up) and is convex, so it is its own
+Every primitive is modelled upright (its base on z = const, +z up) and is convex, so it is its own
 convex decomposition. Round shapes that would roll (ellipsoids, capsules lying down) have 8% of
 their height cut off at the bottom, giving a small flat base as a real object standing still has.
+The everyday families are unions of convex pieces with sizes and a designed mass drawn from the
+ranges of real objects (everyday.py says where each range comes from); they have their own
+generator version (EVERYDAY_VERSION) and seeds, so the primitives' objects, meshes and cache keys
+are those they always were.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import re
@@ -23,9 +30,12 @@ import numpy as np
 import trimesh
 
 from .errors import UnknownObjectError
+from .everyday import EVERYDAY_BUILDERS, EVERYDAY_FAMILIES, EVERYDAY_FAMILY_CLASSES, EVERYDAY_SAMPLERS, EVERYDAY_VERSION
 from .geometry import FLAT_MAX_RATIO, SHAPE_CLASSES, TALL_MIN_RATIO, shape_class
 
-FAMILIES = ("box", "cylinder", "cone", "ellipsoid", "capsule", "hull")
+PRIMITIVE_FAMILIES = ("box", "cylinder", "cone", "ellipsoid", "capsule", "hull")
+# New families go at the end: ids, listings and every selection by count keep their order.
+FAMILIES = PRIMITIVE_FAMILIES + EVERYDAY_FAMILIES
 FAMILY_CLASSES: dict[str, tuple[str, ...]] = {
     "box": SHAPE_CLASSES,
     "cylinder": SHAPE_CLASSES,
@@ -33,9 +43,10 @@ FAMILY_CLASSES: dict[str, tuple[str, ...]] = {
     "ellipsoid": ("flat", "volumetric"),  # a standing egg on a cut base is not a resting pose people use
     "capsule": ("flat", "volumetric"),  # lying pills and rods
     "hull": SHAPE_CLASSES,
+    **EVERYDAY_FAMILY_CLASSES,
 }
 PER_FAMILY = 100
-PROCEDURAL_VERSION = 1  # bump when a generator changes: ids then map to new shapes
+PROCEDURAL_VERSION = 1  # bump when a primitive's generator changes: ids then map to new shapes
 _ID_PATTERN = re.compile(r"^proc-([a-z]+)-(\d{3})$")
 _CLASS_MARGIN = 0.15
 _ROUND_SECTIONS = 48
@@ -54,6 +65,11 @@ class ProceduralSpec:
     params: dict[str, float]
     dims: tuple[float, float, float]  # designed footprint a >= b and height H (metres), upright
 
+    @property
+    def mass_kg(self) -> float | None:
+        """The designed mass of an everyday-family object (None: the library's uniform density decides)."""
+        return self.params.get("mass_kg")
+
 
 def procedural_ids() -> list[str]:
     return [f"proc-{family}-{index:03d}" for family in FAMILIES for index in range(PER_FAMILY)]
@@ -63,33 +79,58 @@ def is_procedural_id(object_id: str) -> bool:
     return object_id.startswith("proc-")
 
 
-def procedural_spec(object_id: str) -> ProceduralSpec:
-    """The family, designed class and dimensions (metres) of a procedural id."""
+def parse_procedural_id(object_id: str) -> tuple[str, int]:
+    """(family, index) of a procedural id, without generating it; UnknownObjectError otherwise."""
     match = _ID_PATTERN.match(object_id)
     if not match or match.group(1) not in FAMILIES or int(match.group(2)) >= PER_FAMILY:
         raise UnknownObjectError(
             f"{object_id!r}: not a procedural object id (expected proc-<family>-<000..{PER_FAMILY - 1:03d}>, "
             f"family one of {', '.join(FAMILIES)})"
         )
-    family, index = match.group(1), int(match.group(2))
+    return match.group(1), int(match.group(2))
+
+
+def is_everyday_id(object_id: str) -> bool:
+    """True for an id of an everyday family (added after the primitives; see everyday.py)."""
+    match = _ID_PATTERN.match(object_id)
+    return match is not None and match.group(1) in EVERYDAY_FAMILIES
+
+
+@functools.lru_cache(maxsize=4096)
+def procedural_spec(object_id: str) -> ProceduralSpec:
+    """The family, designed class and dimensions (metres) of a procedural id (cached: specs are immutable)."""
+    family, index = parse_procedural_id(object_id)
     classes = FAMILY_CLASSES[family]
     target = classes[index % len(classes)]
-    rng = np.random.default_rng(_seed(object_id))
-    sampler = _SAMPLERS[family]
+    everyday = family in EVERYDAY_FAMILIES
+    rng = np.random.default_rng(_everyday_seed(object_id) if everyday else _seed(object_id))
     for _ in range(100_000):
-        params, (a, b, height) = sampler(rng)
+        params, (a, b, height) = EVERYDAY_SAMPLERS[family](rng, index) if everyday else _SAMPLERS[family](rng)
         if _clearly_in_class(a, b, height, target):
             return ProceduralSpec(object_id, family, index, target, params, (a, b, height))
     raise RuntimeError(f"{object_id}: no {target} dimensions found for family {family}")  # cannot happen with these ranges
 
 
 def procedural_mesh(spec: ProceduralSpec) -> trimesh.Trimesh:
-    """The exact (convex, closed) mesh of a procedural object, upright, in metres."""
+    """The exact mesh of a procedural object, upright, in metres: one closed convex body for a
+    primitive, the closed convex pieces side by side for an everyday family."""
     return _BUILDERS[spec.family](spec.params)
+
+
+def generator_version(family: str) -> dict[str, int]:
+    """What identifies the generator of a family's objects (part of their cache key)."""
+    if family in EVERYDAY_FAMILIES:
+        return {"everyday": EVERYDAY_VERSION}
+    return {"procedural": PROCEDURAL_VERSION}
 
 
 def _seed(object_id: str) -> int:
     digest = hashlib.sha256(f"gd2p-procedural-v{PROCEDURAL_VERSION}:{object_id}".encode()).digest()
+    return int.from_bytes(digest[:8], "little")
+
+
+def _everyday_seed(object_id: str) -> int:
+    digest = hashlib.sha256(f"gd2p-everyday-v{EVERYDAY_VERSION}:{object_id}".encode()).digest()
     return int.from_bytes(digest[:8], "little")
 
 
@@ -221,4 +262,5 @@ _BUILDERS: dict[str, Callable[[Params], trimesh.Trimesh]] = {
     "ellipsoid": _build_ellipsoid,
     "capsule": _build_capsule,
     "hull": _build_hull,
+    **EVERYDAY_BUILDERS,
 }

@@ -13,7 +13,7 @@ differently. `sample_world(level, seed, ...)` draws one such execution world per
 |---|---|---|---|
 | object-table friction | 0.5 | ×U(0.6, 1.4): 0.30-0.70 | handbook static coefficients of wood, plastic, cardboard and ceramic on wood or laminate span ~0.2-0.6; the same ± range the first perturbation study used |
 | hand-object friction | 0.8 | ×U(0.6, 1.4): 0.48-1.12 | rubber / silicone finger pads on plastic and painted surfaces ~0.5-1.2 |
-| object mass | model (uniform density) | ×U(0.7, 1.4) | a mass guessed from a shape: hollow objects are lighter, filled ones heavier |
+| object mass | model (uniform density; the everyday procedural families: their designed mass) | ×U(0.7, 1.4) | a mass guessed from a shape: hollow objects are lighter, filled ones heavier |
 | centre of mass | the model's centroid | offset up to 20% of the half extent along each horizontal axis, 10% vertically | an uneven fill (a mug's handle, contents settling) |
 | rolling friction | 0 | U(0, 0.002) | PyBullet's rolling resistance; small enough that nothing rolls away by itself |
 | arm position gain | 0.3 | ×U(0.7, 1.3) | a controller tuned on another payload tracks a few mrad differently |
