@@ -8,6 +8,7 @@
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
+    gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
 
 World (`--world`, methods / leap / closed-loop / multistep): `real` (default) executes every plan in a world drawn
@@ -35,6 +36,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
     "multistep": "evaluation.multistep:run",
     "data-size": "evaluation.data_size:run",
     "sampler-quality": "evaluation.sampler_quality:run",
+    "sampler-diagnosis": "evaluation.sampler_diagnosis:run",
 }
 TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
 WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")

@@ -41,6 +41,7 @@ from typing import Any, Protocol
 import numpy as np
 from tqdm import tqdm
 
+from evaluation.report import CODE_AT_START
 from evaluation.store import ResultStore
 
 SAMPLES_PER_OBJECT = 200  # the paper's candidates per test object
@@ -124,11 +125,14 @@ class DiffusionSource:
         steps = self.steps if self.steps is not None else (100 if self.sampler == "ddpm" else 10)
         return f"{self.sampler.upper()}-{steps}"
 
-    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+    def pose_sampler(self) -> Any:
+        """The checkpoint's `PoseSampler`, loaded once per process."""
         from services.sampler.sampling import PoseSampler
 
-        sampler = _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
-        return sampler.sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed).poses_d
+        return _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        return self.pose_sampler().sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed).poses_d
 
 
 @dataclass(frozen=True)
@@ -144,13 +148,17 @@ class NearestNeighborSource:
     def label(self) -> str:
         return "Nearest neighbour"
 
-    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
+    def baseline(self) -> Any:
+        """The index as a `NearestNeighborBaseline`, loaded once per process."""
         from services.sampler.nearest_neighbor import NearestNeighborBaseline
 
-        baseline = _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborBaseline.load(self.index))
+        return _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborBaseline.load(self.index))
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
+
         points, _ = obj.surface_points(SURFACE_POINTS, seed=SURFACE_SEED, T_D_O=object_in_d(frame))
-        return baseline.query_points(points, k=k, seed=seed).poses
+        return self.baseline().query_points(points, k=k, seed=seed).poses
 
 
 def _file_stamp(path: str) -> tuple[int, int]:
@@ -270,6 +278,7 @@ def coverage_record(object_id: str, tally: PushTally, seconds: float) -> dict[st
         "any_success": tally.first_success_index is not None,
         "first_success_index": tally.first_success_index,
         "seconds": round(seconds, 3),
+        "code": CODE_AT_START,
     }
 
 
@@ -346,6 +355,16 @@ def measure_coverage(source: PoseSource, object_ids: Sequence[str], store: Resul
 
 
 # ----------------------------------------------------------------------------- summaries
+def pose_trials(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Each pose of the records' validated-fraction window as one trial `{"object_id", "success"}`.
+
+    What `evaluation.stats` bootstraps: the pooled validated fraction with its interval clustered by
+    object (`success_interval`), or a paired difference between two sources (`difference_interval`).
+    """
+    return [{"object_id": r["object"], "success": i < r["fraction_successes"]}
+            for r in records for i in range(r["fraction_pushed"])]
+
+
 def live_postfix(records: Sequence[Mapping[str, Any]]) -> dict[str, str]:
     """Progress-bar figures so far: objects covered and the pooled validated fraction."""
     if not records:

@@ -112,10 +112,22 @@ class NearestNeighborBaseline:
     def query(self, features: np.ndarray, k: int | None = None, seed: int = 0) -> NeighborMatch:
         """The nearest frame's poses: all of them, or a seeded random subset of `k` when it has more."""
         row, distance = self.nearest(features)
+        return NeighborMatch(self.frames[row].object_id, self.frames[row], distance, self.frame_poses(row, k, seed))
+
+    def frame_row(self, frame: Frame) -> int:
+        """The row of a training frame (object, resting pose, yaw); NearestNeighborError when it is not indexed."""
+        key = (frame.object_id, frame.pose_index, round(frame.yaw_rad, 6))
+        for row, indexed in enumerate(self.frames):
+            if (indexed.object_id, indexed.pose_index, round(indexed.yaw_rad, 6)) == key:
+                return row
+        raise NearestNeighborError(f"{frame} is not a frame of this index")
+
+    def frame_poses(self, row: int, k: int | None = None, seed: int = 0) -> np.ndarray:
+        """[m, 25] the stored poses (in D) of the frame at `row`: all, or a seeded random subset of `k` when it has more."""
         poses = self._poses[self._starts[row]:self._starts[row + 1]]
         if k is not None and k < len(poses):
             poses = poses[np.sort(np.random.default_rng(seed).choice(len(poses), size=k, replace=False))]
-        return NeighborMatch(self.frames[row].object_id, self.frames[row], distance, poses.copy())
+        return poses.copy()
 
     def query_points(self, points_d: np.ndarray, k: int | None = None, seed: int = 0) -> NeighborMatch:
         """Like `query`, for object surface points in D (encoded with this index's basis)."""

@@ -178,9 +178,15 @@ def train(dataset_dir: str | Path, hand: str, out: str | Path, config: TrainConf
 
 
 def _split(dataset: PoseDataset, config: TrainConfig) -> tuple[PoseDataset, PoseDataset]:
-    train_ids, val_ids = split_objects(dataset.objects(), config.val_fraction, config.seed)
-    train_ids = choose_fraction(train_ids, config.fraction, config.seed)
+    train_ids, val_ids = split_object_ids(dataset.objects(), config.val_fraction, config.fraction, config.seed)
     return dataset.subset(train_ids), dataset.subset(val_ids)
+
+
+def split_object_ids(object_ids: list[str], val_fraction: float, fraction: float, seed: int) -> tuple[list[str], list[str]]:
+    """(trained on, held out for the validation loss): the objects of a run with these settings
+    (a checkpoint's manifest has them under "config"), as `train` splits them."""
+    train_ids, val_ids = split_objects(object_ids, val_fraction, seed)
+    return choose_fraction(train_ids, fraction, seed), val_ids
 
 
 def _load_resume_state(path: Path, config: TrainConfig, dataset: PoseDataset, train_set: PoseDataset,
