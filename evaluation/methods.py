@@ -38,8 +38,10 @@ LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
 COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked"), ("gd2p", "nearest-ranked"),
                ("gd2p-random", "nearest"), ("gd2p-robust", "gd2p"), ("gd2p-corrected", "gd2p"),
                ("gd2p-a30", "gd2p"), ("gd2p-corrected", "nearest-corrected"), ("gd2p-corrected", "fixed-corrected"),
-               ("gd2p-closed", "gd2p"), ("gd2p-closed", "gd2p-corrected"), ("gd2p-closed-tight", "gd2p-closed"),
-               ("gd2p-closed-loose", "gd2p-closed"), ("gd2p-closed-looser", "gd2p-closed"))
+               ("gd2p-closed", "gd2p"), ("gd2p-closed", "gd2p-corrected"), ("gd2p-closed-tight", "gd2p-corrected"),
+               ("gd2p-closed-3cm", "gd2p-corrected"), ("gd2p-closed-loose", "gd2p-corrected"),
+               ("gd2p-closed-looser", "gd2p-corrected"), ("gd2p-closed", "fixed-corrected"),
+               ("gd2p-closed", "nearest-corrected"))
 # The closed-loop experiment (`gd2p eval closed-loop`): open loop, corrective pushes after a push, and
 # pushes watched and stopped mid-way, run together on one commit.
 CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed")

@@ -96,9 +96,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-robust", "GD2P, robust ranking", "gd2p", "ranked", ROBUST_DRAWS),
     Method("gd2p-corrected", "GD2P + corrective pushes", "gd2p", "ranked", corrections=CORRECTIONS),
     Method("gd2p-closed", "GD2P closed loop", "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True),
-    # Monitor thresholds compared on val objects (services/planner/monitor.py): tighter and looser than the shipped.
+    # Monitor thresholds compared on val objects (services/planner/monitor.py: the loose ones are shipped).
     Method("gd2p-closed-tight", "GD2P closed loop, 2 cm / 10° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.02, 10.0, 15.0)),
+    Method("gd2p-closed-3cm", "GD2P closed loop, 3 cm / 15° (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, monitor=(0.03, 15.0, 20.0)),
     Method("gd2p-closed-loose", "GD2P closed loop, 4 cm / 25° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.04, 25.0, 30.0)),
     Method("gd2p-closed-looser", "GD2P closed loop, 6 cm / 35° (val candidate)", "gd2p", "ranked",
@@ -119,8 +121,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 
 
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
-TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-loose",
-                            "gd2p-closed-looser"})
+TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
+                            "gd2p-closed-loose", "gd2p-closed-looser"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
 

@@ -115,13 +115,43 @@ def test_backing_out_retraces_the_plan_from_where_the_robot_stopped_to_its_start
 
     plan = _plan()
     q_now = np.full(7, 0.0352)  # stopped a little behind the command at 3.55 s
-    back = backed_out(plan, 3.55, q_now)
+    back = backed_out(plan, 3.55, q_now, np.full(7, -1.0), np.full(7, 1.0))
     positions, times = back.positions.to_numpy(), back.times_s.to_numpy()
     assert np.allclose(positions[0], q_now) and np.allclose(positions[-1], plan.positions.to_numpy()[0])
     assert np.all(np.diff(times) > 0) and times[1] >= BACK_OUT_LEAD_S
     # At the plan's own pace: the way back takes as long as the way there did.
     assert times[-1] == pytest.approx(3.55)
     assert [s.label for s in back.segments] == ["retreat"]
+    # A finger pressed past its limit by the object: the way back starts at the limit, not beyond it.
+    pressed = q_now.copy()
+    pressed[6] = -1.37
+    assert -1.0 < backed_out(plan, 3.55, pressed, np.full(7, -1.0), np.full(7, 1.0)).positions.to_numpy()[0, 6] < -0.999
+
+
+def test_a_plan_may_start_at_the_limit_a_pressed_joint_stands_past_but_not_beyond_it():
+    from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
+    from services.robot_bridge.robots.sim.config import SimConfig
+    from services.robot_bridge.robots.sim.robot import SimRobot
+    from shared.contracts.messages import ExecutionCommand
+
+    with SimRobot(SimConfig("panda", "allegro")) as robot:
+        limits = robot.limits
+        q = robot.observe().positions
+        k = len(q) - 1  # a finger joint, pressed 0.3 rad past its lower limit
+        q[k] = limits.lower[k] - 0.3
+        robot.scene.set_configuration(q[:7], q[7:])
+        executor = Executor("panda", "allegro", [robot], EStopLatch())
+
+        def plan_from(first: np.ndarray) -> Plan:
+            return Plan(arm="panda", hand="allegro", joint_names=list(robot.joint_names),
+                        positions=np.stack([first, first]), times_s=np.array([0.0, 0.5]))
+
+        at_limit = np.clip(q, limits.lower, limits.upper)
+        state = executor.execute(ExecutionCommand(plan=plan_from(at_limit), lease_token="t"), LocalLease())
+        assert state.status == "done", state.message
+        robot.scene.set_configuration(q[:7], q[7:])
+        beyond = executor.execute(ExecutionCommand(plan=plan_from(q), lease_token="t"), LocalLease())
+        assert beyond.status == "refused" and "limit" in beyond.message
 
 
 # ------------------------------------------------------------------------------------------ the tracker

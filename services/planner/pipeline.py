@@ -215,7 +215,8 @@ class PushPipeline:
                 chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
-        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, self.settings, reason))
+        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, self.settings,
+                                     self._limits(request.arm, request.hand), reason))
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an

@@ -440,7 +440,7 @@ def wait_for_results(futures: list[Future], timeout_s: float,
 
 
 def execute(state: RequestState, push: Push, candidates: Candidates, chosen: RankedPlan,
-            run_plan: Execute, settings: PipelineSettings, reason: str | None = None) -> StepRecord:
+            run_plan: Execute, settings: PipelineSettings, limits: RobotLimits, reason: str | None = None) -> StepRecord:
     """Execute `chosen` on the robot bridge (`run_plan`); the record of the push, its outcome judged
     from the object pose the bridge observed. PushError when the bridge did not execute it.
 
@@ -460,7 +460,7 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     state.cancel.check()  # a motion stopped by the cancellation is the cancellation's outcome
     stopped = monitor.stop_reason if monitor is not None and execution.final.status == "stopped" else None
     if stopped is not None:
-        execution = _backed_out(state, chosen.plan, monitor, execution, run_plan)
+        execution = _backed_out(state, chosen.plan, monitor, execution, run_plan, limits)
     state.time("execution", time.perf_counter() - started)
     final = execution.final
     if final.status != "done":
@@ -475,11 +475,12 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     return StepRecord(step, push.T_world_O, execution, world)
 
 
-def _backed_out(state: RequestState, plan: Plan, monitor: PushMonitor, stopped: Execution, run_plan: Execute) -> Execution:
+def _backed_out(state: RequestState, plan: Plan, monitor: PushMonitor, stopped: Execution, run_plan: Execute,
+                limits: RobotLimits) -> Execution:
     """After the monitor stopped `plan`: the robot backs out the way it came, to where the plan started.
     The execution of both, ending where the way back left the robot and the object."""
     assert monitor.stop_time_s is not None
-    way_back = backed_out(plan, monitor.stop_time_s, stopped.final.positions.to_numpy())
+    way_back = backed_out(plan, monitor.stop_time_s, stopped.final.positions.to_numpy(), limits.lower, limits.upper)
     back = run_plan(way_back, None, state.cancel, None)
     state.cancel.check()
     if back.final.status != "done":

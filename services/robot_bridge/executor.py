@@ -288,7 +288,9 @@ class Executor:
 
     def _check_start(self, robot: Robot, trajectory: JointTrajectory) -> None:
         start = trajectory.select(robot.joint_names).positions[0]
-        current = robot.observe().positions
+        # A joint pushed past its limit (a finger pressed by the object) is where its motor holds it: at the
+        # limit. A plan may start there; it may not start outside the limits (check_plan).
+        current = np.clip(robot.observe().positions, robot.limits.lower, robot.limits.upper)
         gap = np.abs(current - start)
         if gap.max() > self.start_tolerance_rad:
             k = int(np.argmax(gap))
