@@ -283,16 +283,16 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
-            if response.notes:  # e.g. why a correction the request allowed was not made
-                record["notes"] = [note[:200] for note in response.notes]
-            if len(response.steps) > 1:  # corrective pushes: how many, and how far the first push left it
-                record["pushes"] = len(response.steps)
-                record["first_push_error_m"] = round(response.steps[0].result.position_error_m, 4)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
-            stopped = [i for i, step in enumerate(response.steps) if step.stopped]
-            if stopped:  # closed loop: which pushes the monitor stopped
-                record["stopped_pushes"] = stopped
+        if response.notes:  # e.g. why a correction the request allowed was not made, or a push was stopped
+            record["notes"] = [note[:200] for note in response.notes]
+        if len(response.steps) > 1:  # corrective pushes: how many, and how far the first push left it
+            record["pushes"] = len(response.steps)
+            record["first_push_error_m"] = round(response.steps[0].result.position_error_m, 4)
+        stopped = [i for i, step in enumerate(response.steps) if step.stopped]
+        if stopped:  # closed loop: which pushes the monitor stopped
+            record["stopped_pushes"] = stopped
     record["seconds"] = round(time.perf_counter() - started, 2)
     record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))

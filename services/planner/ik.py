@@ -70,19 +70,23 @@ class ArmIK:
         self.position_tolerance_m = position_tolerance_m
         self.rotation_tolerance_rad = rotation_tolerance_rad
         limits = torch.stack((self.arm.joint_lower, self.arm.joint_upper), dim=1)
+        # pytorch_kinematics' default (1e-9) vanishes in float32: a converged step (no LM damping left) at a
+        # singular arm configuration then fails the whole batch's solve ("input matrix is singular").
+        regularisation = 1e-5
         self.seeds = self._seed_configs(num_seeds, seed)
         self._solver = pk.PseudoInverseIK(
             self.arm.serial_chain(), pos_tolerance=position_tolerance_m, rot_tolerance=rotation_tolerance_rad,
             retry_configs=self.seeds, joint_limits=limits, max_iterations=max_iterations,
             early_stopping_any_converged=False, early_stopping_no_improvement=None,
-            enforce_joint_limits=True, lr=0.5)
+            enforce_joint_limits=True, lr=0.5, regularlization=regularisation)
         # One seed, replaced before every solve: `track` starts each waypoint from the previous solution.
         # pytorch_kinematics' limit enforcement runs 10 extra iterations on every solve (most of a
         # waypoint's time); the tracker skips it and only a waypoint that leaves the limits is re-solved with it.
         self._trackers = {enforce: pk.PseudoInverseIK(
             self.arm.serial_chain(), pos_tolerance=position_tolerance_m / 2, rot_tolerance=rotation_tolerance_rad / 2,
             retry_configs=self.arm.home[None].clone(), joint_limits=limits, max_iterations=2 * max_iterations,
-            early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=enforce, lr=1.0)
+            early_stopping_any_converged=True, early_stopping_no_improvement=None, enforce_joint_limits=enforce, lr=1.0,
+            regularlization=regularisation)
             for enforce in (False, True)}
 
     def _seed_configs(self, num_seeds: int, seed: int) -> torch.Tensor:
