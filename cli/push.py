@@ -79,8 +79,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="watch the object while each push runs (the robot bridge's object tracking) and stop "
                              "the push when it strays from the path the chosen plan's rollout predicted; the robot "
                              "backs out and, within --corrections, pushes again from where it saw the object "
-                             "(default: the request's default; plans chosen with --choice random have no predicted "
-                             "path and run open loop)")
+                             "(default: on; --no-closed-loop runs each push to its end; plans chosen with --choice "
+                             "random have no predicted path and run open loop)")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")

@@ -696,8 +696,12 @@ class PushRequest(Message):
     corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
     # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
     # strays from the path the chosen plan's rollout predicted (services/planner/monitor.py); the push is
-    # backed out and, within `corrections`, pushed again from where the object was seen.
-    closed_loop: bool = False
+    # backed out and, within `corrections`, pushed again from where the object was seen. Plans chosen
+    # with choice "random" have no rollout to follow and run open loop.
+    # On by default: under the evaluation's `real` world it raised GD2P + corrective pushes from 81.0% to
+    # 86.9% on the val objects (where its thresholds were chosen) and from 90.5% to 92.1% on the test
+    # objects (results/closed-loop-real*), at 1.13x open loop's median time per trial.
+    closed_loop: bool = True
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
