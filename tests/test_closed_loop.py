@@ -82,7 +82,7 @@ def test_an_object_turning_less_than_predicted_or_a_little_the_other_way_is_not_
             x = 0.5 + 0.05 * np.clip(t - 2.0, 0.0, 4.0)
             assert monitor.observe(t, _seen(x, 0.0, seen_yaw_per_s * max(t - 2.0, 0.0))) is None
     monitor = PushMonitor(_plan(), turning, np.array([1.0, 0.0]), MonitorThresholds())
-    reasons = [monitor.observe(t, _seen(0.5 + 0.05 * max(t - 2.0, 0.0), 0.0, -14.0 * max(t - 2.0, 0.0)))
+    reasons = [monitor.observe(t, _seen(0.5 + 0.05 * max(t - 2.0, 0.0), 0.0, -18.0 * max(t - 2.0, 0.0)))
                for t in np.arange(1.0, 6.0, 0.05)]
     assert any(r and "turned" in r for r in reasons)  # the other way and further than predicted: stopped
 

@@ -578,22 +578,27 @@ def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_
 
 
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
-    """The second push's pose source fails: the PushError carries the first push's record."""
+    """The validator farm is gone by the second push: the PushError carries the first push's record."""
     from evaluation.local_system import LocalRobot, validate_here
     from services.planner.outcome import PushError
     from services.planner.pipeline import PushPipeline, PushServices
     from services.planner.stages import PipelineSettings
 
-    samples = []
+    executed = []
 
-    def sample_once(request):
-        samples.append(request)
-        if len(samples) > 1:
-            raise PushError("unavailable", "sampler: gone")
-        return _spatula_poses(request)
+    def execute(plan, world, cancel, monitor=None):
+        executed.append(plan)
+        return robot.execute(plan, world, cancel, monitor)
+
+    def validate_until_a_push(job):
+        if not executed:
+            return validate_here(job)
+        gone: Future = Future()
+        gone.set_exception(TimeoutError("no validator answered"))
+        return gone
 
     robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=sample_once, validate=validate_here, execute=robot.execute),
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate_until_a_push, execute=execute),
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     start = _box_at(0.5, 0.12)
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start), goal_xy=(0.5, -0.12),

@@ -225,6 +225,7 @@ class SimRobot(Robot):
         wall_start = time.monotonic()
         self.collisions = {}
         self._tracked = None
+        self.tracker.forget()  # the latency is within a command: its first frame is the object as it is now
         self._track_frame(controller.time_of(0), command_id)
         for step in range(1, controller.step_count + 1):
             elapsed = step * self.params.time_step_s

@@ -48,6 +48,10 @@ class SimTracker:
     def reset(self, seed: int) -> None:
         """Forget what was seen; draw the noise from `seed` from now on."""
         self._rng = np.random.default_rng(seed)
+        self.forget()
+
+    def forget(self) -> None:
+        """Forget the frames seen (a new command's first frame reports the pose now, not one from before)."""
         self._seen: list[np.ndarray] = []
 
     def frame(self, T_true: np.ndarray) -> ObjectPose:
