@@ -115,6 +115,26 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     return directory / REPORT_FILE
 
 
+def _provenance(summary: dict[str, Any], summary_path: Path) -> str:
+    """Which code the index says made an experiment: the commits that ran its trials (each record's stamp)
+    and the one that wrote its report; for a result from before stamps, the commit that added it to git."""
+    if "records_code" in summary:
+        trials = ", ".join(f"{c} ({n})" for c, n in summary["records_code"].items())
+        return f"trials run by code: {trials}; report written by {summary.get('code', 'not recorded')}"
+    if "code" in summary:
+        return f"code: {summary['code']}"
+    added = _git("log", "--diff-filter=A", "--format=%h", "--", summary_path.name, cwd=summary_path.parent)
+    first = added.split()[-1] if added.split() else None
+    return ("code: not recorded (run before results were stamped" + (f"; committed in {first})" if first else ")"))
+
+
+def _git(*args: str, cwd: Path) -> str:
+    try:
+        return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, check=False, timeout=10).stdout
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
 def _earlier_wall_time(directory: Path) -> float:
     """Wall time of the earlier invocations of a resumed experiment (0 for a fresh one)."""
     try:
@@ -136,7 +156,7 @@ def write_index(out: str | os.PathLike) -> Path:
                         f"- command: `{summary.get('command', '?')}`\n"
                         f"- wall time: {summary.get('wall_time_s', 0) / 60:.1f} min\n"
                         f"- machine: {summary.get('machine', '?')}\n"
-                        f"- code: {summary.get('code', 'not recorded')}\n\n{body.strip()}\n")
+                        f"- {_provenance(summary, summary_path)}\n\n{body.strip()}\n")
     text = ("# Evaluation results\n\nReproduced in simulation by `gd2p eval` (see `gd2p eval --help`). Each section "
             "is copied from its experiment's report; the JSON beside each report has every figure.\n\n"
             + "\n".join(sections))

@@ -185,3 +185,17 @@ def test_a_real_report_compares_with_the_exact_run_of_the_same_perception(tmp_pa
     assert told_mesh["gd2p-random"]["rate"] == 0.3 and "results/methods, 210 trials" in told_mesh["gd2p-random"]["source"]
     assert exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p",), cameras=1)) == {}
     assert exact_rates(tmp_path, protocol_for("methods", False, 3, "exact", ("gd2p",))) == {}
+
+
+def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):
+    import json
+
+    from evaluation.report import write_index
+
+    for name, summary in (("stamped", {"code": "bbb", "records_code": {"aaa": 3, "bbb": 1}}), ("old", {})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps({"title": name, **summary}))
+        (tmp_path / name / "report.md").write_text(f"# {name}\n\n- header\n\nbody\n")
+    index = write_index(tmp_path).read_text()
+    assert "- trials run by code: aaa (3), bbb (1); report written by bbb" in index
+    assert "- code: not recorded (run before results were stamped)" in index  # not in git: no commit to name
