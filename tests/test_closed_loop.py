@@ -195,6 +195,8 @@ def test_the_simulated_robot_publishes_tracked_poses_at_the_tracker_rate_with_th
         robot.send(trajectory, realtime_factor=1000.0, command_id="c1")
         true = pose_matrix(robot.true_object_pose())
         seen = pose_matrix(robot.observe().object_pose)
+        # Observing draws no noise: the frames repeat however often (and from whichever thread) it is called.
+        assert np.array_equal(pose_matrix(robot.observe().object_pose), seen)
     duration = 2.0 + robot.params.arm_command_latency_s + robot.params.arm_settle_s
     assert abs(len(tracks) - duration * 20.0) <= 2  # 20 Hz of robot time
     assert all(t.command_id == "c1" and t.source == "sim-tracker" for t in tracks)

@@ -85,7 +85,7 @@ class SimRobot(Robot):
         self.publish = publish
         self.tracker = SimTracker(config.tracker)
         self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
-        self._tracked: ObjectPose | None = None  # the tracker's latest pose while a plan runs
+        self._tracked: ObjectPose | None = None  # the tracker's latest frame (what the robot reports)
         self.scene: RobotScene | None = None
         self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
         # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
@@ -142,6 +142,7 @@ class SimRobot(Robot):
         self.add_object(urdf, world.T_world_O)
         self.add_obstacles(world.obstacles)
         self.tracker.reset(world.tracker_seed)
+        self._tracked = None  # the next observation is a frame of this world's object
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -156,6 +157,7 @@ class SimRobot(Robot):
         scene = self._scene()
         with self._lock:
             scene.add_object(urdf_path, T_world_O)
+            self._tracked = None
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
         """Static cylinders (x, y, radius) on the table."""
@@ -174,9 +176,17 @@ class SimRobot(Robot):
         scene = self._scene()
         with self._lock:
             positions, velocities = scene.joint_state()
-        true = self._true_pose()
-        return Observation(time.time(), self.joint_names, positions, velocities,
-                           object_pose=None if true is None else self.tracker.noisy(true))
+        return Observation(time.time(), self.joint_names, positions, velocities, object_pose=self._seen())
+
+    def _seen(self) -> ObjectPose | None:
+        """The tracker's latest frame, held between frames (the first since the object was placed is taken
+        now). Observing draws no noise of its own: the frames, and so a trial, repeat whoever observes how often."""
+        with self._lock:
+            if self._tracked is None:
+                true = self._true_pose()
+                if true is not None:
+                    self._tracked = self.tracker.frame(true)
+            return self._tracked
 
     def true_object_pose(self) -> ObjectPose | None:
         """Where the object's frame O truly is in the world (None without an object): no tracker sees this."""
@@ -193,7 +203,8 @@ class SimRobot(Robot):
         true = self._true_pose()
         if true is None:
             return
-        self._tracked = self.tracker.frame(true)
+        with self._lock:
+            self._tracked = self.tracker.frame(true)
         if self.track is not None:
             self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
                                    command_id=command_id, plan_time_s=plan_time_s))
@@ -224,7 +235,6 @@ class SimRobot(Robot):
         track_every = self.tracker.steps_per_frame(self.params.time_step_s)
         wall_start = time.monotonic()
         self.collisions = {}
-        self._tracked = None
         self.tracker.forget()  # the latency is within a command: its first frame is the object as it is now
         self._track_frame(controller.time_of(0), command_id)
         for step in range(1, controller.step_count + 1):
