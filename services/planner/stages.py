@@ -48,7 +48,7 @@ from shared.robots.hands import HandModel
 from shared.robots.robot_limits import LimitViolation, RobotLimits
 from shared.world.fixed_poses import FixedPoseError, spatula_pose
 from shared.world.objects import ObjectModel
-from shared.world.push_outcome import judge_push, object_pose, pose_matrix
+from shared.world.push_outcome import judge_push, object_pose, pose_matrix, rotation_between_deg
 
 # A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
 # this from how it sat in the last one's (the sampler would be asked the same question).
@@ -139,7 +139,7 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
             raise PushError("bad_request", str(exc)) from exc
     else:
         R_D_O = (invert_transform(push.T_world_D) @ push.T_world_O)[:3, :3]  # how the object sits in D
-        if state.sampled is not None and _turn_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG:
+        if state.sampled is not None and rotation_between_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG:
             poses_d = state.sampled[1]  # a later push sees the object in D as the last one did: same candidates
         else:
             sampler = "nearest" if request.method == "nearest" else request.sampler
@@ -153,11 +153,6 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
 
 
 # ------------------------------------------------------------------------------- 2. IK and screening
-
-
-def _turn_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """The angle of the rotation between two orientations."""
-    return math.degrees(math.acos(float(np.clip((np.trace(R_a.T @ R_b) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, push: Push,

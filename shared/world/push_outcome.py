@@ -28,6 +28,11 @@ def pose_matrix(pose: ObjectPose) -> np.ndarray:
     return T
 
 
+def rotation_between_deg(r_a: np.ndarray, r_b: np.ndarray) -> float:
+    """The angle (degrees) of the rotation that turns orientation `r_a` into `r_b` (3x3 each)."""
+    return math.degrees(math.acos(np.clip((np.trace(r_b @ r_a.T) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: ObjectPose, *,
                max_rotation_deg: float | None = SUCCESS_MAX_ROTATION_DEG) -> ExecutionResult:
     """Position error (in the table plane, to the target), rotation, toppling and success of one push.
@@ -38,7 +43,7 @@ def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: Object
     T_end = pose_matrix(final)
     error = float(np.linalg.norm(T_end[:2, 3] - np.asarray(target_xy, dtype=np.float64)[:2]))
     r_start, r_end = T_world_O_start[:3, :3], T_end[:3, :3]
-    rotation = math.degrees(math.acos(np.clip((np.trace(r_end @ r_start.T) - 1.0) / 2.0, -1.0, 1.0)))
+    rotation = rotation_between_deg(r_start, r_end)
     up_in_object = r_start.T @ np.array([0.0, 0.0, 1.0])  # the object's up axis at the start, in O
     tilt = math.degrees(math.acos(np.clip(float((r_end @ up_in_object)[2]), -1.0, 1.0)))
     toppled = tilt > TOPPLED_TILT_DEG
