@@ -676,14 +676,22 @@ def test_a_request_whose_client_is_already_gone_never_moves_the_robot(system):
         from shared.bus import Dispatcher
         from shared.bus.keys import ROBOT_STATE_KEY
 
-        moved = []
-        subscriber = session.declare_subscriber(ROBOT_STATE_KEY, lambda sample: moved.append(sample))
+        states: list[float] = []
+        subscriber = session.declare_subscriber(ROBOT_STATE_KEY, lambda sample: states.append(time.monotonic()))
+        # An earlier test's stopped command may still publish its last state on a loaded machine: wait until
+        # the bridge has been quiet for a second, so only states this request causes are counted.
+        time.sleep(1.0)
+        deadline = time.monotonic() + 30.0
+        while states and time.monotonic() - states[-1] < 1.0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        quiet_since = time.monotonic()
         request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", client_lease=gone)
         with Dispatcher(session, "planner", timeout_s=120.0, max_attempts=1) as planner:
             reply = planner.submit(request).result(120.0)
         subscriber.undeclare()
     assert isinstance(reply, ErrorReply) and reply.code == "cancelled", reply
-    assert not moved
+    moved = [t for t in states if t >= quiet_since]
+    assert not moved, f"the bridge published {len(moved)} states for a request whose client was gone"
 
 
 def test_a_client_lease_of_another_role_is_a_bad_request(system):
