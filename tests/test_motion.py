@@ -80,6 +80,7 @@ def test_rrtconnect_path_to_a_configuration_above_the_box_is_collision_free(scen
     home = scene.arm.home.double().numpy()
     path = planner.plan_joint_path(home, ik.q[0], q_hand)
     assert np.allclose(path[0], home) and np.allclose(path[-1], ik.q[0])
+    assert len(path) == 2  # the direct motion is free: it is the path (no detour, no random search)
     # Every state along the straight edges, 5x finer than the planner's own check, is collision-free.
     for q in interpolate_path(path, 0.002):
         assert not scene.collisions(q, q_hand), f"collision at {q}"
@@ -133,6 +134,21 @@ def test_push_plan_has_approach_push_retreat_and_passes_the_bridge_limits(box, p
     assert np.allclose(hand_path[0][:3, 3], T_world_hand[:3, 3], atol=0.002)
     assert np.allclose(positions[0, :7], planner.arm.home.numpy(), atol=1e-6)
     assert np.allclose(positions[-1, :7], planner.arm.home.numpy(), atol=1e-6)
+
+
+def test_a_plan_from_the_lines_screening_tracked_is_the_plan_made_from_scratch(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    screened = planner.screen(T_world_hand[None], q_hand[None], push=0.15 * direction)
+    lines = screened.lines[0]
+    assert screened.feasible[0] and lines is not None and lines.approach is not None and lines.back_off is not None
+    kwargs = dict(q_pre_contact=screened.q[0], return_home=False)
+    reused = planner.plan_push(T_world_hand, q_hand, direction, 0.15, lines=lines, **kwargs)
+    assert planner.stats.cartesian_s == 0.0  # no waypoint was solved again
+    fresh = planner.plan_push(T_world_hand, q_hand, direction, 0.15, **kwargs)
+    assert reused.positions.shape == fresh.positions.shape
+    assert np.abs(reused.positions.to_numpy() - fresh.positions.to_numpy()).max() < 1e-3
+    assert [(s.label, s.start, s.stop) for s in reused.segments] == [(s.label, s.start, s.stop) for s in fresh.segments]
 
 
 def test_screening_keeps_reachable_free_poses_and_says_why_the_others_fail(box, planner):

@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from services.planner import ranking
+from services.planner.motion import StraightLines
 from shared.contracts.messages import DirectionFrame, ObjectPath, Plan, ScoreTerms
 from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
 from shared.robots.hands import HandModel
@@ -80,11 +81,16 @@ class Candidates:
 @dataclass(frozen=True)
 class Feasible:
     """The kinematically feasible candidates (indices into `candidates`) in the order they are to be
-    tried, and the pre-contact IK solution of every screened candidate (`q_pre` [K, dof])."""
+    tried, the pre-contact IK solution of every screened candidate (`q_pre` [K, dof]) and the straight
+    lines screening tracked from it (`lines` [K], None where not tracked)."""
 
     candidates: Candidates
     order: np.ndarray
     q_pre: np.ndarray
+    lines: list[StraightLines | None] = dataclasses.field(default_factory=list)
+
+    def lines_of(self, index: int) -> StraightLines | None:
+        return self.lines[index] if index < len(self.lines) else None
 
     def reordered(self, order: np.ndarray) -> Feasible:
         return dataclasses.replace(self, order=order)

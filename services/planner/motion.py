@@ -105,12 +105,26 @@ class PlanStats:
 
 
 @dataclass(frozen=True)
+class StraightLines:
+    """A pose's straight Cartesian segments as IK tracked them from its pre-contact configuration, before
+    their collision checks (`plan_push` makes those): tracked for many poses in one batch by `screen`, they
+    spare each plan its own waypoint-by-waypoint IK (about half of a plan's time)."""
+
+    push: np.ndarray  # [n, dof] from the pre-contact configuration along the push
+    back_off: np.ndarray | None  # [n, dof] from the push's end back and up; None: the arm cannot follow it
+    # [n, dof] down from above the first `MotionSettings.approaches` standoff and in to the pre-contact
+    # configuration; None: the arm cannot follow it (`plan_push` tries the other approaches)
+    approach: np.ndarray | None
+
+
+@dataclass(frozen=True)
 class ScreenResult:
     """Cheap per-pose feasibility of K pre-contact hand poses (before any path planning)."""
 
     q: np.ndarray  # [K, dof] IK solutions (rows of infeasible poses are undefined)
     feasible: np.ndarray  # [K] bool
     reasons: list[str]  # [K] "" when feasible, else why not ("no IK solution", ...)
+    lines: list[StraightLines | None] = field(default_factory=list)  # [K] with a push: each feasible pose's lines
 
 
 class MotionPlanner:
@@ -148,10 +162,11 @@ class MotionPlanner:
                   for options_k, q_hand in zip(options, q_hands, strict=True)]
         q = np.array([q_k for q_k, _ in chosen]).reshape(len(options), self.arm.dof)
         reasons = [reason for _, reason in chosen]
+        lines: list[StraightLines | None] = [None] * len(options)
         if push is not None:
-            self._screen_push_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), q,
-                                    np.asarray(push, dtype=np.float64), reasons)
-        return ScreenResult(q=q, feasible=np.array([not r for r in reasons]), reasons=reasons)
+            lines = self._screen_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), q,
+                                       np.asarray(push, dtype=np.float64), reasons)
+        return ScreenResult(q=q, feasible=np.array([not r for r in reasons]), reasons=reasons, lines=lines)
 
     def _first_collision_free(self, options: np.ndarray, q_hand: np.ndarray) -> tuple[np.ndarray, str]:
         """The first IK solution among `options` [n, dof] whose arm and hand touch nothing but the object
@@ -169,21 +184,61 @@ class MotionPlanner:
                 break  # the hand itself is in the table or an obstacle: the same for every arm solution
         return options[0], f"pre-contact pose in collision: {first_hit}"
 
-    def _screen_push_lines(self, T_world_hand: np.ndarray, q: np.ndarray, push: np.ndarray, reasons: list[str]) -> None:
-        """Mark (in `reasons`) the still-feasible poses whose push line the arm cannot follow."""
+    def _screen_lines(self, T_world_hand: np.ndarray, q: np.ndarray, push: np.ndarray,
+                      reasons: list[str]) -> list[StraightLines | None]:
+        """Each still-feasible pose's straight lines, all poses in one IK batch per path; the poses whose
+        push line the arm cannot follow are marked infeasible (in `reasons`)."""
+        lines: list[StraightLines | None] = [None] * len(reasons)
         rows = [i for i, r in enumerate(reasons) if not r]
         if not rows:
-            return
+            return lines
         started = time.perf_counter()
-        paths = np.stack([self._line_targets(T_world_hand[i], push) for i in rows])
-        tracked = self.ik.track_many(paths, q[rows])
+        standoff_m, lift_m = self.settings.approaches[0]
+        standoff = standoff_m * _horizontal_unit(push)
+        n_push = len(self._line_targets(np.eye(4), push))
+        # The push and the back-off after it form one path; so do the approach's two lines, solved back
+        # from the pre-contact pose (as `_approach_via` solves them).
+        pushed = self._followed(np.stack([self._push_targets(T_world_hand[i], push) for i in rows]), q[rows])
+        approached = self._followed(np.stack([self._approach_targets(T_world_hand[i], standoff, lift_m)
+                                              for i in rows]), q[rows])
         self.stats.ik_s += time.perf_counter() - started
-        steps = np.abs(np.diff(np.concatenate([q[rows][:, None], tracked.q], axis=1), axis=1)).max(axis=2)
-        for i, reached, jumps in zip(rows, tracked.success, steps, strict=True):
-            if not reached.all():
-                reasons[i] = "push runs out of reach"
-            elif jumps.max() > self.settings.max_joint_step_rad:
-                reasons[i] = "push needs a joint jump"
+        for i, (push_q, push_failure), (approach_q, approach_failure) in zip(rows, pushed, approached, strict=True):
+            if len(push_q) <= n_push:  # the push itself broke off
+                reasons[i] = "push runs out of reach" if push_failure == "reach" else "push needs a joint jump"
+                continue
+            lines[i] = StraightLines(push=push_q[:n_push + 1], back_off=None if push_failure else push_q[n_push:],
+                                     approach=None if approach_failure else approach_q[::-1])
+        return lines
+
+    def _followed(self, paths: np.ndarray, q_start: np.ndarray) -> list[tuple[np.ndarray, str]]:
+        """Per path of hand poses [K,N,4,4] tracked from q_start [K,dof]: the joint waypoints from q_start up
+        to the first waypoint the arm cannot reach or reaches only by a joint jump, and which of the two
+        stopped it ("reach" / "jump"; "" when the whole path is followed)."""
+        tracked = self.ik.track_many(paths, q_start)
+        followed = []
+        for q0, q_k, reached in zip(q_start, tracked.q, tracked.success, strict=True):
+            q_path = np.concatenate([q0[None], q_k])
+            jumped = np.abs(np.diff(q_path, axis=0)).max(axis=1) > self.settings.max_joint_step_rad
+            bad = np.flatnonzero(~reached | jumped)
+            if bad.size == 0:
+                followed.append((q_path, ""))
+            else:
+                followed.append((q_path[:bad[0] + 1], "reach" if not reached[bad[0]] else "jump"))
+        return followed
+
+    def _push_targets(self, T_pre: np.ndarray, push: np.ndarray) -> np.ndarray:
+        """Hand poses of the push from the pre-contact pose, then of the back-off after it (`_back_off`)."""
+        s = self.settings
+        direction = _horizontal_unit(push)
+        T_end = _translated(T_pre, push)
+        T_back = _translated(T_end, -s.retreat_m * direction)
+        return np.concatenate([self._line_targets(T_pre, push), self._line_targets(T_end, -s.retreat_m * direction),
+                               self._line_targets(T_back, np.array([0.0, 0.0, s.retreat_lift_m]))])
+
+    def _approach_targets(self, T_pre: np.ndarray, standoff: np.ndarray, lift_m: float) -> np.ndarray:
+        """Hand poses from the pre-contact pose back by `standoff`, then up by `lift_m` (the approach reversed)."""
+        up = self._line_targets(_translated(T_pre, -standoff), np.array([0.0, 0.0, lift_m]))
+        return np.concatenate([self._line_targets(T_pre, -standoff), up]) if standoff.any() else up
 
     def _line_targets(self, T_start: np.ndarray, displacement: np.ndarray) -> np.ndarray:
         """Hand poses [n,4,4] every `cartesian_step_m` along a straight line by `displacement`, the start excluded."""
@@ -205,13 +260,14 @@ class MotionPlanner:
         q_hand_start: np.ndarray | None = None,
         q_pre_contact: np.ndarray | None = None,
         return_home: bool = True,
+        lines: StraightLines | None = None,
     ) -> Plan:
         """A timed approach / push / retreat plan for the hand base pre-contact pose `T_world_hand`.
 
         `push_direction` is a horizontal world vector (+x of D); `q_start` the arm's current joints
         (default: home), `q_hand_start` the hand's (default: `q_hand`); `q_pre_contact` an IK solution
         already found for `T_world_hand` (e.g. by `screen`), else up to `max_ik_candidates` distinct
-        solutions are tried. Without `return_home` the plan ends backed off and lifted above the pushed
+        solutions are tried; `lines` the straight lines `screen` tracked from it. Without `return_home` the plan ends backed off and lifted above the pushed
         object — enough to roll it out and rank it; `plan_return` adds the way back for the plan that is
         executed. Raises PlanningError (with a `reason`) when no plan is found.
         """
@@ -224,7 +280,7 @@ class MotionPlanner:
             raise PlanningError("bad request", f"push distance must be positive, got {distance_m}")
         candidates = self._pre_contact_candidates(T_world_hand, q_pre_contact)
         q_pre, approach_line, push_line, back_off = self._straight_segments(
-            candidates, T_world_hand, direction, distance_m, q_hand)
+            candidates, T_world_hand, direction, distance_m, q_hand, lines)
         self._require_free(q_start, q_hand_start, "start configuration in collision", "the arm's start configuration")
         self._require_free(q_start, q_hand, "start configuration in collision",
                            "the fingers, shaped for the pose at the start configuration")
@@ -261,12 +317,15 @@ class MotionPlanner:
                 raise PlanningError(exc.reason, f"retreat: {exc.detail}") from None
 
     def _approach_line(self, q_pre: np.ndarray, T_pre: np.ndarray, direction: np.ndarray,
-                       q_hand: np.ndarray) -> np.ndarray:
+                       q_hand: np.ndarray, tracked: StraightLines | None = None) -> np.ndarray:
         """Joint waypoints down from above a standoff, then in along the push to the pre-contact pose,
-        for the first of `MotionSettings.approaches` that is reachable and collision-free."""
+        for the first of `MotionSettings.approaches` that is reachable and collision-free (the first
+        as `tracked` holds it, when it does)."""
         first_error: PlanningError | None = None
-        for standoff_m, lift_m in self.settings.approaches:
+        for option, (standoff_m, lift_m) in enumerate(self.settings.approaches):
             try:
+                if option == 0 and tracked is not None and tracked.approach is not None:
+                    return self._checked_approach(tracked.approach, standoff_m * direction, lift_m, q_hand)
                 return self._approach_via(q_pre, T_pre, standoff_m * direction, lift_m, q_hand)
             except PlanningError as exc:
                 first_error = first_error or exc
@@ -284,6 +343,15 @@ class MotionPlanner:
                            f"the hand {np.linalg.norm(standoff):.2f} m behind and {lift_m:.2f} m above "
                            "the pre-contact pose")
         return np.concatenate([down, forward[1:]])
+
+    def _checked_approach(self, approach: np.ndarray, standoff: np.ndarray, lift_m: float,
+                          q_hand: np.ndarray) -> np.ndarray:
+        """`_approach_via`'s checks of an approach tracked beforehand (`StraightLines.approach`)."""
+        self._check_line(approach, None, q_hand, "approach")
+        self._require_free(approach[0], q_hand, "approach configuration in collision",
+                           f"the hand {np.linalg.norm(standoff):.2f} m behind and {lift_m:.2f} m above "
+                           "the pre-contact pose")
+        return approach
 
     def _back_off(self, q_end: np.ndarray, T_end: np.ndarray, direction: np.ndarray, q_hand: np.ndarray) -> np.ndarray:
         """Joint waypoints straight back from the pushed object, then up, clear for the joint-space return."""
@@ -334,8 +402,10 @@ class MotionPlanner:
         return solutions
 
     def _straight_segments(self, candidates: np.ndarray, T_world_hand: np.ndarray, direction: np.ndarray,
-                           distance_m: float, q_hand: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(q_pre, approach, push, back-off) for the first IK candidate whose straight-line pieces all work.
+                           distance_m: float, q_hand: np.ndarray,
+                           lines: StraightLines | None = None) -> tuple[np.ndarray, ...]:
+        """(q_pre, approach, push, back-off) for the first IK candidate whose straight-line pieces all work
+        (the lines `screen` tracked are only collision-checked here, for the candidate they start from).
 
         Straight lines are cheap and reject most infeasible poses before any RRT. A candidate fails when
         it collides at the pre-contact pose or a joint runs into its stop along a line; the next IK
@@ -344,16 +414,25 @@ class MotionPlanner:
         s = self.settings
         first_error: PlanningError | None = None
         for q_pre in candidates:
+            tracked = lines if lines is not None and np.array_equal(lines.push[0], q_pre) else None
             try:
                 hits = self.scene.collisions(q_pre, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
                 if hits:
                     raise PlanningError("pre-contact pose in collision", ", ".join(str(h) for h in hits[:3]))
-                approach_line = self._approach_line(q_pre, T_world_hand, direction, q_hand)
-                push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push",
-                                            carry_object=True)
+                approach_line = self._approach_line(q_pre, T_world_hand, direction, q_hand, tracked)
+                if tracked is not None:
+                    push_line = tracked.push
+                    self._check_line(push_line, distance_m * direction, q_hand, "push")
+                else:
+                    push_line = self._cartesian(q_pre, T_world_hand, distance_m * direction, q_hand, "push",
+                                                carry_object=True)
                 T_push_end = _translated(T_world_hand, distance_m * direction)
                 with self._object_moved(distance_m * direction):  # where the push leaves it
-                    back_off = self._back_off(push_line[-1], T_push_end, direction, q_hand)
+                    if tracked is not None and tracked.back_off is not None:
+                        back_off = tracked.back_off
+                        self._check_line(back_off, None, q_hand, "retreat")
+                    else:
+                        back_off = self._back_off(push_line[-1], T_push_end, direction, q_hand)
                 return q_pre, approach_line, push_line, back_off
             except PlanningError as exc:
                 first_error = first_error or exc
@@ -403,6 +482,12 @@ class MotionPlanner:
             if hits:
                 raise PlanningError(f"{name} configuration in collision", ", ".join(str(h) for h in hits[:3]))
         started = time.perf_counter()
+        if self._straight_edge_free(q_start, q_goal, valid):
+            # Most approaches and ways back are one straight joint-space edge: RRTConnect and the
+            # simplifier end there too, after checking about three times as many states.
+            waypoints = np.array([q_start, q_goal], dtype=np.float64)
+            self._count_rrt(started, waypoints)
+            return waypoints
         solved = setup.solve(s.planning_time_s)
         if not (solved and setup.haveExactSolutionPath()):
             self.stats.rrt_s += time.perf_counter() - started
@@ -417,11 +502,24 @@ class MotionPlanner:
         simplifier.partialShortcutPath(path)
         simplifier.reduceVertices(path)
         waypoints = np.array([[st[i] for i in range(dof)] for st in path.getStates()])
+        self._count_rrt(started, waypoints)
+        return waypoints
+
+    def _count_rrt(self, started: float, waypoints: np.ndarray) -> None:
         elapsed = time.perf_counter() - started
         self.stats.rrt_s += elapsed
         self.stats.rrt_calls_s.append(elapsed)
         self.stats.rrt_states.append(len(waypoints))
-        return waypoints
+
+    def _straight_edge_free(self, q_start: np.ndarray, q_goal: np.ndarray, valid) -> bool:
+        """Whether the straight joint-space edge passes OMPL's own motion check: every state at most
+        `check_resolution_rad` (Euclidean) apart valid. Bisection order: a blocked edge fails early."""
+        q_start, q_goal = np.asarray(q_start, dtype=np.float64), np.asarray(q_goal, dtype=np.float64)
+        steps = math.ceil(float(np.linalg.norm(q_goal - q_start)) / self.settings.check_resolution_rad)
+        for k in _bisection_order(steps):
+            if not valid(q_start + (k / steps) * (q_goal - q_start)):
+                return False
+        return True
 
     # --------------------------------------------------------------------------------- Cartesian
 
@@ -456,14 +554,21 @@ class MotionPlanner:
             bad = int(jumps.argmax())
             raise PlanningError("discontinuous joint motion", f"{label} segment: a joint jumps "
                                 f"{jumps[bad]:.2f} rad between Cartesian waypoints {bad} and {bad + 1}")
-        carried = np.concatenate([[0.0], fractions if carry_object else np.zeros(steps)])[:, None] * displacement
+        self._check_line(q, displacement if carry_object else None, q_hand, label)
+        return q
+
+    def _check_line(self, q: np.ndarray, carried: np.ndarray | None, q_hand: np.ndarray, label: str) -> None:
+        """Collision-check a straight line's joint waypoints [n, dof] (`_cartesian`'s rules); `carried`: the
+        displacement over which the object goes ahead of the hand (the push), else None."""
+        fractions = np.linspace(0.0, 1.0, len(q)) if carried is not None else np.zeros(len(q))
+        offsets = fractions[:, None] * (carried if carried is not None else np.zeros(3))
         with self._movable_object() as move_object:
-            for row, offset in zip(q, carried, strict=True):
+            for row, offset in zip(q, offsets, strict=True):
                 move_object(offset)
-                hits = self.scene.collisions(row, q_hand, clearance_m=-s.contact_tolerance_m, allow_hand_object=True)
+                hits = self.scene.collisions(row, q_hand, clearance_m=-self.settings.contact_tolerance_m,
+                                             allow_hand_object=True)
                 if hits:
                     raise PlanningError(f"{label} segment in collision", ", ".join(str(h) for h in hits[:3]))
-        return q
 
     def _limit_note(self, q: np.ndarray) -> str:
         """', joint N at its limit' for joints within 0.01 rad of a limit (the usual cause of IK failure)."""
@@ -536,6 +641,23 @@ def time_parameterise(path: np.ndarray, velocity_limits: np.ndarray, dt: float) 
         times.extend(offset + tau * duration)
         offset += duration
     return np.array(positions), np.array(times)
+
+
+def _bisection_order(steps: int) -> list[int]:
+    """The inner points 1 .. steps-1 of an edge cut in `steps`, middle first, then the quarters, and so on."""
+    order, seen = [], set()
+    level = 1
+    while len(order) < steps - 1:
+        level *= 2
+        for k in range(1, level, 2):
+            point = round(k * steps / level)
+            if 0 < point < steps and point not in seen:
+                seen.add(point)
+                order.append(point)
+        if level > 4 * steps:  # rounding left some out: add them in order
+            order += [k for k in range(1, steps) if k not in seen]
+            break
+    return order
 
 
 def _horizontal_unit(direction: np.ndarray) -> np.ndarray:

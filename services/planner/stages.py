@@ -31,7 +31,7 @@ from services.planner import ranking
 from services.planner.cancellation import Cancellation
 from services.planner.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
 from services.planner.monitor import MonitorThresholds, PushMonitor, backed_out
-from services.planner.motion import MotionPlanner, PlanningError
+from services.planner.motion import MotionPlanner, PlanningError, StraightLines
 from services.planner.outcome import Execution, PushError, StepRecord
 from shared.contracts.messages import (
     Plan,
@@ -168,6 +168,7 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     order = priority(state, candidates.l_dir)
     needed = settings.feasible_needed(rolls_out(state.request))
     q_pre = np.zeros((len(order), planner.arm.dof))
+    lines: list[StraightLines | None] = [None] * len(order)
     feasible: list[int] = []
     reasons: list[str] = []
     for start in range(0, len(order), SCREEN_CHUNK):
@@ -175,6 +176,8 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
         chunk = order[start:start + SCREEN_CHUNK]
         result = planner.screen(candidates.T_world_hand[chunk], candidates.q_hands[chunk], push=push.offset)
         q_pre[chunk] = result.q
+        for index, tracked in zip(chunk, result.lines, strict=True):
+            lines[index] = tracked
         feasible += chunk[result.feasible].tolist()
         reasons += result.reasons
         if len(feasible) >= needed:
@@ -182,7 +185,7 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     state.time("ik", time.perf_counter() - started)
     if not feasible:
         raise PushError("infeasible", no_feasible_pose_message(reasons))
-    return Feasible(candidates, np.array(feasible), q_pre)
+    return Feasible(candidates, np.array(feasible), q_pre, lines)
 
 
 def rolls_out(request: PushRequest) -> bool:
@@ -308,7 +311,8 @@ class ArmPlanning:
         candidates = feasible.candidates
         return self.planner.plan_push(candidates.T_world_hand[index], candidates.q_hands[index], self.push.direction,
                                       self.push.distance_m, q_start=self.q_arm_start, q_hand_start=self.q_hand_start,
-                                      q_pre_contact=feasible.q_pre[index], return_home=not rolls_out(self.state.request))
+                                      q_pre_contact=feasible.q_pre[index], return_home=not rolls_out(self.state.request),
+                                      lines=feasible.lines_of(index))
 
     def with_way_back(self, ranked: list[RankedPlan]) -> RankedPlan:
         """The best-ranked plan completed with its way back to the start (the next best if that fails)."""
