@@ -195,12 +195,14 @@ class LocalSystem:
         self._pipelines: dict[str, PushPipeline] = {}
 
     def pipeline(self, source_name: str, source: PoseSource | None = None, weights: ranking.Weights | None = None,
-                 monitor: MonitorThresholds | None = None) -> PushPipeline:
+                 monitor: MonitorThresholds | None = None, budget: tuple[int, int] | None = None) -> PushPipeline:
         """The pipeline whose pose source is `source` (default: the sampler service), ranking with
-        `weights` and stopping closed-loop pushes at `monitor` (default: the settings')."""
+        `weights`, stopping closed-loop pushes at `monitor` and spending `budget` (poses prescreened,
+        plans rolled out per round) (default: the settings')."""
+        prescreen, max_plans = budget or (self.settings.prescreen, self.settings.max_plans)
         settings = replace(self.settings, weights=weights or self.settings.weights,
-                           monitor=monitor or self.settings.monitor)
-        key = f"{source_name}/{settings.weights}/{settings.monitor}"
+                           monitor=monitor or self.settings.monitor, prescreen=prescreen, max_plans=max_plans)
+        key = f"{source_name}/{settings.weights}/{settings.monitor}/{prescreen}/{max_plans}"
         if key not in self._pipelines:
             services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)

@@ -84,6 +84,10 @@ class Method:
     # The closed-loop monitor's thresholds (position m, rotation °, tilt °) instead of the shipped ones: a
     # candidate setting, compared on val objects.
     monitor: tuple[float, float, float] | None = None
+    # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the
+    # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
+    budget: tuple[int, int] | None = None
+    sampler: str = "ddpm"  # PushRequest.sampler: the diffusion sampler ("ddim": 10 denoising steps)
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
@@ -105,6 +109,13 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.04, 25.0, 30.0)),
     Method("gd2p-closed-looser", "GD2P closed loop, 6 cm / 35° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.06, 35.0, 40.0)),
+    # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
+    Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6)),
+    Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(12, 4)),
+    Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
+           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
@@ -122,7 +133,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
 TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
-                            "gd2p-closed-loose", "gd2p-closed-looser"})
+                            "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
+                            "gd2p-closed-b12x4-ddim"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
 
@@ -201,7 +213,8 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
-                  physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop)
+                  physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
+                  sampler=method.sampler)
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
@@ -263,7 +276,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     source = _grasp if method.source == "grasp" else None
     weights = None if method.weights is None else _ranking_weights(*method.weights)
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
-    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights, monitor)
+    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights, monitor, method.budget)
     world = execution_world(episode)
     _system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
@@ -298,6 +311,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
+    record["budget"] = [pipeline.settings.prescreen, pipeline.settings.max_plans]
     return record
 
 
