@@ -57,7 +57,7 @@ class ArmIK:
         *,
         T_world_base: np.ndarray | None = None,
         num_seeds: int = 16,
-        max_iterations: int = 60,
+        max_iterations: int = 30,  # 60 solved the same 172 of bench/motion.py's 200 poses, in 1.7x the time
         position_tolerance_m: float = POSITION_TOLERANCE_M,
         rotation_tolerance_rad: float = ROTATION_TOLERANCE_RAD,
         seed: int = 0,
@@ -220,6 +220,15 @@ class ArmIK:
         free.initial_config = q
         solution: torch.Tensor = free.solve(target).solutions[:, 0].clone()
         outside = ~self.arm.within_limits(solution)
+        if bool(outside.any()):
+            # A joint a hair past its stop is usually still on target once clamped; only the rest pay for
+            # pytorch_kinematics' limit enforcement (about 12 ms a call, most of a screen's tracking time).
+            rows = torch.nonzero(outside).flatten()
+            clamped = torch.clamp(solution[rows], self.arm.joint_lower, self.arm.joint_upper)
+            p_err, r_err = self._errors(clamped, target.get_matrix()[rows].double().numpy())
+            on_target = torch.as_tensor((p_err < self.position_tolerance_m / 2) & (r_err < self.rotation_tolerance_rad / 2))
+            solution[rows[on_target]] = clamped[on_target]
+            outside[rows[on_target]] = False
         if bool(outside.any()):
             enforced = self._trackers[True]
             enforced.initial_config = q[outside]
