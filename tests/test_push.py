@@ -417,6 +417,42 @@ def test_drawn_rollouts_leave_the_nominal_rollout_as_it_was():
                                                                           abs=1e-9)
 
 
+def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
+    """prescreen=4: the first four feasible poses are pushed by a floating hand (overridden: the 2nd and 3rd
+    succeed, the 3rd closer to the target); the first plan rolled out is the 3rd pose's, the next the 2nd's."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
+    from shared.contracts.messages import NDArray
+
+    jobs = []
+
+    def validate(job):
+        result = validate_here(job).result()
+        if not job.with_arm:
+            result = result.model_copy(update={"success": NDArray.from_numpy(np.array([False, True, True, False])),
+                                               "position_error_m": NDArray.from_numpy(np.array([0.1, 0.02, 0.01, 0.1]))})
+        jobs.append(job)
+        done: Future = Future()
+        done.set_result(result)
+        return done
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=4, max_plan_rounds=1))
+    try:
+        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                 direction_deg=90.0, k=8))
+    finally:
+        pipeline.close()
+        robot.close()
+    pushed, rollouts = jobs[0], [job for job in jobs if job.with_arm]
+    assert not pushed.with_arm and len(pushed.poses.to_numpy()) == 4
+    tested = pushed.poses.to_numpy()
+    assert np.allclose(rollouts[0].poses.to_numpy()[0], tested[2])
+    assert np.allclose(rollouts[1].poses.to_numpy()[0], tested[1])
+
+
 def _one_plan_settings():
     from services.planner.stages import PipelineSettings
 

@@ -88,6 +88,8 @@ class Feasible:
     order: np.ndarray
     q_pre: np.ndarray
     lines: list[StraightLines | None] = dataclasses.field(default_factory=list)
+    # The candidates not screened yet, in the order they would be (`stages.screen_more` screens them).
+    unscreened: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=int))
 
     def lines_of(self, index: int) -> StraightLines | None:
         return self.lines[index] if index < len(self.lines) else None

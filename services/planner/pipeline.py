@@ -209,9 +209,11 @@ class PushPipeline:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
-            feasible = stages.screen(state, planner, candidates, push, self.settings)
+            rolled_out = stages.rolls_out(request)
+            feasible = stages.screen(state, planner, candidates, push, self.settings,
+                                     self.settings.feasible_first(rolled_out))
             planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), self.settings)
-            if stages.rolls_out(request):
+            if rolled_out:
                 chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
@@ -222,7 +224,8 @@ class PushPipeline:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an
         "unranked" request, a random one of the same rolled-out plans."""
         if self.settings.prescreen > 0:
-            feasible = stages.prescreen(state, feasible, planning.push, self.services.validate, self.settings)
+            feasible = stages.prescreen(state, planning.planner, feasible, planning.push, self.services.validate,
+                                        self.settings)
         ranked = stages.plan_and_rank(state, planning, feasible, self.services.validate, self.settings)
         if state.request.choice == "unranked":
             ranked = [ranked[i] for i in np.random.default_rng(state.seed).permutation(len(ranked))]

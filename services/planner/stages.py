@@ -31,7 +31,7 @@ from services.planner import ranking
 from services.planner.cancellation import Cancellation
 from services.planner.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
 from services.planner.monitor import MonitorThresholds, PushMonitor, backed_out
-from services.planner.motion import MotionPlanner, PlanningError, StraightLines
+from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.outcome import Execution, PushError, StepRecord
 from shared.contracts.messages import (
     Plan,
@@ -84,6 +84,10 @@ class PipelineSettings:
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
         return max(self.prescreen, self.max_plan_rounds * self.max_plan_attempts) if rolled_out else self.max_plan_attempts
+
+    def feasible_first(self, rolled_out: bool) -> int:
+        """How many feasible poses the first stage after screening takes: the prescreen starts with them."""
+        return self.prescreen if rolled_out and self.prescreen > 0 else self.feasible_needed(rolled_out)
 
 
 @dataclass
@@ -156,36 +160,43 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
 
 
 def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, push: Push,
-           settings: PipelineSettings) -> Feasible:
+           settings: PipelineSettings, needed: int | None = None) -> Feasible:
     """The kinematically feasible candidates in the order they would be tried, with their IK solutions.
 
     Screened (`MotionPlanner.screen`: batched IK, collision check, push line) SCREEN_CHUNK at a time
-    along `priority` until there are as many feasible poses as the rest of the request can use
-    (`PipelineSettings.feasible_needed`): planning and prescreening only ever take the first of them,
-    so the result is that of screening all K, at a quarter of the IK time when the first chunk is enough.
+    along `priority` until there are `needed` feasible poses (default: as many as the rest of the
+    request can use, `PipelineSettings.feasible_needed`): planning and prescreening only ever take the
+    first of them, so the result is that of screening all K, at a quarter of the IK time when the first
+    chunk is enough. `screen_more` goes on from where it stopped.
     """
-    started = time.perf_counter()
     order = priority(state, candidates.l_dir)
-    needed = settings.feasible_needed(rolls_out(state.request))
-    q_pre = np.zeros((len(order), planner.arm.dof))
-    lines: list[StraightLines | None] = [None] * len(order)
-    feasible: list[int] = []
+    empty = Feasible(candidates, np.zeros(0, dtype=int), np.zeros((len(order), planner.arm.dof)),
+                     [None] * len(order), unscreened=order)
+    return screen_more(state, planner, empty, push, settings, needed)
+
+
+def screen_more(state: RequestState, planner: MotionPlanner, feasible: Feasible, push: Push,
+                settings: PipelineSettings, needed: int | None = None) -> Feasible:
+    """`feasible` with more of its unscreened candidates screened, until `needed` are feasible (see `screen`)."""
+    started = time.perf_counter()
+    needed = settings.feasible_needed(rolls_out(state.request)) if needed is None else needed
+    candidates, unscreened = feasible.candidates, feasible.unscreened
+    found: list[int] = feasible.order.tolist()
+    q_pre, lines = feasible.q_pre.copy(), list(feasible.lines)
     reasons: list[str] = []
-    for start in range(0, len(order), SCREEN_CHUNK):
+    while len(found) < needed and unscreened.size:
         state.cancel.check()
-        chunk = order[start:start + SCREEN_CHUNK]
+        chunk, unscreened = unscreened[:SCREEN_CHUNK], unscreened[SCREEN_CHUNK:]
         result = planner.screen(candidates.T_world_hand[chunk], candidates.q_hands[chunk], push=push.offset)
         q_pre[chunk] = result.q
         for index, tracked in zip(chunk, result.lines, strict=True):
             lines[index] = tracked
-        feasible += chunk[result.feasible].tolist()
+        found += chunk[result.feasible].tolist()
         reasons += result.reasons
-        if len(feasible) >= needed:
-            break
     state.time("ik", time.perf_counter() - started)
-    if not feasible:
+    if not found:
         raise PushError("infeasible", no_feasible_pose_message(reasons))
-    return Feasible(candidates, np.array(feasible), q_pre, lines)
+    return Feasible(candidates, np.array(found, dtype=int), q_pre, lines, unscreened)
 
 
 def rolls_out(request: PushRequest) -> bool:
@@ -215,23 +226,26 @@ def no_feasible_pose_message(reasons: list[str]) -> str:
 # ------------------------------------------------------------------------------- 3. prescreen
 
 
-def prescreen(state: RequestState, feasible: Feasible, push: Push, validate: Validate,
+def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, push: Push, validate: Validate,
               settings: PipelineSettings) -> Feasible:
-    """`feasible` with the poses that push the object to the target with a floating hand first.
+    """`feasible`, screened as far as the request needs, with the poses that push the object to the target
+    with a floating hand first.
 
     The first `settings.prescreen` poses of the order are pushed by the validator's floating hand
     (about 0.1 s of CPU each, in chunks spread over the farm) in the push's frame; those that succeed
-    are planned first, closest to the target first. Planning (about 0.2 s a pose) and arm rollouts
-    are then spent where the pose itself is known to push well: without it, most of the few plans
-    that can be afforded come from poses that fail (measured in `evaluation/`).
+    are planned first, closest to the target first. Planning and arm rollouts (about 0.25 s of CPU
+    each) are then spent where the pose itself is known to push well: without it, most of the few
+    plans that can be afforded come from poses that fail (measured in `evaluation/`). While the farm
+    pushes, the planner screens the further candidates that planning may need (`screen_more`).
     """
-    request, order = state.request, feasible.order
-    tested = order[: settings.prescreen]
+    request, tested = state.request, feasible.order[: settings.prescreen]
     chunks = [c for c in np.array_split(tested, math.ceil(len(tested) / PRESCREEN_CHUNK)) if len(c)]
     jobs = [ValidationJob(object=request.object, hand=request.hand, poses=feasible.candidates.poses_d[chunk],
                           frame=push.frame, push_distance_m=push.distance_m, seed=request.seed) for chunk in chunks]
+    futures = [validate(job) for job in jobs]
+    feasible = screen_more(state, planner, feasible, push, settings)
     started = time.perf_counter()
-    results = wait_for_results([validate(job) for job in jobs], settings.validation_timeout_s, state.cancel)
+    results = wait_for_results(futures, settings.validation_timeout_s, state.cancel)
     state.time("prescreen", time.perf_counter() - started)
     success = np.zeros(len(tested), dtype=bool)
     error = np.full(len(tested), np.inf)
@@ -242,6 +256,7 @@ def prescreen(state: RequestState, feasible: Feasible, push: Push, validate: Val
             error[start:start + len(chunk)] = result.position_error_m.to_numpy()
         start += len(chunk)
     passed = tested[success][np.argsort(error[success], kind="stable")]
+    order = feasible.order
     return feasible.reordered(np.concatenate([passed, tested[~success], order[len(tested):]]))
 
 
