@@ -2,7 +2,8 @@
 
 The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from pieces. First,
 `MotionPlanner.screen` discards the sampled poses that can never be executed (batched IK, then a
-collision check of each pre-contact configuration). Then, per pose, `plan_push`:
+collision check of each pre-contact configuration) and tracks the straight lines of every pose left
+(`StraightLines`: approach, push, back-off) in one IK batch. Then, per pose, `plan_push`:
 
 0. tries up to `max_ik_candidates` distinct IK solutions of the pre-contact pose until the straight
    lines below work with one of them (a joint at its stop on one IK branch may be free on another);
@@ -11,7 +12,9 @@ collision check of each pre-contact configuration). Then, per pose, `plan_push`:
 2. approach: OMPL RRTConnect in arm joint space from the start (home) to the configuration that
    puts the hand a standoff behind (against the push direction) and a lift above the pre-contact
    pose (the first workable pair of `approaches`), with the PyBullet scene
-   (`shared.world.sim.robot_scene`) as the state validity checker, then OMPL's path simplification; then
+   (`shared.world.sim.robot_scene`) as the state validity checker, then OMPL's path simplification —
+   unless the straight joint-space edge passes the same motion check, which it does for most
+   approaches in free space (RRTConnect then ends with that edge too, after 3x the checks); then
    two straight Cartesian lines: down, and in along the push direction to the pre-contact pose.
    Free-space motion keeps `clearance_m` from everything; the last few centimetres near the table
    and the object cannot, so they are straight lines (where the hand goes is known), checked with a
