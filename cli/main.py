@@ -26,6 +26,7 @@ COMMAND_MODULES: list[str] = [
     "cli.push",  # push (push / pull requests to the running system)
     "cli.eval",  # eval (the paper's experiments in simulation)
     "cli.capture",  # capture (simulated depth-camera capture of an object to a point cloud)
+    "cli.critic",  # critic data, critic train (the success critic that orders sampled poses)
 ]
 
 

@@ -18,12 +18,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
-from services.planner import ranking
 from services.planner.cancellation import Cancellation
-from services.planner.monitor import MonitorThresholds, PushMonitor
+from services.planner.monitor import PushMonitor
 from services.planner.outcome import Execution, PushError
 from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.stages import PipelineSettings
@@ -194,15 +194,12 @@ class LocalSystem:
         self.sampler = SamplerService()
         self._pipelines: dict[str, PushPipeline] = {}
 
-    def pipeline(self, source_name: str, source: PoseSource | None = None, weights: ranking.Weights | None = None,
-                 monitor: MonitorThresholds | None = None, budget: tuple[int, int] | None = None) -> PushPipeline:
-        """The pipeline whose pose source is `source` (default: the sampler service), ranking with
-        `weights`, stopping closed-loop pushes at `monitor` and spending `budget` (poses prescreened,
-        plans rolled out per round) (default: the settings')."""
-        prescreen, max_plans = budget or (self.settings.prescreen, self.settings.max_plans)
-        settings = replace(self.settings, weights=weights or self.settings.weights,
-                           monitor=monitor or self.settings.monitor, prescreen=prescreen, max_plans=max_plans)
-        key = f"{source_name}/{settings.weights}/{settings.monitor}/{prescreen}/{max_plans}"
+    def pipeline(self, source_name: str, source: PoseSource | None = None, **overrides: Any) -> PushPipeline:
+        """The pipeline whose pose source is `source` (default: the sampler service), with the system's
+        `PipelineSettings` but for `overrides` (any of its fields: ranking weights, monitor thresholds,
+        physics budget, critic), None values meaning "as the system's"."""
+        settings = replace(self.settings, **{k: v for k, v in overrides.items() if v is not None})
+        key = f"{source_name}/{settings}"
         if key not in self._pipelines:
             services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)

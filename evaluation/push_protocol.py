@@ -88,6 +88,7 @@ class Method:
     # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
     budget: tuple[int, int] | None = None
     sampler: str = "ddpm"  # PushRequest.sampler: the diffusion sampler ("ddim": 10 denoising steps)
+    critic: bool | None = None  # order candidates by the sampler's success critic (None: as the planner does)
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
@@ -111,11 +112,18 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.06, 35.0, 40.0)),
     # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
     Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6)),
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=False),
     Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(12, 4)),
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
+    # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
+    Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order, prescreen 24 (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True),
+    Method("gd2p-closed-critic-p8", "GD2P closed loop, critic order, prescreen 8 (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True),
+    Method("gd2p-closed-critic-p0", "GD2P closed loop, critic order, no prescreen (val candidate)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
@@ -134,7 +142,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
 TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
                             "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
-                            "gd2p-closed-b12x4-ddim"})
+                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p24", "gd2p-closed-critic-p8",
+                            "gd2p-closed-critic-p0"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
 
@@ -276,7 +285,9 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     source = _grasp if method.source == "grasp" else None
     weights = None if method.weights is None else _ranking_weights(*method.weights)
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
-    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights, monitor, method.budget)
+    prescreen, max_plans = method.budget or (None, None)
+    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
+                                prescreen=prescreen, max_plans=max_plans, use_critic=method.critic)
     world = execution_world(episode)
     _system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
@@ -312,7 +323,14 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
     record["budget"] = [pipeline.settings.prescreen, pipeline.settings.max_plans]
+    record["critic"] = pipeline.settings.use_critic and method.source == "gd2p" and _has_critic(episode.hand)
     return record
+
+
+def _has_critic(hand: str) -> bool:
+    """Whether the sampler scores its samples with a success critic for `hand` (the planner then orders by it)."""
+    sampler = _system.sampler
+    return sampler.critic(hand, sampler.sampler(hand)) is not None
 
 
 def _keyed(job: tuple[Callable[[Any], dict[str, Any]], Any]) -> tuple[str, dict[str, Any]]:

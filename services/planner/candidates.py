@@ -59,20 +59,23 @@ class Push:
 @dataclass(frozen=True)
 class Candidates:
     """K candidate hand poses of one push: [K, 25] in D and in the world, their hand-base transforms
-    [K, 4, 4] and finger joints [K, n], and each pose's direction cost L_dir [K]."""
+    [K, 4, 4] and finger joints [K, n], each pose's direction cost L_dir [K] and, when the sampler has a
+    success critic, its P(success) [K]."""
 
     poses_d: np.ndarray
     poses_world: np.ndarray
     T_world_hand: np.ndarray
     q_hands: np.ndarray
     l_dir: np.ndarray
+    p_success: np.ndarray | None = None
 
     @classmethod
-    def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel) -> Candidates:
+    def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel,
+                 p_success: np.ndarray | None = None) -> Candidates:
         """The candidates for `poses_d` [K, 25], given in the push's frame D."""
         poses_world = poses_d_to_world(poses_d, push.T_world_D)
         T_world_hand, q_hands = pose25_to_matrix(poses_world)
-        return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d))
+        return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d), p_success)
 
     def __len__(self) -> int:
         return len(self.poses_d)

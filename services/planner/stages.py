@@ -80,6 +80,9 @@ class PipelineSettings:
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
+    # Rolled-out requests consider the candidates in the order of the sampler's success critic, when it
+    # scored them (best first), instead of by L_dir alone.
+    use_critic: bool = True
 
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
@@ -104,8 +107,9 @@ class RequestState:
     timings: dict[str, float] = field(default_factory=dict)
     records: list[StepRecord] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)  # what the response should tell besides its steps
-    # The last sampled candidates of the request (poses in D) and how the object sat in that D (R_D_O).
-    sampled: tuple[np.ndarray, np.ndarray] | None = None
+    # The last sampled candidates of the request: how the object sat in their D (R_D_O), the poses in D and
+    # the critic's P(success) of each (None: no critic).
+    sampled: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -141,19 +145,21 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
             poses_d = spatula_pose(state.hand, vertices_d)[None]
         except FixedPoseError as exc:
             raise PushError("bad_request", str(exc)) from exc
+        p_success = None
     else:
         R_D_O = (invert_transform(push.T_world_D) @ push.T_world_O)[:3, :3]  # how the object sits in D
         if state.sampled is not None and rotation_between_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG:
-            poses_d = state.sampled[1]  # a later push sees the object in D as the last one did: same candidates
+            _, poses_d, p_success = state.sampled  # a later push sees the object in D as the last one did
         else:
             sampler = "nearest" if request.method == "nearest" else request.sampler
             reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
                                          sampler=sampler, seed=state.seed))
             poses_d = reply.poses_d.to_numpy().astype(np.float64)
-            state.sampled = (R_D_O, poses_d)
+            p_success = None if reply.success_probability is None else reply.success_probability.to_numpy()
+            state.sampled = (R_D_O, poses_d, p_success)
     state.time("sampling", time.perf_counter() - started)
     state.cancel.check()
-    return Candidates.in_frame(poses_d, push, state.hand)
+    return Candidates.in_frame(poses_d, push, state.hand, p_success)
 
 
 # ------------------------------------------------------------------------------- 2. IK and screening
@@ -169,7 +175,7 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     first of them, so the result is that of screening all K, at a quarter of the IK time when the first
     chunk is enough. `screen_more` goes on from where it stopped.
     """
-    order = priority(state, candidates.l_dir)
+    order = priority(state, candidates, settings)
     empty = Feasible(candidates, np.zeros(0, dtype=int), np.zeros((len(order), planner.arm.dof)),
                      [None] * len(order), unscreened=order)
     return screen_more(state, planner, empty, push, settings, needed)
@@ -204,12 +210,16 @@ def rolls_out(request: PushRequest) -> bool:
     return request.choice != "random"
 
 
-def priority(state: RequestState, l_dir: np.ndarray) -> np.ndarray:
-    """The order in which to consider the K candidates: best-aligned palms when plans are rolled out,
-    random for a random feasible choice."""
-    if rolls_out(state.request):
-        return np.argsort(l_dir, kind="stable")
-    return np.random.default_rng(state.seed).permutation(len(l_dir))
+def priority(state: RequestState, candidates: Candidates, settings: PipelineSettings) -> np.ndarray:
+    """The order in which to consider the K candidates when plans are rolled out: most likely to push well
+    first by the critic (when it scored them and `settings.use_critic`), best-aligned palms first (L_dir)
+    on ties and without it; random for a random feasible choice."""
+    l_dir = candidates.l_dir
+    if not rolls_out(state.request):
+        return np.random.default_rng(state.seed).permutation(len(l_dir))
+    if settings.use_critic and candidates.p_success is not None:
+        return np.lexsort((l_dir, -candidates.p_success))
+    return np.argsort(l_dir, kind="stable")
 
 
 def no_feasible_pose_message(reasons: list[str]) -> str:

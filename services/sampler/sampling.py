@@ -73,6 +73,7 @@ class SampleResult:
     sampler: str
     steps: int
     object_label: str
+    bps: np.ndarray | None = None  # [n_basis] the object's BPS in D, when the sampler encoded one
 
 
 @dataclass
@@ -208,7 +209,7 @@ class PoseSampler:
         bps, T_world_D, label = self.encode(obj, frame)
         poses_d = self.sample_from_bps(bps, k, sampler, steps, seed)
         return SampleResult(poses_d, poses_d_to_world(poses_d, T_world_D), T_world_D, time.perf_counter() - started,
-                            sampler, step_count, label)
+                            sampler, step_count, label, bps)
 
     def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0) -> np.ndarray:
         """[k, 25] poses in D for an already encoded object; joins the current batch."""

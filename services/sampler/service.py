@@ -16,11 +16,14 @@ sampled for a scaled object could not be validated or executed on the same geome
 """
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
+from services.sampler.critic import SuccessCritic
+from services.sampler.critic_train import CriticError, default_critic_path, load_critic, success_probabilities
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.contracts.errors import ServiceError
@@ -30,6 +33,7 @@ from shared.world.objects import ObjectLoadError
 from shared.world.objects.model import load_library_object
 
 SERVICE = "sampler"
+log = logging.getLogger("gd2p.sampler")
 
 
 class SamplerService:
@@ -42,6 +46,7 @@ class SamplerService:
         self._device = device
         self._samplers: dict[str, PoseSampler] = {}
         self._nearest: dict[str, NearestNeighborSampler] = {}
+        self._critics: dict[str, SuccessCritic | None] = {}
         self._lock = threading.Lock()
 
     def close(self) -> None:
@@ -83,8 +88,16 @@ class SamplerService:
                 self._nearest[hand] = nearest
             return self._nearest[hand]
 
+    def critic(self, hand: str, sampler: PoseSampler) -> SuccessCritic | None:
+        """`hand`'s success critic, when one is installed and was trained with `sampler`'s BPS basis (else None:
+        the samples go out unscored, with a warning in the log for a critic of another checkpoint)."""
+        with self._lock:
+            if hand not in self._critics:
+                self._critics[hand] = _load_critic(hand, sampler)
+            return self._critics[hand]
+
     def handle(self, request: SampleRequest) -> SampleResponse:
-        """Sample `request.k` poses for `request.object` in `request.frame`."""
+        """Sample `request.k` poses for `request.object` in `request.frame` (scored by the critic, if any)."""
         if request.sampler == "nearest":
             return self._handle_nearest(request)
         sampler = self.sampler(request.hand)
@@ -93,10 +106,12 @@ class SamplerService:
                                     steps=request.steps, seed=request.seed)
         except SamplerInputError as exc:
             raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
+        critic = self.critic(request.hand, sampler)
+        scores = None if critic is None or result.bps is None else success_probabilities(critic, result.bps, result.poses_d)
         return SampleResponse(
             request_id=request.id, hand=request.hand, poses_d=result.poses_d,
             poses_world=result.poses_world, latency_s=result.latency_s,
-            checkpoint_id=sampler.checkpoint_id, sampler=request.sampler)
+            checkpoint_id=sampler.checkpoint_id, sampler=request.sampler, success_probability=scores)
 
     def _handle_nearest(self, request: SampleRequest) -> SampleResponse:
         """The nearest training frame's poses: `request.k` of them, seeded, or all when it has fewer."""
@@ -111,6 +126,22 @@ class SamplerService:
             request_id=request.id, hand=request.hand, poses_d=reply.result.poses_d,
             poses_world=reply.result.poses_world, latency_s=reply.result.latency_s,
             checkpoint_id=reply.source_id, sampler="nearest")
+
+
+def _load_critic(hand: str, sampler: PoseSampler) -> SuccessCritic | None:
+    path = default_critic_path(hand)
+    if path is None or not path.is_file():
+        return None
+    try:
+        loaded = load_critic(path)
+    except CriticError as exc:
+        log.warning("sampler: ignoring the %s critic: %s", hand, exc)
+        return None
+    if loaded.hand != hand or loaded.sampler_checkpoint_id != sampler.checkpoint_id:
+        log.warning("sampler: ignoring the critic %s: trained for the %s checkpoint %s, the sampler has %s %s",
+                    path, loaded.hand, loaded.sampler_checkpoint_id, hand, sampler.checkpoint_id)
+        return None
+    return loaded.model
 
 
 def object_input(ref: ObjectRef) -> ObjectInput:

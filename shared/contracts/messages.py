@@ -653,10 +653,14 @@ class SampleResponse(Message):
     latency_s: NonNegFloat
     checkpoint_id: str
     sampler: Sampler = "ddpm"
+    # Per pose: the success critic's P(a floating-hand push from it succeeds); None when the sampler has no
+    # critic for the hand (or the poses are a nearest-neighbour match).
+    success_probability: FloatVector | None = None
 
     @model_validator(mode="after")
     def _consistent_rows(self) -> SampleResponse:
-        _require_rows("SampleResponse", _rows(self.poses_d), poses_world=self.poses_world)
+        _require_rows("SampleResponse", _rows(self.poses_d), poses_world=self.poses_world,
+                      success_probability=self.success_probability)
         return self
 
 

@@ -1,0 +1,112 @@
+"""`gd2p critic data`, `gd2p critic train`: the success critic that orders the sampler's poses.
+
+    gd2p critic data --split train --skip 230 --objects 400 --out data/critic-allegro-train
+    gd2p critic data --split val --objects 60 --out data/critic-allegro-val
+    gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val \\
+        --out services/sampler/checkpoints/allegro_critic.pt
+
+`data` labels diffusion samples: per object, one push frame at a yaw drawn from the object's seed, K = 200
+samples from the installed sampler checkpoint, `--per-object` of them pushed 20 cm by the validator's
+floating hand (what the planner's prescreen does), outcomes recorded. Objects come in the data engine's
+fixed order over the split; `--skip N` leaves out the first N (the default Allegro checkpoint was
+trained on the first 230 train objects: the critic should learn on samples as they look for objects the
+sampler never saw). Val objects are only ever used to choose the checkpoint; test objects are refused.
+Resumable: a restarted command skips the objects it has.
+
+`train` fits the critic (BPS of the object + pose -> P(success), position error) and keeps the step
+with the best ROC AUC on `--val`; it prints that AUC and the success rate of each val object's six
+best-scored poses against all of its poses. The sampler service picks up
+`services/sampler/checkpoints/<hand>_critic.pt` (or $GD2P_CRITIC_CHECKPOINT_<HAND>; "none" turns it off)
+when it was trained for the installed sampler checkpoint.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+from cli.args import non_negative_int, positive_int
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("critic", help="build data for and train the success critic",
+                                   description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="critic_command", required=True)
+    data = commands.add_parser("data", help="label diffusion samples by floating-hand pushes (resumable)",
+                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    data.add_argument("--split", choices=("train", "val"), default="train",
+                      help="objects to label (val: for choosing the checkpoint only; test is never used)")
+    data.add_argument("--objects", type=positive_int, required=True, help="how many objects of the split")
+    data.add_argument("--skip", type=non_negative_int, default=0, help="leave out the split's first N objects")
+    data.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
+    data.add_argument("--per-object", type=positive_int, default=32, help="samples pushed per object (default 32)")
+    data.add_argument("--seed", type=non_negative_int, default=0)
+    data.add_argument("--workers", type=positive_int, default=2, help="spawn processes (default 2: one per core)")
+    data.add_argument("--out", type=Path, required=True)
+    data.set_defaults(func=run_data)
+    train = commands.add_parser("train", help="train the critic, keep the step with the best val ROC AUC",
+                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    train.add_argument("--data", type=Path, required=True, help="`gd2p critic data` output of train objects")
+    train.add_argument("--val", type=Path, required=True, help="`gd2p critic data` output of val objects")
+    train.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
+    train.add_argument("--steps", type=positive_int, default=3000)
+    train.add_argument("--seed", type=non_negative_int, default=0)
+    train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
+    train.set_defaults(func=run_train)
+
+
+def run_data(args: argparse.Namespace) -> int:
+    from evaluation.critic_data import build
+    from services.validator.data_engine import select_objects
+
+    ids = select_objects(args.split, allow_split=args.split == "val")[args.skip:args.skip + args.objects]
+    if not ids:
+        print(f"gd2p critic data: the {args.split} split has no objects after the first {args.skip}", file=sys.stderr)
+        return 2
+    store = build(args.out, ids, hand=args.hand, per_object=args.per_object, seed=args.seed, workers=args.workers)
+    pushes = [s for r in store.records.values() for s in r["success"]]
+    print(json.dumps({"out": str(args.out), "objects": len(store.records), "pushes": len(pushes),
+                      "success_rate": round(sum(pushes) / max(len(pushes), 1), 4)}))
+    return 0
+
+
+def run_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
+    from services.sampler.critic_train import (
+        CriticError,
+        CriticTraining,
+        encode_records,
+        manifest_for,
+        read_records,
+        save_critic,
+        train_critic,
+    )
+    from services.sampler.sampling import PoseSampler
+
+    torch.set_num_threads(1)
+    started = time.time()
+    sampler_path = default_checkpoint_path(args.hand)
+    try:
+        train_records, val_records = read_records(args.data), read_records(args.val)
+    except CriticError as exc:
+        print(f"gd2p critic train: {exc}", file=sys.stderr)
+        return 2
+    with PoseSampler(sampler_path) as sampler:
+        stale = {r["checkpoint_id"] for r in train_records + val_records} - {sampler.checkpoint_id}
+        if stale:
+            print(f"gd2p critic train: the data was sampled with checkpoint(s) {sorted(stale)}, the installed one is "
+                  f"{sampler.checkpoint_id}: rebuild the data with it", file=sys.stderr)
+            return 2
+        train, val = encode_records(train_records, sampler), encode_records(val_records, sampler)
+    settings = CriticTraining(steps=args.steps, seed=args.seed)
+    model, result = train_critic(train, val, settings, progress=lambda m: print(json.dumps(m), file=sys.stderr))
+    command = "gd2p " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    manifest = manifest_for(args.data, args.val, settings, train, val, result, started, command)
+    save_critic(model, args.out, args.hand, checkpoint_id(sampler_path), manifest)
+    print(json.dumps({"out": str(args.out), "best_step": result["best_step"], "val": manifest["best_val"]}))
+    return 0

@@ -1,0 +1,226 @@
+"""Training the success critic (`critic.py`) on labelled samples (`evaluation/critic_data.py` builds them).
+
+    gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val --out ckpt.pt
+
+Each record is one object in one push frame (a yaw in D), the diffusion samples pushed there and their
+outcomes. The object's BPS is computed here by the sampler checkpoint's own encoder from (object, yaw),
+as the sampler service computes it for a request, so the critic sees the same features in training and
+in use. The checkpoint kept is the one with the best ROC AUC on the val records (held-out objects of
+the val split), checked every `eval_every` steps; the test split is never touched here.
+
+Checkpoint: a `torch.save` dict of tensors and plain values (`weights_only` loadable) with the format,
+hand, config, weights, the sampler checkpoint id whose BPS basis it was trained with, and a manifest
+(data, steps, val metrics), also written beside it as `<file>.manifest.json`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.stats import rankdata
+from torch.nn import functional as F
+
+from services.sampler.checkpoint import SHIPPED_DIR, atomic_torch_save, manifest_path
+from services.sampler.critic import ERROR_FLOOR_M, CriticConfig, SuccessCritic
+from services.sampler.sampling import PoseSampler
+from shared.atomic import atomic_write_text
+from shared.contracts.messages import DirectionFrame
+
+CRITIC_FORMAT = "gd2p-critic-v1"
+CRITIC_ENV = "GD2P_CRITIC_CHECKPOINT_{hand}"  # e.g. GD2P_CRITIC_CHECKPOINT_ALLEGRO=/path/to.pt; "none": no critic
+TOP_K = 6  # the plans a request rolls out (PipelineSettings.max_plans): the precision that matters
+
+
+class CriticError(ValueError):
+    """Critic data or checkpoint that cannot be used (missing, empty, wrong format or hand)."""
+
+
+def critic_frame(object_id: str, yaw_deg: float) -> DirectionFrame:
+    """The push frame of a labelled object: resting at the origin, turned by `yaw_deg`, pushed along world +x."""
+    from shared.world.objects import load_object
+    from shared.world.push_outcome import object_pose
+
+    obj = load_object(object_id)
+    return DirectionFrame(object_pose=object_pose(obj.T_D_O(None, math.radians(yaw_deg))), yaw_deg=0.0)
+
+
+@dataclass(frozen=True)
+class CriticData:
+    """Labelled poses of many objects: poses [N, 25], `group` [N] into bps [R, n_basis], outcomes [N]."""
+
+    poses: torch.Tensor
+    group: torch.Tensor
+    bps: torch.Tensor
+    success: torch.Tensor
+    error_m: torch.Tensor
+    object_ids: list[str]
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def read_records(directory: str | Path) -> list[dict[str, Any]]:
+    """The records of a critic data directory (JSON lines; a torn last line is skipped)."""
+    path = Path(directory) / "records.jsonl"
+    if not path.is_file():
+        raise CriticError(f"no critic data at {path} (build it with `gd2p critic data`)")
+    records = {}
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        records[row["key"]] = row  # a key recorded again replaces the earlier record, as the store reads it
+    if not records:
+        raise CriticError(f"{path} holds no records")
+    return list(records.values())
+
+
+def encode_records(records: list[dict[str, Any]], sampler: PoseSampler) -> CriticData:
+    """The records as tensors, each object's BPS computed by `sampler`'s encoder."""
+    bps, poses, group, success, error, ids = [], [], [], [], [], []
+    for index, record in enumerate(records):
+        encoded, _, _ = sampler.encode(record["object_id"], critic_frame(record["object_id"], record["yaw_deg"]))
+        bps.append(encoded)
+        poses.append(np.asarray(record["poses_d"], dtype=np.float32))
+        group.append(np.full(len(record["success"]), index))
+        success.append(np.asarray(record["success"], dtype=np.float32))
+        error.append(np.asarray(record["position_error_m"], dtype=np.float32))
+        ids.append(record["object_id"])
+    return CriticData(torch.as_tensor(np.concatenate(poses)), torch.as_tensor(np.concatenate(group)),
+                      torch.as_tensor(np.stack(bps)), torch.as_tensor(np.concatenate(success)),
+                      torch.as_tensor(np.concatenate(error)), ids)
+
+
+@dataclass(frozen=True)
+class CriticTraining:
+    steps: int = 3000
+    batch_size: int = 512
+    learning_rate: float = 1e-3
+    weight_decay: float = 1e-4
+    error_weight: float = 0.5  # the position-error head's share of the loss
+    eval_every: int = 250
+    seed: int = 0
+    config: CriticConfig = field(default_factory=CriticConfig)
+
+
+def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Area under the ROC curve (the Mann-Whitney statistic, ties counted half); NaN without both classes."""
+    labels = np.asarray(labels, dtype=bool)
+    positives, negatives = int(labels.sum()), int((~labels).sum())
+    if positives == 0 or negatives == 0:
+        return float("nan")
+    ranks = rankdata(scores)
+    return float((ranks[labels].sum() - positives * (positives + 1) / 2) / (positives * negatives))
+
+
+@torch.no_grad()
+def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, float]:
+    """ROC AUC, and the success rate of each object's TOP_K best-scored poses against all its poses."""
+    model.eval()
+    logits, _ = model(data.poses, data.bps, data.group)
+    scores, labels, groups = logits.numpy(), data.success.numpy() > 0.5, data.group.numpy()
+    top, overall = [], []
+    for g in np.unique(groups):
+        rows = np.flatnonzero(groups == g)
+        top.append(labels[rows[np.argsort(-scores[rows], kind="stable")[:TOP_K]]].mean())
+        overall.append(labels[rows].mean())
+    return {"roc_auc": round(roc_auc(scores, labels), 4), f"top{TOP_K}_success": round(float(np.mean(top)), 4),
+            "all_success": round(float(np.mean(overall)), 4), "poses": len(labels), "objects": len(np.unique(groups))}
+
+
+def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = CriticTraining(),
+                 progress=None) -> tuple[SuccessCritic, dict[str, Any]]:
+    """The critic with the best val ROC AUC seen during training, and the metrics history."""
+    torch.manual_seed(settings.seed)
+    model = SuccessCritic(settings.config)
+    model.set_statistics(train.bps, train.poses)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
+    generator = torch.Generator().manual_seed(settings.seed)
+    target_error = torch.log(train.error_m + ERROR_FLOOR_M)
+    best: tuple[float, dict[str, torch.Tensor], int] = (-1.0, {}, 0)
+    history = []
+    for step in range(1, settings.steps + 1):
+        model.train()
+        rows = torch.randint(len(train), (settings.batch_size,), generator=generator)
+        logits, log_error = model(train.poses[rows], train.bps, train.group[rows])
+        loss = (F.binary_cross_entropy_with_logits(logits, train.success[rows])
+                + settings.error_weight * F.smooth_l1_loss(log_error, target_error[rows]))
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        if step % settings.eval_every == 0 or step == settings.steps:
+            metrics = {"step": step, "loss": round(float(loss.detach()), 4), "val": evaluate(model, val)}
+            history.append(metrics)
+            if metrics["val"]["roc_auc"] > best[0]:
+                best = (metrics["val"]["roc_auc"], {k: v.clone() for k, v in model.state_dict().items()}, step)
+            if progress is not None:
+                progress(metrics)
+    model.load_state_dict(best[1])
+    return model.eval(), {"best_step": best[2], "history": history}
+
+
+def save_critic(model: SuccessCritic, path: str | Path, hand: str, sampler_checkpoint_id: str,
+                manifest: dict[str, Any]) -> Path:
+    data = {"format": CRITIC_FORMAT, "hand": hand, "config": model.config.to_dict(),
+            "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
+            "sampler_checkpoint_id": sampler_checkpoint_id, "manifest": manifest}
+    out = atomic_torch_save(data, path)
+    atomic_write_text(manifest_path(out), json.dumps({**manifest, "hand": hand, "format": CRITIC_FORMAT,
+                                                      "sampler_checkpoint_id": sampler_checkpoint_id}, indent=1))
+    return out
+
+
+@dataclass(frozen=True)
+class LoadedCritic:
+    hand: str
+    model: SuccessCritic
+    sampler_checkpoint_id: str
+    manifest: dict[str, Any]
+
+
+def default_critic_path(hand: str) -> Path | None:
+    """Where the sampler looks for `hand`'s critic: $GD2P_CRITIC_CHECKPOINT_<HAND> ("none": no critic), else the
+    shipped file."""
+    override = os.environ.get(CRITIC_ENV.format(hand=hand.upper()))
+    if override is not None:
+        return None if override.lower() == "none" else Path(override).expanduser()
+    return SHIPPED_DIR / f"{hand}_critic.pt"
+
+
+@torch.no_grad()
+def success_probabilities(critic: SuccessCritic, bps: np.ndarray, poses_d: np.ndarray) -> np.ndarray:
+    """[K] P(success) of a floating-hand push from each pose [K, 25] in D of the object with BPS [n_basis]."""
+    logits, _ = critic(torch.as_tensor(np.asarray(poses_d, dtype=np.float32)),
+                       torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(1, -1))
+    return torch.sigmoid(logits).double().numpy()
+
+
+def load_critic(path: str | Path) -> LoadedCritic:
+    path = Path(path)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise CriticError(f"cannot read critic checkpoint {path}: {exc}") from exc
+    if not isinstance(data, dict) or data.get("format") != CRITIC_FORMAT:
+        raise CriticError(f"{path} is not a {CRITIC_FORMAT} checkpoint")
+    model = SuccessCritic(CriticConfig.from_dict(data["config"]))
+    model.load_state_dict(data["state_dict"])
+    return LoadedCritic(data["hand"], model.eval(), data["sampler_checkpoint_id"], data.get("manifest", {}))
+
+
+def manifest_for(train_dir: str | Path, val_dir: str | Path, settings: CriticTraining, train: CriticData,
+                 val: CriticData, result: dict[str, Any], started: float, command: str) -> dict[str, Any]:
+    return {"command": command, "train_data": str(train_dir), "val_data": str(val_dir),
+            "train_poses": len(train), "train_objects": len(set(train.object_ids)), "val_poses": len(val),
+            "val_objects": len(set(val.object_ids)), "settings": {**asdict(settings), "config": settings.config.to_dict()},
+            "best_step": result["best_step"], "val": result["history"][-1]["val"] if result["history"] else None,
+            "best_val": next((h["val"] for h in result["history"] if h["step"] == result["best_step"]), None),
+            "train_s": round(time.time() - started, 1)}

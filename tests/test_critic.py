@@ -1,0 +1,120 @@
+"""Success critic (issue 17 item 4): ROC AUC, learning on labelled poses of held-out objects, its
+checkpoint, the sampler service's scores and the planner's order of candidates."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from services.planner.candidates import Candidates
+from services.planner.stages import PipelineSettings, RequestState, priority
+from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
+from services.sampler.critic import CriticConfig, SuccessCritic
+from services.sampler.critic_train import (
+    CriticData,
+    CriticError,
+    CriticTraining,
+    evaluate,
+    load_critic,
+    roc_auc,
+    save_critic,
+    train_critic,
+)
+from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
+from shared.robots.hands import load_hand
+
+torch.set_num_threads(1)
+TINY = CriticConfig(bps_dim=32, object_dim=16, hidden_dim=64, num_layers=2)
+
+
+def test_roc_auc_is_the_fraction_of_success_failure_pairs_ranked_right():
+    assert roc_auc(np.array([0.1, 0.4, 0.35, 0.8]), np.array([0, 0, 1, 1])) == pytest.approx(0.75)
+    assert roc_auc(np.array([2.0, 1.0]), np.array([0, 1])) == 0.0  # every pair ranked wrong
+    assert roc_auc(np.array([0.5, 0.5]), np.array([0, 1])) == 0.5  # a tie counts half
+    assert math.isnan(roc_auc(np.array([0.1, 0.2]), np.array([1, 1])))
+
+
+def synthetic_data(objects: int, seed: int) -> CriticData:
+    """Objects with random BPS; a pose succeeds when its x plus the object's first BPS feature is positive,
+    so the critic must use both the pose and the geometry."""
+    rng = np.random.default_rng(seed)
+    bps = rng.normal(size=(objects, TINY.bps_dim)).astype(np.float32)
+    group = np.repeat(np.arange(objects), 40)
+    poses = rng.normal(size=(len(group), 25)).astype(np.float32)
+    success = (poses[:, 0] + bps[group, 0] > 0).astype(np.float32)
+    error = np.where(success > 0, 0.01, 0.1).astype(np.float32)
+    return CriticData(torch.as_tensor(poses), torch.as_tensor(group), torch.as_tensor(bps), torch.as_tensor(success),
+                      torch.as_tensor(error), [f"obj-{i}" for i in range(objects)])
+
+
+@pytest.fixture(scope="module")
+def trained():
+    settings = CriticTraining(steps=400, batch_size=128, eval_every=100, config=TINY)
+    return train_critic(synthetic_data(30, seed=0), synthetic_data(8, seed=1), settings)
+
+
+def test_the_critic_learns_which_poses_succeed_on_objects_it_never_saw(trained):
+    model, result = trained
+    metrics = evaluate(model, synthetic_data(8, seed=2))
+    assert metrics["roc_auc"] > 0.9, metrics
+    assert metrics["top6_success"] > metrics["all_success"] + 0.3, metrics  # its favourite poses push well
+    assert result["best_step"] in [h["step"] for h in result["history"]]
+
+
+def test_a_critic_round_trips_through_its_checkpoint(trained, tmp_path):
+    model, _ = trained
+    path = save_critic(model, tmp_path / "critic.pt", "allegro", "sampler-abc", {"note": "test"})
+    loaded = load_critic(path)
+    data = synthetic_data(2, seed=3)
+    assert loaded.hand == "allegro" and loaded.sampler_checkpoint_id == "sampler-abc"
+    assert torch.allclose(loaded.model(data.poses, data.bps, data.group)[0], model(data.poses, data.bps, data.group)[0])
+    assert (tmp_path / "critic.pt.manifest.json").is_file()
+    torch.save({"format": "something else"}, tmp_path / "other.pt")
+    with pytest.raises(CriticError, match="not a gd2p-critic"):
+        load_critic(tmp_path / "other.pt")
+
+
+def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoint(tmp_path, monkeypatch):
+    from services.sampler.service import SamplerService
+
+    shipped = default_checkpoint_path("allegro")
+    if not shipped.is_file():
+        pytest.skip("no shipped Allegro checkpoint")
+    service = SamplerService()
+    request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=20,
+                            frame=_frame_at_origin())
+    critic = SuccessCritic(CriticConfig(bps_dim=service.sampler("allegro").bps.n))
+    matching = save_critic(critic, tmp_path / "matching.pt", "allegro", checkpoint_id(shipped), {})
+    other = save_critic(critic, tmp_path / "other.pt", "allegro", "another-checkpoint", {})
+    try:
+        monkeypatch.setenv("GD2P_CRITIC_CHECKPOINT_ALLEGRO", str(matching))
+        scores = service.handle(request).success_probability.to_numpy()
+        assert scores.shape == (20,) and ((scores > 0) & (scores < 1)).all()
+    finally:
+        service.close()
+    service = SamplerService()
+    try:
+        monkeypatch.setenv("GD2P_CRITIC_CHECKPOINT_ALLEGRO", str(other))
+        assert service.handle(request).success_probability is None
+    finally:
+        service.close()
+
+
+def _frame_at_origin():
+    from shared.contracts.messages import DirectionFrame, ObjectPose
+
+    return DirectionFrame(object_pose=ObjectPose(position=(0.55, 0.0, 0.05), quaternion_xyzw=(0.0, 0.0, 0.0, 1.0)),
+                          yaw_deg=0.0)
+
+
+def test_the_planner_tries_the_poses_the_critic_likes_best_first():
+    hand = load_hand("allegro")
+    state = RequestState(PushRequest(object=ObjectRef(library_id="proc-box-000"), direction_deg=0.0), None, "", hand,
+                         np.eye(4))
+    poses = np.zeros((4, 25))
+    candidates = Candidates(poses, poses, np.repeat(np.eye(4)[None], 4, axis=0), np.zeros((4, 16)),
+                            l_dir=np.array([0.1, 0.2, 0.3, 0.4]), p_success=np.array([0.2, 0.9, 0.9, 0.1]))
+    assert priority(state, candidates, PipelineSettings()).tolist() == [1, 2, 0, 3]  # L_dir breaks the tie
+    assert priority(state, candidates, PipelineSettings(use_critic=False)).tolist() == [0, 1, 2, 3]
