@@ -163,7 +163,11 @@ class BusServices:
             raise ServiceError("bad_request", f"client_lease {request.client_lease!r} is not a client lease "
                                f"({lease_key('client', '<id>')})")
         with LeaseMonitor(self.session, request.client_lease,
-                          on_lost=lambda: cancel.cancel("the client gave up (its lease was lost)")):
+                          on_lost=lambda: cancel.cancel("the client gave up (its lease was lost)")) as monitor:
+            # Confirmed before any work: a loss noticed only later (on a loaded machine, after the plan was
+            # sent) would let a robot start for a client that was already gone.
+            if not monitor.wait_confirmed():
+                cancel.cancel(f"the client's lease is not held: {monitor.reason or 'not confirmed in time'}")
             yield
 
     def _on_state(self, sample: zenoh.Sample) -> None:  # zenoh callback: quick, never blocks
