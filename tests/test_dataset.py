@@ -435,6 +435,18 @@ def test_bad_build_arguments_are_refused_with_a_clear_error(tmp_path, capsys):
         BuildSettings(hand="allegro", placement="sideways")
 
 
+def test_placement_default_builds_the_version_1_placement(bus, tmp_path):
+    """`--placement default` sends version 1's jobs: the same candidates as the committed version-1 store."""
+    out = tmp_path / "ds"
+    assert gd2p(["dataset", "build", "--hand", "allegro", "--per-object", "2", "--iterations", "30", "--seed", "3",
+                 "--placement", "default", "--object-ids", "proc-box-003", "--connect", bus, "--out", str(out),
+                 "--no-progress"]) == 0
+    raw = {r["pose_id"]: r for r in DatasetStore.open(out).rows(outcome="all").to_pylist() if r["stage"] == "raw"}
+    v1 = [r for r in DatasetStore.open(V1_STORE).rows().to_pylist() if r["stage"] == "raw"]
+    assert v1 and all(raw[r["pose_id"]]["pose"] == r["pose"] and raw[r["pose_id"]]["yaw_rad"] == 0.0 for r in v1)
+    assert {r["pose_index"] for r in raw.values()} == {load_object("proc-box-003").default_pose_index}
+
+
 @pytest.mark.slow
 def test_a_build_without_connect_runs_its_own_generator_and_validator_processes(tmp_path):
     out = tmp_path / "ds"

@@ -75,7 +75,7 @@ def test_a_placement_the_object_cannot_have_is_refused(box, side_pose):
                                                   frame=other), box)
     with pytest.raises(ValidationError, match="greater than or equal to 0"):
         GenerationJob(object=BOX, hand="allegro", batch_size=1, pose_index=-1)
-    with pytest.raises(ValidationError, match="less than or equal to 6.28"):
+    with pytest.raises(ValidationError, match=r"less than or equal to 6\.28"):
         GenerationJob(object=BOX, hand="allegro", batch_size=1, yaw_rad=7.0)
     with pytest.raises(ValidationError, match="pose_index places the object for a floating hand"):
         ValidationJob(object=BOX, hand="allegro", poses=pose, pose_index=0, with_arm=True)

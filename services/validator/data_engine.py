@@ -196,8 +196,15 @@ def choose_placement(settings: BuildSettings, object_id: str, round_index: int, 
     return Placement(int(rng.choice(len(weights), p=weights / weights.sum())), yaw)
 
 
-def placement_frame(obj: ObjectModel, placement: Placement) -> DirectionFrame:
-    """The floating-hand ValidationJob frame that places `obj` as `placement` says (D = world, push along +x)."""
+def placement_frame(obj: ObjectModel, placement: Placement) -> DirectionFrame | None:
+    """The floating-hand ValidationJob frame that places `obj` as `placement` says (D = world, push along +x).
+
+    None at yaw 0: the validator's frame-less placement is yaw 0 exactly, where a frame's round trip through
+    a quaternion is off by ~1e-16 rad - enough to flip a chaotic push, so `placement="default"` builds would
+    not give version 1's rows.
+    """
+    if placement.yaw_rad == 0.0:
+        return None
     return DirectionFrame(object_pose=object_pose(obj.T_D_O(placement.pose_index, placement.yaw_rad)), yaw_deg=0.0)
 
 
