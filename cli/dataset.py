@@ -244,7 +244,7 @@ def _progress_bar(total: int, done_before: int, disabled: bool) -> Iterator:
         bar.set_postfix({"cand/s": f"{rates['candidates_per_s']:.2f}", "push/s": f"{rates['validated_pushes_per_s']:.1f}",
                          "raw ok": f"{100 * rates['raw_success_rate']:.0f}%",
                          "aug ok": f"{100 * rates['augmented_success_rate']:.0f}%", "poses": counters.successes,
-                         "failed": counters.stored_rows - counters.successes})
+                         "failed": counters.validated_pushes - counters.successes})
 
     try:
         yield report

@@ -373,7 +373,7 @@ def test_stats_reports_counts_rates_yaw_coverage_and_plots(reference_store, tmp_
 # ----------------------------------------------------------------------------- dataset v2: placements and readers
 def test_placements_derive_from_seed_object_and_round_only():
     settings = BuildSettings(hand="allegro", seed=5, min_rounds=3, max_rounds=3)
-    poses = RestingPoses("box", (0.5, 0.3, 0.2), default_index=1)
+    poses = RestingPoses((0.5, 0.3, 0.2), default_index=1)
     first = [choose_placement(settings, "proc-box-004", r, poses) for r in range(40)]
     assert first == [choose_placement(settings, "proc-box-004", r, poses) for r in range(40)]  # a resume agrees
     assert first[0].pose_index == 1  # round 0: the default resting pose, at a random yaw
