@@ -279,6 +279,10 @@ def test_a_build_stores_validated_poses_with_provenance(reference_store):
     assert run["physics"]["validator_defaults"]["solver_iterations"] > 0 and "commit" in run
     assert store.manifest["content_hash"] == store.content_hash()
     assert len(load_pose_dataset(reference_store, "allegro")) == len(rows)  # training reads the successes only
+    from services.sampler.nearest_neighbor import NearestNeighborBaseline
+
+    index = NearestNeighborBaseline.from_directory(reference_store, "allegro")  # `gd2p sampler-nn build`
+    assert index.pose_count == len(rows) and {f.yaw_rad for f in index.frames} <= {round(r["yaw_rad"], 6) for r in rows}
 
 
 def test_a_build_keeps_failures_with_their_outcomes_at_random_yaws(reference_store):
