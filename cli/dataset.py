@@ -77,7 +77,8 @@ def _register_build(commands: argparse._SubParsersAction) -> None:
                        help="run further rounds while an object has fewer successful poses than this (default 0)")
     build.add_argument("--min-rounds", type=positive_int, default=1,
                        help="at least this many rounds per object, each a new placement (yaw, resting pose) (default 1)")
-    build.add_argument("--max-rounds", type=positive_int, default=1, help="at most this many rounds per object (default 1)")
+    build.add_argument("--max-rounds", type=positive_int, default=None,
+                       help="at most this many rounds per object (default: --min-rounds)")
     build.add_argument("--placement", choices=("random", "default"), default="random",
                        help="random (default): each round a random yaw in D, round 0 in the default resting pose, later "
                             "rounds in one drawn by stability; default: yaw 0 in the default pose (the version-1 data)")
@@ -107,6 +108,8 @@ def run_build(args: argparse.Namespace) -> int:
     from services.validator.data_engine import BuildError, BuildSettings, select_objects
     from shared.data.dataset_store import DatasetStore, StoreError
 
+    if args.max_rounds is None:  # resolved here, so the recorded command line names it
+        args.max_rounds = args.min_rounds
     try:
         check_build_flags(args)
     except FlagError as exc:

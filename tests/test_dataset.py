@@ -42,7 +42,7 @@ PARAMETERS = {"hand": "allegro", "split": "train", "per_object": 4, "seed": 0}
 
 def build_args(out: Path, endpoint: str, *extra: str) -> list[str]:
     return ["dataset", "build", "--hand", "allegro", "--per-object", "4", "--iterations", "30", "--seed", "3",
-            "--min-rounds", "2", "--max-rounds", "2", "--object-ids", *OBJECTS, "--connect", endpoint,
+            "--min-rounds", "2", "--object-ids", *OBJECTS, "--connect", endpoint,  # --max-rounds: --min-rounds
             "--out", str(out), "--no-progress", *extra]
 
 
@@ -275,6 +275,7 @@ def test_a_build_stores_validated_poses_with_provenance(reference_store):
     assert sum(p["rows"] for p in totals["by_resting_pose"].values()) == len(everything)
     run = store.manifest["runs"][-1]
     assert run["command"][:3] == ["gd2p", "dataset", "build"] and run["wall_s"] > 0 and not run["interrupted"]
+    assert run["command"][run["command"].index("--max-rounds") + 1] == "2" == str(store.manifest["parameters"]["max_rounds"])
     assert run["physics"]["sent"] == store.manifest["parameters"]["physics"]
     assert run["physics"]["validator_defaults"]["solver_iterations"] > 0 and "commit" in run
     assert store.manifest["content_hash"] == store.content_hash()
