@@ -322,6 +322,21 @@ def object_yaw_in_d(frame: DirectionFrame, rest_rotation: np.ndarray) -> float:
     `ObjectModel.T_D_O(pose, yaw)` is Rz(yaw) @ rest_rotation, so Rz(yaw) = R_D_O @ rest_rotation^T;
     this is what the validator's `table_object(obj, pose_index, yaw)` needs to place the object the same way.
     """
-    R_D_O = (invert_transform(frame_transform(frame)) @ frame_object_transform(frame))[:3, :3]
-    turn = R_D_O @ np.asarray(rest_rotation, dtype=np.float64).T
+    turn = _turn_from_rest(frame, rest_rotation)
     return math.atan2(turn[1, 0], turn[0, 0])
+
+
+def resting_tilt_deg(frame: DirectionFrame, rest_rotation: np.ndarray) -> float:
+    """How far (degrees) the frame's object leans away from resting pose `rest_rotation` turned about z.
+
+    0 when the object is exactly that resting pose at some yaw, which `object_yaw_in_d` then gives.
+    """
+    turn = _turn_from_rest(frame, rest_rotation)
+    return math.degrees(math.acos(float(np.clip(turn[2, 2], -1.0, 1.0))))
+
+
+def _turn_from_rest(frame: DirectionFrame, rest_rotation: np.ndarray) -> np.ndarray:
+    """R_D_O @ rest_rotation^T: the rotation (a turn about z when the object rests so) from the resting pose."""
+    R_D_O = (invert_transform(frame_transform(frame)) @ frame_object_transform(frame))[:3, :3]
+    turn: np.ndarray = R_D_O @ np.asarray(rest_rotation, dtype=np.float64).T
+    return turn

@@ -1,8 +1,8 @@
-"""Dataset store and `gd2p dataset build/stats` (issue 5 items 5-7).
+"""Dataset store and `gd2p dataset build/stats` (issue 5 items 5-7; dataset v2: issue 17 item 2).
 
 The builds run against real generator and validator workers (threads of this process, on an
-in-process router) with tiny settings: three procedural train objects, 4 candidates each and 30
-generator iterations.
+in-process router) with tiny settings: three procedural train objects, two rounds (placements) of
+4 candidates each and 30 generator iterations.
 """
 from __future__ import annotations
 
@@ -21,17 +21,29 @@ import pytest
 
 from cli.main import main as gd2p
 from services.sampler.dataset import load_pose_dataset
-from services.validator.data_engine import SCHEMA, BuildError, select_objects
+from services.validator.data_engine import (
+    SCHEMA,
+    BuildError,
+    BuildSettings,
+    Placement,
+    RestingPoses,
+    choose_placement,
+    select_objects,
+)
 from shared.data.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
+from shared.world.objects import load_object
+from shared.world.push_outcome import TOPPLED_TILT_DEG
 
 REPO = Path(__file__).resolve().parents[1]
+V1_STORE = REPO / "tests" / "data" / "v1-store"  # built by the version-1 data engine (commit eaae3db)
 OBJECTS = ["proc-box-003", "proc-box-004", "proc-cylinder-003"]
 PARAMETERS = {"hand": "allegro", "split": "train", "per_object": 4, "seed": 0}
 
 
 def build_args(out: Path, endpoint: str, *extra: str) -> list[str]:
     return ["dataset", "build", "--hand", "allegro", "--per-object", "4", "--iterations", "30", "--seed", "3",
-            "--object-ids", *OBJECTS, "--connect", endpoint, "--out", str(out), "--no-progress", *extra]
+            "--min-rounds", "2", "--object-ids", *OBJECTS, "--connect", endpoint,  # --max-rounds: --min-rounds
+            "--out", str(out), "--no-progress", *extra]
 
 
 def synthetic_rows(object_id: str, n: int) -> pa.Table:
@@ -241,22 +253,56 @@ def reference_store(bus, tmp_path_factory) -> Path:
 
 def test_a_build_stores_validated_poses_with_provenance(reference_store):
     store = DatasetStore.open(reference_store)
-    assert set(store.completed_objects()) == set(OBJECTS)
+    assert set(store.completed_objects()) == set(OBJECTS) and store.version == 2
     rows = store.rows().to_pylist()
-    assert rows, "three boxes/cylinders and 12 candidates should give some successful pushes"
-    assert len({r["pose_id"] for r in rows}) == len(rows)
-    for row in rows:
-        assert row["stage"] in ("raw", "augmented") and row["position_error_m"] <= 0.03 and row["rotation_deg"] <= 45
+    assert rows, "three boxes/cylinders and 24 candidates should give some successful pushes"
+    everything = store.rows(outcome="all").to_pylist()
+    assert len({r["pose_id"] for r in everything}) == len(everything)
+    for row in rows:  # the default read: successes only
+        assert row["success"] and row["position_error_m"] <= 0.03 and row["rotation_deg"] <= 45
+    for row in everything:
+        assert row["stage"] in ("raw", "augmented")
         assert (row["parent_id"] is None) == (row["stage"] == "raw")
-    raw_ids = {r["pose_id"] for r in rows if r["stage"] == "raw"}
-    assert {r["parent_id"] for r in rows if r["stage"] == "augmented"} <= raw_ids  # copies of successes only
+        assert row["toppled"] == (row["max_tilt_deg"] > TOPPLED_TILT_DEG)
+    raw_ok = {r["pose_id"] for r in everything if r["stage"] == "raw" and r["success"]}
+    assert {r["parent_id"] for r in everything if r["stage"] == "augmented"} <= raw_ok  # copies of successes only
     totals = store.manifest["totals"]
-    assert totals["generated"] == 12 and totals["augmented_validated"] == 10 * totals["raw_successes"]
-    assert totals["rows"] == len(rows) == totals["raw_successes"] + totals["augmented_successes"]
+    assert totals["generated"] == 24 == sum(r["stage"] == "raw" for r in everything)  # every candidate is kept
+    assert totals["augmented_validated"] == 10 * totals["raw_successes"]
+    assert totals["successes"] == len(rows) == totals["raw_successes"] + totals["augmented_successes"]
+    assert totals["rows"] == len(everything) == totals["successes"] + totals["failures"]
+    assert sum(f["objects"] for f in totals["by_family"].values()) == 3 and set(totals["by_family"]) == {"box", "cylinder"}
+    assert sum(p["rows"] for p in totals["by_resting_pose"].values()) == len(everything)
     run = store.manifest["runs"][-1]
     assert run["command"][:3] == ["gd2p", "dataset", "build"] and run["wall_s"] > 0 and not run["interrupted"]
+    assert run["command"][run["command"].index("--max-rounds") + 1] == "2" == str(store.manifest["parameters"]["max_rounds"])
+    assert run["physics"]["sent"] == store.manifest["parameters"]["physics"]
+    assert run["physics"]["validator_defaults"]["solver_iterations"] > 0 and "commit" in run
     assert store.manifest["content_hash"] == store.content_hash()
-    assert len(load_pose_dataset(reference_store, "allegro")) == len(rows)
+    assert len(load_pose_dataset(reference_store, "allegro")) == len(rows)  # training reads the successes only
+    from services.sampler.nearest_neighbor import NearestNeighborBaseline
+
+    index = NearestNeighborBaseline.from_directory(reference_store, "allegro")  # `gd2p sampler-nn build`
+    assert index.pose_count == len(rows) and {f.yaw_rad for f in index.frames} <= {round(r["yaw_rad"], 6) for r in rows}
+
+
+def test_a_build_keeps_failures_with_their_outcomes_at_random_yaws(reference_store):
+    store = DatasetStore.open(reference_store)
+    failures = store.rows(outcome="failure").to_pylist()
+    assert failures, "24 candidates and their copies should fail somewhere"
+    assert store.manifest["totals"]["failures"] == len(failures)
+    for row in failures:
+        assert row["success"] is False and row["position_error_m"] is not None and row["rotation_deg"] is not None
+        assert row["position_error_m"] > 0.03 or row["rotation_deg"] > 45  # why it failed is in the row
+    everything = store.rows(outcome="all").to_pylist()
+    for object_id, entry in store.manifest["objects"].items():
+        placements = {(p["round"], p["pose_index"], p["yaw_rad"]) for p in entry["placements"]}
+        assert len(placements) == 2 and entry["family"] in ("box", "cylinder")
+        mine = {(r["round"], r["pose_index"], r["yaw_rad"]) for r in everything if r["object_id"] == object_id}
+        assert mine <= placements  # every row carries its round's placement
+        yaws = [p["yaw_rad"] for p in entry["placements"]]
+        assert all(abs(y) > 1e-6 for y in yaws) and len(set(yaws)) == 2  # a new random yaw each round
+        assert entry["placements"][0]["pose_index"] == load_object(object_id).default_pose_index
 
 
 def test_a_build_killed_midway_and_restarted_equals_an_uninterrupted_one(bus, reference_store, tmp_path):
@@ -276,9 +322,10 @@ def test_a_build_killed_midway_and_restarted_equals_an_uninterrupted_one(bus, re
     resumed = DatasetStore.open(out)
     reference = DatasetStore.open(reference_store)
     assert resumed.manifest["runs"][-1]["objects_skipped"] == len(done)
-    assert resumed.content_hash() == reference.content_hash()
+    assert resumed.content_hash() == reference.content_hash()  # every row, failures included
     assert resumed.manifest["totals"] == reference.manifest["totals"]
-    ids = resumed.rows(columns=["pose_id"]).column("pose_id").to_pylist()
+    assert resumed.rows(outcome="all").sort_by("pose_id").equals(reference.rows(outcome="all").sort_by("pose_id"))
+    ids = resumed.rows(columns=["pose_id"], outcome="all").column("pose_id").to_pylist()
     assert len(ids) == len(set(ids))  # no duplicates
 
 
@@ -297,13 +344,15 @@ def _wait_for_first_object(manifest: Path, child: subprocess.Popen, timeout: flo
     pytest.fail("no object was stored in time")
 
 
-def test_stats_reports_counts_rates_and_joint_histograms(reference_store, tmp_path, capsys):
+def test_stats_reports_counts_rates_yaw_coverage_and_plots(reference_store, tmp_path, capsys):
     plot = tmp_path / "joints.png"
     assert gd2p(["dataset", "stats", str(reference_store), "--json", "--plot", str(plot)]) == 0
     stats = json.loads(capsys.readouterr().out)
     store = DatasetStore.open(reference_store)
     rows = store.rows(columns=["object_id", "stage"]).to_pylist()
+    everything = store.rows(columns=["stage", "success", "yaw_rad"], outcome="all").to_pylist()
     assert stats["objects"] == len(OBJECTS) and stats["poses"] == len(rows)
+    assert stats["failures"] == len(everything) - len(rows) > 0
     assert stats["by_hand"] == {"allegro": len(rows)}
     assert stats["by_stage"]["raw"] == sum(r["stage"] == "raw" for r in rows)
     for object_id in OBJECTS:
@@ -312,7 +361,95 @@ def test_stats_reports_counts_rates_and_joint_histograms(reference_store, tmp_pa
         assert entry["raw"] == entry["raw_successes"] and entry["augmented"] == entry["augmented_successes"]
     totals = store.manifest["totals"]
     assert stats["success_rates"]["raw"] == pytest.approx(totals["raw_successes"] / totals["generated"])
-    assert plot.stat().st_size > 10_000
+    assert stats["by_family"]["box"]["objects"] == 2 and stats["by_family"]["cylinder"]["objects"] == 1
+    assert sum(f["successes"] for f in stats["by_family"].values()) == len(rows)
+    yaw = stats["yaw"]
+    assert sum(yaw["successes"]) == len(rows) and sum(yaw["raw_candidates"]) == 24
+    assert sum(n > 0 for n in yaw["raw_candidates"]) >= 3  # six placements spread over the circle
+    covered = [rate for rate, n in zip(yaw["raw_success_rate"], yaw["raw_candidates"], strict=True) if n]
+    assert all(0.0 <= rate <= 1.0 for rate in covered)
+    assert stats["placements"] <= 6
+    assert plot.stat().st_size > 10_000 and (tmp_path / "joints-coverage.png").stat().st_size > 10_000
+    assert gd2p(["dataset", "stats", str(reference_store)]) == 0
+    text = capsys.readouterr().out
+    assert "FAMILY" in text and "YAW (DEG)" in text and "RESTING POSE" in text and "failed pushes kept" in text
+
+
+# ----------------------------------------------------------------------------- dataset v2: placements and readers
+def test_placements_derive_from_seed_object_and_round_only():
+    settings = BuildSettings(hand="allegro", seed=5, min_rounds=3, max_rounds=3)
+    poses = RestingPoses((0.5, 0.3, 0.2), default_index=1)
+    first = [choose_placement(settings, "proc-box-004", r, poses) for r in range(40)]
+    assert first == [choose_placement(settings, "proc-box-004", r, poses) for r in range(40)]  # a resume agrees
+    assert first[0].pose_index == 1  # round 0: the default resting pose, at a random yaw
+    assert len({p.pose_index for p in first[1:]}) == 3 and all(-np.pi <= p.yaw_rad < np.pi for p in first)
+    assert first != [choose_placement(settings, "proc-box-005", r, poses) for r in range(40)]
+    v1 = BuildSettings(hand="allegro", placement="default")
+    assert choose_placement(v1, "proc-box-004", 2, poses) == Placement(1, 0.0)
+
+
+def test_the_store_reads_successes_unless_asked_for_failures(tmp_path):
+    store = DatasetStore.create_or_resume(tmp_path / "ds", PARAMETERS)
+    rows = synthetic_rows("proc-box-003", 6)
+    rows = rows.set_column(rows.schema.get_field_index("success"), "success",
+                           pa.array([True, False, None, True, False, True], pa.bool_()))
+    store.write_object("proc-box-003", rows, counts(3))
+    assert store.rows(columns=["pose_id"]).column("pose_id").to_pylist() == [f"proc-box-003/r0/c{i}" for i in (0, 2, 3, 5)]
+    assert store.rows(columns=["pose_id"], outcome="failure").column("pose_id").to_pylist() == [
+        "proc-box-003/r0/c1", "proc-box-003/r0/c4"]
+    assert store.rows(outcome="all").num_rows == 6
+    assert store.rows(columns=["pose_id"]).column_names == ["pose_id"]  # the filter column is not added
+    entry = store.manifest["objects"]["proc-box-003"]
+    assert (entry["successes"], entry["failures"], entry["rows"]) == (4, 2, 6)
+    assert len(load_pose_dataset(tmp_path / "ds", "allegro")) == 4  # training never sees a failure
+    with pytest.raises(StoreError, match="outcome must be one of success, failure, all"):
+        store.rows(outcome="failed")
+
+
+def test_a_version_1_store_still_opens_and_reads(tmp_path, capsys):
+    import shutil
+
+    v1 = shutil.copytree(V1_STORE, tmp_path / "v1")
+    store = DatasetStore.open(v1)
+    store.verify()
+    assert store.version == 1 and store.recorded_content_hash() == store.content_hash()
+    rows = store.rows()
+    assert rows.num_rows == 19 == store.rows(outcome="all").num_rows and "success" not in rows.column_names
+    assert store.rows(outcome="failure").num_rows == 0  # version 1 kept successes only
+    assert store.rows(columns=["pose_id", "success"]).column("success").null_count == 19
+    assert {s.successes for s in store.completed_objects().values()} == {19, 0}
+    assert len(load_pose_dataset(v1, "allegro")) == 19
+    assert gd2p(["dataset", "stats", str(v1), "--json"]) == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert stats["version"] == 1 and stats["poses"] == 19 and stats["failures"] == 0
+    assert stats["yaw"]["successes"][6] == 19 and stats["yaw"]["raw_success_rate"][6] is None  # all at yaw 0
+    assert stats["by_family"]["box"]["successes"] == 19
+    with pytest.raises(StoreError, match="version-1 store"):
+        DatasetStore.create_or_resume(v1, PARAMETERS)  # never extended with version-2 rows
+
+
+def test_bad_build_arguments_are_refused_with_a_clear_error(tmp_path, capsys):
+    common = ["dataset", "build", "--hand", "allegro", "--per-object", "2", "--object-ids", "proc-box-003"]
+    assert gd2p([*common, "--min-rounds", "3", "--max-rounds", "2", "--out", str(tmp_path / "a")]) == 2
+    assert "--min-rounds must be between 1 and --max-rounds (2), got 3" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        gd2p([*common, "--placement", "sideways", "--out", str(tmp_path / "b")])
+    assert exit_info.value.code == 2 and "invalid choice: 'sideways'" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(BuildError, match="--placement must be one of random, default"):
+        BuildSettings(hand="allegro", placement="sideways")
+
+
+def test_placement_default_builds_the_version_1_placement(bus, tmp_path):
+    """`--placement default` sends version 1's jobs: the same candidates as the committed version-1 store."""
+    out = tmp_path / "ds"
+    assert gd2p(["dataset", "build", "--hand", "allegro", "--per-object", "2", "--iterations", "30", "--seed", "3",
+                 "--placement", "default", "--object-ids", "proc-box-003", "--connect", bus, "--out", str(out),
+                 "--no-progress"]) == 0
+    raw = {r["pose_id"]: r for r in DatasetStore.open(out).rows(outcome="all").to_pylist() if r["stage"] == "raw"}
+    v1 = [r for r in DatasetStore.open(V1_STORE).rows().to_pylist() if r["stage"] == "raw"]
+    assert v1 and all(raw[r["pose_id"]]["pose"] == r["pose"] and raw[r["pose_id"]]["yaw_rad"] == 0.0 for r in v1)
+    assert {r["pose_index"] for r in raw.values()} == {load_object("proc-box-003").default_pose_index}
 
 
 @pytest.mark.slow

@@ -1,7 +1,8 @@
 """Bus adapter of the generator service: a GenerationJob in, a GenerationResult out.
 
-Placement convention on the bus: the object rests in its default resting pose with yaw 0 in D -
-the placement the validator's jobs use as well, so poses generated here validate as generated.
+Placement on the bus: the object rests in the job's resting pose (`pose_index`, default: the
+object's default pose) turned by `yaw_rad` about D's z (default 0) - a ValidationJob with the same
+`pose_index` and a frame turned by that yaw places it the same way, so poses validate as generated.
 Each job is deterministic for its seed (torch.Generator everywhere; one torch thread per worker
 process, DESIGN.md §6), so a re-dispatched job gives the same poses on any worker. The optimisation
 checks the job's deadline after every iteration (`shared.bus.worker.check_deadline`): a job past it
@@ -26,7 +27,11 @@ from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel
 
 SERVICE = "generator"
-_SCENES: dict[str, PushScene] = {}  # per object id: SDF and samples are reused by later jobs
+# Objects (their SDF grid is the costly part to load) are kept per id; scenes per placement, since a
+# data-engine build turns every job's object by its own random yaw (a scene is cheap from its object).
+_OBJECTS: dict[str, ObjectModel] = {}
+_MAX_CACHED_OBJECTS = 16
+_SCENES: dict[tuple[str, int | None, float], PushScene] = {}
 _MAX_CACHED_SCENES = 16
 
 
@@ -45,15 +50,31 @@ def resolve_object(ref: ObjectRef) -> ObjectModel:
         raise ServiceError("bad_request", f"the generator needs an object mesh or library id: {exc}") from exc
 
 
-def scene_for(ref: ObjectRef, config: GenerationConfig) -> PushScene:
-    """The object at the bus placement (default resting pose, yaw 0), cached per object id."""
+def cached_object(ref: ObjectRef) -> ObjectModel:
+    """The job's object, kept for later jobs on it (oldest dropped first)."""
     key = ref.object_id
-    if key not in _SCENES:
+    if key not in _OBJECTS:
         obj = resolve_object(ref)
+        if len(_OBJECTS) >= _MAX_CACHED_OBJECTS:
+            _OBJECTS.pop(next(iter(_OBJECTS)))
+        _OBJECTS[key] = obj
+    return _OBJECTS[key]
+
+
+def scene_for(ref: ObjectRef, config: GenerationConfig, pose_index: int | None = None,
+              yaw_rad: float = 0.0) -> PushScene:
+    """The object resting in `pose_index` (None: its default pose) turned by `yaw_rad` in D, cached per placement."""
+    key = (ref.object_id, pose_index, yaw_rad)
+    if key not in _SCENES:
+        obj = cached_object(ref)
+        try:
+            scene = PushScene.from_object(obj, pose_index, yaw_rad, surface_points=config.object_points,
+                                          check_points=config.penetration_check_points)
+        except ValueError as exc:  # a resting pose the object does not have
+            raise ServiceError("bad_request", f"generator: {exc}") from exc
         if len(_SCENES) >= _MAX_CACHED_SCENES:
             _SCENES.pop(next(iter(_SCENES)))
-        _SCENES[key] = PushScene.from_object(obj, surface_points=config.object_points,
-                                             check_points=config.penetration_check_points)
+        _SCENES[key] = scene
     return _SCENES[key]
 
 
@@ -68,10 +89,10 @@ def job_config(job: GenerationJob, base: GenerationConfig | None = None) -> Gene
 
 
 def run_job(job: GenerationJob) -> GenerationResult:
-    """Optimise `job.batch_size` pre-contact push poses for `job.object` (paper Eq. 1)."""
+    """Optimise `job.batch_size` pre-contact push poses for `job.object` at the job's placement (paper Eq. 1)."""
     _limit_torch_threads()
     config = job_config(job)
-    scene = scene_for(job.object, config)
+    scene = scene_for(job.object, config, job.pose_index, job.yaw_rad)
     try:
         output = generate(scene, load_hand(job.hand), job.batch_size, job.seed, config,
                           progress=lambda iterations: check_deadline())

@@ -2,7 +2,8 @@
 
 The store (`shared.data.dataset_store`: Parquet shards listed in a `manifest.json` with their checksums)
 is opened and verified through `DatasetStore`, the one reader of its layout: a shard that is
-missing, modified or not in the manifest is never read. Columns used here:
+missing, modified or not in the manifest is never read, and only successful pushes are read (a
+version-2 store keeps its failures beside them; `DatasetStore.rows` leaves them out). Columns used here:
 
     object_id   string            library id (or `mesh-<hash>` of a mesh loaded on this machine)
     hand        string            "allegro" | "leap"
@@ -105,7 +106,7 @@ def open_store(directory: str | Path) -> DatasetStore:
 
 
 def dataset_fingerprint(store: DatasetStore) -> str:
-    """SHA-256 over the shards' relative names and bytes: equal iff the training data is equal."""
+    """SHA-256 over the shards' relative names and bytes: equal iff the stored data (failures too) is equal."""
     digest = hashlib.sha256()
     for path in store.shard_paths():
         digest.update(str(path.relative_to(store.directory)).encode() + b"\0")
@@ -137,7 +138,7 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
 
 
 def _read_rows(store: DatasetStore) -> pa.Table:
-    """The store's rows (read by the store, the one reader of its shards), the columns training uses."""
+    """The store's successful rows (read by the store, the one reader of its shards), the columns training uses."""
     try:
         table = store.rows()
     except (OSError, pa.ArrowException) as exc:

@@ -5,6 +5,10 @@ worker started with concurrency > 1 stays correct; one process per core is what 
 §6). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
 job seed fixes the augmentation copies, so a job gives the same result on any worker.
 
+Placement of a floating-hand job: the object rests in `job.pose_index` (its default resting pose
+when None) turned about D's z as `job.frame` says (yaw 0 without a frame) - the placement a
+GenerationJob with the same `pose_index` and `yaw_rad` optimised against (`placement`).
+
 Arm rollouts (`with_arm=True`: a planned push played with the arm, for the planner's
 ranking) go to `rollout.rollout`.
 
@@ -35,7 +39,7 @@ from shared.contracts.messages import (
     ValidationJob,
     ValidationResult,
 )
-from shared.frames import object_yaw_in_d
+from shared.frames import object_yaw_in_d, resting_tilt_deg
 from shared.robots.hands import load_hand
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel
@@ -47,6 +51,9 @@ DEFAULT_PARAMS = PhysicsParams()
 # episode) takes under a minute, a planner job (1-6 poses) seconds: ten minutes is ample for any
 # legitimate job and bounds how long one job can hold a worker.
 JOB_DEADLINE_S = 600.0
+# With an explicit resting pose, the frame's object may lean this far from it (numerical noise of a
+# quaternion round trip is ~1e-7 deg); a frame of another resting pose is refused, not silently turned.
+MAX_RESTING_TILT_DEG = 1.0
 
 _local = threading.local()
 
@@ -88,16 +95,32 @@ def validate(job: ValidationJob) -> ValidationResult:
     started = time.perf_counter()
     obj = resolve_object(job.object)
     hand = load_hand(job.hand)
-    yaw = 0.0 if job.frame is None else object_yaw_in_d(job.frame, obj.default_pose.rotation)
+    pose_index, yaw = placement(job, obj)
     check_deadline()
     try:
         run = _validator().validate(
-            table_object(obj, None, yaw), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
+            table_object(obj, pose_index, yaw), hand, job.poses.to_numpy().astype(np.float64), params=params_for(job.settings),
             push_distance_m=job.push_distance_m, augment=job.augment, seed=job.seed,
             progress=lambda episodes: check_deadline())
     except (PushInputError, SimError) as exc:
         raise ServiceError("bad_request", f"validator: {exc}") from exc
     return to_result(job, obj.id, run, time.perf_counter() - started)
+
+
+def placement(job: ValidationJob, obj: ObjectModel) -> tuple[int | None, float]:
+    """(resting pose index, yaw in D) of a floating-hand job's object; bad_request for a pose it cannot be in."""
+    if job.pose_index is not None and job.pose_index >= len(obj.resting_poses):
+        raise ServiceError("bad_request", f"validator: {obj.id} has {len(obj.resting_poses)} resting poses; "
+                                          f"pose_index {job.pose_index} does not exist")
+    rest = obj.default_pose if job.pose_index is None else obj.resting_poses[job.pose_index]
+    if job.frame is None:
+        return job.pose_index, 0.0
+    if job.pose_index is not None:
+        tilt = resting_tilt_deg(job.frame, rest.rotation)
+        if tilt > MAX_RESTING_TILT_DEG:
+            raise ServiceError("bad_request", f"validator: the frame's object is {tilt:.1f} deg away from resting pose "
+                                              f"{job.pose_index} of {obj.id} turned about the vertical")
+    return job.pose_index, object_yaw_in_d(job.frame, rest.rotation)
 
 
 def outcome_arrays(outcomes: list[PushOutcome]) -> dict[str, np.ndarray]:

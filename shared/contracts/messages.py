@@ -67,6 +67,10 @@ PoseMethod = Literal["gd2p", "nearest", "fixed"]
 PlanChoice = Literal["ranked", "unranked", "random"]
 MAX_CORRECTIONS = 5  # corrective pushes per direction request
 MAX_PHYSICS_DRAWS = 16  # rollouts per plan for robust ranking: each costs about half a second of CPU
+# A resting-pose index on the bus (an object keeps at most 8 poses + its native one: shared.world.objects.geometry);
+# the service checks it against the object's own count and answers bad_request beyond it.
+MAX_RESTING_POSE_INDEX = 63
+RestingPoseIndex = Annotated[int, Field(ge=0, le=MAX_RESTING_POSE_INDEX)]
 SegmentLabel = Literal["approach", "push", "retreat"]
 ExecutionStatus = Literal["idle", "executing", "done", "refused", "stopped", "error"]
 
@@ -417,6 +421,12 @@ class GenerationJob(Message):
     iterations: int | None = Field(default=None, ge=1, le=100_000)
     contacts_per_pose: int | None = Field(default=None, ge=1, le=64)
     grasp_only: bool = False  # grasp terms only (no E_dir / E_arm): the grasp-pose baseline
+    # The object's placement in D: resting in `pose_index` (None: its default resting pose), turned by
+    # `yaw_rad` about D's z (`ObjectModel.T_D_O(pose_index, yaw_rad)`). The defaults are the placement every
+    # caller used before (default pose, yaw 0); a ValidationJob places the object the same way with the same
+    # `pose_index` and a `frame` turned by the same yaw (the data engine's random placements).
+    pose_index: RestingPoseIndex | None = None
+    yaw_rad: FiniteFloat = Field(default=0.0, ge=-2 * math.pi, le=2 * math.pi)
 
 
 class GenerationResult(Message):
@@ -516,8 +526,11 @@ class ValidationJob(Message):
     arm: Arm | None = None
     plan: Plan | None = None
     # The object's world pose and push direction: required for arm rollouts; for a floating hand it
-    # places the object (default resting pose) turned in D as the frame says (default: yaw 0 in D).
+    # places the object (in resting pose `pose_index`) turned in D as the frame says (default: yaw 0 in D).
     frame: DirectionFrame | None = None
+    # Floating hand only: the object's resting pose (None: its default one). With a frame, the frame's
+    # object must be this resting pose turned about the vertical (the validator refuses it otherwise).
+    pose_index: RestingPoseIndex | None = None
     obstacles: list[CircleObstacle] = Field(default_factory=list)
     # Arm rollouts: also roll the plan out in this many worlds drawn around the nominal physics and
     # the told pose (`shared.world.sim.world.rollout_worlds`, seeded by `seed`), for ranking by robustness.
@@ -529,6 +542,9 @@ class ValidationJob(Message):
         if self.physics_draws and not self.with_arm:
             raise ValueError("physics_draws is only used with with_arm=True (arm rollouts)")
         if self.with_arm:
+            if self.pose_index is not None:
+                raise ValueError("pose_index places the object for a floating hand; an arm rollout places it at "
+                                 "frame.object_pose")
             missing = [n for n, v in {**rollout_fields, "frame": self.frame}.items() if v is None]
             if missing:
                 raise ValueError(f"with_arm=True needs {', '.join(missing)}")
