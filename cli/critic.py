@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--data", type=Path, required=True, help="`gd2p critic data` output of train objects")
     train.add_argument("--val", type=Path, required=True, help="`gd2p critic data` output of val objects")
     train.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
-    train.add_argument("--steps", type=positive_int, default=3000)
+    train.add_argument("--steps", type=positive_int, default=2000)
     train.add_argument("--seed", type=non_negative_int, default=0)
     train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
     train.set_defaults(func=run_train)

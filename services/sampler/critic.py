@@ -24,11 +24,13 @@ ERROR_FLOOR_M = 0.005  # the error head predicts log(error + floor): millimetre 
 class CriticConfig:
     """Architecture of the critic; stored in its checkpoint."""
 
+    # Chosen on val objects (ROC AUC of 60 val objects' 1,920 labelled samples; 12,800 training samples): this
+    # tiny net 0.756, object 16 / hidden 128 0.742, object 64 / hidden 256 x 3 0.723 (larger ones overfit).
     pose_dim: int = 25
     bps_dim: int = 4096
-    object_dim: int = 64
-    hidden_dim: int = 256
-    num_layers: int = 3
+    object_dim: int = 8
+    hidden_dim: int = 64
+    num_layers: int = 2
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():

@@ -101,10 +101,10 @@ def encode_records(records: list[dict[str, Any]], sampler: PoseSampler) -> Criti
 
 @dataclass(frozen=True)
 class CriticTraining:
-    steps: int = 3000
+    steps: int = 2000
     batch_size: int = 512
     learning_rate: float = 1e-3
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-2
     error_weight: float = 0.5  # the position-error head's share of the loss
     eval_every: int = 250
     seed: int = 0
