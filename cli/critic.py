@@ -4,14 +4,20 @@
     gd2p critic data --split val --objects 60 --out data/critic-allegro-val
     gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val \\
         --out services/sampler/checkpoints/allegro_critic.pt
+    gd2p critic data --split test --objects 60 --out data/critic-allegro-test   # for reporting only
+    gd2p critic eval --data data/critic-allegro-test
 
 `data` labels diffusion samples: per object, one push frame at a yaw drawn from the object's seed, K = 200
 samples from the installed sampler checkpoint, `--per-object` of them pushed 20 cm by the validator's
 floating hand (what the planner's prescreen does), outcomes recorded. Objects come in the data engine's
 fixed order over the split; `--skip N` leaves out the first N (the default Allegro checkpoint was
 trained on the first 230 train objects: the critic should learn on samples as they look for objects the
-sampler never saw). Val objects are only ever used to choose the checkpoint; test objects are refused.
-Resumable: a restarted command skips the objects it has.
+sampler never saw). Val objects are only ever used to choose the checkpoint, test objects only to report
+it (`critic eval`; `critic train` refuses test data). Resumable: a restarted command skips the objects it has.
+
+`eval` reports a critic checkpoint (default: the installed one) on labelled data: ROC AUC, the success
+rate of each object's six best-scored poses and of all its poses, and that of L_dir's six (the order
+without a critic).
 
 `train` fits the critic (BPS of the object + pose -> P(success), position error) and keeps the step
 with the best ROC AUC on `--val`; it prints that AUC and the success rate of each val object's six
@@ -37,8 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     commands = parser.add_subparsers(dest="critic_command", required=True)
     data = commands.add_parser("data", help="label diffusion samples by floating-hand pushes (resumable)",
                                description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    data.add_argument("--split", choices=("train", "val"), default="train",
-                      help="objects to label (val: for choosing the checkpoint only; test is never used)")
+    data.add_argument("--split", choices=("train", "val", "test"), default="train",
+                      help="objects to label (val: for choosing the checkpoint only; test: for reporting only)")
     data.add_argument("--objects", type=positive_int, required=True, help="how many objects of the split")
     data.add_argument("--skip", type=non_negative_int, default=0, help="leave out the split's first N objects")
     data.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
@@ -56,13 +62,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--seed", type=non_negative_int, default=0)
     train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
     train.set_defaults(func=run_train)
+    report = commands.add_parser("eval", help="ROC AUC and top-6 success of a critic on labelled data",
+                                 description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    report.add_argument("--data", type=Path, required=True, help="`gd2p critic data` output")
+    report.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
+    report.add_argument("--critic", type=Path, default=None, help="critic checkpoint (default: the installed one)")
+    report.set_defaults(func=run_eval)
 
 
 def run_data(args: argparse.Namespace) -> int:
     from evaluation.critic_data import build
     from services.validator.data_engine import select_objects
 
-    ids = select_objects(args.split, allow_split=args.split == "val")[args.skip:args.skip + args.objects]
+    ids = select_objects(args.split, allow_split=args.split != "train")[args.skip:args.skip + args.objects]
     if not ids:
         print(f"gd2p critic data: the {args.split} split has no objects after the first {args.skip}", file=sys.stderr)
         return 2
@@ -87,6 +99,7 @@ def run_train(args: argparse.Namespace) -> int:
         train_critic,
     )
     from services.sampler.sampling import PoseSampler
+    from shared.world.objects import split_of
 
     torch.set_num_threads(1)
     started = time.time()
@@ -95,6 +108,10 @@ def run_train(args: argparse.Namespace) -> int:
         train_records, val_records = read_records(args.data), read_records(args.val)
     except CriticError as exc:
         print(f"gd2p critic train: {exc}", file=sys.stderr)
+        return 2
+    if any(split_of(r["object_id"]) == "test" for r in train_records + val_records):
+        print("gd2p critic train: test objects are for reporting only (`gd2p critic eval`), never for training or "
+              "choosing a checkpoint", file=sys.stderr)
         return 2
     with PoseSampler(sampler_path) as sampler:
         stale = {r["checkpoint_id"] for r in train_records + val_records} - {sampler.checkpoint_id}
@@ -110,3 +127,41 @@ def run_train(args: argparse.Namespace) -> int:
     save_critic(model, args.out, args.hand, checkpoint_id(sampler_path), manifest)
     print(json.dumps({"out": str(args.out), "best_step": result["best_step"], "val": manifest["best_val"]}))
     return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    from services.planner import ranking
+    from services.sampler.checkpoint import default_checkpoint_path
+    from services.sampler.critic_train import (
+        CriticError,
+        default_critic_path,
+        encode_records,
+        evaluate,
+        load_critic,
+        read_records,
+        top_k_success,
+    )
+    from services.sampler.sampling import PoseSampler
+    from shared.robots.hands import load_hand
+
+    torch.set_num_threads(1)
+    path = args.critic or default_critic_path(args.hand)
+    try:
+        critic = load_critic(path) if path is not None else None
+        records = read_records(args.data)
+    except CriticError as exc:
+        print(f"gd2p critic eval: {exc}", file=sys.stderr)
+        return 2
+    if critic is None:
+        print("gd2p critic eval: no critic installed ($GD2P_CRITIC_CHECKPOINT_<HAND> is 'none')", file=sys.stderr)
+        return 2
+    with PoseSampler(default_checkpoint_path(args.hand)) as sampler:
+        data = encode_records(records, sampler)
+    metrics = evaluate(critic.model, data)
+    l_dir = ranking.direction_costs(load_hand(args.hand), data.poses.double().numpy())
+    metrics["l_dir_top6_success"] = round(top_k_success(-l_dir, data.success.numpy() > 0.5, data.group.numpy()), 4)
+    print(json.dumps({"critic": str(path), "data": str(args.data), **metrics}))
+    return 0 if np.isfinite(metrics["roc_auc"]) else 1

@@ -127,13 +127,18 @@ def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, float]:
     model.eval()
     logits, _ = model(data.poses, data.bps, data.group)
     scores, labels, groups = logits.numpy(), data.success.numpy() > 0.5, data.group.numpy()
-    top, overall = [], []
+    overall = [labels[groups == g].mean() for g in np.unique(groups)]
+    return {"roc_auc": round(roc_auc(scores, labels), 4), f"top{TOP_K}_success": round(top_k_success(scores, labels, groups), 4),
+            "all_success": round(float(np.mean(overall)), 4), "poses": len(labels), "objects": len(np.unique(groups))}
+
+
+def top_k_success(scores: np.ndarray, labels: np.ndarray, groups: np.ndarray, k: int = TOP_K) -> float:
+    """The mean over objects (`groups`) of the success rate of each object's k best-scored poses."""
+    rates = []
     for g in np.unique(groups):
         rows = np.flatnonzero(groups == g)
-        top.append(labels[rows[np.argsort(-scores[rows], kind="stable")[:TOP_K]]].mean())
-        overall.append(labels[rows].mean())
-    return {"roc_auc": round(roc_auc(scores, labels), 4), f"top{TOP_K}_success": round(float(np.mean(top)), 4),
-            "all_success": round(float(np.mean(overall)), 4), "poses": len(labels), "objects": len(np.unique(groups))}
+        rates.append(labels[rows[np.argsort(-scores[rows], kind="stable")[:k]]].mean())
+    return float(np.mean(rates))
 
 
 def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = CriticTraining(),
