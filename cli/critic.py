@@ -5,6 +5,7 @@
     gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val \\
         --out services/sampler/checkpoints/allegro_critic.pt
     gd2p critic data --split test --objects 60 --out data/critic-allegro-test   # for reporting only
+    gd2p critic data --split test --family mug --objects 30 --out data/critic-allegro-test-mug   # unseen family
     gd2p critic eval --data data/critic-allegro-test
 
 `data` labels diffusion samples: per object, one push frame at a yaw drawn from the object's seed, K = 200
@@ -47,6 +48,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="objects to label (val: for choosing the checkpoint only; test: for reporting only)")
     data.add_argument("--objects", type=positive_int, required=True, help="how many objects of the split")
     data.add_argument("--skip", type=non_negative_int, default=0, help="leave out the split's first N objects")
+    data.add_argument("--family", default=None,
+                      help="only objects of this library family (e.g. mug: the family no model trains on)")
     data.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     data.add_argument("--per-object", type=positive_int, default=32, help="samples pushed per object (default 32)")
     data.add_argument("--seed", type=non_negative_int, default=0)
@@ -73,10 +76,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_data(args: argparse.Namespace) -> int:
     from evaluation.critic_data import build
     from services.validator.data_engine import select_objects
+    from shared.world.objects.catalog import resolve_library_id
 
-    ids = select_objects(args.split, allow_split=args.split != "train")[args.skip:args.skip + args.objects]
+    ids = select_objects(args.split, allow_split=args.split != "train")
+    if args.family is not None:
+        ids = [i for i in ids if resolve_library_id(i).family == args.family]
+    ids = ids[args.skip:args.skip + args.objects]
     if not ids:
-        print(f"gd2p critic data: the {args.split} split has no objects after the first {args.skip}", file=sys.stderr)
+        family = f" of family {args.family!r}" if args.family else ""
+        print(f"gd2p critic data: the {args.split} split has no objects{family} after the first {args.skip}",
+              file=sys.stderr)
         return 2
     store = build(args.out, ids, hand=args.hand, per_object=args.per_object, seed=args.seed, workers=args.workers)
     pushes = [s for r in store.records.values() for s in r["success"]]
