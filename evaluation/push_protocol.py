@@ -124,6 +124,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True),
     Method("gd2p-closed-critic-p0", "GD2P closed loop, critic order, no prescreen (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True),
+    Method("gd2p-closed-critic-p0x4", "GD2P closed loop, critic order, no prescreen, 4 plans (val candidate)", "gd2p",
+           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True),
+    Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
+           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
@@ -143,7 +147,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
                             "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
                             "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p24", "gd2p-closed-critic-p8",
-                            "gd2p-closed-critic-p0"})
+                            "gd2p-closed-critic-p0", "gd2p-closed-critic-p0x4", "gd2p-closed-critic-p0-ddim"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
 
