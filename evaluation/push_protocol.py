@@ -291,7 +291,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
     pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                                prescreen=prescreen, max_plans=max_plans, use_critic=method.critic)
+                                prescreen=prescreen, critic_prescreen=prescreen, max_plans=max_plans,
+                                use_critic=method.critic)
     world = execution_world(episode)
     _system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
@@ -326,8 +327,9 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
-    record["budget"] = [pipeline.settings.prescreen, pipeline.settings.max_plans]
     record["critic"] = pipeline.settings.use_critic and method.source == "gd2p" and _has_critic(episode.hand)
+    settings = pipeline.settings
+    record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
     return record
 
 

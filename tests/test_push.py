@@ -16,7 +16,7 @@ import pytest
 
 from client.push_client import PushFailed, push
 from shared.bus import BusConfig, live_workers, open_session
-from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest
+from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest, SampleRequest
 
 BOX = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg (test split)
 
@@ -451,6 +451,43 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
     tested = pushed.poses.to_numpy()
     assert np.allclose(rollouts[0].poses.to_numpy()[0], tested[2])
     assert np.allclose(rollouts[1].poses.to_numpy()[0], tested[1])
+
+
+def test_with_the_critic_s_scores_the_best_scored_pose_is_planned_first_and_nothing_is_prescreened():
+    """The sampler scored its samples (success_probability): the planner pushes no floating hand (the
+    default critic_prescreen is 0) and rolls out the plan of the pose the critic likes best first."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
+    from shared.contracts.messages import NDArray
+
+    liked = 5
+
+    def scored(request):
+        reply = _spatula_poses(request)
+        scores = np.full(len(reply.poses_d.to_numpy()), 0.1)
+        scores[liked] = 0.9
+        return reply.model_copy(update={"success_probability": NDArray.from_numpy(scores)})
+
+    jobs = []
+
+    def validate(job):
+        jobs.append(job)
+        return validate_here(job)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=scored, validate=validate, execute=robot.execute),
+                            PipelineSettings(max_plans=2, max_plan_rounds=1))
+    try:
+        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                 direction_deg=90.0, k=8))
+    finally:
+        pipeline.close()
+        robot.close()
+    assert jobs and all(job.with_arm for job in jobs)  # arm rollouts only: no prescreen
+    poses = scored(SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", k=8,
+                                 frame=jobs[0].frame)).poses_d.to_numpy()
+    assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked])
 
 
 def _one_plan_settings():

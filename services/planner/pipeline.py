@@ -205,28 +205,29 @@ class PushPipeline:
         `reason`: why it is made, when it is not the request's first push."""
         request = state.request
         candidates = stages.candidate_poses(state, push, self.services.sample)
+        settings = self.settings.for_candidates(candidates)
         with self.scene(request.arm, request.hand) as scene:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
             rolled_out = stages.rolls_out(request)
-            feasible = stages.screen(state, planner, candidates, push, self.settings,
-                                     self.settings.feasible_first(rolled_out))
-            planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), self.settings)
+            feasible = stages.screen(state, planner, candidates, push, settings, settings.feasible_first(rolled_out))
+            planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), settings)
             if rolled_out:
                 chosen = self._rolled_out_choice(state, planning, feasible)
             else:
                 chosen = self._first_planned(state, planning, feasible)
-        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, self.settings,
+        state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, settings,
                                      self._limits(request.arm, request.hand), reason))
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an
         "unranked" request, a random one of the same rolled-out plans."""
-        if self.settings.prescreen > 0:
+        settings = planning.settings
+        if settings.prescreen > 0:
             feasible = stages.prescreen(state, planning.planner, feasible, planning.push, self.services.validate,
-                                        self.settings)
-        ranked = stages.plan_and_rank(state, planning, feasible, self.services.validate, self.settings)
+                                        settings)
+        ranked = stages.plan_and_rank(state, planning, feasible, self.services.validate, settings)
         if state.request.choice == "unranked":
             ranked = [ranked[i] for i in np.random.default_rng(state.seed).permutation(len(ranked))]
         started = time.perf_counter()
