@@ -59,8 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="a cylinder obstacle on the table (repeatable)")
     parser.add_argument("--k", type=positive_int, default=200, help="candidate hand poses sampled (default %(default)s)")
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
-    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
-                        help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddim",
+                        help="diffusion sampler for --method gd2p: the DDIM-10 fast path (default) or the paper's DDPM-100")
     parser.add_argument("--choice", choices=("ranked", "unranked", "random"), default="ranked",
                         help="how the executed plan is chosen: ranked by arm rollouts (GD2P, default); unranked: "
                              "the same rolled-out plans, one drawn at random (the ranking ablation); random: a "

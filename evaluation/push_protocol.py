@@ -87,7 +87,7 @@ class Method:
     # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the
     # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
     budget: tuple[int, int] | None = None
-    sampler: str = "ddpm"  # PushRequest.sampler: the diffusion sampler ("ddim": 10 denoising steps)
+    sampler: str | None = None  # PushRequest.sampler: the diffusion sampler (None: the request's default)
     critic: bool | None = None  # order candidates by the sampler's success critic (None: as the planner does)
 
 
@@ -111,21 +111,22 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-closed-looser", "GD2P closed loop, 6 cm / 35° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.06, 35.0, 40.0)),
     # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
-    Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=False),
+    # The pipeline as it was before issue 18: no critic, 24 prescreen pushes, DDPM-100.
+    Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans, no critic, DDPM", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=False, sampler="ddpm"),
     Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(12, 4)),
+           corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddpm"),
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
     # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
     Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order, prescreen 24 (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True),
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p8", "GD2P closed loop, critic order, prescreen 8 (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True),
+           corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0", "GD2P closed loop, critic order, no prescreen (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True),
+           corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0x4", "GD2P closed loop, critic order, no prescreen, 4 plans (val candidate)", "gd2p",
-           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True),
+           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
@@ -227,7 +228,7 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
                   physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
-                  sampler=method.sampler)
+                  **({} if method.sampler is None else {"sampler": method.sampler}))
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
@@ -327,6 +328,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
+    record["sampler"] = push_request(episode).sampler if method.source == "gd2p" else None
     record["critic"] = pipeline.settings.use_critic and method.source == "gd2p" and _has_critic(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
