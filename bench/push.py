@@ -6,8 +6,8 @@ The system runs as `gd2p up` brings it up (`deploy.launcher`: an embedded router
 per service, one validator per core unless `--validators`); each request goes through the push
 client exactly as `gd2p push` sends it, one at a time (the next once the previous storyboard is
 rendered). Start-up is not timed. K = 200 candidate poses from the diffusion sampler
-(method "gd2p"; DDIM-10 as a push request's default, `--sampler ddpm` for the paper's DDPM-100), scored by the
-shipped success critic, when an Allegro checkpoint is at the default
+(method "gd2p"; `--sampler ddim --critic` for the fast path: the success critic's order, no prescreen) when an
+Allegro checkpoint is at the default
 path, else the fixed spatula pose (method "fixed", one candidate) — the JSON says which. Stages
 (from the response's timings): sampling, ik (batched IK + collision and push-line screen),
 prescreen (floating-hand pushes of the best-aligned feasible poses), planning (RRTConnect +
@@ -74,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     parser.add_argument("--k", type=int, default=200)
     parser.add_argument("--method", choices=("auto", "gd2p", "fixed"), default="auto")
-    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddim",
-                        help="diffusion sampler of method gd2p (default DDIM-10, as PushRequest; ddpm: the paper's)")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
+                        help="diffusion sampler of method gd2p (DDIM-10: the fast path)")
+    parser.add_argument("--critic", action="store_true", help="PushRequest.critic: the critic's order, no prescreen")
     parser.add_argument("--record-dir", default="/tmp/gd2p-bench-push")
     parser.add_argument("--validators", type=int, default=None,
                         help="validator processes (default: one per core, as `gd2p up`)")
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         for object_id in OBJECTS:
             for direction in DIRECTIONS_DEG:
                 request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, k=args.k,
-                                      method=method, sampler=args.sampler)
+                                      method=method, sampler=args.sampler, critic=args.critic)
                 started = time.perf_counter()
                 try:
                     response = push(request, cfg, timeout_s=300.0)
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
 
     summary = {
         "machine": machine(), "date": time.strftime("%Y-%m-%d"), "code": code_version(),
-        "method": method, "sampler": args.sampler if method == "gd2p" else None, "validators": args.validators or os.cpu_count(), "k": args.k if method == "gd2p" else 1, "requests": len(rows),
+        "method": method, "sampler": args.sampler if method == "gd2p" else None, "critic": args.critic, "validators": args.validators or os.cpu_count(), "k": args.k if method == "gd2p" else 1, "requests": len(rows),
         "success": sum(r["success"] for r in rows), "success_rate": round(sum(r["success"] for r in rows) / len(rows), 3),
         "infeasible": sum(r.get("error") == "infeasible" for r in rows),
         "latency_s": {"p50": percentile(totals, 50), "p95": percentile(totals, 95), "target_p50": 3.0},

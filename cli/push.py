@@ -34,7 +34,8 @@ CONNECT_TIMEOUT_MS = 3000
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
          "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler", "choice": "--choice",
-         "physics_draws": "--physics-draws", "corrections": "--corrections", "closed_loop": "--closed-loop"}
+         "physics_draws": "--physics-draws", "corrections": "--corrections", "closed_loop": "--closed-loop",
+         "critic": "--critic"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -59,8 +60,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="a cylinder obstacle on the table (repeatable)")
     parser.add_argument("--k", type=positive_int, default=200, help="candidate hand poses sampled (default %(default)s)")
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
-    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddim",
-                        help="diffusion sampler for --method gd2p: the DDIM-10 fast path (default) or the paper's DDPM-100")
+    parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
+                        help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
+    parser.add_argument("--critic", action="store_true",
+                        help="order the samples by the success critic and skip the prescreen pushes (faster; "
+                             "see PushRequest.critic for what it costs in success)")
     parser.add_argument("--choice", choices=("ranked", "unranked", "random"), default="ranked",
                         help="how the executed plan is chosen: ranked by arm rollouts (GD2P, default); unranked: "
                              "the same rolled-out plans, one drawn at random (the ranking ablation); random: a "
@@ -128,7 +132,7 @@ def build_request(args: argparse.Namespace):
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
                        k=args.k, choice=args.choice, seed=args.seed, method=args.method,
-                       sampler=args.sampler, physics_draws=args.physics_draws,
+                       sampler=args.sampler, critic=args.critic, physics_draws=args.physics_draws,
                        **({} if args.corrections is None else {"corrections": args.corrections}),
                        **({} if args.closed_loop is None else {"closed_loop": args.closed_loop}))
 

@@ -88,7 +88,7 @@ class Method:
     # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
     budget: tuple[int, int] | None = None
     sampler: str | None = None  # PushRequest.sampler: the diffusion sampler (None: the request's default)
-    critic: bool | None = None  # order candidates by the sampler's success critic (None: as the planner does)
+    critic: bool = False  # PushRequest.critic: the success critic's order (and its prescreen budget)
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
@@ -113,7 +113,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
     # The pipeline as it was before issue 18: no critic, 24 prescreen pushes, DDPM-100.
     Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans, no critic, DDPM", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=False, sampler="ddpm"),
+           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), sampler="ddpm"),
     Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddpm"),
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
@@ -129,6 +129,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
+    # The fast path (issue 18) as a request asks for it: critic=True, sampler="ddim" (no prescreen pushes).
+    Method("gd2p-closed-fast", "GD2P closed loop, fast path (critic order, no prescreen, DDIM)", "gd2p", "ranked",
+           corrections=CORRECTIONS, closed_loop=True, critic=True, sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
@@ -228,6 +231,7 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
                   physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
+                  critic=method.critic,
                   **({} if method.sampler is None else {"sampler": method.sampler}))
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
@@ -292,8 +296,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
     pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                                prescreen=prescreen, critic_prescreen=prescreen, max_plans=max_plans,
-                                use_critic=method.critic)
+                                prescreen=prescreen, critic_prescreen=prescreen, max_plans=max_plans)
     world = execution_world(episode)
     _system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
@@ -329,7 +332,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
     record["sampler"] = push_request(episode).sampler if method.source == "gd2p" else None
-    record["critic"] = pipeline.settings.use_critic and method.source == "gd2p" and _has_critic(episode.hand)
+    record["critic"] = method.critic and method.source == "gd2p" and _has_critic(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
     return record

@@ -454,8 +454,8 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
 
 
 def test_with_the_critic_s_scores_the_best_scored_pose_is_planned_first_and_nothing_is_prescreened():
-    """The sampler scored its samples (success_probability): the planner pushes no floating hand (the
-    default critic_prescreen is 0) and rolls out the plan of the pose the critic likes best first."""
+    """A request asking for the critic's order whose samples the sampler scored (success_probability): the
+    planner pushes no floating hand (critic_prescreen is 0) and rolls out the plan of the best-scored pose first."""
     from evaluation.local_system import LocalRobot, validate_here
     from services.planner.pipeline import PushPipeline, PushServices
     from services.planner.stages import PipelineSettings
@@ -480,7 +480,7 @@ def test_with_the_critic_s_scores_the_best_scored_pose_is_planned_first_and_noth
                             PipelineSettings(max_plans=2, max_plan_rounds=1))
     try:
         pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, k=8))
+                                 direction_deg=90.0, k=8, critic=True))
     finally:
         pipeline.close()
         robot.close()

@@ -205,7 +205,7 @@ class PushPipeline:
         `reason`: why it is made, when it is not the request's first push."""
         request = state.request
         candidates = stages.candidate_poses(state, push, self.services.sample)
-        settings = self.settings.for_candidates(candidates)
+        settings = self.settings.for_push(request, candidates)
         with self.scene(request.arm, request.hand) as scene:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])

@@ -85,17 +85,10 @@ class PipelineSettings:
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
-    # Rolled-out requests consider the candidates in the order of the sampler's success critic, when it
-    # scored them (best first), instead of by L_dir alone.
-    use_critic: bool = True
 
-    def orders_by_critic(self, candidates: Candidates) -> bool:
-        """Whether a rolled-out request considers these candidates in the critic's order (it scored them)."""
-        return self.use_critic and candidates.p_success is not None
-
-    def for_candidates(self, candidates: Candidates) -> PipelineSettings:
+    def for_push(self, request: PushRequest, candidates: Candidates) -> PipelineSettings:
         """The settings of a push of these candidates: `critic_prescreen` pushes when they are in the critic's order."""
-        return dataclasses.replace(self, prescreen=self.critic_prescreen) if self.orders_by_critic(candidates) else self
+        return dataclasses.replace(self, prescreen=self.critic_prescreen) if orders_by_critic(request, candidates) else self
 
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
@@ -188,7 +181,7 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     first of them, so the result is that of screening all K, at a quarter of the IK time when the first
     chunk is enough. `screen_more` goes on from where it stopped.
     """
-    order = priority(state, candidates, settings)
+    order = priority(state, candidates)
     empty = Feasible(candidates, np.zeros(0, dtype=int), np.zeros((len(order), planner.arm.dof)),
                      [None] * len(order), unscreened=order)
     return screen_more(state, planner, empty, push, settings, needed)
@@ -218,19 +211,25 @@ def screen_more(state: RequestState, planner: MotionPlanner, feasible: Feasible,
     return Feasible(candidates, np.array(found, dtype=int), q_pre, lines, unscreened)
 
 
+def orders_by_critic(request: PushRequest, candidates: Candidates) -> bool:
+    """Whether the request's candidates are considered in the critic's order: it asks (`PushRequest.critic`),
+    its plans are rolled out, and the sampler scored them."""
+    return request.critic and rolls_out(request) and candidates.p_success is not None
+
+
 def rolls_out(request: PushRequest) -> bool:
     """Whether the request's plans are rolled out (ranked or not), i.e. not a random feasible choice."""
     return request.choice != "random"
 
 
-def priority(state: RequestState, candidates: Candidates, settings: PipelineSettings) -> np.ndarray:
+def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
     """The order in which to consider the K candidates when plans are rolled out: most likely to push well
-    first by the critic (when it scored them and `settings.use_critic`), best-aligned palms first (L_dir)
+    first by the critic (when it scored them and the request asks for it), best-aligned palms first (L_dir)
     on ties and without it; random for a random feasible choice."""
     l_dir = candidates.l_dir
     if not rolls_out(state.request):
         return np.random.default_rng(state.seed).permutation(len(l_dir))
-    if settings.orders_by_critic(candidates):
+    if orders_by_critic(state.request, candidates):
         assert candidates.p_success is not None
         return np.lexsort((l_dir, -candidates.p_success))
     return np.argsort(l_dir, kind="stable")

@@ -726,10 +726,14 @@ class PushRequest(Message):
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
     method: PoseMethod = "gd2p"
-    # The diffusion sampler for method "gd2p": the DDIM-10 fast path (default: 0.3 s less per push here; its
-    # poses validate as often, results/sampler-quality; on 84 val trials with the critic's order 84.5% vs
-    # DDPM's 83.3%), or the paper's DDPM-100.
-    sampler: DiffusionSampler = "ddim"
+    # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (0.3 s less per
+    # push here; its poses validate as often: results/sampler-quality).
+    sampler: DiffusionSampler = "ddpm"
+    # The fast path of issue 18: consider the samples in the order of the sampler's success critic (when it
+    # scored them) and push no floating hand before planning (PipelineSettings.critic_prescreen). 0.8 s less
+    # to plan with DDIM (bench/push.py: 1.64 s p50); on 84 val trials 84.5% against 81.0%, but on the 126
+    # test trials 86.5% against the default's 9x% (results/closed-loop-real-latency/): off by default.
+    critic: bool = False
     # The client's lease (`gd2p/lease/client/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
     # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.
     client_lease: str | None = Field(default=None, min_length=1, max_length=256)
