@@ -73,9 +73,9 @@ class PipelineSettings:
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
     prescreen: int = 24  # feasible poses pushed by a floating hand before planning (0: off); see `prescreen`
-    # ... when the candidates come in the success critic's order instead. Val objects (84 trials each, real
-    # world, closed loop): critic + no prescreen 83.3%, + 8 pushes 83.3%, + 24 84.5%; no critic + 24 81.0%.
-    # No prescreen is the fastest of them (bench/push.py: 0.4 s less to plan than 8 pushes).
+    # ... when the candidates come in the success critic's order instead (PushRequest.critic, the fast path).
+    # Val objects (84 trials each, real world, closed loop): critic + no prescreen 83.3%, + 8 pushes 83.3%,
+    # + 24 84.5%; no critic + 24 81.0%. No prescreen is the fastest (bench/push.py: 0.4 s less than 8 pushes).
     critic_prescreen: int = 0
     max_plan_attempts: int = 10  # poses planned per round before giving up
     # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
