@@ -729,7 +729,7 @@ class PushRequest(Message):
     # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (0.3 s less per
     # push here; its poses validate as often: results/sampler-quality).
     sampler: DiffusionSampler = "ddpm"
-    # The fast path of issue 18: consider the samples in the order of the sampler's success critic (when it
+    # The fast path to a plan: consider the samples in the order of the sampler's success critic (when it
     # scored them) and push no floating hand before planning (PipelineSettings.critic_prescreen). With DDIM,
     # 1.2 s less to plan (bench/push.py: 1.64 s p50); on 84 val trials 84.5% against 81.0%, but on the 126
     # test trials 86.5% against the default's 90.5% (results/closed-loop-real-latency/): off by default.
