@@ -60,13 +60,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
     parser.add_argument("--split", choices=("test", "val"), default="test",
                         help="methods / leap / closed-loop: the 14 test objects (default, for reporting) or 14 val objects (for "
-                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test)")
+                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test); "
+                             "sampler-quality: the whole test or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
                              "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser); "
                              "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-closed, "
                              "gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
-                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked")
+                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="sampler-quality: the diffusion checkpoint to measure (default the shipped one); name its "
+                             "results with --tag")
+    parser.add_argument("--nn-index", type=Path, default=None,
+                        help="sampler-quality: the nearest-neighbour index to measure (default the shipped one)")
+    parser.add_argument("--yaw", choices=("zero", "random"), default="zero",
+                        help="sampler-quality: each object at yaw 0 in the push frame (default, the paper's protocol) or "
+                             "turned by a seeded random yaw (<out>/sampler-quality[-val]-random-yaw/)")
+    parser.add_argument("--objects", type=int, default=None,
+                        help="sampler-quality: only this many objects of the split, one shape family after another "
+                             "(default: all of them)")
+    parser.add_argument("--tag", default=None,
+                        help="sampler-quality: suffix of the results directory, for a non-shipped --checkpoint")
     parser.add_argument("--closed-loop", action="store_true",
                         help="multistep: watch every push and stop it when the object strays from its predicted "
                              "path (PushRequest.closed_loop), into <out>/multistep-<world>-closed/")
@@ -75,13 +89,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _method_list(text: str) -> tuple[str, ...]:
     from evaluation.push_protocol import METHODS
+    from evaluation.sampler_quality import METHOD_KEYS
 
     names = tuple(n.strip() for n in text.split(",") if n.strip())
-    unknown = [n for n in names if n not in METHODS]
+    unknown = [n for n in names if n not in METHODS and n not in METHOD_KEYS]
     if not names or unknown:
         raise argparse.ArgumentTypeError(f"unknown method(s) {', '.join(unknown) or '(none given)'}; "
-                                         f"known: {', '.join(METHODS)}")
+                                         f"known: {', '.join(METHODS)}; sampler-quality: {', '.join(METHOD_KEYS)}")
     return names
+
+
+def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) -> str | None:
+    """Why `--methods` does not fit the experiments run, or None."""
+    from evaluation.push_protocol import METHODS
+    from evaluation.sampler_quality import METHOD_KEYS
+
+    if methods is None:
+        return None
+    for name in experiments:
+        known = METHOD_KEYS if name == "sampler-quality" else METHODS if name in TRIAL_EXPERIMENTS else None
+        wrong = [m for m in methods if known is not None and m not in known]
+        if wrong:
+            return f"{name} has no method(s) {', '.join(wrong)}; its methods: {', '.join(known)}"
+    return None
+
+
+def _sampler_quality_options(args: argparse.Namespace) -> dict:
+    options = {"split": args.split, "checkpoint": args.checkpoint, "nn_index": args.nn_index, "yaw": args.yaw,
+               "tag": args.tag, "objects": args.objects}
+    if args.methods is not None:
+        options["methods_to_run"] = args.methods
+    return options
 
 
 def experiment_function(name: str):
@@ -90,6 +128,7 @@ def experiment_function(name: str):
 
 
 def run(args: argparse.Namespace) -> int:
+    from evaluation.coverage import CoverageError
     from evaluation.report import write_index
     from evaluation.store import ResultStoreError
 
@@ -103,6 +142,9 @@ def run(args: argparse.Namespace) -> int:
         print("gd2p eval: --trials must be >= 1", file=sys.stderr)
         return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    if (refusal := _methods_refusal(args.methods, names)) is not None:
+        print(f"gd2p eval: {refusal}", file=sys.stderr)
+        return 2
     for name in names:
         options = {"trials": args.trials} if args.trials is not None and name in TRIAL_EXPERIMENTS else {}
         if name in WORLD_EXPERIMENTS:
@@ -115,9 +157,11 @@ def run(args: argparse.Namespace) -> int:
             options["split"] = args.split
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
+        if name == "sampler-quality":
+            options.update(_sampler_quality_options(args))
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
-        except ResultStoreError as exc:
+        except (ResultStoreError, CoverageError) as exc:
             print(f"gd2p eval {name}: {exc}", file=sys.stderr)
             return 2
         print(f"{name}: {report}")

@@ -80,6 +80,10 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--object-dim", type=positive_int, default=128, help="the BPS is compressed to this before FiLM")
     parser.add_argument("--val-every", type=positive_int, default=500, help="steps between validation losses")
     parser.add_argument("--checkpoint-every", type=positive_int, default=1000, help="steps between saved training states")
+    parser.add_argument("--snapshot-every", type=int, default=0,
+                        help="also write the EMA weights every this many steps as OUT-stem.stepN.pt (to choose a step "
+                             "by the validated fraction on val objects: `gd2p eval sampler-quality --split val "
+                             "--checkpoint ...`); default 0: only the final checkpoint")
     parser.add_argument("--half", action="store_true", help="ship fp16 weights (half the file size)")
     parser.add_argument("--device", default="auto", help="auto (GPU if present), cpu, cuda, cuda:N")
     parser.add_argument("--threads", type=positive_int, default=1,
@@ -106,7 +110,7 @@ def run_train(args: argparse.Namespace) -> int:
                              seed=args.seed, model=DenoiserConfig(hidden_dim=args.hidden_dim, num_blocks=args.num_blocks,
                                                                   object_dim=args.object_dim))
         options = RunOptions(device=args.device, val_every=max(1, args.val_every), checkpoint_every=max(1, args.checkpoint_every),
-                             half=args.half, progress=not args.no_progress, resume=not args.restart,
+                             snapshot_every=max(0, args.snapshot_every), half=args.half, progress=not args.no_progress, resume=not args.restart,
                              command=shlex.join(["gd2p", *sys.argv[1:]]), should_stop=interrupted)
         with interrupted.on_sigint():
             result = train(args.dataset, args.hand, args.out, config, options)

@@ -4,7 +4,8 @@ The shared measurement behind the data-size experiment (paper Table "objects wit
 pose") and the sampler-quality benchmark. For every object:
 
 1. the object rests in its default pose at the origin and is pushed along +x (`default_frame`), so
-   D = world and the measurement does not depend on a random placement;
+   D = world; with `yaw="random"` it is first turned about z by a yaw drawn from (settings seed,
+   object id) alone, as an object placed by a user would be (the version-1 data only ever saw yaw 0);
 2. the pose source draws `samples` poses (200, the paper's count) for it in D, seeded from
    (settings seed, object id) so a record never depends on scheduling or on other objects;
 3. the poses are pushed in order in the floating-hand validator with its default physics — the
@@ -51,6 +52,7 @@ CHUNK_POSES = 25  # then pushed this many at a time until one succeeds
 HAND = "allegro"  # the hand the coverage experiments measure (the shipped Allegro checkpoint and dataset)
 DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "data" / f"{HAND}-train"
 TARGET_COVERED_PCT = 75.0  # target: test objects with >= 1 validated pose of 200 samples
+COVERAGE_YAWS = ("zero", "random")
 
 
 class CoverageError(ValueError):
@@ -67,8 +69,11 @@ class CoverageSettings:
     chunk: int = CHUNK_POSES
     seed: int = 0
     hand: str = HAND
+    yaw: str = "zero"  # "zero": yaw 0 in D (the paper's protocol); "random": a seeded yaw per object
 
     def __post_init__(self) -> None:
+        if self.yaw not in COVERAGE_YAWS:
+            raise CoverageError(f"yaw must be one of {', '.join(COVERAGE_YAWS)}, got {self.yaw!r}")
         if self.samples < 1 or self.fraction_poses < 1 or self.chunk < 1:
             raise CoverageError(f"samples, fraction_poses and chunk must be >= 1; got {self.samples}, "
                                 f"{self.fraction_poses}, {self.chunk}")
@@ -76,13 +81,35 @@ class CoverageSettings:
             raise CoverageError(f"fraction_poses ({self.fraction_poses}) cannot exceed samples ({self.samples})")
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        settings = dataclasses.asdict(self)
+        if self.yaw == "zero":
+            del settings["yaw"]  # the pin of the stores made before the setting existed
+        return settings
 
 
-def object_seed(seed: int, object_id: str) -> int:
+def object_seed(seed: int, object_id: str, purpose: str = "") -> int:
     """The sampling seed of one object: from (settings seed, object id) only, never from scheduling."""
-    digest = hashlib.sha256(f"gd2p-coverage:{seed}:{object_id}".encode()).digest()
+    digest = hashlib.sha256(f"gd2p-coverage:{seed}:{object_id}{purpose}".encode()).digest()
     return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+def object_yaw_rad(settings: CoverageSettings, object_id: str) -> float:
+    """The object's yaw in D: 0, or with `yaw="random"` uniform in [-pi, pi) from (seed, object id)."""
+    if settings.yaw == "zero":
+        return 0.0
+    return float(np.random.default_rng(object_seed(settings.seed, object_id, ":yaw")).uniform(-math.pi, math.pi))
+
+
+def coverage_frame(obj: Any, settings: CoverageSettings, object_id: str) -> Any:
+    """The frame an object is measured in: default resting pose at the origin, turned, pushed along +x."""
+    from services.sampler.sampling import default_frame
+    from shared.contracts.messages import DirectionFrame
+    from shared.world.push_outcome import object_pose
+
+    yaw = object_yaw_rad(settings, object_id)
+    if yaw == 0.0:
+        return default_frame(obj)
+    return DirectionFrame(object_pose=object_pose(obj.T_D_O(None, yaw)), yaw_deg=0.0)
 
 
 # ----------------------------------------------------------------------------- pose sources
@@ -247,14 +274,13 @@ def _hand(name: str):
 
 def measure_object(source: PoseSource, object_id: str, settings: CoverageSettings) -> dict[str, Any]:
     """Sample, push with early stopping, and return the object's coverage record."""
-    from services.sampler.sampling import default_frame
     from services.validator.push import table_object
     from shared.frames import object_yaw_in_d
     from shared.world.objects import load_object
 
     started = time.perf_counter()
     obj = load_object(object_id)
-    frame = default_frame(obj)
+    frame = coverage_frame(obj, settings, object_id)
     poses = np.asarray(source.poses(obj, frame, settings.samples, object_seed(settings.seed, object_id)), dtype=np.float64)
     placed = table_object(obj, None, yaw_rad=object_yaw_in_d(frame, obj.default_pose.rotation))
     validator, hand = _validator(), _hand(settings.hand)

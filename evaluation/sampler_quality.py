@@ -7,6 +7,10 @@ evaluation/coverage.py for the protocol and its exact early stopping). Reported 
 fraction of sampled poses that validate (over each object's first 50 poses; mean over objects and
 pooled over all pushes) and the number of objects with >= 1 validated pose out of 200. The paper's
 anchor: 169 of 300 unseen objects (56%); the target: >= 75%.
+
+The same measurement chooses among trained checkpoints on the val split (`split="val"`, a
+`checkpoint` and a `tag`), and `yaw="random"` turns every object by a seeded yaw first, as a user
+places objects (the shipped version-1 model only ever saw yaw 0).
 """
 from __future__ import annotations
 
@@ -28,15 +32,18 @@ from evaluation.coverage import (
     DiffusionSource,
     NearestNeighborSource,
     PoseSource,
+    pose_trials,
     summarize,
 )
 from evaluation.report import markdown_table, write_experiment
+from evaluation.stats import difference_interval, success_interval
 from evaluation.store import ResultStore
 
 NAME = "sampler-quality"
-TITLE = "Sampler quality on the test split"
 QUICK_OBJECTS = 8
 PAPER_COVERED, PAPER_OBJECTS = 169.33, 300
+METHOD_KEYS = ("ddpm100", "ddim10", "nn")  # record-key prefixes, in table order
+SPLITS = ("test", "val")
 
 
 def shipped_checkpoint() -> Path:
@@ -72,29 +79,55 @@ def nearest_neighbor_index(cache_dir: Path, dataset_dir: Path = DEFAULT_DATASET,
     return NearestNeighborBaseline.from_directory(dataset_dir, HAND, bps=bps, progress=True).save(built)
 
 
-def quality_objects(quick: bool = False) -> list[str]:
-    """The test split's object ids (the first QUICK_OBJECTS with `quick`)."""
+def quality_objects(quick: bool = False, split: str = "test", count: int | None = None) -> list[str]:
+    """The split's object ids (the first QUICK_OBJECTS with `quick`).
+
+    `count`: that many, taken one per shape family in turn (so a subset for choosing among
+    checkpoints weighs every family, including the everyday ones, alike).
+    """
     from shared.world.objects import list_object_ids
 
-    ids = list_object_ids("test")
-    return ids[:QUICK_OBJECTS] if quick else ids
+    if split not in SPLITS:
+        raise CoverageError(f"split must be one of {', '.join(SPLITS)}, got {split!r} (never measure on train objects)")
+    ids = list_object_ids(split)
+    if quick:
+        return ids[:QUICK_OBJECTS]
+    if count is None:
+        return ids
+    if count < 1:
+        raise CoverageError(f"the object count must be >= 1, got {count}")
+    families: dict[str, list[str]] = {}
+    for object_id in ids:
+        families.setdefault(family_of(object_id), []).append(object_id)
+    interleaved = [members[i] for i in range(max(map(len, families.values())))
+                   for _, members in sorted(families.items()) if i < len(members)]
+    return interleaved[:count]
 
 
-def methods(checkpoint: Path, nn_index: Path) -> dict[str, PoseSource]:
+def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = METHOD_KEYS) -> dict[str, PoseSource]:
     """Record-key prefix -> pose source, in table order."""
-    return {
+    unknown = [k for k in keys if k not in METHOD_KEYS]
+    if unknown or not keys:
+        raise CoverageError(f"unknown sampler-quality method(s) {unknown or '(none)'}; known: {', '.join(METHOD_KEYS)}")
+    every = {
         "ddpm100": DiffusionSource(str(checkpoint), "ddpm"),
         "ddim10": DiffusionSource(str(checkpoint), "ddim"),
         "nn": NearestNeighborSource(str(nn_index)),
     }
+    return {k: every[k] for k in METHOD_KEYS if k in keys}
 
 
-def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings) -> dict[str, Any]:
-    """What the store pins: the objects, the exact weights and index, and the protocol."""
+def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings,
+                keys: Sequence[str] = METHOD_KEYS) -> dict[str, Any]:
+    """What the store pins: the objects, the exact weights and index, and the protocol.
+
+    The methods are not pinned: a run can be extended with another method later (each method's
+    records are keyed by its own prefix).
+    """
     from services.sampler.checkpoint import checkpoint_id
 
     return {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
-            "methods": ["ddpm100", "ddim10", "nn"], "coverage": coverage.to_dict()}
+            "methods": list(METHOD_KEYS), "coverage": coverage.to_dict()}
 
 
 def index_fingerprint(path: Path) -> str:
@@ -107,65 +140,129 @@ def index_fingerprint(path: Path) -> str:
     return digest.hexdigest()[:16]
 
 
-def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
-    """Measure the three methods on the test split into `out/sampler-quality/`; returns the report path."""
+def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str | None = None) -> Path:
+    """`<out>/sampler-quality[-val][-random-yaw][-TAG]/`: one store per split, placement and model."""
+    name = NAME + ("-val" if split == "val" else "") + ("-random-yaw" if yaw == "random" else "")
+    return Path(out) / (f"{name}-{tag}" if tag else name)
+
+
+def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
+        nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = METHOD_KEYS,
+        tag: str | None = None, objects: int | None = None) -> Path:
+    """Measure the pose sources on a split into `result_directory(...)`; returns the report path.
+
+    `checkpoint` / `nn_index`: the model and index to measure (default the shipped ones); a run of
+    another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val).
+    """
     started = time.perf_counter()
-    directory = Path(out) / NAME
+    directory = result_directory(out, split, yaw, tag)
     directory.mkdir(parents=True, exist_ok=True)
-    checkpoint = shipped_checkpoint()
+    checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     if not checkpoint.is_file():
-        raise CoverageError(f"no shipped {HAND} checkpoint at {checkpoint}")
-    nn_index = nearest_neighbor_index(directory)
-    objects = quality_objects(quick)
-    coverage = CoverageSettings(hand=HAND)
-    store = ResultStore(directory, settings_of(objects, checkpoint, nn_index, coverage))
+        raise CoverageError(f"no {HAND} checkpoint at {checkpoint}")
+    nn_index = Path(nn_index) if nn_index is not None else nearest_neighbor_index(directory)
+    if not nn_index.is_file():
+        raise CoverageError(f"no nearest-neighbour index at {nn_index}")
+    object_ids = quality_objects(quick, split, objects)
+    coverage = CoverageSettings(hand=HAND, yaw=yaw)
+    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage))
     results: dict[str, list[dict[str, Any]]] = {}
-    sources = methods(checkpoint, nn_index)
+    sources = methods(checkpoint, nn_index, methods_to_run)
     with CoveragePool(workers) as pool:
         for key, source in sources.items():
-            results[key] = pool.measure(source, objects, store, key, coverage, desc=source.label())
-    summaries = {key: summarize(records) for key, records in results.items()}
+            results[key] = pool.measure(source, object_ids, store, key, coverage, desc=source.label())
+    summaries = {key: summarize_with_interval(records) for key, records in results.items()}
     plot = plot_validated_fractions(results, sources, directory / "validated_fraction.png")
-    body = report_body(summaries, sources, results, objects, nn_index, plot.name)
-    summary = {"objects": len(objects), "methods": {sources[k].label(): v for k, v in summaries.items()},
+    body = report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw)
+    summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "checkpoint": checkpoint.name,
+               "nn_index": nn_index.name, "methods": {sources[k].label(): v for k, v in summaries.items()},
+               "families": family_table_data(results, sources),
                "paper_anchor": {"covered": PAPER_COVERED, "objects": PAPER_OBJECTS}, "target_covered_pct": TARGET_COVERED_PCT}
-    return write_experiment(directory, TITLE, body, summary, time.perf_counter() - started, quick)
+    return write_experiment(directory, f"Sampler quality on the {split} split", body, summary,
+                            time.perf_counter() - started, quick)
 
 
 # ----------------------------------------------------------------------------- report
+def summarize_with_interval(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """`summarize` plus the pooled validated fraction's 95% interval clustered by object."""
+    interval = success_interval(pose_trials(records))
+    return {**summarize(records), "pooled_validated_fraction_ci": [interval.low, interval.high]}
+
+
+def family_of(object_id: str) -> str:
+    return object_id.rsplit("-", 1)[0]
+
+
+def family_table_data(results: dict[str, list[dict[str, Any]]], sources: dict[str, PoseSource]) -> dict[str, dict[str, Any]]:
+    """Per shape family and method: objects, pooled validated fraction, objects covered."""
+    table: dict[str, dict[str, Any]] = {}
+    for key, records in results.items():
+        by_family: dict[str, list[dict[str, Any]]] = {}
+        for record in records:
+            by_family.setdefault(family_of(record["object"]), []).append(record)
+        for family, members in sorted(by_family.items()):
+            s = summarize(members)
+            table.setdefault(family, {})[sources[key].label()] = {
+                "objects": s["objects"], "pooled_validated_fraction": s["pooled_validated_fraction"], "covered": s["covered"]}
+    return table
+
+
 def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource], results: dict[str, list[dict[str, Any]]],
-                objects: Sequence[str], nn_index: Path, plot_name: str) -> str:
-    rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}", f"{s['pooled_validated_fraction']:.1%}",
+                objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
+                yaw: str = "zero") -> str:
+    rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
+             f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
+             f"{s['pooled_validated_fraction_ci'][1]:.1%}]",
              f"{s['covered']} / {s['objects']}", f"{s['covered_pct']:.1f}%", s["pushes"], f"{s['seconds']:.0f}"]
             for k, s in summaries.items()]
-    table = markdown_table(["method", "validated fraction (mean over objects)", "validated fraction (pooled)",
+    table = markdown_table(["method", "validated fraction (mean over objects)", "validated fraction (pooled, 95% CI by object)",
                             "objects with >= 1 validated pose", "% of objects", "pushes", "worker-seconds"], rows)
-    nn_counts = [r["n_poses"] for r in results["nn"]]
-    return (f"{len(objects)} objects of the test split (never trained on), the shipped `{HAND}` checkpoint; "
-            f"each object rests in its default pose and is pushed 0.20 m along +x by the floating hand "
-            f"(validator default physics, the data engine's criterion).\n\n{table}\n"
-            f"{verdict(summaries)}\n\n"
+    placement = ("rests in its default pose, turned about z by a yaw drawn per object (seeded), and is pushed 0.20 m "
+                 "along +x" if yaw == "random" else "rests in its default pose and is pushed 0.20 m along +x")
+    split_text = "the test split (never trained on)" if split == "test" else "the val split (for choosing; never trained on)"
+    nn_text = ""
+    if "nn" in results:
+        nn_counts = [r["n_poses"] for r in results["nn"]]
+        nn_text = (f"The Nearest Neighbor baseline returns the stored poses of the training frame nearest in BPS: "
+                   f"{np.mean(nn_counts):.0f} per object on average (min {min(nn_counts)}, max {max(nn_counts)}); "
+                   f"its index: `{nn_index.name}`. ")
+    return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
+            f"floating hand (validator default physics, the data engine's criterion).\n\n{table}\n"
+            f"{verdict(summaries, results)}\n\n"
+            f"By shape family (pooled validated fraction; objects with >= 1 validated pose):\n\n"
+            f"{family_markdown(family_table_data(results, sources))}\n"
             "Protocol: 200 poses per object (seeded per object); the first 50 are all pushed (validated fraction); "
             "then 25 at a time until one succeeds (>= 1 validated pose of 200 — early stopping gives exactly the "
-            "count that pushing all 200 would). The Nearest Neighbor baseline returns the stored poses of the training "
-            f"frame nearest in BPS: {np.mean(nn_counts):.0f} per object on average (min {min(nn_counts)}, max "
-            f"{max(nn_counts)}), fewer than 200; its index: `{nn_index.name}`. \"worker-seconds\" sums the per-object "
+            f"count that pushing all 200 would). {nn_text}\"worker-seconds\" sums the per-object "
             "time (sampling + pushes) over the worker processes.\n\n"
             f"![validated fraction per object]({plot_name})\n")
 
 
-def verdict(summaries: dict[str, dict[str, Any]]) -> str:
-    """Sentences comparing DDPM-100 with the paper's anchor, the target, DDIM-10 and the NN baseline."""
-    ddpm, ddim, nn = summaries["ddpm100"], summaries["ddim10"], summaries["nn"]
-    paper_pct = 100.0 * PAPER_COVERED / PAPER_OBJECTS
+def family_markdown(families: dict[str, dict[str, Any]]) -> str:
+    labels = list(dict.fromkeys(label for per in families.values() for label in per))
+    rows = [[family, str(next(iter(per.values()))["objects"])]
+            + [f"{per[l]['pooled_validated_fraction']:.0%}; {per[l]['covered']}" if l in per else "-" for l in labels]
+            for family, per in families.items()]
+    return markdown_table(["family", "objects", *labels], rows)
+
+
+def verdict(summaries: dict[str, dict[str, Any]], results: dict[str, list[dict[str, Any]]]) -> str:
+    """Sentences comparing DDPM-100 with the target, and each other method with it (paired by object)."""
+    if "ddpm100" not in summaries:
+        return ""
+    ddpm = summaries["ddpm100"]
     gap = ddpm["covered_pct"] - TARGET_COVERED_PCT
     target = (f"meets the >= {TARGET_COVERED_PCT:.0f}% target" if gap >= 0
               else f"misses the >= {TARGET_COVERED_PCT:.0f}% target by {-gap:.1f} points")
-    return (f"DDPM-100 has >= 1 validated pose on {ddpm['covered_pct']:.1f}% of the test objects (paper: "
-            f"{PAPER_COVERED:.0f} of {PAPER_OBJECTS}, {paper_pct:.0f}%), which {target}. "
-            f"DDIM-10 validates {ddim['pooled_validated_fraction']:.1%} of its poses against DDPM-100's "
-            f"{ddpm['pooled_validated_fraction']:.1%} and covers {ddim['covered']} objects against {ddpm['covered']}; "
-            f"Nearest Neighbor validates {nn['pooled_validated_fraction']:.1%} and covers {nn['covered']}.")
+    sentences = [f"DDPM-100 has >= 1 validated pose on {ddpm['covered_pct']:.1f}% of the objects (paper: "
+                 f"{PAPER_COVERED:.0f} of {PAPER_OBJECTS}, {100.0 * PAPER_COVERED / PAPER_OBJECTS:.0f}%), which {target}."]
+    for key, name in (("ddim10", "DDIM-10"), ("nn", "Nearest Neighbor")):
+        if key in summaries:
+            diff = difference_interval(pose_trials(results["ddpm100"]), pose_trials(results[key]))
+            sentences.append(f"{name} validates {summaries[key]['pooled_validated_fraction']:.1%} and covers "
+                             f"{summaries[key]['covered']}; DDPM-100 minus {name}: {diff.points()} points "
+                             "(paired by object).")
+    return " ".join(sentences)
 
 
 def plot_validated_fractions(results: dict[str, list[dict[str, Any]]], sources: dict[str, PoseSource], path: Path) -> Path:
@@ -181,7 +278,7 @@ def plot_validated_fractions(results: dict[str, list[dict[str, Any]]], sources: 
         axis.hist([r["validated_fraction"] for r in records], bins=bins, histtype="step", linewidth=1.6,
                   label=sources[key].label())
     axis.set_xlabel("validated fraction of the object's first 50 poses")
-    axis.set_ylabel("test objects")
+    axis.set_ylabel("objects")
     axis.legend()
     axis.grid(True, alpha=0.3)
     figure.tight_layout()

@@ -216,6 +216,16 @@ def test_object_selection_is_a_fixed_order_that_larger_builds_extend():
     assert {i.split("-")[0] for i in large} == {"rnd", "proc"}  # mixed families
 
 
+def test_a_whole_split_build_interleaves_the_everyday_families_so_a_partial_build_has_them():
+    from shared.world.objects.catalog import library_generation
+
+    everything = select_objects("train")
+    assert sorted(everything) == sorted(set(everything)) and len(everything) > 1000
+    first = everything[:100]
+    assert any(library_generation(i) == 1 for i in first)  # everyday families early, not after the other 1,255
+    assert any(library_generation(i) == 0 for i in first)
+
+
 # ----------------------------------------------------------------------------- builds over the bus
 @pytest.fixture(scope="module")
 def bus():

@@ -124,3 +124,59 @@ def test_data_size_object_subset_is_fixed_and_from_the_test_split():
     assert len(set(subset)) == 20 and all(split_of(i) == "test" for i in subset)
     assert object_subset(8) == subset[:8]  # a larger subset extends a smaller one
     assert object_subset(20, seed=1) != subset
+
+
+@dataclass(frozen=True)
+class TurnedSpatulaSource:
+    """The spatula pose for the object as the frame places it (turned), from the frame alone."""
+
+    def label(self) -> str:
+        return "turned spatula"
+
+    def poses(self, obj, frame, k, seed) -> np.ndarray:
+        from evaluation.coverage import object_in_d
+
+        vertices = obj.mesh.vertices @ object_in_d(frame)[:3, :3].T + object_in_d(frame)[:3, 3]
+        return spatula_pose(load_hand("allegro"), vertices)[None]
+
+
+def test_random_yaw_turns_each_object_by_its_own_seeded_yaw_and_the_push_sees_the_same_placement():
+    from evaluation.coverage import coverage_frame, object_yaw_rad
+    from shared.frames import object_yaw_in_d
+
+    settings = CoverageSettings(samples=1, fraction_poses=1, chunk=1, yaw="random")
+    yaws = [object_yaw_rad(settings, oid) for oid in (BOX_ID, "proc-box-002", "rnd-000")]
+    assert len(set(yaws)) == 3 and all(-np.pi <= y < np.pi and y != 0.0 for y in yaws)
+    assert object_yaw_rad(CoverageSettings(), BOX_ID) == 0.0
+    assert object_yaw_rad(settings, BOX_ID) == yaws[0]  # from (seed, object) only
+
+    box = load_object(BOX_ID)
+    frame = coverage_frame(box, settings, BOX_ID)
+    turned = object_yaw_in_d(frame, box.default_pose.rotation)
+    assert np.isclose(np.angle(np.exp(1j * (turned - yaws[0]))), 0.0, atol=1e-9)
+
+    # A pose made for the turned box pushes the box the validator placed: both saw one placement.
+    record = measure_object(TurnedSpatulaSource(), BOX_ID, settings)
+    assert record["any_success"] and record["validated_fraction"] == 1.0
+
+
+def test_coverage_settings_reject_an_unknown_yaw_and_keep_the_old_pin_at_yaw_zero():
+    from evaluation.coverage import CoverageError
+
+    with pytest.raises(CoverageError, match="yaw"):
+        CoverageSettings(yaw="sideways")
+    assert "yaw" not in CoverageSettings().to_dict()  # stores made before the setting still resume
+    assert CoverageSettings(yaw="random").to_dict()["yaw"] == "random"
+
+
+def test_sampler_quality_subsets_take_every_family_in_turn_and_never_the_train_split():
+    from evaluation.coverage import CoverageError
+    from evaluation.sampler_quality import family_of, quality_objects
+
+    subset = quality_objects(split="test", count=40)
+    assert all(split_of(i) == "test" for i in subset) and len(set(subset)) == 40
+    families = {family_of(i) for i in quality_objects(split="test")}
+    assert {family_of(i) for i in subset} == families  # the unseen mug family included
+    assert quality_objects(split="val", count=12) == quality_objects(split="val", count=30)[:12]
+    with pytest.raises(CoverageError, match="train"):
+        quality_objects(split="train")

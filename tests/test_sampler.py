@@ -178,10 +178,13 @@ def test_interrupted_training_resumes_from_its_step_and_matches_an_uninterrupted
     assert first.stopped and first.step == 60 and first.checkpoint_path is None and first.state_path.is_file()
     resumed = train(store, HAND, tmp_path / "a.pt", config, quiet())
     assert resumed.start_step == 60 and resumed.step == 120 and not resumed.stopped
-    straight = train(store, HAND, tmp_path / "b.pt", config, quiet())
+    straight = train(store, HAND, tmp_path / "b.pt", config, quiet(snapshot_every=50))
     a, b = load_checkpoint(resumed.checkpoint_path).state_dict, load_checkpoint(straight.checkpoint_path).state_dict
-    assert all(torch.equal(a[name], b[name]) for name in a)
+    assert all(torch.equal(a[name], b[name]) for name in a)  # snapshots (run b) change nothing either
     assert resumed.history == straight.history
+    snapshots = sorted(tmp_path.glob("b.step*.pt"))
+    assert [p.name for p in snapshots] == ["b.step100.pt", "b.step50.pt"]
+    assert load_checkpoint(snapshots[1]).manifest["steps"] == 50
     with pytest.raises(TrainingError, match="different settings"):
         train(store, HAND, tmp_path / "a.pt", tiny_config(steps=120, lr=5e-4), quiet())
 

@@ -114,6 +114,7 @@ class RunOptions:
     val_every: int = 500
     val_max_poses: int = 4096  # validation loss over at most this many held-out poses (fixed noise)
     checkpoint_every: int = 1000
+    snapshot_every: int = 0  # > 0: also ship the EMA weights every this many steps (CKPT.stepN.pt) to choose among on val
     half: bool = False  # ship fp16 weights
     progress: bool = True
     resume: bool = True
@@ -151,6 +152,11 @@ class _Data:
 
 def output_paths(out: Path) -> dict[str, Path]:
     return {"state": out.with_name(out.name + ".train.pt"), "plot": out.with_name(out.name + ".loss.png")}
+
+
+def snapshot_path(out: Path, step: int) -> Path:
+    """Where `--snapshot-every` writes the checkpoint of `step` (CKPT.stepN.pt beside CKPT)."""
+    return out.with_name(f"{out.stem}.step{step}{out.suffix}")
 
 
 def resolve_device(device: str) -> torch.device:
@@ -247,6 +253,7 @@ class _Run:
                  self.dataset.hand, len(self.train_set), len(self.train_set.objects()), len(self.val_set),
                  len(self.val_set.objects()), parameter_count(self.model), self.step, self.total_steps, self.device)
         started, stopped = time.perf_counter(), False
+        self.out, self.dataset_dir = out, dataset_dir
         with tqdm(total=self.total_steps, initial=self.step, desc=f"train {self.dataset.hand}", unit="step",
                   disable=not self.options.progress, dynamic_ncols=True) as bar:
             while self.step < self.total_steps:
@@ -297,6 +304,8 @@ class _Run:
             self._validate()
         if self.step % self.options.checkpoint_every == 0 and self.step < self.total_steps:
             self._save_state(paths["state"])
+        if self.options.snapshot_every > 0 and self.step % self.options.snapshot_every == 0 and self.step < self.total_steps:
+            save_checkpoint(self._shipped(self.dataset_dir, 0.0), snapshot_path(self.out, self.step), half=self.options.half)
 
     @torch.no_grad()
     def _validate(self) -> None:

@@ -221,8 +221,8 @@ def select_objects(split: str, count: int | None = None, object_ids: Sequence[st
     split in a fixed hash order (which mixes the random and procedural families, and lets a larger
     `count` extend a smaller build), the everyday procedural families after the rest of the library
     (`library_generation`): a count chosen before they existed picks the same objects. A build of
-    the whole split (no count) has them all. Data for a split other than train is refused unless
-    `allow_split`: test objects are never used for training.
+    the whole split (no count) has them all, in hash order alone (every family interleaved). Data
+    for a split other than train is refused unless `allow_split`: test objects are never used for training.
     """
     if split != TRAINING_SPLIT and not allow_split:
         raise BuildError(f"refusing to build training data from the {split!r} split: only {TRAINING_SPLIT!r} objects "
@@ -238,12 +238,13 @@ def select_objects(split: str, count: int | None = None, object_ids: Sequence[st
                              + ", ".join(f"{oid} ({s})" for oid, s in list(wrong.items())[:8])
                              + ("; test objects are never used for training" if "test" in wrong.values() else ""))
         return list(dict.fromkeys(object_ids))
-    ranked = sorted(list_object_ids(split), key=_object_rank)
-    if count is not None:
-        if count < 1:
-            raise BuildError(f"--objects must be >= 1, got {count}")
-        ranked = ranked[:count]
-    return ranked
+    if count is None:
+        # A whole-split build interleaves every family, so a build stopped part-way (and resumed in a
+        # later session) is already a sample of all of them rather than of the first generation only.
+        return sorted(list_object_ids(split), key=lambda oid: _object_rank(oid)[1])
+    if count < 1:
+        raise BuildError(f"--objects must be >= 1, got {count}")
+    return sorted(list_object_ids(split), key=_object_rank)[:count]
 
 
 # ----------------------------------------------------------------------------- live figures
