@@ -164,7 +164,7 @@ def _rate(part: int, whole: int) -> float:
 def print_stats(s: dict) -> None:
     print(f"{s['directory']}: version {s['version']}, hand {s['hand']}, split {s['split']}, {s['objects']} objects, "
           f"{s['poses']} poses ({s['by_stage']['raw']} raw, {s['by_stage']['augmented']} augmented), "
-          f"{s['failures']} failed pushes kept, {s['placements']} placements")
+          f"{s['failures']} failed pushes kept, {s['placements']} placements with a success")
     st = s["stages"]
     print(f"  generated {st['generated']} -> raw successes {st['raw_successes']} ({100 * s['success_rates']['raw']:.1f}%); "
           f"augmented {st['augmented_validated']} -> successes {st['augmented_successes']} "
