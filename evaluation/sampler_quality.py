@@ -211,8 +211,8 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
                 objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
                 yaw: str = "zero") -> str:
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
-             f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
-             f"{s['pooled_validated_fraction_ci'][1]:.1%}]",
+             (f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
+              f"{s['pooled_validated_fraction_ci'][1]:.1%}]"),
              f"{s['covered']} / {s['objects']}", f"{s['covered_pct']:.1f}%", s["pushes"], f"{s['seconds']:.0f}"]
             for k, s in summaries.items()]
     table = markdown_table(["method", "validated fraction (mean over objects)", "validated fraction (pooled, 95% CI by object)",
@@ -241,7 +241,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
 def family_markdown(families: dict[str, dict[str, Any]]) -> str:
     labels = list(dict.fromkeys(label for per in families.values() for label in per))
     rows = [[family, str(next(iter(per.values()))["objects"])]
-            + [f"{per[l]['pooled_validated_fraction']:.0%}; {per[l]['covered']}" if l in per else "-" for l in labels]
+            + [f"{per[m]['pooled_validated_fraction']:.0%}; {per[m]['covered']}" if m in per else "-" for m in labels]
             for family, per in families.items()]
     return markdown_table(["family", "objects", *labels], rows)
 
@@ -254,8 +254,8 @@ def verdict(summaries: dict[str, dict[str, Any]], results: dict[str, list[dict[s
     gap = ddpm["covered_pct"] - TARGET_COVERED_PCT
     target = (f"meets the >= {TARGET_COVERED_PCT:.0f}% target" if gap >= 0
               else f"misses the >= {TARGET_COVERED_PCT:.0f}% target by {-gap:.1f} points")
-    sentences = [f"DDPM-100 has >= 1 validated pose on {ddpm['covered_pct']:.1f}% of the objects (paper: "
-                 f"{PAPER_COVERED:.0f} of {PAPER_OBJECTS}, {100.0 * PAPER_COVERED / PAPER_OBJECTS:.0f}%), which {target}."]
+    sentences = [(f"DDPM-100 has >= 1 validated pose on {ddpm['covered_pct']:.1f}% of the objects (paper: "
+                  f"{PAPER_COVERED:.0f} of {PAPER_OBJECTS}, {100.0 * PAPER_COVERED / PAPER_OBJECTS:.0f}%), which {target}.")]
     for key, name in (("ddim10", "DDIM-10"), ("nn", "Nearest Neighbor")):
         if key in summaries:
             diff = difference_interval(pose_trials(results["ddpm100"]), pose_trials(results[key]))
