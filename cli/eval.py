@@ -8,6 +8,7 @@
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
+    gd2p eval sampler-quality --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose a checkpoint
     gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
 
