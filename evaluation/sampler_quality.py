@@ -117,8 +117,7 @@ def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = METHOD_KEYS)
     return {k: every[k] for k in METHOD_KEYS if k in keys}
 
 
-def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings,
-                keys: Sequence[str] = METHOD_KEYS) -> dict[str, Any]:
+def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings) -> dict[str, Any]:
     """What the store pins: the objects, the exact weights and index, and the protocol.
 
     The methods are not pinned: a run can be extended with another method later (each method's
