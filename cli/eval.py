@@ -7,6 +7,7 @@
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
+    gd2p eval data-size --dataset data/allegro-v2 --yaw random --train-steps 9000 --seeds 0 --tag v2  # on dataset v2
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
     gd2p eval sampler-quality --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose a checkpoint
     gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
@@ -75,13 +76,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--nn-index", type=Path, default=None,
                         help="sampler-quality: the nearest-neighbour index to measure (default the shipped one)")
     parser.add_argument("--yaw", choices=("zero", "random"), default="zero",
-                        help="sampler-quality: each object at yaw 0 in the push frame (default, the paper's protocol) or "
-                             "turned by a seeded random yaw (<out>/sampler-quality[-val]-random-yaw/)")
+                        help="sampler-quality / data-size: each object at yaw 0 in the push frame (default, the paper's "
+                             "protocol) or turned by a seeded random yaw (<out>/sampler-quality[-val]-random-yaw/, "
+                             "<out>/data-size-random-yaw/; data-size then takes its objects one shape family after another)")
     parser.add_argument("--objects", type=int, default=None,
                         help="sampler-quality: only this many objects of the split, one shape family after another "
-                             "(default: all of them)")
+                             "(default: all of them); data-size: this many test objects (default 40)")
     parser.add_argument("--tag", default=None,
-                        help="sampler-quality: suffix of the results directory, for a non-shipped --checkpoint")
+                        help="sampler-quality / data-size: suffix of the results directory (a non-shipped --checkpoint, "
+                             "another --dataset)")
+    parser.add_argument("--dataset", type=Path, default=None,
+                        help="data-size: the training store whose objects are subsampled (default data/allegro-train)")
+    parser.add_argument("--train-steps", type=int, default=None,
+                        help="data-size: optimiser steps per model (default 2000, the first shipped checkpoint's)")
+    parser.add_argument("--seeds", type=_seed_list, default=None,
+                        help="data-size: comma-separated training seeds, one model per fraction and seed (default 0,1,2)")
     parser.add_argument("--closed-loop", action="store_true",
                         help="multistep: watch every push and stop it when the object strays from its predicted "
                              "path (PushRequest.closed_loop), into <out>/multistep-<world>-closed/")
@@ -98,6 +107,24 @@ def _method_list(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(f"unknown method(s) {', '.join(unknown) or '(none given)'}; "
                                          f"known: {', '.join(METHODS)}; sampler-quality: {', '.join(METHOD_KEYS)}")
     return names
+
+
+def _seed_list(text: str) -> tuple[int, ...]:
+    try:
+        seeds = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seeds are comma-separated integers, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"give one or more distinct seeds, got {text!r}")
+    return seeds
+
+
+def _data_size_options(args: argparse.Namespace) -> dict:
+    options: dict = {"yaw": args.yaw, "tag": args.tag, "objects": args.objects, "train_steps": args.train_steps,
+                     "seeds": args.seeds}
+    if args.dataset is not None:
+        options["dataset_dir"] = args.dataset
+    return options
 
 
 def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) -> str | None:
@@ -139,10 +166,16 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         print("gd2p eval: --workers must be >= 1", file=sys.stderr)
         return 2
-    if args.trials is not None and args.trials < 1:
-        print("gd2p eval: --trials must be >= 1", file=sys.stderr)
-        return 2
+    for flag, value in (("--trials", args.trials), ("--objects", args.objects), ("--train-steps", args.train_steps)):
+        if value is not None and value < 1:
+            print(f"gd2p eval: {flag} must be >= 1", file=sys.stderr)
+            return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
+                                               ("--seeds", args.seeds)) if value is not None]
+    if data_size_only and args.experiment != "data-size":
+        print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
+        return 2
     if (refusal := _methods_refusal(args.methods, names)) is not None:
         print(f"gd2p eval: {refusal}", file=sys.stderr)
         return 2
@@ -160,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
             options["closed_loop"] = True
         if name == "sampler-quality":
             options.update(_sampler_quality_options(args))
+        if name == "data-size" and args.experiment == "data-size":
+            options.update(_data_size_options(args))
         try:
             report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
         except (ResultStoreError, CoverageError) as exc:

@@ -18,9 +18,15 @@ over 2 processes. An object costs 50 pushes when one of its first 50 poses valid
 when none does. Measured here, even a 2% model (4 training objects) had a validated pose among the
 first 50 on 12 of 12 test objects, so a model costs ~40 x 50 pushes ~ 1.5 min: 12 models ~ 27 min
 for FULL's 40 objects (more if many objects go uncovered: +6 s each).
+
+Dataset v2 (`--dataset data/allegro-v2 --yaw random --train-steps N --seeds 0`): every test object is
+turned by a seeded yaw, as the v2 data is, and the subset is taken one shape family after another
+(`sampler_quality.quality_objects`), so it holds the never-trained family too; its main column is the
+validated fraction with its interval clustered by object.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 import math
@@ -41,10 +47,14 @@ from evaluation.coverage import (
     CoveragePool,
     CoverageSettings,
     DiffusionSource,
+    pose_trials,
     summarize,
 )
 from evaluation.report import markdown_table, write_experiment
+from evaluation.stats import success_interval
 from evaluation.store import ResultStore
+from shared.world.objects import UNSEEN_FAMILIES
+from shared.world.objects.catalog import resolve_library_id
 
 NAME = "data-size"
 TITLE = "Data size: test objects with >= 1 validated pose"
@@ -64,11 +74,19 @@ class DataSizeSettings:
     test_objects: int = 40  # of the 185 test objects: the 12 models must fit a 2-core session
     subset_seed: int = SUBSET_SEED
     samples: int = 200
+    yaw: str = "zero"  # "random": each test object turned by a seeded yaw, the subset taken family by family
+
+    def __post_init__(self) -> None:
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise CoverageError(f"give one or more distinct seeds, got {list(self.seeds)}")
+        if self.train_steps < 1 or self.test_objects < 1:
+            raise CoverageError(f"training steps and test objects must be >= 1, got {self.train_steps} and {self.test_objects}")
 
     def coverage(self) -> CoverageSettings:
-        return CoverageSettings(samples=self.samples, fraction_poses=min(50, self.samples), hand=HAND)
+        return CoverageSettings(samples=self.samples, fraction_poses=min(50, self.samples), hand=HAND, yaw=self.yaw)
 
     def to_dict(self) -> dict[str, Any]:
+        # coverage().to_dict() carries the yaw only when it is random: the pin of the first runs stays the same
         return {"fractions": list(self.fractions), "seeds": list(self.seeds), "train_steps": self.train_steps,
                 "batch_size": self.batch_size, "test_objects": self.test_objects, "subset_seed": self.subset_seed,
                 "coverage": self.coverage().to_dict()}
@@ -76,6 +94,21 @@ class DataSizeSettings:
 
 FULL = DataSizeSettings()
 QUICK = DataSizeSettings(fractions=(0.2, 1.0), seeds=(0,), train_steps=200, test_objects=4, samples=50)
+
+
+def test_objects(settings: DataSizeSettings) -> list[str]:
+    """The measured objects: the first protocol's seeded subset, or at a random yaw one family after another."""
+    if settings.yaw == "random":
+        from evaluation.sampler_quality import quality_objects
+
+        return quality_objects(split="test", count=settings.test_objects)
+    return object_subset(settings.test_objects, settings.subset_seed)
+
+
+def result_directory(out: Path, yaw: str = "zero", tag: str | None = None) -> Path:
+    """`<out>/data-size[-random-yaw][-TAG]/`: one store per protocol and training store."""
+    name = NAME + ("-random-yaw" if yaw == "random" else "")
+    return Path(out) / (f"{name}-{tag}" if tag else name)
 
 
 def object_subset(count: int, seed: int = SUBSET_SEED) -> list[str]:
@@ -151,20 +184,28 @@ def train_model(dataset_dir: Path, path: Path, fraction: float, seed: int, setti
 
 
 # ----------------------------------------------------------------------------- the experiment
-def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DEFAULT_DATASET) -> Path:
-    """Train and measure every (fraction, seed) into `out/data-size/`; returns the report path."""
+def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DEFAULT_DATASET, yaw: str = "zero",
+        train_steps: int | None = None, seeds: Sequence[int] | None = None, objects: int | None = None,
+        tag: str | None = None) -> Path:
+    """Train and measure every (fraction, seed) into `result_directory(out, yaw, tag)`; returns the report path.
+
+    `train_steps`, `seeds`, `objects` and `yaw` replace the protocol's (FULL, or QUICK with `quick`).
+    """
     started = time.perf_counter()
-    settings = QUICK if quick else FULL
+    base = QUICK if quick else FULL
+    settings = dataclasses.replace(
+        base, yaw=yaw, train_steps=train_steps or base.train_steps, seeds=tuple(seeds) if seeds else base.seeds,
+        test_objects=objects or base.test_objects)
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise CoverageError(f"no {HAND} training store at {dataset_dir}; build it with "
                             f"`gd2p dataset build --split train --hand {HAND} ... --out {dataset_dir}`")
-    directory = Path(out) / NAME
-    objects = object_subset(settings.test_objects, settings.subset_seed)
+    directory = result_directory(out, yaw, tag)
+    object_ids = test_objects(settings)
     from services.sampler.dataset import load_pose_dataset
 
     fingerprint = load_pose_dataset(dataset_dir, HAND).fingerprint
-    store = ResultStore(directory, {**settings.to_dict(), "objects": objects, "dataset_sha256": fingerprint})
+    store = ResultStore(directory, {**settings.to_dict(), "objects": object_ids, "dataset_sha256": fingerprint})
     models, coverage = {}, {}
     with CoveragePool(workers) as pool:
         for fraction in settings.fractions:
@@ -173,11 +214,11 @@ def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DE
                 models[name] = _trained(store, dataset_dir, directory / "models" / f"{name}.pt", fraction, seed, settings,
                                         workers)
                 source = DiffusionSource(str(directory / "models" / f"{name}.pt"), "ddpm")
-                coverage[name] = pool.measure(source, objects, store, f"coverage/{name}", settings.coverage(), desc=f"coverage {name}")
+                coverage[name] = pool.measure(source, object_ids, store, f"coverage/{name}", settings.coverage(), desc=f"coverage {name}")
     rows = table_rows(settings, models, coverage)
-    plot = plot_coverage(settings, rows, len(objects), directory / "coverage_vs_fraction.png")
-    body = report_body(settings, objects, rows, models, plot.name)
-    summary = {"objects": objects, "settings": settings.to_dict(), "per_fraction": rows,
+    plot = plot_coverage(settings, rows, len(object_ids), directory / "coverage_vs_fraction.png")
+    body = report_body(settings, object_ids, rows, models, plot.name)
+    summary = {"objects": object_ids, "settings": settings.to_dict(), "per_fraction": rows,
                "models": {name: {**models[name], **summarize(coverage[name])} for name in models}}
     return write_experiment(directory, TITLE, body, summary, time.perf_counter() - started, quick)
 
@@ -193,42 +234,64 @@ def _trained(store: ResultStore, dataset_dir: Path, path: Path, fraction: float,
 # ----------------------------------------------------------------------------- tables and plots
 def table_rows(settings: DataSizeSettings, models: dict[str, dict[str, Any]],
                coverage: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
-    """Per fraction: objects covered per seed, their mean and std, mean validated fraction, training size."""
+    """Per fraction: the validated fraction (pooled over seeds, 95% interval clustered by object), the
+    never-trained family's, objects covered per seed with mean and std, training sizes and losses."""
     rows = []
     for fraction in settings.fractions:
         names = [model_name(fraction, seed) for seed in settings.seeds]
         covered = [summarize(coverage[n])["covered"] for n in names]
+        records = [r for n in names for r in coverage[n]]
+        validated = success_interval(pose_trials(records))
+        unseen = [r for r in records if resolve_library_id(r["object"]).family in UNSEEN_FAMILIES]
         rows.append({
             "fraction": fraction, "covered_per_seed": covered,
             "covered_mean": float(np.mean(covered)), "covered_std": float(np.std(covered, ddof=1)) if len(covered) > 1 else 0.0,
             "validated_fraction_mean": float(np.mean([summarize(coverage[n])["mean_validated_fraction"] for n in names])),
+            "validated_fraction": validated.as_dict(),
+            "unseen_family": ({"objects": len({r["object"] for r in unseen}), **success_interval(pose_trials(unseen)).as_dict()}
+                              if unseen else None),
             "train_objects": [models[n]["train_objects"] for n in names], "train_poses": [models[n]["train_poses"] for n in names],
             "final_val_loss": [models[n]["final_val_loss"] for n in names],
         })
     return rows
 
 
+def _validated_cell(row: dict[str, Any]) -> str:
+    v = row["validated_fraction"]
+    return f"**{v['value']:.1%}** [{v['low']:.1%}, {v['high']:.1%}]"
+
+
+def _unseen_cell(row: dict[str, Any]) -> str:
+    u = row.get("unseen_family")
+    return "–" if not u else f"{u['value']:.1%} [{u['low']:.1%}, {u['high']:.1%}] ({u['objects']} objects)"
+
+
 def report_body(settings: DataSizeSettings, objects: Sequence[str], rows: list[dict[str, Any]],
                 models: dict[str, dict[str, Any]], plot_name: str) -> str:
     n = len(objects)
+    unseen = ", ".join(UNSEEN_FAMILIES)
     table = markdown_table(
-        ["data size", "train objects", "train poses", f"objects with >= 1 validated pose (of {n})", "% of objects",
-         "per seed", "validated fraction", f"paper (of {PAPER_OBJECTS})"],
-        [[f"{r['fraction']:.0%}", _span(r["train_objects"]), _span(r["train_poses"]),
+        ["data size", "train objects", "train poses", "validated fraction (pooled, 95% CI by object)",
+         f"never-trained family ({unseen})", f"objects with >= 1 validated pose (of {n})", "% of objects",
+         "per seed", f"paper (of {PAPER_OBJECTS})"],
+        [[f"{r['fraction']:.0%}", _span(r["train_objects"]), _span(r["train_poses"]), _validated_cell(r), _unseen_cell(r),
           f"{r['covered_mean']:.2f} ± {r['covered_std']:.2f}", f"{100 * r['covered_mean'] / n:.1f}%",
-          ", ".join(map(str, r["covered_per_seed"])), f"{r['validated_fraction_mean']:.1%}", _paper(r["fraction"])]
+          ", ".join(map(str, r["covered_per_seed"])), _paper(r["fraction"])]
          for r in rows])
     model_table = markdown_table(
         ["model", "train objects", "train poses", "final train loss", "final val loss", "train seconds", "torch threads"],
         [[name, m["train_objects"], m["train_poses"], _loss(m["final_train_loss"]), _loss(m["final_val_loss"]),
           f"{m['train_seconds']:.0f}", m.get("train_threads", "–")]
          for name, m in models.items()])
+    placement = ("each turned about z by a seeded yaw, taken one shape family after another"
+                 if settings.yaw == "random" else "seeded hash order, subset seed " + str(settings.subset_seed))
     return (f"Each model: `gd2p train --fraction F --seed S --steps {settings.train_steps}` (batch {settings.batch_size}, "
             f"default model, the {HAND} training store), then {settings.samples} DDPM-100 samples per object on a fixed "
-            f"subset of **{n} test-split objects** (seeded hash order, subset seed {settings.subset_seed}; the paper used "
-            f"300), each pushed 0.20 m along +x in the floating-hand validator until one succeeds. Mean ± std over seeds "
-            f"{', '.join(map(str, settings.seeds))}.\n\n{table}\n{verdict(rows, n)}\n\n"
-            f"![objects covered vs data fraction]({plot_name})\n\n### Models\n\n{model_table}\n"
+            f"subset of **{n} test-split objects** ({placement}; the paper used 300), the first "
+            f"{settings.coverage().fraction_poses} pushed 0.20 m along +x in the floating-hand validator (validated "
+            f"fraction), then more until one succeeds. Seeds {', '.join(map(str, settings.seeds))}: the validated "
+            f"fraction pools them, the coverage is mean ± std over them.\n\n{table}\n{verdict(rows, n)}\n\n"
+            f"![validated fraction and objects covered vs data fraction]({plot_name})\n\n### Models\n\n{model_table}\n"
             f"Test objects: {', '.join(objects)}.\n")
 
 
@@ -242,13 +305,12 @@ def verdict(rows: list[dict[str, Any]], n_objects: int) -> str:
     gap = pct - TARGET_COVERED_PCT
     target = (f"meets the >= {TARGET_COVERED_PCT:.0f}% target" if gap >= 0
               else f"misses the >= {TARGET_COVERED_PCT:.0f}% target by {-gap:.1f} points")
-    fractions = [r["validated_fraction_mean"] for r in rows]
+    fractions = [r["validated_fraction"]["value"] for r in rows]
     trend = " → ".join(f"{v:.1%}" for v in fractions)
     quality = ("rises monotonically" if all(b >= a for a, b in itertools.pairwise(fractions)) else "is not monotone")
-    return (f"{monotone} At {last['fraction']:.0%} of the data, {last['covered_mean']:.1f} of {n_objects} test "
-            f"objects ({pct:.1f}%) have >= 1 validated pose, which {target} (paper: "
-            f"{100 * PAPER_COVERED[1.0][0] / PAPER_OBJECTS:.0f}% at 100%). The fraction of sampled poses that "
-            f"validate {quality} with the data size ({trend}).")
+    return (f"The fraction of sampled poses that validate {quality} with the data size ({trend}). {monotone} At "
+            f"{last['fraction']:.0%} of the data, {last['covered_mean']:.1f} of {n_objects} test objects ({pct:.1f}%) "
+            f"have >= 1 validated pose, which {target} (paper: {100 * PAPER_COVERED[1.0][0] / PAPER_OBJECTS:.0f}% at 100%).")
 
 
 def _span(values: Sequence[int]) -> str:
@@ -267,29 +329,39 @@ def _loss(value: float | None) -> str:
 
 
 def plot_coverage(settings: DataSizeSettings, rows: list[dict[str, Any]], n_objects: int, path: Path) -> Path:
-    """Objects covered vs data fraction: every seed as a point, the mean as a line, the paper's means scaled to N."""
+    """Left: the validated fraction vs data fraction with its interval; right: objects covered (every
+    seed a point, the mean a line, the paper's means scaled to N)."""
     import matplotlib
 
     matplotlib.use("Agg")
     from matplotlib import pyplot as plt
 
-    figure, axis = plt.subplots(figsize=(6, 4), dpi=110)
+    figure, (quality, covered) = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
     fractions = [r["fraction"] for r in rows]
+    values = np.array([[r["validated_fraction"][k] for k in ("value", "low", "high")] for r in rows]) * 100
+    quality.errorbar(fractions, values[:, 0], yerr=[values[:, 0] - values[:, 1], values[:, 2] - values[:, 0]], fmt="-o",
+                     color="tab:green", capsize=4, label="validated fraction (95% CI by object)")
+    unseen = [(r["fraction"], 100 * r["unseen_family"]["value"]) for r in rows if r.get("unseen_family")]
+    if unseen:
+        quality.plot(*zip(*unseen, strict=True), ":^", color="tab:purple", label=f"never-trained family ({', '.join(UNSEEN_FAMILIES)})")
+    quality.set_ylim(0, 100)
+    quality.set_ylabel("validated fraction of DDPM-100 samples (%)")
     for r in rows:
-        axis.scatter([r["fraction"]] * len(r["covered_per_seed"]), r["covered_per_seed"], color="tab:blue", alpha=0.6, s=22)
-    axis.plot(fractions, [r["covered_mean"] for r in rows], "-o", color="tab:blue", label="this run (mean over seeds)")
+        covered.scatter([r["fraction"]] * len(r["covered_per_seed"]), r["covered_per_seed"], color="tab:blue", alpha=0.6, s=22)
+    covered.plot(fractions, [r["covered_mean"] for r in rows], "-o", color="tab:blue", label="this run (mean over seeds)")
     paper = [(f, PAPER_COVERED[f][0] * n_objects / PAPER_OBJECTS) for f in fractions if f in PAPER_COVERED]
     if paper:
-        axis.plot(*zip(*paper, strict=True), "--s", color="tab:gray", label=f"paper, scaled to {n_objects} objects")
-    axis.axhline(TARGET_COVERED_PCT / 100 * n_objects, color="tab:red", linestyle=":", label=f"target {TARGET_COVERED_PCT:.0f}%")
-    axis.set_xscale("log")
-    axis.minorticks_off()
-    axis.set_xticks(fractions, [f"{f:.0%}" for f in fractions])
-    axis.set_ylim(0, n_objects * 1.05)
-    axis.set_xlabel("training data (fraction of the training objects)")
-    axis.set_ylabel(f"test objects with >= 1 validated pose (of {n_objects})")
-    axis.grid(True, alpha=0.3)
-    axis.legend(fontsize=8)
+        covered.plot(*zip(*paper, strict=True), "--s", color="tab:gray", label=f"paper, scaled to {n_objects} objects")
+    covered.axhline(TARGET_COVERED_PCT / 100 * n_objects, color="tab:red", linestyle=":", label=f"target {TARGET_COVERED_PCT:.0f}%")
+    covered.set_ylim(0, n_objects * 1.05)
+    covered.set_ylabel(f"test objects with >= 1 validated pose (of {n_objects})")
+    for axis in (quality, covered):
+        axis.set_xscale("log")
+        axis.minorticks_off()
+        axis.set_xticks(fractions, [f"{f:.0%}" for f in fractions])
+        axis.set_xlabel("training data (fraction of the training objects)")
+        axis.grid(True, alpha=0.3)
+        axis.legend(fontsize=8)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -180,3 +181,57 @@ def test_sampler_quality_subsets_take_every_family_in_turn_and_never_the_train_s
     assert quality_objects(split="val", count=12) == quality_objects(split="val", count=30)[:12]
     with pytest.raises(CoverageError, match="train"):
         quality_objects(split="train")
+
+
+def test_data_size_first_protocol_keeps_its_pin_and_objects():
+    """The committed first run (yaw 0, seeded hash subset) still resumes under the v2-capable settings."""
+    import json
+
+    from evaluation.data_size import FULL, test_objects
+
+    pinned = json.loads((Path(__file__).resolve().parents[1] / "results" / "data-size" / "settings.json").read_text())
+    assert {k: v for k, v in pinned.items() if k not in ("objects", "dataset_sha256")} == FULL.to_dict()
+    assert test_objects(FULL) == pinned["objects"]
+
+
+def test_data_size_at_random_yaw_measures_every_family_and_reports_the_unseen_one():
+    import dataclasses
+
+    from evaluation.data_size import FULL, model_name, table_rows, test_objects
+    from shared.world.objects import UNSEEN_FAMILIES
+    from shared.world.objects.catalog import resolve_library_id
+
+    settings = dataclasses.replace(FULL, yaw="random", seeds=(0, 1), fractions=(0.5, 1.0), test_objects=40)
+    objects = test_objects(settings)
+    families = {resolve_library_id(o).family for o in objects}
+    assert len(objects) == 40 and all(split_of(o) == "test" for o in objects)
+    assert set(UNSEEN_FAMILIES) <= families and len(families) >= 12
+    assert "yaw" in settings.to_dict()["coverage"]  # a random-yaw run cannot resume a yaw-0 store
+
+    mug = next(o for o in objects if resolve_library_id(o).family in UNSEEN_FAMILIES)
+    other = next(o for o in objects if resolve_library_id(o).family not in UNSEEN_FAMILIES)
+
+    def record(obj: str, successes: int) -> dict:
+        return {"object": obj, "fraction_pushed": 10, "fraction_successes": successes, "validated_fraction": successes / 10,
+                "any_success": successes > 0, "n_validated": 10, "seconds": 1.0}
+
+    coverage = {model_name(f, s): [record(mug, 8 if f == 1.0 else 2), record(other, 4 + s)]
+                for f in settings.fractions for s in settings.seeds}
+    models = {name: {"train_objects": 10, "train_poses": 100, "final_val_loss": 0.1} for name in coverage}
+    rows = table_rows(settings, models, coverage)
+    assert [r["fraction"] for r in rows] == [0.5, 1.0]
+    # pooled over both seeds: (2 + 4 + 2 + 5) / 40 and (8 + 4 + 8 + 5) / 40
+    assert rows[0]["validated_fraction"]["value"] == pytest.approx(13 / 40)
+    assert rows[1]["validated_fraction"]["value"] == pytest.approx(25 / 40)
+    assert rows[1]["unseen_family"]["value"] == pytest.approx(0.8) and rows[1]["unseen_family"]["objects"] == 1
+    assert rows[0]["validated_fraction"]["low"] <= rows[0]["validated_fraction"]["value"] <= rows[0]["validated_fraction"]["high"]
+
+
+def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
+    from cli.main import main
+
+    assert main(["eval", "methods", "--seeds", "0", "--out", "/tmp/never-written"]) == 2
+    assert "apply to data-size only" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["eval", "data-size", "--seeds", "0,0"])
+    assert "distinct seeds" in capsys.readouterr().err
