@@ -60,9 +60,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="methods / leap / closed-loop: 0 (default) tells the system the object's mesh and a pose off by the "
                              "world's pose error; 1-3: the system sees the object only through that many simulated "
                              "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
-    parser.add_argument("--split", choices=("test", "val"), default="test",
-                        help="methods / leap / closed-loop: the 14 test objects (default, for reporting) or 14 val objects (for "
-                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test); "
+    parser.add_argument("--split", choices=("test", "val", "unseen"), default="test",
+                        help="methods / leap / closed-loop: the 14 test objects (default, for reporting), 14 val objects (for "
+                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test) or 6 test "
+                             "objects of the mug family that no model trains on (<out>/<experiment>-<world>-unseen/); "
                              "sampler-quality: the whole test or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
@@ -173,6 +174,10 @@ def run(args: argparse.Namespace) -> int:
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
                                                ("--seeds", args.seeds)) if value is not None]
+    if args.split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):
+        print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
+              "within the test split)", file=sys.stderr)
+        return 2
     if data_size_only and args.experiment != "data-size":
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
         return 2

@@ -31,6 +31,10 @@ QUICK_OBJECTS = ("proc-box-001", "pb-mug")
 VAL_OBJECTS = ("proc-box-010", "proc-box-017", "proc-cylinder-006", "proc-cylinder-013", "proc-cone-006",
                "proc-cone-007", "proc-ellipsoid-011", "proc-ellipsoid-019", "proc-capsule-016", "proc-capsule-017",
                "proc-hull-006", "proc-hull-012", "rnd-002", "rnd-004")
+# A whole shape family that no model trains on (`--split unseen`, reported beside the 14): the first
+# procedural mugs of the test split (catalog.UNSEEN_FAMILIES; pb-mug, one of the 14, is of it too).
+UNSEEN_OBJECTS = ("proc-mug-000", "proc-mug-001", "proc-mug-002", "proc-mug-003", "proc-mug-004", "proc-mug-005")
+OBJECT_SETS = ("test", "val", "unseen")
 # The records of the committed `exact` run made before execution worlds existed (results/methods, leap):
 # the same trials, under the methods' earlier names.
 LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
@@ -58,12 +62,12 @@ class Protocol:
     trials: int
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
-    split: str = "test"  # "val": the tuning objects
+    split: str = "test"  # "val": the tuning objects; "unseen": a whole never-trained family of the test split
 
     @property
     def directory_name(self) -> str:
         return (f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
-                + ("-val" if self.split == "val" else ""))
+                + (f"-{self.split}" if self.split != "test" else ""))
 
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
@@ -77,14 +81,16 @@ class Protocol:
 
 def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
                  methods: Sequence[str] | None = None, cameras: int = 0, split: str = "test") -> Protocol:
-    if split not in ("test", "val"):
-        raise ValueError(f"unknown split {split!r}; known: test, val")
+    if split not in OBJECT_SETS:
+        raise ValueError(f"unknown split {split!r}; known: {', '.join(OBJECT_SETS)}")
     if split == "val":
         objects = VAL_OBJECTS[:2] if quick else VAL_OBJECTS
+    elif split == "unseen":
+        objects = UNSEEN_OBJECTS[:2] if quick else UNSEEN_OBJECTS
     else:
         objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
-    on_val = ", val objects (tuning)" if split == "val" else ""
+    on_val = {"val": ", val objects (tuning)", "unseen": ", a never-trained shape family (mugs)"}.get(split, "")
     if name == "methods":
         return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`{on_val}", "allegro",
                         tuple(methods or protocol.DEFAULT_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras,

@@ -51,7 +51,8 @@ from tqdm import tqdm
 from evaluation.report import CODE_AT_START
 from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
 from shared.frames import direction_xy, make_transform, yaw_rotation
-from shared.world.objects import load_object, split_of
+from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
+from shared.world.objects.catalog import resolve_library_id
 from shared.world.push_outcome import judge_push, object_pose
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
@@ -188,13 +189,18 @@ class Episode:
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
              trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test") -> list[Episode]:
-    """The trials of a protocol. Objects must be of `split`: "test" to report, "val" to tune; never train."""
-    if split not in ("test", "val"):
-        raise ValueError(f"evaluation runs on the test objects (to report) or the val objects (to tune), not {split!r}")
+    """The trials of a protocol. Objects must be of `split`: "test" to report, "val" to tune, "unseen" (test
+    objects of a family no model trains on) to report on a new family; never train."""
+    if split not in ("test", "val", "unseen"):
+        raise ValueError(f"evaluation runs on the test objects (to report), the val objects (to tune) or a never-trained "
+                         f"family of the test split (unseen), not {split!r}")
     for object_id in objects:
-        if split_of(object_id) != split:
-            raise ValueError(f"{object_id} is in the {split_of(object_id)} split; this evaluation uses {split} "
-                             "objects only")
+        object_split = split_of(object_id)
+        if object_split != ("test" if split == "unseen" else split):
+            raise ValueError(f"{object_id} is in the {object_split} split; this evaluation uses {split} objects only")
+        if split == "unseen" and resolve_library_id(object_id).family not in UNSEEN_FAMILIES:
+            raise ValueError(f"{object_id} is of the {resolve_library_id(object_id).family} family, which models train on; "
+                             f"the unseen objects are of {', '.join(UNSEEN_FAMILIES)}")
     unknown = set(methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown method(s) {sorted(unknown)}; known: {', '.join(METHODS)}")

@@ -44,6 +44,21 @@ def test_episodes_use_test_objects_only_and_known_methods():
     assert len(eps) == 2 * 2 * 3 * 5 and len({e.key for e in eps}) == len(eps)
 
 
+def test_unseen_objects_are_a_whole_never_trained_family_of_the_test_split():
+    from evaluation.methods import UNSEEN_OBJECTS, protocol_for
+    from shared.world.objects import UNSEEN_FAMILIES, list_object_ids
+    from shared.world.objects.catalog import resolve_library_id
+
+    spec = protocol_for("methods", quick=False, split="unseen")
+    assert spec.objects == UNSEEN_OBJECTS and spec.directory_name == "methods-real-unseen"
+    assert {resolve_library_id(o).family for o in spec.objects} <= set(UNSEEN_FAMILIES)
+    # no object of the family is anywhere but the test split, so no model ever trained on one
+    assert not [i for s in ("train", "val") for i in list_object_ids(s) if resolve_library_id(i).family in UNSEEN_FAMILIES]
+    assert len(protocol.episodes(["gd2p"], "allegro", spec.objects, [60.0], 1, split="unseen")) == len(UNSEEN_OBJECTS)
+    with pytest.raises(ValueError, match="which models train on"):
+        protocol.episodes(["gd2p"], "allegro", ["proc-box-001"], [60.0], 1, split="unseen")
+
+
 def test_every_method_faces_the_same_placement():
     a = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 3)
     b = protocol.Episode("fixed", "allegro", "pb-mug", 180.0, 3)
