@@ -1,0 +1,34 @@
+"""The shipped Allegro dataset v2 store (datasets/allegro-v2): intact, of the train split, and as large as stated."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from services.sampler.dataset import open_store
+from shared.world.objects import split_of
+
+STORE = Path(__file__).resolve().parents[1] / "datasets" / "allegro-v2"
+
+
+def test_shipped_v2_store_is_intact_and_meets_its_size():
+    store = open_store(STORE)  # every shard checked against the manifest's SHA-256
+    manifest = store.manifest
+    assert (manifest["hand"], manifest["split"], manifest["parameters"]["placement"]) == ("allegro", "train", "random")
+    objects = manifest["objects"]
+    assert all(split_of(object_id) == "train" for object_id in objects)
+    with_success = [o for o, entry in objects.items() if entry.get("successes", 0) > 0]
+    totals = store.totals()
+    assert len(with_success) >= 1000 and totals["successes"] >= 40_000 and totals["failures"] > 0
+    # every object at its own random yaw, not all at yaw 0 as version 1
+    yaws = np.array([p["yaw_rad"] for entry in objects.values() for p in entry.get("placements", [])])
+    assert len(yaws) >= len(objects) and np.histogram(yaws, bins=12, range=(-np.pi, np.pi))[0].min() > len(yaws) / 24
+    # failures are kept with their outcome beside the successes (one object's shard read)
+    import pyarrow.parquet as pq
+
+    entry = next(e for e in objects.values() if e.get("successes", 0) and e.get("failures", 0))
+    table = pq.read_table(STORE / entry["shard"], columns=["success", "position_error_m", "toppled"])
+    success = table.column("success").to_pylist()
+    assert (sum(success), len(success) - sum(success)) == (entry["successes"], entry["failures"])
+    failed_errors = [e for e, ok in zip(table.column("position_error_m").to_pylist(), success, strict=True) if not ok]
+    assert all(e is not None and e >= 0 for e in failed_errors)
