@@ -7,7 +7,7 @@
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --out results/        # test objects covered vs training-data fraction
-    gd2p eval data-size --dataset data/allegro-v2 --yaw random --train-steps 9000 --seeds 0 --tag v2  # on dataset v2
+    gd2p eval data-size --dataset datasets/allegro-v2 --yaw random --train-steps 20000 --lr 1e-3 --seeds 0 --tag v2  # v2
     gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
     gd2p eval sampler-quality --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose a checkpoint
     gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
@@ -30,6 +30,8 @@ import importlib
 import signal
 import sys
 from pathlib import Path
+
+from cli.args import positive_float
 
 EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers) -> report path"
     "methods": "evaluation.methods:run_methods",
@@ -90,6 +92,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="data-size: the training store whose objects are subsampled (default data/allegro-train)")
     parser.add_argument("--train-steps", type=int, default=None,
                         help="data-size: optimiser steps per model (default 2000, the first shipped checkpoint's)")
+    parser.add_argument("--lr", type=positive_float, default=None,
+                        help="data-size: learning rate of every model (default 1e-4, the paper's)")
     parser.add_argument("--seeds", type=_seed_list, default=None,
                         help="data-size: comma-separated training seeds, one model per fraction and seed (default 0,1,2)")
     parser.add_argument("--closed-loop", action="store_true",
@@ -122,7 +126,7 @@ def _seed_list(text: str) -> tuple[int, ...]:
 
 def _data_size_options(args: argparse.Namespace) -> dict:
     options: dict = {"yaw": args.yaw, "tag": args.tag, "objects": args.objects, "train_steps": args.train_steps,
-                     "seeds": args.seeds}
+                     "lr": args.lr, "seeds": args.seeds}
     if args.dataset is not None:
         options["dataset_dir"] = args.dataset
     return options
@@ -173,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
             return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
-                                               ("--seeds", args.seeds)) if value is not None]
+                                               ("--lr", args.lr), ("--seeds", args.seeds)) if value is not None]
     if args.split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):
         print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
               "within the test split)", file=sys.stderr)

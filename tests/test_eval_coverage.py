@@ -207,6 +207,7 @@ def test_data_size_at_random_yaw_measures_every_family_and_reports_the_unseen_on
     assert len(objects) == 40 and all(split_of(o) == "test" for o in objects)
     assert set(UNSEEN_FAMILIES) <= families and len(families) >= 12
     assert "yaw" in settings.to_dict()["coverage"]  # a random-yaw run cannot resume a yaw-0 store
+    assert "lr" not in settings.to_dict() and dataclasses.replace(settings, lr=1e-3).to_dict()["lr"] == 1e-3
 
     mug = next(o for o in objects if resolve_library_id(o).family in UNSEEN_FAMILIES)
     other = next(o for o in objects if resolve_library_id(o).family not in UNSEEN_FAMILIES)
@@ -232,6 +233,10 @@ def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
 
     assert main(["eval", "methods", "--seeds", "0", "--out", "/tmp/never-written"]) == 2
     assert "apply to data-size only" in capsys.readouterr().err
+    assert main(["eval", "sampler-quality", "--lr", "1e-3", "--out", "/tmp/never-written"]) == 2
+    assert "--lr apply to data-size only" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["eval", "data-size", "--lr", "0"])
     with pytest.raises(SystemExit):
         main(["eval", "data-size", "--seeds", "0,0"])
     assert "distinct seeds" in capsys.readouterr().err
