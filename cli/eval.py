@@ -74,8 +74,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
                              "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="sampler-quality: the diffusion checkpoint to measure (default the shipped one); name its "
-                             "results with --tag")
+                        help="sampler-quality: the diffusion checkpoint to measure (default the shipped Allegro one; its poses "
+                             "are pushed with the hand it was trained for); name its results with --tag")
     parser.add_argument("--nn-index", type=Path, default=None,
                         help="sampler-quality: the nearest-neighbour index to measure (default the shipped one)")
     parser.add_argument("--yaw", choices=("zero", "random"), default="zero",

@@ -46,26 +46,36 @@ METHOD_KEYS = ("ddpm100", "ddim10", "nn")  # record-key prefixes, in table order
 SPLITS = ("test", "val")
 
 
-def shipped_checkpoint() -> Path:
+def shipped_checkpoint(hand: str = HAND) -> Path:
     from services.sampler.checkpoint import SHIPPED_DIR
 
-    return SHIPPED_DIR / f"{HAND}.pt"
+    return SHIPPED_DIR / f"{hand}.pt"
 
 
-def shipped_nn_index() -> Path:
+def shipped_nn_index(hand: str = HAND) -> Path:
     from services.sampler.checkpoint import SHIPPED_DIR
 
-    return SHIPPED_DIR / f"{HAND}_nn.npz"
+    return SHIPPED_DIR / f"{hand}_nn.npz"
 
 
-def nearest_neighbor_index(cache_dir: Path, dataset_dir: Path = DEFAULT_DATASET, checkpoint: Path | None = None) -> Path:
-    """The NN index to evaluate: the shipped `allegro_nn.npz` if present, else built once from the training store.
+def checkpoint_hand(checkpoint: Path) -> str:
+    """The hand a checkpoint was trained for: the hand its poses are pushed with."""
+    from services.sampler.checkpoint import load_checkpoint
+
+    return load_checkpoint(checkpoint).hand
+
+
+def nearest_neighbor_index(cache_dir: Path, dataset_dir: Path = DEFAULT_DATASET, checkpoint: Path | None = None,
+                           hand: str = HAND) -> Path:
+    """The NN index to evaluate: the shipped `<hand>_nn.npz` if present, else built once from the Allegro training store.
 
     A built index uses the checkpoint's BPS basis (the same encoding the model sees) and is saved
     in `cache_dir`, so a resumed run and the spawn workers load the file instead of rebuilding it.
     """
-    if shipped_nn_index().is_file():
-        return shipped_nn_index()
+    if shipped_nn_index(hand).is_file():
+        return shipped_nn_index(hand)
+    if hand != HAND:
+        raise CoverageError(f"no nearest-neighbour index at {shipped_nn_index(hand)}; give one with --nn-index")
     built = Path(cache_dir) / f"{HAND}_nn.npz"
     if built.is_file():
         return built
@@ -158,12 +168,13 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     directory.mkdir(parents=True, exist_ok=True)
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     if not checkpoint.is_file():
-        raise CoverageError(f"no {HAND} checkpoint at {checkpoint}")
-    nn_index = Path(nn_index) if nn_index is not None else nearest_neighbor_index(directory)
+        raise CoverageError(f"no sampler checkpoint at {checkpoint}")
+    hand = checkpoint_hand(checkpoint)  # a LEAP checkpoint's poses are pushed with the LEAP hand
+    nn_index = Path(nn_index) if nn_index is not None else nearest_neighbor_index(directory, hand=hand)
     if not nn_index.is_file():
         raise CoverageError(f"no nearest-neighbour index at {nn_index}")
     object_ids = quality_objects(quick, split, objects)
-    coverage = CoverageSettings(hand=HAND, yaw=yaw)
+    coverage = CoverageSettings(hand=hand, yaw=yaw)
     store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage))
     results: dict[str, list[dict[str, Any]]] = {}
     sources = methods(checkpoint, nn_index, methods_to_run)
@@ -172,8 +183,8 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
             results[key] = pool.measure(source, object_ids, store, key, coverage, desc=source.label())
     summaries = {key: summarize_with_interval(records) for key, records in results.items()}
     plot = plot_validated_fractions(results, sources, directory / "validated_fraction.png")
-    body = report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw)
-    summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "checkpoint": checkpoint.name,
+    body = report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw, hand)
+    summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "hand": hand, "checkpoint": checkpoint.name,
                "nn_index": nn_index.name, "methods": {sources[k].label(): v for k, v in summaries.items()},
                "families": family_table_data(results, sources),
                "paper_anchor": {"covered": PAPER_COVERED, "objects": PAPER_OBJECTS}, "target_covered_pct": TARGET_COVERED_PCT}
@@ -208,7 +219,7 @@ def family_table_data(results: dict[str, list[dict[str, Any]]], sources: dict[st
 
 def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource], results: dict[str, list[dict[str, Any]]],
                 objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
-                yaw: str = "zero") -> str:
+                yaw: str = "zero", hand: str = HAND) -> str:
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
              (f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
               f"{s['pooled_validated_fraction_ci'][1]:.1%}]"),
@@ -226,7 +237,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
                    f"{np.mean(nn_counts):.0f} per object on average (min {min(nn_counts)}, max {max(nn_counts)}); "
                    f"its index: `{nn_index.name}`. ")
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
-            f"floating hand (validator default physics, the data engine's criterion).\n\n{table}\n"
+            f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
             f"By shape family (pooled validated fraction; objects with >= 1 validated pose):\n\n"
             f"{family_markdown(family_table_data(results, sources))}\n"

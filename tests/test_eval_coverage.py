@@ -240,3 +240,11 @@ def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
     with pytest.raises(SystemExit):
         main(["eval", "data-size", "--seeds", "0,0"])
     assert "distinct seeds" in capsys.readouterr().err
+
+
+def test_sampler_quality_pushes_a_checkpoints_poses_with_the_hand_it_was_trained_for():
+    from evaluation.sampler_quality import checkpoint_hand, nearest_neighbor_index, shipped_checkpoint, shipped_nn_index
+
+    assert checkpoint_hand(shipped_checkpoint("leap")) == "leap"
+    assert checkpoint_hand(shipped_checkpoint()) == "allegro"
+    assert nearest_neighbor_index(Path("/tmp/never-written"), hand="leap") == shipped_nn_index("leap")
