@@ -32,3 +32,19 @@ def test_shipped_v2_store_is_intact_and_meets_its_size():
     assert (sum(success), len(success) - sum(success)) == (entry["successes"], entry["failures"])
     failed_errors = [e for e, ok in zip(table.column("position_error_m").to_pylist(), success, strict=True) if not ok]
     assert all(e is not None and e >= 0 for e in failed_errors)
+
+
+def test_shipped_v2_model_and_index_were_built_from_this_store():
+    import json
+
+    from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
+    from services.sampler.dataset import load_pose_dataset
+
+    dataset = load_pose_dataset(STORE, "allegro")
+    model = load_checkpoint(SHIPPED_DIR / "allegro_v2.pt")
+    index = json.loads((SHIPPED_DIR / "allegro_v2_nn.npz.manifest.json").read_text())
+    assert model.hand == "allegro" and model.manifest["dataset"]["sha256"] == dataset.fingerprint
+    assert index["dataset"]["sha256"] == dataset.fingerprint
+    assert index["dataset"]["poses_total"] == model.manifest["dataset"]["poses_total"] == 44_204
+    with np.load(SHIPPED_DIR / "allegro_v2_nn.npz", allow_pickle=False) as arrays:
+        assert arrays["frame_features"].shape[0] == index["dataset"]["frames"] == model.manifest["dataset"]["frames"]
