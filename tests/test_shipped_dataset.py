@@ -1,25 +1,30 @@
-"""The shipped Allegro dataset v2 store (datasets/allegro-v2): intact, of the train split, and as large as stated."""
+"""The shipped dataset v2 stores (datasets/allegro-v2, datasets/leap-v2): intact, of the train split, and as
+large as issue 17 asks (Allegro >= 1,000 objects and 40 k validated poses, LEAP >= 300 and 12 k)."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from services.sampler.dataset import open_store
 from shared.world.objects import split_of
 
-STORE = Path(__file__).resolve().parents[1] / "datasets" / "allegro-v2"
+DATASETS = Path(__file__).resolve().parents[1] / "datasets"
+STORE = DATASETS / "allegro-v2"
 
 
-def test_shipped_v2_store_is_intact_and_meets_its_size():
-    store = open_store(STORE)  # every shard checked against the manifest's SHA-256
+@pytest.mark.parametrize(("hand", "min_objects", "min_successes"), [("allegro", 1000, 40_000), ("leap", 300, 12_000)])
+def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_successes):
+    store_dir = DATASETS / f"{hand}-v2"
+    store = open_store(store_dir)  # every shard checked against the manifest's SHA-256
     manifest = store.manifest
-    assert (manifest["hand"], manifest["split"], manifest["parameters"]["placement"]) == ("allegro", "train", "random")
+    assert (manifest["hand"], manifest["split"], manifest["parameters"]["placement"]) == (hand, "train", "random")
     objects = manifest["objects"]
     assert all(split_of(object_id) == "train" for object_id in objects)
     with_success = [o for o, entry in objects.items() if entry.get("successes", 0) > 0]
     totals = store.totals()
-    assert len(with_success) >= 1000 and totals["successes"] >= 40_000 and totals["failures"] > 0
+    assert len(with_success) >= min_objects and totals["successes"] >= min_successes and totals["failures"] > 0
     # every object at its own random yaw, not all at yaw 0 as version 1
     yaws = np.array([p["yaw_rad"] for entry in objects.values() for p in entry.get("placements", [])])
     assert len(yaws) >= len(objects) and np.histogram(yaws, bins=12, range=(-np.pi, np.pi))[0].min() > len(yaws) / 24
@@ -27,7 +32,7 @@ def test_shipped_v2_store_is_intact_and_meets_its_size():
     import pyarrow.parquet as pq
 
     entry = next(e for e in objects.values() if e.get("successes", 0) and e.get("failures", 0))
-    table = pq.read_table(STORE / entry["shard"], columns=["success", "position_error_m", "toppled"])
+    table = pq.read_table(store_dir / entry["shard"], columns=["success", "position_error_m", "toppled"])
     success = table.column("success").to_pylist()
     assert (sum(success), len(success) - sum(success)) == (entry["successes"], entry["failures"])
     failed_errors = [e for e, ok in zip(table.column("position_error_m").to_pylist(), success, strict=True) if not ok]
