@@ -11,7 +11,6 @@ from services.sampler.dataset import open_store
 from shared.world.objects import split_of
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
-STORE = DATASETS / "allegro-v2"
 
 
 @pytest.mark.parametrize(("hand", "min_objects", "min_successes"), [("allegro", 1000, 40_000), ("leap", 300, 12_000)])
@@ -39,17 +38,18 @@ def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_su
     assert all(e is not None and e >= 0 for e in failed_errors)
 
 
-def test_shipped_v2_model_and_index_were_built_from_this_store():
+@pytest.mark.parametrize(("hand", "poses"), [("allegro", 44_204), ("leap", 18_916)])
+def test_shipped_v2_model_and_index_were_built_from_this_store(hand, poses):
     import json
 
     from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
     from services.sampler.dataset import load_pose_dataset
 
-    dataset = load_pose_dataset(STORE, "allegro")
-    model = load_checkpoint(SHIPPED_DIR / "allegro_v2.pt")
-    index = json.loads((SHIPPED_DIR / "allegro_v2_nn.npz.manifest.json").read_text())
-    assert model.hand == "allegro" and model.manifest["dataset"]["sha256"] == dataset.fingerprint
+    dataset = load_pose_dataset(DATASETS / f"{hand}-v2", hand)
+    model = load_checkpoint(SHIPPED_DIR / f"{hand}_v2.pt")
+    index = json.loads((SHIPPED_DIR / f"{hand}_v2_nn.npz.manifest.json").read_text())
+    assert model.hand == hand and model.manifest["dataset"]["sha256"] == dataset.fingerprint
     assert index["dataset"]["sha256"] == dataset.fingerprint
-    assert index["dataset"]["poses_total"] == model.manifest["dataset"]["poses_total"] == 44_204
-    with np.load(SHIPPED_DIR / "allegro_v2_nn.npz", allow_pickle=False) as arrays:
+    assert index["dataset"]["poses_total"] == model.manifest["dataset"]["poses_total"] == poses
+    with np.load(SHIPPED_DIR / f"{hand}_v2_nn.npz", allow_pickle=False) as arrays:
         assert arrays["frame_features"].shape[0] == index["dataset"]["frames"] == model.manifest["dataset"]["frames"]
