@@ -242,7 +242,7 @@ def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
     assert "distinct seeds" in capsys.readouterr().err
 
 
-def test_sampler_quality_pushes_a_checkpoints_poses_with_the_hand_it_was_trained_for():
+def test_sampler_quality_takes_the_hand_a_checkpoint_was_trained_for_and_its_index():
     from evaluation.sampler_quality import checkpoint_hand, nearest_neighbor_index, shipped_checkpoint, shipped_nn_index
 
     assert checkpoint_hand(shipped_checkpoint("leap")) == "leap"
