@@ -1,6 +1,6 @@
 """`gd2p critic data`, `gd2p critic train`: the success critic that orders the sampler's poses.
 
-    gd2p critic data --split train --skip 230 --objects 400 --out data/critic-allegro-train
+    gd2p critic data --split train --exclude-dataset datasets/allegro-v2 --objects 400 --out data/critic-allegro-train
     gd2p critic data --split val --objects 60 --out data/critic-allegro-val
     gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val \\
         --out services/sampler/checkpoints/allegro_critic.pt
@@ -11,9 +11,9 @@
 `data` labels diffusion samples: per object, one push frame at a yaw drawn from the object's seed, K = 200
 samples from the installed sampler checkpoint, `--per-object` of them pushed 20 cm by the validator's
 floating hand (what the planner's prescreen does), outcomes recorded. Objects come in the data engine's
-fixed order over the split; `--skip N` leaves out the first N (the default Allegro checkpoint was
-trained on the first 230 train objects: the critic should learn on samples as they look for objects the
-sampler never saw). Val objects are only ever used to choose the checkpoint, test objects only to report
+fixed order over the split; `--exclude-dataset STORE` leaves out the objects of the sampler's training
+store and `--skip N` the first N of the rest (the critic should learn on samples as they look for objects
+the sampler never saw). Val objects are only ever used to choose the checkpoint, test objects only to report
 it (`critic eval`; `critic train` refuses test data). Resumable: a restarted command skips the objects it has.
 
 `eval` reports a critic checkpoint (default: the installed one) on labelled data: ROC AUC, the success
@@ -50,6 +50,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     data.add_argument("--skip", type=non_negative_int, default=0, help="leave out the split's first N objects")
     data.add_argument("--family", default=None,
                       help="only objects of this library family (e.g. mug: the family no model trains on)")
+    data.add_argument("--exclude-dataset", type=Path, default=None,
+                      help="leave out the objects this pose store holds (the sampler's training store: the critic "
+                           "should learn on samples for objects the sampler never saw)")
     data.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     data.add_argument("--per-object", type=positive_int, default=32, help="samples pushed per object (default 32)")
     data.add_argument("--seed", type=non_negative_int, default=0)
@@ -76,11 +79,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_data(args: argparse.Namespace) -> int:
     from evaluation.critic_data import build
     from services.validator.data_engine import select_objects
+    from shared.data.dataset_store import DatasetStore
     from shared.world.objects.catalog import resolve_library_id
 
     ids = select_objects(args.split, allow_split=args.split != "train")
     if args.family is not None:
         ids = [i for i in ids if resolve_library_id(i).family == args.family]
+    if args.exclude_dataset is not None:
+        trained = DatasetStore.open(args.exclude_dataset).completed_objects()
+        ids = [i for i in ids if i not in trained]
     ids = ids[args.skip:args.skip + args.objects]
     if not ids:
         family = f" of family {args.family!r}" if args.family else ""
