@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import signal
 import sys
 from pathlib import Path
@@ -86,8 +87,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="sampler-quality: only this many objects of the split, one shape family after another "
                              "(default: all of them); data-size: this many test objects (default 40)")
     parser.add_argument("--tag", default=None,
-                        help="sampler-quality / data-size: suffix of the results directory (a non-shipped --checkpoint, "
-                             "another --dataset)")
+                        help="suffix of the results directory: sampler-quality / data-size: a non-shipped "
+                             "--checkpoint, another --dataset; methods / leap / closed-loop: a run with other models "
+                             "(<out>/<experiment>-<world>[-cameraN][-split]-TAG/)")
     parser.add_argument("--dataset", type=Path, default=None,
                         help="data-size: the training store whose objects are subsampled (default data/allegro-train)")
     parser.add_argument("--train-steps", type=int, default=None,
@@ -175,6 +177,9 @@ def run(args: argparse.Namespace) -> int:
         if value is not None and value < 1:
             print(f"gd2p eval: {flag} must be >= 1", file=sys.stderr)
             return 2
+    if args.tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", args.tag):
+        print(f"gd2p eval: --tag names a directory: letters, digits, '.', '_', '-' (got {args.tag!r})", file=sys.stderr)
+        return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
                                                ("--lr", args.lr), ("--seeds", args.seeds)) if value is not None]
@@ -198,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
             options["cameras"] = args.cameras
         if args.split != "test" and name in TRIAL_EXPERIMENTS:
             options["split"] = args.split
+        if args.tag is not None and name in TRIAL_EXPERIMENTS:
+            options["tag"] = args.tag
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
         if name == "sampler-quality":

@@ -63,11 +63,12 @@ class Protocol:
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
     split: str = "test"  # "val": the tuning objects; "unseen": a whole never-trained family of the test split
+    tag: str | None = None  # names a run of the same protocol with other models or code (`--tag`)
 
     @property
     def directory_name(self) -> str:
         return (f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
-                + (f"-{self.split}" if self.split != "test" else ""))
+                + (f"-{self.split}" if self.split != "test" else "") + (f"-{self.tag}" if self.tag else ""))
 
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
@@ -75,12 +76,15 @@ class Protocol:
         settings = {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
                     "objects": list(self.objects), "directions_deg": list(self.directions),
                     "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
-                    "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M}
+                    "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M,
+                    # the poses' models: a run resumed after the shipped checkpoint or index changed is refused
+                    "pose_models": protocol.pose_model_ids(self.hand)}
         return {**settings, "cameras": self.cameras} if self.cameras else settings
 
 
 def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
-                 methods: Sequence[str] | None = None, cameras: int = 0, split: str = "test") -> Protocol:
+                 methods: Sequence[str] | None = None, cameras: int = 0, split: str = "test",
+                 tag: str | None = None) -> Protocol:
     if split not in OBJECT_SETS:
         raise ValueError(f"unknown split {split!r}; known: {', '.join(OBJECT_SETS)}")
     if split == "val":
@@ -91,24 +95,26 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
         objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
     on_val = {"val": ", val objects (tuning)", "unseen": ", a never-trained shape family (mugs)"}.get(split, "")
+    on_val += f" ({tag})" if tag else ""
     if name == "methods":
         return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`{on_val}", "allegro",
                         tuple(methods or protocol.DEFAULT_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world, cameras,
-                        split)
+                        split, tag)
     if name == "leap":
         return Protocol(name, f"Hand morphology: LEAP + xArm7, world `{world}`{on_val}", "leap",
-                        tuple(methods or ("gd2p",)), objects, protocol.DIRECTIONS_DEG, trials, world, cameras, split)
+                        tuple(methods or ("gd2p",)), objects, protocol.DIRECTIONS_DEG, trials, world, cameras, split,
+                        tag)
     if name == "closed-loop":
         return Protocol(name, f"Closed loop (Allegro + Panda), world `{world}`{on_val}", "allegro",
                         tuple(methods or CLOSED_LOOP_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world,
-                        cameras, split)
+                        cameras, split, tag)
     raise ValueError(f"unknown protocol {name!r}")
 
 
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
                  world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                 split: str = "test") -> Path:
-    spec = protocol_for(name, quick, trials, world, methods, cameras, split)
+                 split: str = "test", tag: str | None = None) -> Path:
+    spec = protocol_for(name, quick, trials, world, methods, cameras, split, tag)
     directory = Path(out) / spec.directory_name
     store = ResultStore(directory, spec.settings())
     started = time.perf_counter()
@@ -128,28 +134,28 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                split: str = "test") -> Path:
-    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split)
+                split: str = "test", tag: str | None = None) -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split, tag)
 
 
 def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
              world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-             split: str = "test") -> Path:
-    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split)
+             split: str = "test", tag: str | None = None) -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split, tag)
 
 
 def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                     world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                    split: str = "test") -> Path:
-    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split)
+                    split: str = "test", tag: str | None = None) -> Path:
+    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag)
 
 
 def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
     """Per method, the success rate of the same protocol under `exact` found in `out` (for a `real` report):
     `<name>-exact[-cameraN]` (the same perception), else, for a mesh-told run, the run made before
     execution worlds existed (`<name>`)."""
-    if spec.world == "exact" or spec.split != "test":  # the runs in the planner's own world used test objects
-        return {}
+    if spec.world == "exact" or spec.split != "test" or spec.tag:  # the runs in the planner's own world used test
+        return {}  # objects and the models then shipped
     suffix = f"-camera{spec.cameras}" if spec.cameras else ""
     candidates = [(out / f"{spec.name}-exact{suffix}", {})]
     if not spec.cameras:  # the run before execution worlds existed told the planner the mesh

@@ -338,10 +338,30 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
     record["sampler"] = push_request(episode).sampler if method.source == "gd2p" else None
+    record["pose_model"] = _pose_model(episode.hand, method.source)
     record["critic"] = method.critic and method.source == "gd2p" and _has_critic(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
     return record
+
+
+def pose_model_ids(hand: str) -> dict[str, str | None]:
+    """The ids of the diffusion checkpoint and NN index the sampler loads for `hand` (the shipped ones or the
+    $GD2P_SAMPLER_* overrides the workers inherit); None for a missing file."""
+    from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
+    from services.sampler.nearest_neighbor import default_nn_index_path
+
+    return {kind: checkpoint_id(path) if path.is_file() else None
+            for kind, path in (("diffusion", default_checkpoint_path(hand)), ("nearest", default_nn_index_path(hand)))}
+
+
+def _pose_model(hand: str, source: str) -> str | None:
+    """The weights (diffusion checkpoint) or index (Nearest Neighbor) the trial's poses came from."""
+    if source == "gd2p":
+        return f"{hand}:{_system.sampler.sampler(hand).checkpoint_id}"
+    if source == "nearest":
+        return f"{hand}:{_system.sampler.nearest(hand).index_id}"
+    return None
 
 
 def _has_critic(hand: str) -> bool:

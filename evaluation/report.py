@@ -97,6 +97,8 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
             "machine": machine(), "code": CODE_AT_START, "quick": quick}
     if records:
         meta["records_code"] = dict(Counter(r.get("code", "not recorded") for r in records))
+        if any(r.get("pose_model") for r in records):
+            meta["records_pose_model"] = dict(Counter(r["pose_model"] for r in records if r.get("pose_model")))
         if any("ranking_weights" in r for r in records):
             meta["records_ranking_weights"] = dict(Counter(str(r.get("ranking_weights", "not recorded"))
                                                            for r in records))
@@ -106,6 +108,9 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     if "records_ranking_weights" in meta:
         made_by += "\n- ranking weights (α, β, γ) of the trials: " + ", ".join(
             f"{w} ({n})" for w, n in meta["records_ranking_weights"].items())
+    if "records_pose_model" in meta:
+        made_by += "\n- pose models of the trials (diffusion checkpoint id, or nn:index@id): " + ", ".join(
+            f"{m} ({n})" for m, n in meta["records_pose_model"].items())
     header = (f"# {title}\n\n- command: `{meta['command']}`\n- wall time: {total / 60:.1f} min{resumed}\n"
               f"- machine: {meta['machine']}\n- code: {meta['code']}{made_by}\n"
               + ("- **quick slice** (`--quick`): a small part of the protocol, not the full experiment\n" if quick else "")

@@ -5,8 +5,8 @@ Before scaling the data, three questions decide how much of the gap between diff
 much the data:
 
 1. **Does the model reproduce its own training data?** On objects of the shipped checkpoint's
-   training set: the validated fraction of 200 diffusion samples (the shipped Allegro checkpoint,
-   DDPM-100, placed and seeded as `gd2p sample --validate` and `gd2p eval sampler-quality` do)
+   training set: the validated fraction of 200 diffusion samples (the version-1 Allegro checkpoint
+   `allegro_v1.pt`, DDPM-100, placed and seeded as `gd2p sample --validate` and `gd2p eval sampler-quality` do)
    against that of the same objects' stored poses (the training dataset's poses of the object).
 2. **Does the model use the geometry at all?** The same objects sampled with the BPS of *another*
    training object (of another family where possible) and validated on their own geometry.
@@ -17,7 +17,7 @@ much the data:
 
 Where the stored poses come from: the training dataset (`data/allegro-train`, built by the README's
 `gd2p dataset build` command) is not in the repository, but the shipped Nearest-Neighbor index
-`services/sampler/checkpoints/allegro_nn.npz` is built from the same store (the manifests' dataset
+`services/sampler/checkpoints/allegro_v1_nn.npz` is built from the same store (the manifests' dataset
 SHA-256 agree; checked on every run) and holds, per training frame (222 objects, each in its
 default resting pose at yaw 0), the frame's BPS (float16) and every stored pose (9,683). A
 `StoredPosesSource` returns an object's own frame, found by id, not by BPS.
@@ -65,7 +65,7 @@ from evaluation.coverage import (
     summarize,
 )
 from evaluation.report import CODE_AT_START, markdown_table, write_experiment
-from evaluation.sampler_quality import index_fingerprint, shipped_checkpoint, shipped_nn_index
+from evaluation.sampler_quality import index_fingerprint
 from evaluation.stats import Interval, difference_interval, success_interval
 from evaluation.store import ResultStore
 
@@ -340,6 +340,13 @@ def measure_bps(objects: Sequence[str], store: ResultStore, sampler: Any, index:
 
 
 # ----------------------------------------------------------------------------- the experiment
+def diagnosed_files() -> tuple[Path, Path]:
+    """The version-1 checkpoint and NN index the diagnosis was written about (shipped as `<hand>_v1*`)."""
+    from services.sampler.checkpoint import SHIPPED_DIR
+
+    return SHIPPED_DIR / f"{HAND}_v1.pt", SHIPPED_DIR / f"{HAND}_v1_nn.npz"
+
+
 def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
     """Answer the three questions into `out/sampler-diagnosis/`; returns the report path."""
     from services.sampler.checkpoint import checkpoint_id
@@ -349,7 +356,7 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
     started = time.perf_counter()
     settings = QUICK if quick else FULL
     directory = Path(out) / NAME
-    checkpoint, nn_index = shipped_checkpoint(), shipped_nn_index()
+    checkpoint, nn_index = diagnosed_files()
     for path in (checkpoint, nn_index):
         if not path.is_file():
             raise CoverageError(f"no shipped {HAND} checkpoint / index at {path}")
@@ -503,7 +510,7 @@ def report_body(settings: DiagnosisSettings, groups: Mapping[str, Sequence[str]]
         "it (yaw 0 at OBJECT_XY) pushed along each evaluation direction — its yaw in D, and the Euclidean BPS distance "
         "to its own training frame and to the nearest other training frame.\n\n"
         f"## Per object\n\n{per_object}\n![validated fraction per object]({plot_name})\n\n"
-        "Stored poses: the object's own frame in `allegro_nn.npz` (built from `data/allegro-train`, the dataset the "
+        "Stored poses: the object's own frame in `allegro_v1_nn.npz` (built from `data/allegro-train`, the dataset the "
         "checkpoint trained on; the dataset itself is not in the repository); every stored pose is pushed (a seeded "
         f"{settings.samples} when a frame has more), so their count differs per object. "
         f"Cost: {answers['pushes']} pushes, {answers['worker_seconds']:.0f} worker-seconds "

@@ -152,12 +152,17 @@ def test_fixed_pose_pull_toward_the_robot_succeeds_with_the_arm(tmp_path):
     assert record["outcome"] == "success", record
     assert record["world_draw"]["level"] == "exact"
     assert record["position_error_m"] <= 0.03 and not record["toppled"]
+    assert record["pose_model"] is None  # the fixed pose comes from no model or index
 
 
 def test_reports_and_index(tmp_path):
     table = markdown_table(["method", "rate"], [["GD2P", 0.8123], ["fixed", "–"]])
     assert table.splitlines()[2] == "| GD2P | 0.81 |"
-    write_experiment(tmp_path / "methods", "Methods", table, {"success": 0.8}, wall_time_s=90.0, quick=True)
+    records = [{"code": "abc", "pose_model": "allegro:0123"}, {"code": "abc", "pose_model": None}]
+    write_experiment(tmp_path / "methods", "Methods", table, {"success": 0.8}, wall_time_s=90.0, quick=True,
+                     records=records)
+    assert "pose models of the trials (diffusion checkpoint id, or nn:index@id): allegro:0123 (1)" in (
+        tmp_path / "methods" / "report.md").read_text()
     summary = json.loads((tmp_path / "methods" / "summary.json").read_text())
     assert summary["success"] == 0.8 and summary["quick"] and "cores" in summary["machine"]
     assert summary["code"] not in ("", "unknown")  # the commit these results came from (tests run in the checkout)
@@ -214,3 +219,18 @@ def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):
     index = write_index(tmp_path).read_text()
     assert "- trials run by code: aaa (3), bbb (1); report written by bbb" in index
     assert "- code: not recorded (run before results were stamped)" in index  # not in git: no commit to name
+
+
+def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_models(tmp_path, monkeypatch):
+    from evaluation.methods import exact_rates, protocol_for
+    from services.sampler.checkpoint import SHIPPED_DIR
+
+    spec = protocol_for("methods", True, 1, "real", ("gd2p",), tag="v2")
+    assert spec.directory_name == "methods-real-v2" and spec.title.endswith("(v2)")
+    assert exact_rates(tmp_path, spec) == {}  # the exact runs were made with other models
+    models = spec.settings()["pose_models"]
+    assert models["diffusion"] and models["nearest"]  # the shipped checkpoint and index, by content
+    ResultStore(tmp_path / spec.directory_name, spec.settings())
+    monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_ALLEGRO", str(SHIPPED_DIR / "allegro_v1.pt"))
+    with pytest.raises(ResultStoreError, match="pose_models"):
+        ResultStore(tmp_path / spec.directory_name, spec.settings())

@@ -10,7 +10,6 @@ import pytest
 import evaluation.coverage as coverage
 import evaluation.sampler_diagnosis as diagnosis
 from evaluation.coverage import CoverageError, DiffusionSource, PushTally, coverage_record
-from evaluation.sampler_quality import shipped_checkpoint, shipped_nn_index
 from evaluation.store import RECORDS_FILE
 from services.sampler.checkpoint import load_checkpoint
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
@@ -18,18 +17,18 @@ from services.sampler.sampling import PoseSampler, default_frame
 from shared.world.bps import BasisPointSet
 from shared.world.objects import load_object
 
-TRAINED = "rnd-000"  # an object the shipped checkpoint trained on
+TRAINED = "rnd-000"  # an object the diagnosed (version-1) checkpoint trained on
 OTHER = "proc-cylinder-047"  # another one, of another family
 
 
 @pytest.fixture(scope="module")
 def checkpoint():
-    return load_checkpoint(shipped_checkpoint())
+    return load_checkpoint(diagnosis.diagnosed_files()[0])
 
 
 @pytest.fixture(scope="module")
 def index():
-    return NearestNeighborBaseline.load(shipped_nn_index())
+    return NearestNeighborBaseline.load(diagnosis.diagnosed_files()[1])
 
 
 def _with_basis(bps: BasisPointSet, basis: np.ndarray) -> BasisPointSet:
@@ -55,7 +54,7 @@ def test_the_bps_comparison_agrees_on_the_shipped_paths_and_detects_a_changed_or
 
 
 def test_shuffled_source_samples_an_object_with_its_donors_bps():
-    path = str(shipped_checkpoint())
+    path = str(diagnosis.diagnosed_files()[0])
     shuffled = diagnosis.ShuffledBpsSource(path, "ddim", donors=((TRAINED, OTHER),))
     obj, donor = load_object(TRAINED), load_object(OTHER)
     poses = shuffled.poses(obj, default_frame(obj), 6, 7)
@@ -67,9 +66,9 @@ def test_shuffled_source_samples_an_object_with_its_donors_bps():
 
 
 def test_stored_source_returns_the_objects_own_training_poses_in_its_training_placement():
-    source = diagnosis.StoredPosesSource(str(shipped_nn_index()))
+    source = diagnosis.StoredPosesSource(str(diagnosis.diagnosed_files()[1]))
     obj = load_object(TRAINED)
-    with np.load(shipped_nn_index()) as data:
+    with np.load(diagnosis.diagnosed_files()[1]) as data:
         row = list(data["frame_object_ids"]).index(TRAINED)
         expected = data["poses"][data["frame_index"] == row]
     assert 0 < len(expected) < 200
@@ -80,7 +79,7 @@ def test_stored_source_returns_the_objects_own_training_poses_in_its_training_pl
 
 
 def test_objects_are_the_checkpoints_own_split_and_donors_a_derangement_across_families():
-    trained, held_out = diagnosis.checkpoint_objects(shipped_checkpoint(), shipped_nn_index())
+    trained, held_out = diagnosis.checkpoint_objects(*diagnosis.diagnosed_files())
     assert (len(trained), len(held_out)) == (200, 22) and not set(trained) & set(held_out)
     assert TRAINED in trained and "proc-box-003" in held_out  # the first look: one of each
     picked = diagnosis.pick_objects(trained, 12)

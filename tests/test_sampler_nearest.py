@@ -188,7 +188,7 @@ def test_shipped_index_matches_its_manifest_and_serves_its_own_training_frames(h
     index: NearestNeighborBaseline = nearest.index
     assert index.hand == hand and manifest["hand"] == hand
     assert (len(index), index.pose_count) == (manifest["dataset"]["frames"], manifest["dataset"]["poses_total"])
-    assert path.stat().st_size <= 8_000_000
+    assert path.stat().st_size <= 32_000_000  # float32 (v2: 1,025 frames at random yaw; --half is refused for it)
     frame = index.frames[len(index) // 2]
     pose_index = None if frame.pose_index < 0 else frame.pose_index
     T_world_D = direction_frame(np.array([0.5, 0.0, 0.0]), 0.0)

@@ -39,7 +39,7 @@ def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_su
 
 
 @pytest.mark.parametrize(("hand", "poses"), [("allegro", 44_204), ("leap", 18_916)])
-def test_shipped_v2_model_and_index_were_built_from_this_store(hand, poses):
+def test_shipped_default_model_and_index_were_built_from_this_store(hand, poses):
     import json
 
     from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
@@ -48,10 +48,10 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, poses):
 
     # the fingerprint training records (shard bytes); the store's integrity is the test above's
     fingerprint = dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
-    model = load_checkpoint(SHIPPED_DIR / f"{hand}_v2.pt")
-    index = json.loads((SHIPPED_DIR / f"{hand}_v2_nn.npz.manifest.json").read_text())
+    model = load_checkpoint(SHIPPED_DIR / f"{hand}.pt")
+    index = json.loads((SHIPPED_DIR / f"{hand}_nn.npz.manifest.json").read_text())
     assert model.hand == hand and model.manifest["dataset"]["sha256"] == fingerprint
     assert index["dataset"]["sha256"] == fingerprint
     assert index["dataset"]["poses_total"] == model.manifest["dataset"]["poses_total"] == poses
-    with np.load(SHIPPED_DIR / f"{hand}_v2_nn.npz", allow_pickle=False) as arrays:
+    with np.load(SHIPPED_DIR / f"{hand}_nn.npz", allow_pickle=False) as arrays:
         assert arrays["frame_features"].shape[0] == index["dataset"]["frames"] == model.manifest["dataset"]["frames"]
