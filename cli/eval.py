@@ -102,6 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="multistep: watch every push and stop it when the object strays from its predicted "
                              "path (PushRequest.closed_loop), into <out>/multistep-<world>-closed/")
     parser.set_defaults(func=run)
+    register_compare(subparsers)
 
 
 def _method_list(text: str) -> tuple[str, ...]:
@@ -218,4 +219,32 @@ def run(args: argparse.Namespace) -> int:
             return 2
         print(f"{name}: {report}")
     print(f"index: {write_index(args.out)}")
+    return 0
+
+
+def register_compare(subparsers: argparse._SubParsersAction) -> None:
+    from evaluation import compare
+
+    parser = subparsers.add_parser("compare", help="two evaluation runs of one protocol, trial by trial",
+                                   description=compare.__doc__ + "\n    gd2p compare results/closed-loop-real:gd2p "
+                                   "results/methods-real-v2:gd2p --out cmp.md",
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run_a", metavar="RUN_A", help="DIR[:METHOD] (the method defaults to gd2p)")
+    parser.add_argument("run_b", metavar="RUN_B", help="DIR[:METHOD]; the difference reported is B - A")
+    parser.add_argument("--out", type=Path, default=None, help="also write the markdown report here")
+    parser.set_defaults(func=run_compare)
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    from evaluation.compare import CompareError, compare, load_run, parse_run
+    from shared.atomic import atomic_write_text
+
+    try:
+        report = compare(load_run(*parse_run(args.run_a)), load_run(*parse_run(args.run_b)))
+    except CompareError as exc:
+        print(f"gd2p compare: {exc}", file=sys.stderr)
+        return 2
+    print(report)
+    if args.out is not None:
+        atomic_write_text(args.out, report)
     return 0

@@ -1,0 +1,107 @@
+"""Two evaluation runs of one protocol, trial by trial: `gd2p compare RUN_A[:METHOD] RUN_B[:METHOD]`.
+
+A run is a `gd2p eval methods|leap|closed-loop` results directory (its `records.jsonl`). Trials are
+matched by what makes them the same episode: object, direction, trial index, the episode seed and the
+execution world's draw. Only matched trials are compared, so a run with 3 trials per cell compares
+with the first 3 of a run with 5, and the difference is paired: the bootstrap draws the same objects
+for both runs (`evaluation.stats.difference_interval`). Use it to ask whether another checkpoint,
+other ranking weights or new code changed the outcome of the same trials.
+"""
+from __future__ import annotations
+
+import json
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from evaluation.report import markdown_table
+from evaluation.stats import difference_interval, success_interval
+from evaluation.store import RECORDS_FILE
+
+DEFAULT_METHOD = "gd2p"
+
+
+class CompareError(ValueError):
+    """A run that cannot be read or compared, with the reason."""
+
+
+@dataclass(frozen=True)
+class RunRecords:
+    """One method's trials of one run."""
+
+    directory: Path
+    method: str
+    records: tuple[dict[str, Any], ...]
+
+    @property
+    def label(self) -> str:
+        return f"{self.directory.name}:{self.method}"
+
+
+def parse_run(spec: str) -> tuple[Path, str]:
+    """`DIR` or `DIR:METHOD` -> (directory, method); the method defaults to gd2p."""
+    directory, _, method = spec.partition(":")
+    if not directory:
+        raise CompareError(f"{spec!r}: give a results directory, e.g. results/methods-real:gd2p")
+    return Path(directory), method or DEFAULT_METHOD
+
+
+def load_run(directory: Path, method: str) -> RunRecords:
+    """The finished trials of `method` in `directory` (torn lines skipped, as the result store does)."""
+    path = directory / RECORDS_FILE
+    if not path.is_file():
+        raise CompareError(f"{directory}: no {RECORDS_FILE} (not a `gd2p eval methods|leap|closed-loop` run)")
+    records, methods = [], set()
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line torn by a kill
+        methods.add(str(record.get("method")))
+        if record.get("method") == method:
+            records.append(record)
+    if not records:
+        raise CompareError(f"{directory}: no trials of method {method!r}; it has: {', '.join(sorted(methods)) or 'none'}")
+    return RunRecords(directory, method, tuple(records))
+
+
+def episode_key(record: dict[str, Any]) -> tuple:
+    """What makes two trials the same episode: where, which way, which trial, and which world was drawn."""
+    draw = record.get("world_draw") or {}
+    return (record["hand"], record["object_id"], float(record["direction_deg"]), int(record["trial"]),
+            record.get("seed"), record.get("world", "exact"), draw.get("seed"))
+
+
+def matched(a: RunRecords, b: RunRecords) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The trials of `a` and `b` that are the same episode, in the same order."""
+    by_key = {episode_key(r): r for r in b.records}
+    pairs = [(r, by_key[episode_key(r)]) for r in a.records if episode_key(r) in by_key]
+    return [p[0] for p in pairs], [p[1] for p in pairs]
+
+
+def _described(records: list[dict[str, Any]], field: str) -> str:
+    values = Counter(str(r.get(field, "not recorded")) for r in records)
+    return ", ".join(f"{v} ({n})" for v, n in values.items())
+
+
+def compare(a: RunRecords, b: RunRecords) -> str:
+    """A markdown report: each run on the shared episodes, B − A paired by object, and where they differ."""
+    shared_a, shared_b = matched(a, b)
+    if not shared_a:
+        raise CompareError(f"{a.label} and {b.label} share no episode (object, direction, trial, seed and world "
+                           "draw): they are not runs of the same protocol")
+    rows = [[run.label, len(shared), str(success_interval(shared)), _described(shared, "pose_model"),
+             _described(shared, "ranking_weights"), _described(shared, "code")]
+            for run, shared in ((a, shared_a), (b, shared_b))]
+    table = markdown_table(["run:method", "shared trials", "success [95% CI]", "pose model", "ranking weights (α, β, γ)",
+                            "code"], rows)
+    outcomes = Counter((bool(x["success"]), bool(y["success"])) for x, y in zip(shared_a, shared_b, strict=True))
+    objects = len({r["object_id"] for r in shared_a})
+    return (f"# {b.label} against {a.label}\n\n"
+            f"{len(shared_a)} trials are the same episode in both runs ({objects} objects; of {len(a.records)} and "
+            f"{len(b.records)} trials). Intervals: 95%, bootstrap clustered by object.\n\n{table}\n"
+            f"**B − A, paired by object: {difference_interval(shared_b, shared_a).points()} points.**\n\n"
+            f"| both succeed | only A | only B | both fail |\n|---|---|---|---|\n"
+            f"| {outcomes[(True, True)]} | {outcomes[(True, False)]} | {outcomes[(False, True)]} | "
+            f"{outcomes[(False, False)]} |\n")

@@ -1,0 +1,47 @@
+"""`gd2p compare`: two runs of one protocol, matched trial by trial (evaluation/compare.py)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from cli.main import main
+from evaluation.compare import CompareError, compare, load_run
+
+
+def _record(obj: str, trial: int, success: bool, method: str = "gd2p", draw_seed: int | None = None, **extra) -> dict:
+    return {"key": f"{method}/allegro/{obj}/60/{trial}", "method": method, "hand": "allegro", "object_id": obj,
+            "direction_deg": 60.0, "trial": trial, "seed": 100 + trial, "world": "real",
+            "world_draw": {"seed": draw_seed if draw_seed is not None else 200 + trial}, "success": success, **extra}
+
+
+def _run(directory, records):
+    directory.mkdir()
+    (directory / "records.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records) + '{"torn": ')
+    return directory
+
+
+def test_runs_are_compared_on_the_trials_that_are_the_same_episode(tmp_path):
+    a = _run(tmp_path / "a", [_record(o, t, o == "box") for o in ("box", "mug") for t in range(3)]
+             + [_record("box", 0, False, method="fixed")])
+    b = _run(tmp_path / "b", [_record(o, t, True, pose_model="allegro:v2") for o in ("box", "mug") for t in range(5)]
+             + [_record("cone", 0, True)])
+    report = compare(load_run(a, "gd2p"), load_run(b, "gd2p"))
+    assert "6 trials are the same episode in both runs (2 objects; of 6 and 11 trials)" in report
+    assert "| a:gd2p | 6 | 50.0%" in report and "| b:gd2p | 6 | 100.0%" in report and "allegro:v2 (6)" in report
+    assert "B − A, paired by object: +50.0" in report
+    assert "| 3 | 0 | 3 | 0 |" in report  # both succeed, only A, only B, both fail
+
+
+def test_another_world_draw_is_another_episode_and_bad_runs_are_refused(tmp_path, capsys):
+    a = _run(tmp_path / "a", [_record("box", 0, True)])
+    b = _run(tmp_path / "b", [_record("box", 0, True, draw_seed=999)])
+    with pytest.raises(CompareError, match="share no episode"):
+        compare(load_run(a, "gd2p"), load_run(b, "gd2p"))
+    with pytest.raises(CompareError, match="no trials of method 'nearest'; it has: gd2p"):
+        load_run(a, "nearest")
+    assert main(["compare", str(tmp_path / "missing"), str(b)]) == 2
+    assert "no records.jsonl" in capsys.readouterr().err
+    out = tmp_path / "cmp.md"
+    assert main(["compare", f"{a}:gd2p", str(a), "--out", str(out)]) == 0
+    assert "+0.0" in out.read_text()
