@@ -732,7 +732,8 @@ class PushRequest(Message):
     # The fast path to a plan: consider the samples in the order of the sampler's success critic (when it
     # scored them) and push no floating hand before planning (PipelineSettings.critic_prescreen). With DDIM,
     # 1.2 s less to plan (bench/push.py: 1.64 s p50); on 84 val trials 84.5% against 81.0%, but on the 126
-    # test trials 86.5% against the default's 90.5% (results/closed-loop-real-latency/): off by default.
+    # test trials 86.5% against the default's 90.5% (results/closed-loop-real-latency/), and with the v2 models
+    # and their critic 88.9% against 93.7% (results/closed-loop-real-v2/): off by default.
     critic: bool = False
     # The client's lease (`gd2p/lease/client/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
     # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.
