@@ -9,7 +9,6 @@ other ranking weights or new code changed the outcome of the same trials.
 """
 from __future__ import annotations
 
-import json
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import Any
 
 from evaluation.report import markdown_table
 from evaluation.stats import difference_interval, success_interval
-from evaluation.store import RECORDS_FILE
+from evaluation.store import RECORDS_FILE, read_records
 
 DEFAULT_METHOD = "gd2p"
 
@@ -48,21 +47,15 @@ def parse_run(spec: str) -> tuple[Path, str]:
 
 
 def load_run(directory: Path, method: str) -> RunRecords:
-    """The finished trials of `method` in `directory` (torn lines skipped, as the result store does)."""
+    """The finished trials of `method` in `directory`, read as the result store reads them."""
     path = directory / RECORDS_FILE
     if not path.is_file():
         raise CompareError(f"{directory}: no {RECORDS_FILE} (not a `gd2p eval methods|leap|closed-loop` run)")
-    records, methods = [], set()
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # a line torn by a kill
-        methods.add(str(record.get("method")))
-        if record.get("method") == method:
-            records.append(record)
+    everything = read_records(path).values()
+    records = [r for r in everything if r.get("method") == method]
     if not records:
-        raise CompareError(f"{directory}: no trials of method {method!r}; it has: {', '.join(sorted(methods)) or 'none'}")
+        methods = sorted({str(r.get("method")) for r in everything})
+        raise CompareError(f"{directory}: no trials of method {method!r}; it has: {', '.join(methods) or 'none'}")
     return RunRecords(directory, method, tuple(records))
 
 

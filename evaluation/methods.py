@@ -116,7 +116,8 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
                  split: str = "test", tag: str | None = None) -> Path:
     spec = protocol_for(name, quick, trials, world, methods, cameras, split, tag)
     directory = Path(out) / spec.directory_name
-    store = ResultStore(directory, spec.settings())
+    settings = spec.settings()  # hashes the pose models' files: once per run
+    store = ResultStore(directory, settings)
     started = time.perf_counter()
     todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
                              spec.cameras, spec.split)
@@ -127,7 +128,7 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
     body = report_body(records, spec, summary, exact_rates(Path(out), spec))
     _plot(records, spec, directory / "success_by_direction.png")
     body += "\n![success by method and direction](success_by_direction.png)\n"
-    return write_experiment(directory, spec.title, body, {"settings": {**spec.settings(), "trials": spec.trials,
+    return write_experiment(directory, spec.title, body, {"settings": {**settings, "trials": spec.trials,
                                                                        "methods": list(spec.methods)},
                                                           **summary}, time.perf_counter() - started, quick, records)
 

@@ -22,6 +22,18 @@ RECORDS_FILE = "records.jsonl"
 SETTINGS_FILE = "settings.json"
 
 
+def read_records(path: Path) -> dict[str, dict[str, Any]]:
+    """The finished units of a records file by key (a unit recorded twice: its last record)."""
+    records = {}
+    for line in Path(path).read_text().splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line torn by a kill: its unit runs again
+        records[record["key"]] = record
+    return records
+
+
 class ResultStoreError(ValueError):
     """The output directory holds results of a different protocol."""
 
@@ -34,14 +46,7 @@ class ResultStore:
         self.directory.mkdir(parents=True, exist_ok=True)
         self._check_settings(dict(settings))
         self.path = self.directory / RECORDS_FILE
-        self.records: dict[str, dict[str, Any]] = {}
-        if self.path.exists():
-            for line in self.path.read_text().splitlines():
-                try:
-                    record = json.loads(line)
-                except json.JSONDecodeError:
-                    continue  # a line torn by a kill: its unit runs again
-                self.records[record["key"]] = record
+        self.records: dict[str, dict[str, Any]] = read_records(self.path) if self.path.exists() else {}
 
     def _check_settings(self, settings: dict[str, Any]) -> None:
         path = self.directory / SETTINGS_FILE
