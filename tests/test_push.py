@@ -6,6 +6,7 @@ planning, arm rollouts, ranking, execution by the bridge, recording — is the o
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from concurrent.futures import Future
@@ -648,6 +649,38 @@ def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_
     made = []
     assert within_limits(unplannable, Limits(0), 3, failures, "plan") is None and len(made) == 1
     assert failures["no path"] == 1
+
+
+@pytest.mark.parametrize("choice", ["ranked", "random"])
+def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeypatch, choice):
+    """The first four poses tried (two rounds of max_plan_attempts=2) screen feasible but have no arm plan
+    (overridden: "no IK solution"); with three plan-less rounds allowed, the third round's poses are
+    planned and the push is made, by the ranked and the random choice alike; with two, the request is
+    infeasible and says how many poses it tried and why."""
+    from services.planner import stages
+    from services.planner.motion import PlanningError
+    from services.planner.outcome import PushError
+
+    planned = []
+    plan_push = stages.ArmPlanning._plan_push
+
+    def first_four_unreachable(self, feasible, index):
+        planned.append(index)
+        if len(planned) <= 4:
+            raise PlanningError("no IK solution", "approach segment: the arm cannot follow the straight line")
+        return plan_push(self, feasible, index)
+
+    monkeypatch.setattr(stages.ArmPlanning, "_plan_push", first_four_unreachable)
+    settings = stages.PipelineSettings(max_plans=1, prescreen=0, max_plan_rounds=1, max_plan_attempts=2,
+                                       max_planless_rounds=3)
+    response, _ = _push_with_altered_rollouts(lambda i, result: result, settings, choice)
+    assert not isinstance(response, PushError) and response.success
+    assert len(planned) == 5 and len(set(planned)) == 5  # each pose is tried once
+    planned.clear()
+    error, rollouts = _push_with_altered_rollouts(lambda i, result: result,
+                                                  dataclasses.replace(settings, max_planless_rounds=2), choice)
+    assert isinstance(error, PushError) and error.code == "infeasible" and rollouts == 0
+    assert "any of the 4 feasible pose(s) tried (4× no IK solution)" in error.message
 
 
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():

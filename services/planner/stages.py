@@ -78,6 +78,10 @@ class PipelineSettings:
     # + 24 84.5%; no critic + 24 81.0%. No prescreen is the fastest (bench/push.py: 0.4 s less than 8 pushes).
     critic_prescreen: int = 0
     max_plan_attempts: int = 10  # poses planned per round before giving up
+    # A round in which none of its `max_plan_attempts` poses has an arm plan (the approach or the way out
+    # runs out of reach, every path breaks a limit) is followed by one on the next poses, screened as
+    # needed, up to this many rounds: a hand pose that screens feasible can still fail there.
+    max_planless_rounds: int = 3
     # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
     # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
     max_plan_rounds: int = 2
@@ -321,10 +325,32 @@ class ArmPlanning:
         self.q_arm_start, self.q_hand_start = robot_start(state, planner)
 
     def plans(self, feasible: Feasible, failures: Counter,
-              on_plan: Callable[[CandidatePlan], None] | None = None) -> tuple[list[CandidatePlan], int]:
+              on_plan: Callable[[CandidatePlan], None] | None = None) -> tuple[list[CandidatePlan], Feasible]:
         """Plans for up to `max_plans` candidates taken in `feasible.order` (one plan for a random choice),
-        and how many candidates of the order were tried; `on_plan(plan)` is called as each plan is made.
-        Failures are counted in `failures` (PushError "infeasible" with them when no plan is found)."""
+        and the candidates after those tried; `on_plan(plan)` is called as each plan is made.
+
+        When none of a round's `max_plan_attempts` poses has a plan, the next poses (screened as needed) get
+        another round, up to `max_planless_rounds`. Failures are counted in `failures` (PushError
+        "infeasible" with them when no plan is found)."""
+        for round_ in range(self.settings.max_planless_rounds):
+            plans, used = self._round(feasible, failures, on_plan)
+            feasible = feasible.without_first(used)
+            if plans:
+                return plans, feasible
+            if round_ + 1 == self.settings.max_planless_rounds:
+                break
+            try:
+                feasible = screen_more(self.state, self.planner, feasible, self.push, self.settings,
+                                       needed=self.settings.max_plan_attempts)
+            except PushError:  # no candidate left that screens feasible
+                break
+        raise PushError("infeasible", f"no collision-free arm plan for any of the {sum(failures.values())} "
+                        f"feasible pose(s) tried ({_counted(failures)})")
+
+    def _round(self, feasible: Feasible, failures: Counter,
+               on_plan: Callable[[CandidatePlan], None] | None) -> tuple[list[CandidatePlan], int]:
+        """One round of `plans`: the plans of the first `max_plan_attempts` poses of the order (stopping at
+        `max_plans`, or one for a random choice) and how many poses were tried."""
         wanted = self.settings.max_plans if rolls_out(self.state.request) else 1
         plans: list[CandidatePlan] = []
         used = 0
@@ -340,9 +366,6 @@ class ArmPlanning:
                 on_plan(plans[-1])
             if len(plans) == wanted:
                 break
-        if not plans:
-            raise PushError("infeasible", f"no collision-free arm plan for any of the {sum(failures.values())} "
-                            f"feasible pose(s) tried ({_counted(failures)})")
         return plans, used
 
     def _plan_push(self, feasible: Feasible, index: int) -> Plan:
@@ -441,7 +464,7 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
 
         started = time.perf_counter()
         try:
-            plans, used = planning.plans(feasible, failures, on_plan=roll_out)
+            plans, rest = planning.plans(feasible, failures, on_plan=roll_out)
         except PushError:
             if ranked or rolled_out:  # a later round found nothing new: rank what the earlier rounds found
                 break
@@ -450,7 +473,7 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
             state.time("planning", time.perf_counter() - started)
         rolled_out += len(plans)
         ranked = best_first(ranked + rank(state, plans, rollouts, feasible.candidates.l_dir, settings))
-        feasible = feasible.without_first(used)
+        feasible = rest
         if (ranked and ranking.predicts_success(ranked[0].score)) or feasible.order.size == 0:
             break
     if not ranked:
