@@ -133,6 +133,27 @@ def test_reader_groups_poses_by_placement_and_splits_by_object(store):
     assert len(choose_fraction(train_ids, 0.4, seed=0)) == 2
 
 
+def test_a_frame_whose_resting_pose_this_machine_lacks_is_left_out_with_a_warning(tmp_path):
+    """A store built on another machine names resting pose 40 of an object that has fewer here: its poses
+    are left out (never placed otherwise), the warning names the frame, and the dataset records it."""
+    import pyarrow.compute as pc
+
+    objects = synthetic_objects()[:2]
+    source = write_store(tmp_path / "src", objects)
+    table = pa.concat_tables([pq.read_table(p) for p in sorted((source / "shards").glob("*.parquet"))])
+    moved = pc.and_(pc.equal(table.column("object_id"), objects[0]), pc.equal(table.column("yaw_rad"), YAWS[0]))
+    pose_index = pc.if_else(moved, pa.scalar(40, pa.int32()), table.column("pose_index"))
+    table = table.set_column(table.schema.get_field_index("pose_index"), "pose_index", pose_index)
+    store = write_pose_store(tmp_path / "store", table)
+    with pytest.warns(UserWarning, match=f"1 frame\\(s\\) left out.*{objects[0]} resting pose 40 \\({POSES_PER_FRAME} poses\\)"):
+        dataset = load_pose_dataset(store, HAND)
+    assert len(dataset) == (len(objects) * len(YAWS) - 1) * POSES_PER_FRAME
+    assert all(f.pose_index == -1 for f in dataset.frames) and dataset.objects() == sorted(objects)
+    assert dataset.skipped_summary() == [{"object_id": objects[0], "pose_index": 40, "yaw_rad": YAWS[0],
+                                          "poses": POSES_PER_FRAME}]
+    assert dataset.subset({objects[1]}).skipped == []
+
+
 def test_reader_rejects_bad_stores(tmp_path):
     with pytest.raises(DatasetError, match="no such dataset"):
         load_pose_dataset(tmp_path / "missing", HAND)

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,9 @@ class PoseDataset:
     frame_index: np.ndarray  # [N] int64 into `frames`
     frames: list[Frame]
     fingerprint: str  # content hash of the shards read (see dataset_fingerprint)
+    # Frames of the store left out, with their poses: their resting pose does not exist on this machine
+    # (`unplaceable_frames`); (frame, poses) pairs, recorded in what is built from the dataset.
+    skipped: list[tuple[Frame, int]] = field(default_factory=list)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -83,12 +87,21 @@ class PoseDataset:
     def subset(self, keep_objects: set[str] | list[str]) -> PoseDataset:
         """The poses of `keep_objects` only (frames renumbered)."""
         keep = set(keep_objects)
-        kept_frames = [i for i, f in enumerate(self.frames) if f.object_id in keep]
+        return self.with_frames([i for i, f in enumerate(self.frames) if f.object_id in keep],
+                                [(f, n) for f, n in self.skipped if f.object_id in keep])
+
+    def with_frames(self, kept_frames: list[int], skipped: list[tuple[Frame, int]]) -> PoseDataset:
+        """The poses of the frames `kept_frames` (indices, renumbered in that order) only; `skipped` recorded."""
         renumber = np.full(len(self.frames), -1, dtype=np.int64)
         renumber[kept_frames] = np.arange(len(kept_frames))
         rows = renumber[self.frame_index] >= 0
         return PoseDataset(self.hand, self.poses[rows], renumber[self.frame_index[rows]],
-                           [self.frames[i] for i in kept_frames], self.fingerprint)
+                           [self.frames[i] for i in kept_frames], self.fingerprint, skipped)
+
+    def skipped_summary(self) -> list[dict]:
+        """The skipped frames for a manifest: object, resting pose, yaw and how many poses each held."""
+        return [{"object_id": f.object_id, "pose_index": f.pose_index, "yaw_rad": f.yaw_rad, "poses": n}
+                for f, n in self.skipped]
 
 
 # ----------------------------------------------------------------------------- reading
@@ -134,7 +147,44 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     pose_index = _optional_column(table, "pose_index", DEFAULT_POSE_INDEX, np.int64)
     yaw = np.round(_optional_column(table, "yaw_rad", 0.0, np.float64), _YAW_DECIMALS)
     frames, frame_index = _group_frames(object_ids, pose_index, yaw)
-    return PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store))
+    dataset = PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store))
+    return _without_frames(dataset, unplaceable_frames(frames), directory)
+
+
+def unplaceable_frames(frames: list[Frame]) -> list[Frame]:
+    """The frames whose resting pose the object does not have on this machine.
+
+    Resting poses are trimesh's stable poses of the object's hull, most probable first. Where several are
+    equally probable, or a facet's sliver triangles make its area NaN, which ones make the list and in
+    what order can differ between machines (CPU, library builds): a store built elsewhere can name a pose
+    index this machine does not have (1 frame of the 1,129 of datasets/allegro-v2 on the VM of 2026-12-03).
+    Such frames cannot be placed as they were validated, so they are left out, never placed otherwise.
+    """
+    unplaceable = []
+    for frame in frames:
+        if frame.pose_index == DEFAULT_POSE_INDEX:
+            continue
+        try:
+            count = len(load_object(frame.object_id).resting_poses)
+        except ObjectLoadError:
+            continue  # frame_bps reports an object that does not load
+        if not 0 <= frame.pose_index < count:
+            unplaceable.append(frame)
+    return unplaceable
+
+
+def _without_frames(dataset: PoseDataset, dropped: list[Frame], directory: Path) -> PoseDataset:
+    """`dataset` without the poses of `dropped` frames (recorded in `skipped`), with a warning naming them."""
+    if not dropped:
+        return dataset
+    counts = np.bincount(dataset.frame_index, minlength=len(dataset.frames))
+    index = {frame: i for i, frame in enumerate(dataset.frames)}
+    skipped = [(frame, int(counts[index[frame]])) for frame in dropped]
+    names = ", ".join(f"{f.object_id} resting pose {f.pose_index} ({n} poses)" for f, n in skipped)
+    warnings.warn(f"{directory}: {len(skipped)} frame(s) left out, their resting pose does not exist on this "
+                  f"machine: {names}", stacklevel=3)
+    drop = {index[f] for f in dropped}
+    return dataset.with_frames([i for i in range(len(dataset.frames)) if i not in drop], dataset.skipped + skipped)
 
 
 def _read_rows(store: DatasetStore) -> pa.Table:

@@ -375,7 +375,7 @@ class _Run:
             "dataset": {"path": str(dataset_dir), "sha256": self.dataset.fingerprint, "poses_total": len(self.dataset),
                         "train_poses": len(self.train_set), "train_objects": len(self.train_set.objects()),
                         "val_poses": len(self.val_set), "val_objects": len(self.val_set.objects()),
-                        "frames": len(self.dataset.frames)},
+                        "frames": len(self.dataset.frames), "frames_skipped": self.dataset.skipped_summary()},
             "command": self.options.command,
             "config": self.config.to_dict(),
             "steps": self.step,
