@@ -76,9 +76,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="sampler-quality: the diffusion checkpoint to measure (default the shipped Allegro one; its poses "
-                             "are pushed with the hand it was trained for); name its results with --tag")
+                             "are pushed with the hand it was trained for); name its results with --tag. Refused elsewhere: methods / "
+                             "leap / closed-loop / multistep take their models from $GD2P_SAMPLER_CHECKPOINT_<HAND>")
     parser.add_argument("--nn-index", type=Path, default=None,
-                        help="sampler-quality: the nearest-neighbour index to measure (default the shipped one)")
+                        help="sampler-quality: the nearest-neighbour index to measure (default the shipped one); elsewhere "
+                             "refused: $GD2P_SAMPLER_NN_INDEX_<HAND> names another index")
     parser.add_argument("--yaw", choices=("zero", "random"), default="zero",
                         help="sampler-quality / data-size: each object at yaw 0 in the push frame (default, the paper's "
                              "protocol) or turned by a seeded random yaw (<out>/sampler-quality[-val]-random-yaw/, "
@@ -190,6 +192,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if data_size_only and args.experiment != "data-size":
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
+        return 2
+    model_flags = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--nn-index", args.nn_index))
+                   if value is not None]
+    if model_flags and args.experiment != "sampler-quality":
+        # a trial experiment's planner takes its models from the sampler service, which reads these variables
+        print(f"gd2p eval: {', '.join(model_flags)} apply to sampler-quality only; to run {args.experiment} with other "
+              "models set GD2P_SAMPLER_CHECKPOINT_<HAND> / GD2P_SAMPLER_NN_INDEX_<HAND> and name the run with --tag",
+              file=sys.stderr)
         return 2
     if (refusal := _methods_refusal(args.methods, names)) is not None:
         print(f"gd2p eval: {refusal}", file=sys.stderr)

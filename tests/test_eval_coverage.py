@@ -228,6 +228,17 @@ def test_data_size_at_random_yaw_measures_every_family_and_reports_the_unseen_on
     assert rows[0]["validated_fraction"]["low"] <= rows[0]["validated_fraction"]["value"] <= rows[0]["validated_fraction"]["high"]
 
 
+def test_eval_refuses_a_checkpoint_for_an_experiment_that_would_not_use_it(capsys):
+    """`gd2p eval leap --checkpoint X` would run the shipped models while the user thinks X ran: refused."""
+    from cli.main import main
+
+    assert main(["eval", "leap", "--checkpoint", "x.pt", "--tag", "x", "--out", "/tmp/never-written"]) == 2
+    err = capsys.readouterr().err
+    assert "--checkpoint apply to sampler-quality only" in err and "GD2P_SAMPLER_CHECKPOINT_<HAND>" in err
+    assert main(["eval", "methods", "--nn-index", "x.npz", "--out", "/tmp/never-written"]) == 2
+    assert "--nn-index apply to sampler-quality only" in capsys.readouterr().err
+
+
 def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
     from cli.main import main
 
