@@ -458,7 +458,10 @@ def test_placement_default_builds_the_version_1_placement(bus, tmp_path):
                  "--no-progress"]) == 0
     raw = {r["pose_id"]: r for r in DatasetStore.open(out).rows(outcome="all").to_pylist() if r["stage"] == "raw"}
     v1 = [r for r in DatasetStore.open(V1_STORE).rows().to_pylist() if r["stage"] == "raw"]
-    assert v1 and all(raw[r["pose_id"]]["pose"] == r["pose"] and raw[r["pose_id"]]["yaw_rad"] == 0.0 for r in v1)
+    # Equal to float32 rounding: the committed store was made on another CPU, and the optimiser's sums round
+    # differently across CPUs (1.4e-7 at most on the VM of 2026-12-03); a different candidate differs by cm.
+    assert v1 and all(np.allclose(raw[r["pose_id"]]["pose"], r["pose"], rtol=0.0, atol=1e-5)
+                      and raw[r["pose_id"]]["yaw_rad"] == 0.0 for r in v1)
     assert {r["pose_index"] for r in raw.values()} == {load_object("proc-box-003").default_pose_index}
 
 
