@@ -85,6 +85,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="sampler-quality / data-size: each object at yaw 0 in the push frame (default, the paper's "
                              "protocol) or turned by a seeded random yaw (<out>/sampler-quality[-val]-random-yaw/, "
                              "<out>/data-size-random-yaw/; data-size then takes its objects one shape family after another)")
+    parser.add_argument("--noise-scale", type=float, default=None,
+                        help="sampler-quality: the diffusion sampling temperature in (0, 1] (initial and DDPM step noise "
+                             "multiplied by it; default 1, the plain reverse process); name its results with --tag")
     parser.add_argument("--objects", type=int, default=None,
                         help="sampler-quality: only this many objects of the split, one shape family after another "
                              "(default: all of them); data-size: this many test objects (default 40)")
@@ -155,6 +158,8 @@ def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) ->
 def _sampler_quality_options(args: argparse.Namespace) -> dict:
     options = {"split": args.split, "checkpoint": args.checkpoint, "nn_index": args.nn_index, "yaw": args.yaw,
                "tag": args.tag, "objects": args.objects}
+    if args.noise_scale is not None:
+        options["noise_scale"] = args.noise_scale
     if args.methods is not None:
         options["methods_to_run"] = args.methods
     return options
@@ -193,8 +198,11 @@ def run(args: argparse.Namespace) -> int:
     if data_size_only and args.experiment != "data-size":
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
         return 2
-    model_flags = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--nn-index", args.nn_index))
-                   if value is not None]
+    model_flags = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--nn-index", args.nn_index),
+                                            ("--noise-scale", args.noise_scale)) if value is not None]
+    if args.noise_scale is not None and not 0.0 < args.noise_scale <= 1.0:
+        print(f"gd2p eval: --noise-scale must be in (0, 1], got {args.noise_scale}", file=sys.stderr)
+        return 2
     if model_flags and args.experiment != "sampler-quality":
         # a trial experiment's planner takes its models from the sampler service, which reads these variables
         print(f"gd2p eval: {', '.join(model_flags)} apply to sampler-quality only; to run {args.experiment} with other "

@@ -46,7 +46,7 @@ from cli.args import (
 )
 
 # SampleRequest fields (the sampler service's limits) this command checks, by flag.
-SAMPLE_FLAGS = {"k": "--n", "steps": "--steps", "seed": "--seed", "sampler": "--sampler"}
+SAMPLE_FLAGS = {"k": "--n", "steps": "--steps", "seed": "--seed", "sampler": "--sampler", "noise_scale": "--noise-scale"}
 
 
 class SamplerCliError(ValueError):
@@ -175,6 +175,9 @@ def _register_sample(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sampler", choices=("ddpm", "ddim", "nearest"), default="ddpm",
                         help="DDPM-100 (paper), DDIM fast path, or the nearest-neighbour baseline")
     parser.add_argument("--steps", type=positive_int, default=None, help="DDIM steps (default 10)")
+    parser.add_argument("--noise-scale", type=positive_float, default=None,
+                        help="diffusion sampling temperature in (0, 1]: initial and DDPM step noise multiplied by it "
+                             "(default: $GD2P_SAMPLER_NOISE_SCALE or the sampler's default)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint file (default: $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped one)")
     parser.add_argument("--nn-index", type=Path, default=None,
@@ -208,8 +211,8 @@ def check_sample_flags(args: argparse.Namespace) -> None:
     """FlagError (naming the flags) unless the options are within the sampler service's limits (SampleRequest)."""
     from shared.contracts.messages import SampleRequest
 
-    validate_fields(SampleRequest, {"k": args.n, "steps": args.steps, "seed": args.seed, "sampler": args.sampler},
-                    SAMPLE_FLAGS, command="sample")
+    validate_fields(SampleRequest, {"k": args.n, "steps": args.steps, "seed": args.seed, "sampler": args.sampler,
+                                    "noise_scale": args.noise_scale}, SAMPLE_FLAGS, command="sample")
 
 
 def _sample(args: argparse.Namespace) -> dict:
@@ -231,7 +234,7 @@ def _sample(args: argparse.Namespace) -> dict:
              for d, w in zip(result.poses_d, result.poses_world, strict=True)]
     report = {"n": len(poses), "latency_s": round(result.latency_s, 6), "poses": poses, "object": obj.id, "hand": args.hand,
               "sampler": result.sampler, "steps": result.steps, "seed": args.seed, "direction_deg": args.direction_deg,
-              **source}
+              "noise_scale": result.noise_scale if args.sampler != "nearest" else None, **source}
     if validator is not None:
         successes = validate_sampled_poses(obj, args.hand, result.poses_d, frame, progress=True)
         for entry, success in zip(poses, successes, strict=True):
@@ -277,7 +280,8 @@ def _sample_diffusion(args: argparse.Namespace, obj, frame) -> tuple:
     if sampler.hand != args.hand:
         raise SamplerCliError(f"{path} is a {sampler.hand} checkpoint, not {args.hand}")
     with sampler:
-        result = sampler.sample(obj, frame, k=args.n, sampler=args.sampler, steps=args.steps, seed=args.seed)
+        result = sampler.sample(obj, frame, k=args.n, sampler=args.sampler, steps=args.steps, seed=args.seed,
+                                noise_scale=args.noise_scale)
     return result, {"checkpoint": str(path), "checkpoint_id": sampler.checkpoint_id}
 
 
@@ -285,8 +289,8 @@ def _sample_nearest(args: argparse.Namespace, obj, frame) -> tuple:
     """(SampleResult, report fields naming the index and the match) from the nearest-neighbour baseline."""
     from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 
-    if args.steps is not None:
-        raise SamplerCliError("--steps applies to the diffusion samplers, not --sampler nearest")
+    if args.steps is not None or args.noise_scale is not None:
+        raise SamplerCliError("--steps and --noise-scale apply to the diffusion samplers, not --sampler nearest")
     path = args.nn_index or default_nn_index_path(args.hand)
     try:
         nearest = NearestNeighborSampler.load(path)

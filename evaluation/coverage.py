@@ -147,10 +147,12 @@ class DiffusionSource:
     checkpoint: str
     sampler: str = "ddpm"
     steps: int | None = None  # None: the sampler's default (DDPM 100, DDIM 10)
+    noise_scale: float | None = None  # the sampling temperature (sample_normalized); None: the sampler's default
 
     def label(self) -> str:
         steps = self.steps if self.steps is not None else (100 if self.sampler == "ddpm" else 10)
-        return f"{self.sampler.upper()}-{steps}"
+        temperature = "" if self.noise_scale in (None, 1.0) else f", noise x{self.noise_scale:g}"
+        return f"{self.sampler.upper()}-{steps}{temperature}"
 
     def pose_sampler(self) -> Any:
         """The checkpoint's `PoseSampler`, loaded once per process."""
@@ -159,7 +161,8 @@ class DiffusionSource:
         return _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        return self.pose_sampler().sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed).poses_d
+        return self.pose_sampler().sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed,
+                                          noise_scale=self.noise_scale).poses_d
 
 
 @dataclass(frozen=True)

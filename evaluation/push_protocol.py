@@ -358,7 +358,11 @@ def pose_model_ids(hand: str) -> dict[str, str | None]:
 def _pose_model(hand: str, source: str) -> str | None:
     """The weights (diffusion checkpoint) or index (Nearest Neighbor) the trial's poses came from."""
     if source == "gd2p":
-        return f"{hand}:{_system.sampler.sampler(hand).checkpoint_id}"
+        from services.sampler.diffusion import default_noise_scale
+
+        noise_scale = default_noise_scale()  # the temperature the sampler service gives the planner's requests
+        temperature = "" if noise_scale == 1.0 else f"@noise{noise_scale:g}"
+        return f"{hand}:{_system.sampler.sampler(hand).checkpoint_id}{temperature}"
     if source == "nearest":
         return f"{hand}:{_system.sampler.nearest(hand).index_id}"
     return None

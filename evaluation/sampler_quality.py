@@ -114,29 +114,34 @@ def quality_objects(quick: bool = False, split: str = "test", count: int | None 
     return interleaved[:count]
 
 
-def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = METHOD_KEYS) -> dict[str, PoseSource]:
-    """Record-key prefix -> pose source, in table order."""
+def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = METHOD_KEYS,
+            noise_scale: float | None = None) -> dict[str, PoseSource]:
+    """Record-key prefix -> pose source, in table order; `noise_scale`: the diffusion sources' temperature."""
     unknown = [k for k in keys if k not in METHOD_KEYS]
     if unknown or not keys:
         raise CoverageError(f"unknown sampler-quality method(s) {unknown or '(none)'}; known: {', '.join(METHOD_KEYS)}")
     every = {
-        "ddpm100": DiffusionSource(str(checkpoint), "ddpm"),
-        "ddim10": DiffusionSource(str(checkpoint), "ddim"),
+        "ddpm100": DiffusionSource(str(checkpoint), "ddpm", noise_scale=noise_scale),
+        "ddim10": DiffusionSource(str(checkpoint), "ddim", noise_scale=noise_scale),
         "nn": NearestNeighborSource(str(nn_index)),
     }
     return {k: every[k] for k in METHOD_KEYS if k in keys}
 
 
-def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings) -> dict[str, Any]:
-    """What the store pins: the objects, the exact weights and index, and the protocol.
+def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings,
+                noise_scale: float = 1.0) -> dict[str, Any]:
+    """What the store pins: the objects, the exact weights and index, the sampling temperature and the protocol.
 
     The methods are not pinned: a run can be extended with another method later (each method's
     records are keyed by its own prefix).
     """
     from services.sampler.checkpoint import checkpoint_id
 
-    return {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
-            "methods": list(METHOD_KEYS), "coverage": coverage.to_dict()}
+    settings = {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
+                "methods": list(METHOD_KEYS), "coverage": coverage.to_dict()}
+    if noise_scale != 1.0:  # pinned only when set, so stores made before the option existed still resume
+        settings["noise_scale"] = float(noise_scale)
+    return settings
 
 
 def index_fingerprint(path: Path) -> str:
@@ -157,13 +162,17 @@ def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str
 
 def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
         nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = METHOD_KEYS,
-        tag: str | None = None, objects: int | None = None) -> Path:
+        tag: str | None = None, objects: int | None = None, noise_scale: float | None = None) -> Path:
     """Measure the pose sources on a split into `result_directory(...)`; returns the report path.
 
     `checkpoint` / `nn_index`: the model and index to measure (default the shipped ones); a run of
-    another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val).
+    another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val);
+    `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`).
     """
+    from services.sampler.diffusion import default_noise_scale
+
     started = time.perf_counter()
+    noise_scale = default_noise_scale() if noise_scale is None else float(noise_scale)
     directory = result_directory(out, split, yaw, tag)
     directory.mkdir(parents=True, exist_ok=True)
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
@@ -175,9 +184,9 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
         raise CoverageError(f"no nearest-neighbour index at {nn_index}")
     object_ids = quality_objects(quick, split, objects)
     coverage = CoverageSettings(hand=hand, yaw=yaw)
-    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage))
+    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale))
     results: dict[str, list[dict[str, Any]]] = {}
-    sources = methods(checkpoint, nn_index, methods_to_run)
+    sources = methods(checkpoint, nn_index, methods_to_run, noise_scale)
     with CoveragePool(workers) as pool:
         for key, source in sources.items():
             results[key] = pool.measure(source, object_ids, store, key, coverage, desc=source.label())

@@ -242,6 +242,20 @@ def test_sampling_is_deterministic_for_a_seed_and_varies_across_seeds(sampler):
     assert not np.allclose(a, c)
 
 
+@pytest.mark.parametrize("kind", ["ddpm", "ddim"])
+def test_a_lower_noise_scale_concentrates_the_samples_and_a_bad_one_is_refused(sampler, kind):
+    """The sampling temperature: scale 1 is the plain sampler; below 1 the same seed's poses spread less."""
+    object_id = synthetic_objects()[0]
+    plain = sampler.sample(object_id, k=200, sampler=kind, seed=5).poses_d
+    np.testing.assert_array_equal(sampler.sample(object_id, k=200, sampler=kind, seed=5, noise_scale=1.0).poses_d, plain)
+    cold = sampler.sample(object_id, k=200, sampler=kind, seed=5, noise_scale=0.3).poses_d
+    assert np.isfinite(cold).all()
+    assert cold[:, :3].std(axis=0).sum() < 0.8 * plain[:, :3].std(axis=0).sum()
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(SamplerInputError, match="noise scale"):
+            sampler.sample(object_id, k=10, sampler=kind, noise_scale=bad)
+
+
 def test_concurrent_requests_are_batched_without_changing_their_samples(sampler):
     objects = synthetic_objects()[:4]
     alone = [sampler.sample(o, k=30, sampler="ddim", seed=i).poses_d for i, o in enumerate(objects)]
@@ -340,6 +354,11 @@ def test_sample_request_over_the_bus(zenoh_router, trained, tmp_path, monkeypatc
             assert isinstance(reply, SampleResponse) and reply.request_id == request.id
             assert reply.poses_d.to_numpy().shape == (12, 25) and reply.checkpoint_id
             np.testing.assert_allclose(reply.poses_world.to_numpy()[:, :2].mean(0), [0.4, 0.1], atol=0.3)
+            assert reply.noise_scale == 1.0  # no temperature asked, none set by $GD2P_SAMPLER_NOISE_SCALE
+            cold = dispatcher.call(request.model_copy(update={"id": "cold", "noise_scale": 0.5}), timeout=30)
+            assert cold.noise_scale == 0.5 and not np.allclose(cold.poses_d.to_numpy(), reply.poses_d.to_numpy())
+            with pytest.raises(RemoteError, match="noise_scale"):
+                dispatcher.call(request.model_copy(update={"id": "nn", "sampler": "nearest", "noise_scale": 0.5}), timeout=30)
             far_cloud = ObjectRef(point_cloud=np.full((5, 3), 3.0))
             with pytest.raises(RemoteError, match="bad_request"):
                 dispatcher.call(request.model_copy(update={"id": "far", "object": far_cloud}), timeout=30)

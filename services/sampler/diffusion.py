@@ -11,6 +11,7 @@ LinearNormalizer) — any other normalisation would make the clip cut valid pose
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -30,6 +31,8 @@ BETA_SCHEDULE = "squaredcos_cap_v2"
 DEFAULT_DDIM_STEPS = 10
 EMA_POWER = 0.75
 EMA_MAX_DECAY = 0.9999  # diffusion_policy's EMAModel max_value
+DEFAULT_NOISE_SCALE = 1.0  # the sampling temperature when a request names none
+NOISE_SCALE_ENV = "GD2P_SAMPLER_NOISE_SCALE"  # overrides DEFAULT_NOISE_SCALE, as GD2P_SAMPLER_CHECKPOINT_<HAND> the weights
 
 
 class DiffusionConfigError(ValueError):
@@ -128,8 +131,13 @@ def sample_normalized(
     generators: Sequence[torch.Generator],
     kind: str = "ddpm",
     steps: int | None = None,
+    noise_scale: float = 1.0,
 ) -> list[torch.Tensor]:
     """Reverse diffusion for R requests at once: R BPS rows, `counts[r]` poses each, one generator each.
+
+    `noise_scale` (the sampling temperature, in (0, 1]) multiplies the initial noise and every DDPM
+    step's noise (DDIM with eta 0 adds none): below 1 the samples concentrate on the model's modes,
+    trading diversity for validity; 1 is the plain reverse process.
 
     The object embedding is computed once per request and the FiLM parameters once per step per
     request; the network runs on all rows together. Each request draws its initial noise and its
@@ -138,23 +146,53 @@ def sample_normalized(
     """
     if len(counts) != bps.shape[0] or len(generators) != bps.shape[0]:
         raise ValueError(f"{bps.shape[0]} BPS rows need as many counts and generators, got {len(counts)} and {len(generators)}")
+    check_noise_scale(noise_scale)
     scheduler = make_sampling_scheduler(kind, steps)
     device = bps.device
     pose_dim = model.config.pose_dim
-    samples = [torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators, strict=True)]
+    samples = [noise_scale * torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators, strict=True)]
     x = torch.cat(samples)
     bounds = _row_bounds(counts)
     group = None if len(counts) == 1 else torch.repeat_interleave(torch.arange(len(counts), device=device), torch.as_tensor(counts, device=device))
     object_embedding = model.encode_object(bps)
     for t in scheduler.timesteps:
         epsilon = model.denoise(x, model.film(object_embedding, t.to(device)), group)
-        x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g)
+        x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g, noise_scale)
                        for (a, b), g in zip(bounds, generators, strict=True)])
     return [x[a:b] for a, b in bounds]
 
 
-def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    return scheduler.step(epsilon, t, x, generator=generator).prev_sample
+def check_noise_scale(noise_scale: float) -> None:
+    """DiffusionConfigError unless 0 < noise_scale <= 1."""
+    if not 0.0 < float(noise_scale) <= 1.0:
+        raise DiffusionConfigError(f"the noise scale must be in (0, 1], got {noise_scale}")
+
+
+def default_noise_scale() -> float:
+    """The temperature of a request that names none: $GD2P_SAMPLER_NOISE_SCALE, else DEFAULT_NOISE_SCALE."""
+    override = os.environ.get(NOISE_SCALE_ENV)
+    if not override:
+        return DEFAULT_NOISE_SCALE
+    try:
+        value = float(override)
+        check_noise_scale(value)
+    except (ValueError, DiffusionConfigError) as exc:
+        raise DiffusionConfigError(f"${NOISE_SCALE_ENV}={override!r}: must be a number in (0, 1]") from exc
+    return value
+
+
+def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, generator: torch.Generator,
+          noise_scale: float = 1.0) -> torch.Tensor:
+    if noise_scale == 1.0 or not isinstance(scheduler, DDPMScheduler) or int(t) == 0:
+        return scheduler.step(epsilon, t, x, generator=generator).prev_sample
+    # diffusers' DDPM step draws its noise z from `generator` and returns mean + sigma_t z; replaying the
+    # generator gives the same z, so the step with sigma_t scaled is the returned sample minus (1 - scale) sigma_t z.
+    state = generator.get_state()
+    prev_sample = scheduler.step(epsilon, t, x, generator=generator).prev_sample
+    z = torch.randn(epsilon.shape, generator=torch.Generator(device=generator.device).set_state(state),
+                    device=epsilon.device, dtype=epsilon.dtype)
+    sigma = scheduler._get_variance(t) ** 0.5  # the step's "fixed_small" posterior standard deviation
+    return prev_sample - (1.0 - noise_scale) * sigma * z
 
 
 def _row_bounds(counts: Iterable[int]) -> list[tuple[int, int]]:

@@ -34,7 +34,13 @@ import numpy as np
 import torch
 
 from services.sampler.checkpoint import SamplerCheckpoint, checkpoint_id, load_checkpoint
-from services.sampler.diffusion import DiffusionConfigError, resolve_steps, sample_normalized
+from services.sampler.diffusion import (
+    DiffusionConfigError,
+    check_noise_scale,
+    default_noise_scale,
+    resolve_steps,
+    sample_normalized,
+)
 from shared.contracts.messages import DirectionFrame, ObjectPose
 from shared.frames import (
     JOINTS,
@@ -74,6 +80,7 @@ class SampleResult:
     steps: int
     object_label: str
     bps: np.ndarray | None = None  # [n_basis] the object's BPS in D, when the sampler encoded one
+    noise_scale: float = 1.0  # the sampling temperature the poses were drawn with
 
 
 @dataclass
@@ -83,6 +90,7 @@ class _Job:
     seed: int
     sampler: str
     steps: int
+    noise_scale: float
     future: Future
 
 
@@ -202,22 +210,26 @@ class PoseSampler:
             raise SamplerInputError(f"{label}: {exc}") from exc
 
     def sample(self, obj: ObjectInput, frame: DirectionFrame | None = None, k: int = 200, sampler: str = "ddpm",
-               steps: int | None = None, seed: int = 0) -> SampleResult:
-        """K push poses for `obj` placed by `frame` (see the module docstring for defaults)."""
+               steps: int | None = None, seed: int = 0, noise_scale: float | None = None) -> SampleResult:
+        """K push poses for `obj` placed by `frame` (see the module docstring for defaults); `noise_scale`
+        is the sampling temperature (`sample_normalized`; None: `default_noise_scale()`)."""
         started = time.perf_counter()
-        step_count = _check_request(k, sampler, steps, seed)
+        noise_scale = _resolve_noise_scale(noise_scale)
+        step_count = _check_request(k, sampler, steps, seed, noise_scale)
         bps, T_world_D, label = self.encode(obj, frame)
-        poses_d = self.sample_from_bps(bps, k, sampler, steps, seed)
+        poses_d = self.sample_from_bps(bps, k, sampler, steps, seed, noise_scale)
         return SampleResult(poses_d, poses_d_to_world(poses_d, T_world_D), T_world_D, time.perf_counter() - started,
-                            sampler, step_count, label, bps)
+                            sampler, step_count, label, bps, noise_scale)
 
-    def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0) -> np.ndarray:
+    def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0,
+                        noise_scale: float | None = None) -> np.ndarray:
         """[k, 25] poses in D for an already encoded object; joins the current batch."""
-        step_count = _check_request(k, sampler, steps, seed)
+        noise_scale = _resolve_noise_scale(noise_scale)
+        step_count = _check_request(k, sampler, steps, seed, noise_scale)
         bps_tensor = torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(-1)
         if bps_tensor.numel() != self.bps.n:
             raise SamplerInputError(f"BPS must have {self.bps.n} values (this checkpoint's basis), got {bps_tensor.numel()}")
-        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, Future())
+        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, float(noise_scale), Future())
         self._ensure_thread()
         self._queue.put(job)
         return job.future.result()
@@ -252,10 +264,10 @@ class PoseSampler:
                 return
 
     def _batches(self, jobs: list[_Job]) -> list[list[_Job]]:
-        """Jobs grouped by (sampler, steps), each group cut to at most max_batch_poses rows."""
-        groups: dict[tuple[str, int], list[list[_Job]]] = {}
+        """Jobs grouped by (sampler, steps, noise scale), each group cut to at most max_batch_poses rows."""
+        groups: dict[tuple[str, int, float], list[list[_Job]]] = {}
         for job in jobs:
-            chunks = groups.setdefault((job.sampler, job.steps), [[]])
+            chunks = groups.setdefault((job.sampler, job.steps, job.noise_scale), [[]])
             if chunks[-1] and sum(j.k for j in chunks[-1]) + job.k > self.max_batch_poses:
                 chunks.append([])
             chunks[-1].append(job)
@@ -265,7 +277,8 @@ class PoseSampler:
         try:
             bps = torch.stack([job.bps for job in jobs]).to(self.device)
             generators = [torch.Generator(device=self.device).manual_seed(job.seed) for job in jobs]
-            outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps)
+            outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps,
+                                        jobs[0].noise_scale)
             for job, output in zip(jobs, outputs, strict=True):
                 job.future.set_result(self._to_poses(output))
         except Exception as exc:  # deliver the failure to every waiting caller, keep serving
@@ -290,10 +303,18 @@ def check_count_and_seed(k: int, seed: int) -> None:
         raise SamplerInputError(f"seed must be >= 0, got {seed}")
 
 
-def _check_request(k: int, sampler: str, steps: int | None, seed: int) -> int:
+def _resolve_noise_scale(noise_scale: float | None) -> float:
+    try:
+        return default_noise_scale() if noise_scale is None else float(noise_scale)
+    except DiffusionConfigError as exc:
+        raise SamplerInputError(str(exc)) from exc
+
+
+def _check_request(k: int, sampler: str, steps: int | None, seed: int, noise_scale: float = 1.0) -> int:
     """Validate a request's settings; returns the number of denoising steps it will run."""
     check_count_and_seed(k, seed)
     try:
+        check_noise_scale(noise_scale)
         return resolve_steps(sampler, steps)
     except DiffusionConfigError as exc:
         raise SamplerInputError(str(exc)) from exc

@@ -103,7 +103,7 @@ class SamplerService:
         sampler = self.sampler(request.hand)
         try:
             result = sampler.sample(object_input(request.object), request.frame, k=request.k, sampler=request.sampler,
-                                    steps=request.steps, seed=request.seed)
+                                    steps=request.steps, seed=request.seed, noise_scale=request.noise_scale)
         except SamplerInputError as exc:
             raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
         critic = self.critic(request.hand, sampler)
@@ -111,12 +111,13 @@ class SamplerService:
         return SampleResponse(
             request_id=request.id, hand=request.hand, poses_d=result.poses_d,
             poses_world=result.poses_world, latency_s=result.latency_s,
-            checkpoint_id=sampler.checkpoint_id, sampler=request.sampler, success_probability=scores)
+            checkpoint_id=sampler.checkpoint_id, sampler=request.sampler, noise_scale=result.noise_scale,
+            success_probability=scores)
 
     def _handle_nearest(self, request: SampleRequest) -> SampleResponse:
         """The nearest training frame's poses: `request.k` of them, seeded, or all when it has fewer."""
-        if request.steps is not None:
-            raise ServiceError("bad_request", "sampler: `steps` applies to the diffusion samplers, not 'nearest'")
+        if request.steps is not None or request.noise_scale is not None:
+            raise ServiceError("bad_request", "sampler: `steps` and `noise_scale` apply to the diffusion samplers, not 'nearest'")
         nearest = self.nearest(request.hand)
         try:
             reply = nearest.sample(object_input(request.object), request.frame, k=request.k, seed=request.seed)

@@ -654,6 +654,9 @@ class SampleRequest(Message):
     sampler: Sampler = "ddpm"
     steps: int | None = Field(default=None, ge=1, le=1000)  # denoising steps (DDIM); None = sampler default
     seed: Seed = 0
+    # The diffusion samplers' temperature (initial and step noise multiplied by it); None = the service's
+    # default (services.sampler.diffusion.default_noise_scale). Not for "nearest".
+    noise_scale: float | None = Field(default=None, gt=0.0, le=1.0)
 
 
 class SampleResponse(Message):
@@ -669,6 +672,7 @@ class SampleResponse(Message):
     latency_s: NonNegFloat
     checkpoint_id: str
     sampler: Sampler = "ddpm"
+    noise_scale: float | None = None  # the diffusion samplers' temperature the poses were drawn with
     # Per pose: the success critic's P(a floating-hand push from it succeeds); None when the sampler has no
     # critic for the hand (or the poses are a nearest-neighbour match).
     success_probability: FloatVector | None = None
