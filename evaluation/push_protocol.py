@@ -345,14 +345,20 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     return record
 
 
-def pose_model_ids(hand: str) -> dict[str, str | None]:
+def pose_model_ids(hand: str) -> dict[str, str | float | None]:
     """The ids of the diffusion checkpoint and NN index the sampler loads for `hand` (the shipped ones or the
-    $GD2P_SAMPLER_* overrides the workers inherit); None for a missing file."""
+    $GD2P_SAMPLER_* overrides the workers inherit); None for a missing file. A sampling temperature other
+    than 1 is named too (only then, so that stores made before it existed still resume)."""
     from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
+    from services.sampler.diffusion import default_noise_scale
     from services.sampler.nearest_neighbor import default_nn_index_path
 
-    return {kind: checkpoint_id(path) if path.is_file() else None
-            for kind, path in (("diffusion", default_checkpoint_path(hand)), ("nearest", default_nn_index_path(hand)))}
+    ids: dict[str, str | float | None] = {
+        kind: checkpoint_id(path) if path.is_file() else None
+        for kind, path in (("diffusion", default_checkpoint_path(hand)), ("nearest", default_nn_index_path(hand)))}
+    if (noise_scale := default_noise_scale()) != 1.0:
+        ids["diffusion_noise_scale"] = noise_scale
+    return ids
 
 
 def _pose_model(hand: str, source: str) -> str | None:
