@@ -206,7 +206,8 @@ def run(args: argparse.Namespace) -> int:
     if model_flags and args.experiment != "sampler-quality":
         # a trial experiment's planner takes its models from the sampler service, which reads these variables
         print(f"gd2p eval: {', '.join(model_flags)} apply to sampler-quality only; to run {args.experiment} with other "
-              "models set GD2P_SAMPLER_CHECKPOINT_<HAND> / GD2P_SAMPLER_NN_INDEX_<HAND> and name the run with --tag",
+              "models set GD2P_SAMPLER_CHECKPOINT_<HAND> / GD2P_SAMPLER_NN_INDEX_<HAND> / GD2P_SAMPLER_NOISE_SCALE and "
+              "name the run with --tag",
               file=sys.stderr)
         return 2
     if (refusal := _methods_refusal(args.methods, names)) is not None:

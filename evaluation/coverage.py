@@ -292,10 +292,21 @@ def measure_object(source: PoseSource, object_id: str, settings: CoverageSetting
         return [o.success for o in validator.validate(placed, hand, poses[start:stop]).outcomes]
 
     tally = push_until_covered(len(poses), push, settings.fraction_poses, settings.chunk)
-    return coverage_record(object_id, tally, time.perf_counter() - started)
+    return coverage_record(object_id, tally, time.perf_counter() - started, validated_spread_cm(poses, tally))
 
 
-def coverage_record(object_id: str, tally: PushTally, seconds: float) -> dict[str, Any]:
+def validated_spread_cm(poses: np.ndarray, tally: PushTally) -> float | None:
+    """How far apart the validated poses among the first `fraction_poses` are: the RMS distance (cm) of their
+    palm positions from their mean. A source that repeats one good pose scores high validated fractions
+    with a spread near 0; None with fewer than two validated poses."""
+    pushed = np.asarray(tally.successes[: tally.fraction_pushed], dtype=bool)
+    positions = poses[: len(pushed)][pushed, :3]
+    if len(positions) < 2:
+        return None
+    return round(100.0 * float(np.sqrt(((positions - positions.mean(axis=0)) ** 2).sum(axis=1).mean())), 3)
+
+
+def coverage_record(object_id: str, tally: PushTally, seconds: float, spread_cm: float | None = None) -> dict[str, Any]:
     return {
         "object": object_id,
         "n_poses": tally.n_poses,
@@ -306,6 +317,7 @@ def coverage_record(object_id: str, tally: PushTally, seconds: float) -> dict[st
         "validated_fraction": tally.validated_fraction,
         "any_success": tally.first_success_index is not None,
         "first_success_index": tally.first_success_index,
+        "validated_spread_cm": spread_cm,
         "seconds": round(seconds, 3),
         "code": CODE_AT_START,
     }
@@ -406,6 +418,7 @@ def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Objects, objects covered (>= 1 validated pose), mean / pooled validated fraction, pushes, seconds."""
     n = len(records)
     pushed = sum(r["fraction_pushed"] for r in records)
+    spreads = [r["validated_spread_cm"] for r in records if r.get("validated_spread_cm") is not None]
     return {
         "objects": n,
         "covered": sum(bool(r["any_success"]) for r in records),
@@ -413,5 +426,7 @@ def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         "mean_validated_fraction": float(np.mean([r["validated_fraction"] for r in records])) if n else math.nan,
         "pooled_validated_fraction": sum(r["fraction_successes"] for r in records) / pushed if pushed else math.nan,
         "pushes": sum(r["n_validated"] for r in records),
+        # None for stores made before the spread was recorded
+        "median_validated_spread_cm": float(np.median(spreads)) if spreads else None,
         "seconds": round(sum(r["seconds"] for r in records), 1),
     }

@@ -232,10 +232,11 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
              (f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
               f"{s['pooled_validated_fraction_ci'][1]:.1%}]"),
-             f"{s['covered']} / {s['objects']}", f"{s['covered_pct']:.1f}%", s["pushes"], f"{s['seconds']:.0f}"]
+             f"{s['covered']} / {s['objects']}", f"{s['covered_pct']:.1f}%", _spread(s), s["pushes"], f"{s['seconds']:.0f}"]
             for k, s in summaries.items()]
     table = markdown_table(["method", "validated fraction (mean over objects)", "validated fraction (pooled, 95% CI by object)",
-                            "objects with >= 1 validated pose", "% of objects", "pushes", "worker-seconds"], rows)
+                            "objects with >= 1 validated pose", "% of objects", "spread of validated poses (cm, median)",
+                            "pushes", "worker-seconds"], rows)
     placement = ("rests in its default pose, turned about z by a yaw drawn per object (seeded), and is pushed 0.20 m "
                  "along +x" if yaw == "random" else "rests in its default pose and is pushed 0.20 m along +x")
     split_text = "the test split (never trained on)" if split == "test" else "the val split (for choosing; never trained on)"
@@ -252,9 +253,16 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
             f"{family_markdown(family_table_data(results, sources))}\n"
             "Protocol: 200 poses per object (seeded per object); the first 50 are all pushed (validated fraction); "
             "then 25 at a time until one succeeds (>= 1 validated pose of 200 — early stopping gives exactly the "
-            f"count that pushing all 200 would). {nn_text}\"worker-seconds\" sums the per-object "
+            "count that pushing all 200 would). \"Spread\": per object, the RMS distance of the validated poses' palm "
+            "positions (among the first 50) from their mean, median over objects: a source that repeats one good "
+            f"pose validates often with a spread near 0. {nn_text}\"worker-seconds\" sums the per-object "
             "time (sampling + pushes) over the worker processes.\n\n"
             f"![validated fraction per object]({plot_name})\n")
+
+
+def _spread(summary: dict[str, Any]) -> str:
+    spread = summary.get("median_validated_spread_cm")
+    return "–" if spread is None else f"{spread:.1f}"
 
 
 def family_markdown(families: dict[str, dict[str, Any]]) -> str:

@@ -9,10 +9,12 @@ import pytest
 
 from evaluation.coverage import (
     CoverageSettings,
+    PushTally,
     measure_coverage,
     measure_object,
     push_until_covered,
     summarize,
+    validated_spread_cm,
 )
 from evaluation.data_size import object_subset
 from evaluation.store import ResultStore, ResultStoreError
@@ -80,6 +82,19 @@ def test_early_stopping_matches_pushing_every_pose(source):
         assert record["n_validated"] < len(full)
     else:
         assert record["n_validated"] == len(full)
+
+
+def test_the_spread_of_validated_poses_sees_one_pose_repeated_and_ignores_failures():
+    """A source that repeats one good pose must not look as varied as one that validates poses all over the object."""
+    positions = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, 0.04, 0.0], [5.0, 5.0, 5.0]])
+    poses = np.zeros((4, 25))
+    poses[:, :3] = positions
+    varied = PushTally(4, [True, True, True, False], fraction_poses=4)  # the far pose failed: not counted
+    expected = np.sqrt(((positions[:3] - positions[:3].mean(0)) ** 2).sum(1).mean()) * 100
+    assert validated_spread_cm(poses, varied) == pytest.approx(expected, abs=1e-3)
+    repeated = np.zeros((4, 25))
+    assert validated_spread_cm(repeated, PushTally(4, [True] * 4, fraction_poses=4)) == 0.0
+    assert validated_spread_cm(poses, PushTally(4, [False, True, False, False], fraction_poses=4)) is None
 
 
 def test_early_stopping_never_changes_any_success_on_random_outcomes():
@@ -237,6 +252,17 @@ def test_eval_refuses_a_checkpoint_for_an_experiment_that_would_not_use_it(capsy
     assert "--checkpoint apply to sampler-quality only" in err and "GD2P_SAMPLER_CHECKPOINT_<HAND>" in err
     assert main(["eval", "methods", "--nn-index", "x.npz", "--out", "/tmp/never-written"]) == 2
     assert "--nn-index apply to sampler-quality only" in capsys.readouterr().err
+
+
+def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(capsys):
+    from cli.main import main
+
+    assert main(["eval", "methods", "--noise-scale", "0.5", "--out", "/tmp/never-written"]) == 2
+    err = capsys.readouterr().err
+    assert "--noise-scale apply to sampler-quality only" in err and "GD2P_SAMPLER_NOISE_SCALE" in err
+    for bad in ("0", "1.5", "-0.2"):
+        assert main(["eval", "sampler-quality", "--noise-scale", bad, "--tag", "x", "--out", "/tmp/never-written"]) == 2
+        assert "--noise-scale must be in (0, 1]" in capsys.readouterr().err
 
 
 def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
