@@ -231,6 +231,11 @@ def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_model
     models = spec.settings()["pose_models"]
     assert models["diffusion"] and models["nearest"]  # the shipped checkpoint and index, by content
     ResultStore(tmp_path / spec.directory_name, spec.settings())
+    monkeypatch.setenv("GD2P_SAMPLER_NOISE_SCALE", "0.5")  # the same weights drawn at another temperature
+    assert spec.settings()["pose_models"]["diffusion_noise_scale"] == 0.5
+    with pytest.raises(ResultStoreError, match="pose_models"):
+        ResultStore(tmp_path / spec.directory_name, spec.settings())
+    monkeypatch.delenv("GD2P_SAMPLER_NOISE_SCALE")
     monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_ALLEGRO", str(SHIPPED_DIR / "allegro_v1.pt"))
     with pytest.raises(ResultStoreError, match="pose_models"):
         ResultStore(tmp_path / spec.directory_name, spec.settings())

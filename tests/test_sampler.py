@@ -243,7 +243,7 @@ def test_sampling_is_deterministic_for_a_seed_and_varies_across_seeds(sampler):
 
 
 @pytest.mark.parametrize("kind", ["ddpm", "ddim"])
-def test_a_lower_noise_scale_concentrates_the_samples_and_a_bad_one_is_refused(sampler, kind):
+def test_a_lower_noise_scale_concentrates_the_samples_and_a_bad_one_is_refused(sampler, kind, monkeypatch):
     """The sampling temperature: scale 1 is the plain sampler; below 1 the same seed's poses spread less."""
     object_id = synthetic_objects()[0]
     plain = sampler.sample(object_id, k=200, sampler=kind, seed=5).poses_d
@@ -254,6 +254,11 @@ def test_a_lower_noise_scale_concentrates_the_samples_and_a_bad_one_is_refused(s
     for bad in (0.0, -0.5, 1.5):
         with pytest.raises(SamplerInputError, match="noise scale"):
             sampler.sample(object_id, k=10, sampler=kind, noise_scale=bad)
+    monkeypatch.setenv("GD2P_SAMPLER_NOISE_SCALE", "0.3")  # the default of requests that name none
+    np.testing.assert_array_equal(sampler.sample(object_id, k=200, sampler=kind, seed=5).poses_d, cold)
+    monkeypatch.setenv("GD2P_SAMPLER_NOISE_SCALE", "warm")
+    with pytest.raises(SamplerInputError, match="GD2P_SAMPLER_NOISE_SCALE"):
+        sampler.sample(object_id, k=10, sampler=kind)
 
 
 def test_concurrent_requests_are_batched_without_changing_their_samples(sampler):
