@@ -78,6 +78,9 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--hidden-dim", type=positive_int, default=256, help="width of the residual FiLM blocks")
     parser.add_argument("--num-blocks", type=positive_int, default=4)
     parser.add_argument("--object-dim", type=positive_int, default=128, help="the BPS is compressed to this before FiLM")
+    parser.add_argument("--balance", choices=("poses", "objects"), default="poses",
+                        help="a batch draws poses uniformly (default; objects with many valid poses weigh more) or "
+                             "an object uniformly, then one of its poses (every object weighs the same)")
     parser.add_argument("--val-every", type=positive_int, default=500, help="steps between validation losses")
     parser.add_argument("--checkpoint-every", type=positive_int, default=1000, help="steps between saved training states")
     parser.add_argument("--snapshot-every", type=int, default=0,
@@ -108,7 +111,7 @@ def run_train(args: argparse.Namespace) -> int:
         config = TrainConfig(steps=args.steps, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                              warmup_steps=args.warmup_steps, val_fraction=args.val_fraction, fraction=args.fraction,
                              seed=args.seed, model=DenoiserConfig(hidden_dim=args.hidden_dim, num_blocks=args.num_blocks,
-                                                                  object_dim=args.object_dim))
+                                                                  object_dim=args.object_dim), balance=args.balance)
         options = RunOptions(device=args.device, val_every=max(1, args.val_every), checkpoint_every=max(1, args.checkpoint_every),
                              snapshot_every=max(0, args.snapshot_every), half=args.half, progress=not args.no_progress, resume=not args.restart,
                              command=shlex.join(["gd2p", *sys.argv[1:]]), should_stop=interrupted)

@@ -7,6 +7,7 @@ curled more for taller objects). A tiny network keeps training to a second or tw
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 from pathlib import Path
@@ -32,7 +33,15 @@ from services.sampler.diffusion import TRAIN_TIMESTEPS
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
-from services.sampler.train import RunOptions, TrainConfig, TrainingError, hand_joint_limits, train
+from services.sampler.train import (
+    RunOptions,
+    TrainConfig,
+    TrainingError,
+    TrainingTensors,
+    hand_joint_limits,
+    object_balanced_weights,
+    train,
+)
 from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
 from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
 from shared.world.objects import list_object_ids, load_object
@@ -208,6 +217,24 @@ def test_interrupted_training_resumes_from_its_step_and_matches_an_uninterrupted
     assert load_checkpoint(snapshots[1]).manifest["steps"] == 50
     with pytest.raises(TrainingError, match="different settings"):
         train(store, HAND, tmp_path / "a.pt", tiny_config(steps=120, lr=5e-4), quiet())
+
+
+def test_object_balanced_batches_draw_every_object_equally_often_and_resume_only_with_the_same_balance(store, tmp_path):
+    """An object with three times the poses of another is drawn as often as it under --balance objects."""
+    object_ids = np.array(["many"] * 300 + ["few"] * 100, dtype=object)
+    data = TrainingTensors(torch.zeros(400, 25), torch.zeros(400, dtype=torch.long), torch.zeros(1, 8),
+                 object_balanced_weights(object_ids))
+    rows = data.draw(20_000, torch.Generator().manual_seed(0)).numpy()
+    assert abs((rows >= 300).mean() - 0.5) < 0.02  # uniform over poses would give 0.25
+    assert len(np.unique(rows[rows >= 300])) == 100 and len(np.unique(rows[rows < 300])) == 300  # every pose still drawn
+    first = train(store, HAND, tmp_path / "a.pt", tiny_config(steps=40), quiet(should_stop=lambda step: step >= 20))
+    assert first.stopped
+    with pytest.raises(TrainingError, match="different settings"):
+        train(store, HAND, tmp_path / "a.pt", dataclasses.replace(tiny_config(steps=40), balance="objects"), quiet())
+    balanced = train(store, HAND, tmp_path / "b.pt", dataclasses.replace(tiny_config(steps=40), balance="objects"), quiet())
+    assert load_checkpoint(balanced.checkpoint_path).manifest["config"]["balance"] == "objects"
+    with pytest.raises(TrainingError, match="--balance"):
+        train(store, HAND, tmp_path / "c.pt", dataclasses.replace(tiny_config(steps=40), balance="families"), quiet())
 
 
 # ----------------------------------------------------------------------------- sampling

@@ -56,6 +56,7 @@ from shared.world.bps import BasisPointSet
 log = logging.getLogger(__name__)
 
 DEFAULT_STEPS = 20_000
+BALANCES = ("poses", "objects")  # TrainConfig.balance
 LOG_EVERY = 50  # steps per point of the training-loss curve
 
 
@@ -81,8 +82,14 @@ class TrainConfig:
     fraction: float = 1.0
     seed: int = 0
     model: DenoiserConfig = field(default_factory=DenoiserConfig)
+    # How a batch draws its poses: "poses", uniformly over the training poses (objects with many valid poses
+    # dominate), or "objects", an object uniformly then one of its poses (every object weighs the same, as in
+    # the evaluation, which pushes the same number of samples per object).
+    balance: str = "poses"
 
     def check(self) -> None:
+        if self.balance not in BALANCES:
+            raise TrainingError(f"--balance must be one of {', '.join(BALANCES)}, got {self.balance!r}")
         if self.steps is not None and self.epochs is not None:
             raise TrainingError("give --steps or --epochs, not both")
         if self.steps is not None and self.steps < 1:
@@ -103,6 +110,8 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["model"] = self.model.to_dict()
+        if self.balance == "poses":  # the setting every run had before it existed: states saved then still resume
+            del out["balance"]
         return out
 
 
@@ -139,15 +148,28 @@ class TrainResult:
 
 
 @dataclass
-class _Data:
+class TrainingTensors:
     """Tensors on the training device: normalised poses, their frame rows, the frames' BPS."""
 
     poses: torch.Tensor
     frame_index: torch.Tensor
     bps: torch.Tensor
+    pose_weights: torch.Tensor | None = None  # [N] a pose's chance to be drawn; None: uniform
 
     def batch(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.poses[rows], self.bps[self.frame_index[rows]]
+
+    def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
+        """`count` pose rows, with replacement."""
+        if self.pose_weights is None:
+            return torch.randint(0, len(self.poses), (count,), generator=generator, device=self.poses.device)
+        return torch.multinomial(self.pose_weights, count, replacement=True, generator=generator)
+
+
+def object_balanced_weights(object_ids: np.ndarray) -> torch.Tensor:
+    """[N] 1 / (poses of the pose's object): every object is drawn equally often, each of its poses equally."""
+    _, inverse, counts = np.unique(object_ids, return_inverse=True, return_counts=True)
+    return torch.from_numpy(1.0 / counts[inverse]).float()
 
 
 def output_paths(out: Path) -> dict[str, Path]:
@@ -224,6 +246,8 @@ class _Run:
         val_bps = torch.from_numpy(frame_bps(val_set.frames, self.bps, progress=options.progress))
         self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.poses))
         self.train_data = self._device_data(train_set, train_bps)
+        if config.balance == "objects":
+            self.train_data.pose_weights = object_balanced_weights(train_set.object_ids).to(device)
         self.val_data = self._device_data(val_set, val_bps) if len(val_set) else None
         with torch.random.fork_rng(devices=[]):  # seeded initial weights, global RNG untouched
             torch.manual_seed(config.seed)
@@ -243,9 +267,9 @@ class _Run:
             self._restore(resumed)
         self.start_step = self.step
 
-    def _device_data(self, subset: PoseDataset, frame_features: torch.Tensor) -> _Data:
+    def _device_data(self, subset: PoseDataset, frame_features: torch.Tensor) -> TrainingTensors:
         poses = self.normalizer.normalize(torch.from_numpy(subset.poses))
-        return _Data(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device), frame_features.to(self.device))
+        return TrainingTensors(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device), frame_features.to(self.device))
 
     # ------------------------------------------------------------------ loop
     def fit(self, paths: dict[str, Path], out: Path, dataset_dir: Path) -> TrainResult:
@@ -278,8 +302,7 @@ class _Run:
 
     def _train_step(self) -> None:
         self.model.train()
-        rows = torch.randint(0, len(self.train_data.poses), (self.config.batch_size,), generator=self.generator, device=self.device)
-        poses, bps = self.train_data.batch(rows)
+        poses, bps = self.train_data.batch(self.train_data.draw(self.config.batch_size, self.generator))
         loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
