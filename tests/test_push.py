@@ -848,3 +848,15 @@ def test_gd2p_push_refuses_corrections_for_a_goal_request(capsys):
     code = main(["push", "--object", BOX, "--goal", "0.5", "0.1", "--corrections", "1", "--connect", "tcp/127.0.0.1:9"])
     err = capsys.readouterr().err
     assert code == 2 and "--corrections: a --goal request already pushes again" in err and "Traceback" not in err
+
+
+def test_near_copies_of_a_pose_are_tried_after_the_poses_that_differ():
+    """Rolled-out requests try different hand positions first: a pose within min_separation_m of one already
+    kept goes back, in its own order; 0 keeps the order as it is."""
+    from services.planner.stages import spread_out
+
+    positions = np.array([[0.0, 0.0, 0.0], [0.005, 0.0, 0.0], [0.03, 0.0, 0.0], [0.031, 0.0, 0.0], [0.0, 0.05, 0.0]])
+    order = np.array([0, 1, 2, 3, 4])
+    assert spread_out(order, positions, 0.015).tolist() == [0, 2, 4, 1, 3]
+    assert spread_out(np.array([3, 2, 1, 0]), positions, 0.015).tolist() == [3, 1, 2, 0]
+    assert spread_out(order, positions, 0.0).tolist() == order.tolist()

@@ -86,6 +86,9 @@ class PipelineSettings:
     # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
     max_plan_rounds: int = 2
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
+    # Rolled-out requests try poses whose hands stand at least this far apart first (`spread_out`): the
+    # best-aligned samples and the best prescreened ones are often near-copies that fail together.
+    min_separation_m: float = 0.015
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
@@ -186,6 +189,8 @@ def screen(state: RequestState, planner: MotionPlanner, candidates: Candidates, 
     chunk is enough. `screen_more` goes on from where it stopped.
     """
     order = priority(state, candidates)
+    if rolls_out(state.request):
+        order = spread_out(order, candidates.poses_d[:, :3], settings.min_separation_m)
     empty = Feasible(candidates, np.zeros(0, dtype=int), np.zeros((len(order), planner.arm.dof)),
                      [None] * len(order), unscreened=order)
     return screen_more(state, planner, empty, push, settings, needed)
@@ -239,6 +244,20 @@ def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
     return np.argsort(l_dir, kind="stable")
 
 
+def spread_out(order: np.ndarray, positions: np.ndarray, min_separation_m: float) -> np.ndarray:
+    """`order` with near-copies moved back: walking it, a candidate whose hand position (`positions` [K, 3])
+    lies within `min_separation_m` of one kept before it goes after every kept one (keeping its own order),
+    so that the first poses tried differ. 0 leaves `order` as it is."""
+    if min_separation_m <= 0 or len(order) < 2:
+        return order
+    kept: list[int] = []
+    deferred: list[int] = []
+    for index in order.tolist():
+        near = kept and np.linalg.norm(positions[kept] - positions[index], axis=1).min() < min_separation_m
+        (deferred if near else kept).append(index)
+    return np.array(kept + deferred, dtype=order.dtype)
+
+
 def no_feasible_pose_message(reasons: list[str]) -> str:
     counts = Counter(r.split(":")[0] for r in reasons if r)
     example = {r.split(":")[0]: r.split(":", 1)[1].strip() for r in reversed(reasons) if ":" in r}
@@ -282,7 +301,8 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
             success[start:start + len(chunk)] = result.success.to_numpy()
             error[start:start + len(chunk)] = result.position_error_m.to_numpy()
         start += len(chunk)
-    passed = tested[success][np.argsort(error[success], kind="stable")]
+    passed = spread_out(tested[success][np.argsort(error[success], kind="stable")],
+                        feasible.candidates.poses_d[:, :3], settings.min_separation_m)
     order = feasible.order
     return feasible.reordered(np.concatenate([passed, tested[~success], order[len(tested):]]))
 
