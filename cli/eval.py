@@ -87,7 +87,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "<out>/data-size-random-yaw/; data-size then takes its objects one shape family after another)")
     parser.add_argument("--noise-scale", type=float, default=None,
                         help="sampler-quality: the diffusion sampling temperature in (0, 1] (initial and DDPM step noise "
-                             "multiplied by it; default 1, the plain reverse process); name its results with --tag")
+                             "multiplied by it; default $GD2P_SAMPLER_NOISE_SCALE, else 1, the plain reverse process); name its results with --tag")
     parser.add_argument("--objects", type=int, default=None,
                         help="sampler-quality: only this many objects of the split, one shape family after another "
                              "(default: all of them); data-size: this many test objects (default 40)")
