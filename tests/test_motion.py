@@ -1,12 +1,20 @@
 """Arm motion for a push (services/planner/motion.py) and the object's multi-step path (multistep.py)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
-from services.planner.multistep import plan_object_path, push_along_path, split_into_pushes
+from services.planner.multistep import (
+    DirectionInfeasible,
+    plan_object_path,
+    push_along_path,
+    split_into_pushes,
+    turned_pushes,
+)
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
 from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits
@@ -305,3 +313,43 @@ def test_multi_step_pushes_replan_from_the_observed_position_until_the_goal():
     assert all(np.allclose(a, observed) for (a, _), observed in zip(pushes, result.positions[:-1], strict=True))
     travelled = interpolate_path(np.array(result.positions), 0.001)
     assert (np.linalg.norm(travelled - np.array(obstacle[:2]), axis=1) - obstacle[2]).min() > object_radius
+
+
+def test_a_push_the_arm_cannot_make_is_turned_and_the_object_still_reaches_the_goal():
+    """An arm that cannot push within 10 deg of +y (say, out of reach): the turned pushes get the object there."""
+    start, goal, obstacle, object_radius = np.array([0.5, -0.3]), np.array([0.5, 0.3]), (0.62, 0.0, 0.04), 0.05
+    refused, made = [], []
+
+    def arm(from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
+        step = to_xy - from_xy
+        angle = math.degrees(math.atan2(step[1], step[0]))
+        if abs(angle - 90.0) < 10.0:
+            refused.append(angle)
+            raise DirectionInfeasible(RuntimeError("no IK solution"))
+        made.append(angle)
+        return to_xy
+
+    result = push_along_path(start, goal, [obstacle], arm, object_radius_m=object_radius, max_push_m=0.2,
+                             goal_tolerance_m=0.03, max_steps=12)
+    assert result.success, result.message
+    assert refused and len(made) == len(result.turns_deg) == len(result.positions) - 1
+    assert all(abs(turn) in (15.0, 30.0) for turn in result.turns_deg[:1])  # the straight path's push was refused
+    travelled = interpolate_path(np.array(result.positions), 0.001)
+    assert (np.linalg.norm(travelled - np.array(obstacle[:2]), axis=1) - obstacle[2]).min() > object_radius
+
+
+def test_turned_pushes_never_cut_into_an_obstacle_and_the_first_refusal_is_raised_when_none_can_be_made():
+    start, target, obstacle = np.array([0.5, -0.2]), np.array([0.5, -0.05]), (0.62, -0.1, 0.04)
+    kept = dict(turned_pushes(start, target, [obstacle], object_radius_m=0.05, margin_m=0.02))
+    assert set(kept) == {15.0, 30.0}  # turned clockwise (negative) the push runs into the obstacle on its right
+    for end in kept.values():
+        assert np.isclose(np.linalg.norm(end - start), 0.15)
+    refusals = []
+
+    def nothing_reachable(from_xy, to_xy):
+        refusals.append(DirectionInfeasible(RuntimeError(f"no IK toward {to_xy}")))
+        raise refusals[-1]
+
+    with pytest.raises(DirectionInfeasible) as error:
+        push_along_path(start, (0.5, 0.2), [], nothing_reachable, object_radius_m=0.05)
+    assert error.value is refusals[0] and error.value.turns_tried == [15.0, -15.0, 30.0, -30.0]

@@ -7,6 +7,7 @@ planning, arm rollouts, ranking, execution by the bridge, recording — is the o
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 from concurrent.futures import Future
@@ -294,8 +295,9 @@ def _box_at(x: float, y: float) -> np.ndarray:
     return T_world_O @ load_object(BOX).T_D_O()
 
 
-def _spatula_poses(request):
-    """A pose source of 8 spatula poses behind the box (shifted sideways by up to 2 cm) in the request's frame."""
+def _spatula_poses(request, lift_m: float = 0.0):
+    """A pose source of 8 spatula poses behind the box (shifted sideways by up to 2 cm, and up by `lift_m`) in
+    the request's frame."""
     from shared.contracts.messages import SampleResponse
     from shared.frames import frame_transform, invert_transform, poses_d_to_world
     from shared.robots.hands import load_hand
@@ -309,6 +311,7 @@ def _spatula_poses(request):
     base = spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
     poses = np.repeat(base[None], 8, axis=0)
     poses[:, 1] += np.linspace(-0.02, 0.02, 8)
+    poses[:, 2] += lift_m
     return SampleResponse(request_id=request.id, hand=request.hand, poses_d=poses,
                           poses_world=poses_d_to_world(poses, T_world_D), latency_s=0.0, checkpoint_id="test")
 
@@ -719,6 +722,32 @@ def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made()
     [record] = failure.value.records
     assert np.allclose(record.T_world_O_start, start) and record.world is not None
     assert record.step.result.final_object_pose.position[1] < 0.05  # it moved toward the goal
+
+
+def test_a_multi_step_push_the_arm_cannot_make_is_turned_off_the_path_and_still_reaches_the_goal():
+    """Pushes within 10 deg of straight toward the goal get only unreachable poses (1.5 m up): the first push
+    is turned off the object path, the response says so, and the object reaches the goal."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
+    from shared.frames import frame_transform
+
+    def out_of_reach_straight_ahead(request):
+        x, y = frame_transform(request.frame)[:2, 0]
+        return _spatula_poses(request, lift_m=1.5 if abs(math.degrees(math.atan2(y, x)) + 90.0) < 10.0 else 0.0)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=out_of_reach_straight_ahead, validate=validate_here,
+                                         execute=robot.execute), PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.12)), goal_xy=(0.5, -0.12),
+                          distance_m=0.13, k=8, max_steps=4)
+    try:
+        outcome = pipeline.run(request)
+    finally:
+        pipeline.close()
+        robot.close()
+    assert outcome.response.success, outcome.response.result
+    assert any("push 1 turned" in note and "could not make the path's push" in note for note in outcome.response.notes)
 
 
 # ------------------------------------------------------------------------------- cancellation

@@ -15,14 +15,19 @@ pose after each push. Here the plane is the table (world x, y):
 - `split_into_pushes` cuts every edge into equal pushes no longer than the longest single push;
 - `push_along_path` runs the loop: plan the path from where the object is, push to the first
   waypoint (`push` callback: plan a hand pose and arm motion, execute, observe), re-plan from the
-  observed position, until the object is within `goal_tolerance_m` of the goal.
+  observed position, until the object is within `goal_tolerance_m` of the goal;
+- when the arm cannot make the path's push (the callback raises `DirectionInfeasible`: no hand pose
+  for that direction has an IK solution or an arm plan), the same push turned by `TURNS_DEG` is
+  tried, each only if its straight line keeps the object clear of every obstacle; re-planning from
+  where it lands brings the object back to a path. The object path knows nothing of the arm, and a
+  direction the arm cannot push from one spot is often pushable a few tens of degrees off it.
 """
 from __future__ import annotations
 
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from ompl import base as ob
@@ -34,6 +39,18 @@ DEFAULT_PADDING_M = 0.3  # default bounds: the start-goal box grown by this much
 EDGE_CHECK_M = 0.005  # OMPL's edge check spacing: cuts an inflated obstacle's edge by < 0.03 mm (sagitta)
 RRT_STAR_ITERATIONS = 1000  # measured: within 1% of the shortest path around one obstacle (0.681 vs 0.677 m), 0.15 s
 MAX_ITERATIONS_FACTOR = 10  # without a path after `iterations`, keep searching up to this many times longer
+TURNS_DEG = (15.0, -15.0, 30.0, -30.0)  # the path's push turned by these, in order, when the arm cannot make it
+
+
+class DirectionInfeasible(Exception):
+    """Raised by a push callback when no push toward its target can be planned (the arm's reach, not the
+    object path): `push_along_path` then tries the turned pushes. `error` is the callback's own error,
+    re-raised by the caller when no turn helps."""
+
+    def __init__(self, error: Exception):
+        super().__init__(str(error))
+        self.error = error
+        self.turns_tried: list[float] = []  # set by push_along_path: the turned pushes tried after this one
 
 
 @dataclass(frozen=True)
@@ -197,6 +214,7 @@ class MultiStepResult:
     paths: list[ObjectPath]  # the path planned before each push
     success: bool  # final position within the goal tolerance
     message: str
+    turns_deg: list[float] = field(default_factory=list)  # per push: how far it was turned off its path (0: on it)
 
 
 PushStep = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -217,18 +235,21 @@ def push_along_path(
     bounds: tuple[tuple[float, float], tuple[float, float]] | None = None,
     iterations: int = RRT_STAR_ITERATIONS,
     seed: int = 0,
+    turns_deg: Sequence[float] = TURNS_DEG,
 ) -> MultiStepResult:
     """Push the object from `start_xy` to `goal_xy` around `obstacles`, one path edge (piece) at a time.
 
     After every push the path is planned again from the observed position (the paper's re-planning):
     a push that lands off the path is corrected by the next one. Raises PlanningError when no path
-    exists from where the object is; `push` raises its own errors (e.g. no feasible hand pose).
+    exists from where the object is; `push` raises its own errors, and `DirectionInfeasible` when the arm
+    cannot make a push (then the push turned by each of `turns_deg` that keeps clear of the obstacles is
+    tried; when none can be made either, the first push's DirectionInfeasible is raised).
     """
     goal = np.asarray(goal_xy, dtype=np.float64)[:2]
-    positions, paths = [np.asarray(start_xy, dtype=np.float64)[:2]], []
+    positions, paths, turns = [np.asarray(start_xy, dtype=np.float64)[:2]], [], []
     for _ in range(max_steps):
         if np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m:
-            return MultiStepResult(positions, paths, True, f"reached the goal in {len(paths)} push(es)")
+            return MultiStepResult(positions, paths, True, f"reached the goal in {len(paths)} push(es)", turns)
         # A push may leave the object inside the margin band around an obstacle (never inside the obstacle
         # plus the object's radius, or it would have hit it): plan the way out with the margin it has left.
         margin = min(margin_m, _margin_left(positions[-1], obstacles, object_radius_m))
@@ -236,11 +257,44 @@ def push_along_path(
                                 bounds=bounds, iterations=iterations, seed=seed + len(paths))
         paths.append(path)
         _, target = split_into_pushes(path.waypoints, max_push_m)[0]
-        positions.append(np.asarray(push(positions[-1], target), dtype=np.float64)[:2])
+        options = [(0.0, target)] + turned_pushes(positions[-1], target, obstacles, object_radius_m, margin, turns_deg)
+        turn, observed = _first_pushable(push, positions[-1], options)
+        positions.append(observed)
+        turns.append(turn)
     reached = np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m
     return MultiStepResult(positions, paths, bool(reached),
                            f"{'reached' if reached else 'did not reach'} the goal after {max_steps} pushes "
-                           f"({np.linalg.norm(positions[-1] - goal):.3f} m away)")
+                           f"({np.linalg.norm(positions[-1] - goal):.3f} m away)", turns)
+
+
+def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, object_radius_m: float,
+                  margin_m: float, turns_deg: Sequence[float] = TURNS_DEG) -> list[tuple[float, np.ndarray]]:
+    """(turn, target): the push from `from_xy` to `to_xy` turned about its start by each of `turns_deg`,
+    same length, kept when its straight line stays `object_radius_m + margin_m` clear of every obstacle."""
+    start = np.asarray(from_xy, dtype=np.float64)[:2]
+    offset = np.asarray(to_xy, dtype=np.float64)[:2] - start
+    discs = [Disc.of(o) for o in obstacles]
+    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
+    radii = np.array([d.radius for d in discs])
+    kept = []
+    for turn in turns_deg:
+        c, s = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+        target = start + np.array([c * offset[0] - s * offset[1], s * offset[0] + c * offset[1]])
+        if _path_clearance(np.stack([start, target]), centres, radii) >= object_radius_m + margin_m:
+            kept.append((float(turn), target))
+    return kept
+
+
+def _first_pushable(push: PushStep, start: np.ndarray, options: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray]:
+    """(turn, observed position) of the first of `options` the arm can push; the first refusal when none."""
+    first_refusal = None
+    for turn, target in options:
+        try:
+            return turn, np.asarray(push(start, target), dtype=np.float64)[:2]
+        except DirectionInfeasible as refusal:
+            first_refusal = first_refusal or refusal
+    first_refusal.turns_tried = [turn for turn, _ in options[1:]]
+    raise first_refusal
 
 
 def _margin_left(position: np.ndarray, obstacles: Sequence, object_radius_m: float) -> float:

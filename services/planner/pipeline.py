@@ -51,7 +51,7 @@ from services.planner.cancellation import Cancellation
 from services.planner.candidates import Feasible, Push, RankedPlan
 from services.planner.ik import ArmIK
 from services.planner.motion import MotionPlanner, PlanningError
-from services.planner.multistep import push_along_path
+from services.planner.multistep import DirectionInfeasible, push_along_path
 from services.planner.outcome import PushError, PushOutcome
 from services.planner.stages import PipelineSettings, RequestState
 from shared.contracts.messages import ExecutionResult, PushRequest, PushResponse
@@ -143,14 +143,20 @@ class PushPipeline:
             state.cancel.check()
             offset = np.asarray(to_xy) - state.T_world_O[:2, 3]  # from where the object really is
             distance = float(np.linalg.norm(offset))
+            executed = len(state.records)
             try:
                 self._push_once(state, Push(state.T_world_O.copy(), offset / np.linalg.norm(offset), distance))
             except PushError as exc:
-                if not state.records:
+                error = exc
+                if state.records:
+                    where = ", ".join(f"{v:.3f}" for v in state.T_world_O[:2, 3])
+                    error = PushError(exc.code, f"push {len(state.records) + 1}, with the object at ({where}) after "
+                                      f"{len(state.records)} push(es): {exc.message}")
+                if exc.code == "infeasible" and len(state.records) == executed:  # nothing moved: another direction may do
+                    raise DirectionInfeasible(error) from exc
+                if error is exc:
                     raise
-                where = ", ".join(f"{v:.3f}" for v in state.T_world_O[:2, 3])
-                raise PushError(exc.code, f"push {len(state.records) + 1}, with the object at ({where}) after "
-                                f"{len(state.records)} push(es): {exc.message}") from exc
+                raise error from exc
             return state.T_world_O[:2, 3]
 
         try:
@@ -158,6 +164,10 @@ class PushPipeline:
                                       object_radius_m=_footprint_radius(state.obj), max_push_m=request.distance_m,
                                       margin_m=self.settings.obstacle_margin_m, max_steps=request.max_steps,
                                       seed=request.seed)
+        except DirectionInfeasible as refusal:
+            turned = ", ".join(f"{t:+.0f}" for t in refusal.turns_tried)
+            also = f"; turned {turned} deg off the object path it could not be made either" if turned else ""
+            raise PushError(refusal.error.code, f"{refusal.error.message}{also}") from refusal.error
         except PlanningError as exc:
             if state.records:  # the object moved, then got stuck: report how far it got
                 raise PushError("infeasible", f"after {len(state.records)} push(es): {exc}") from exc
@@ -167,6 +177,8 @@ class PushPipeline:
         final = judge_push(start_T, np.asarray(request.goal_xy), state.records[-1].step.result.final_object_pose,
                            max_rotation_deg=None)
         state.timings["object_path"] = sum(p.planning_s for p in outcome.paths)
+        state.notes += [f"push {i + 1} turned {turn:+.0f} deg off the object path: the arm could not make the path's push"
+                        for i, turn in enumerate(outcome.turns_deg) if turn]
         return final
 
     def _corrected(self, state: RequestState, push: Push) -> ExecutionResult:
