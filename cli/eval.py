@@ -67,7 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="methods / leap / closed-loop: the 14 test objects (default, for reporting), 14 val objects (for "
                              "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test) or 6 test "
                              "objects of the mug family that no model trains on (<out>/<experiment>-<world>-unseen/); "
-                             "sampler-quality: the whole test or val split")
+                             "multistep: test (default) or 3 val objects of the test objects' footprints "
+                             "(<out>/multistep-<world>[-closed]-val/); sampler-quality: the whole test or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
                              "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser); "
@@ -221,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
             options["methods"] = args.methods
         if args.cameras and name in TRIAL_EXPERIMENTS:
             options["cameras"] = args.cameras
-        if args.split != "test" and name in TRIAL_EXPERIMENTS:
+        if args.split != "test" and (name in TRIAL_EXPERIMENTS or (name == "multistep" and args.split == "val")):
             options["split"] = args.split
         if args.tag is not None and name in TRIAL_EXPERIMENTS:
             options["tag"] = args.tag
