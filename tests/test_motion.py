@@ -10,6 +10,7 @@ import torch
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import (
     DirectionInfeasible,
+    next_push_target,
     plan_object_path,
     push_along_path,
     split_into_pushes,
@@ -353,3 +354,16 @@ def test_turned_pushes_never_cut_into_an_obstacle_and_the_first_refusal_is_raise
     with pytest.raises(DirectionInfeasible) as error:
         push_along_path(start, (0.5, 0.2), [], nothing_reachable, object_radius_m=0.05)
     assert error.value is refusals[0] and error.value.turns_tried == [15.0, -15.0, 30.0, -30.0]
+
+
+def test_the_next_push_skips_a_corner_it_can_cut_and_keeps_one_that_passes_an_obstacle():
+    corner_near_start = np.array([[0.0, 0.0], [0.0, 0.015], [0.10, 0.015], [0.30, 0.015]])
+    target = next_push_target(corner_near_start, [], object_radius_m=0.05, margin_m=0.08, max_push_m=0.15)
+    assert np.allclose(target, [0.10, 0.015])  # one push of 0.10 m instead of 0.015 m, then 0.10 m
+    corner = np.array([[0.0, 0.0], [0.0, 0.05], [0.10, 0.05]])
+    inside_the_corner = (0.035, 0.015, 0.001)  # the path keeps 3.4 cm from it, the straight line to its end 0.1 cm
+    kept = next_push_target(corner, [inside_the_corner], object_radius_m=0.01, margin_m=0.02, max_push_m=0.15)
+    assert np.allclose(kept, [0.0, 0.05])
+    long_edge = np.array([[0.0, 0.0], [0.4, 0.0]])
+    assert np.allclose(next_push_target(long_edge, [], object_radius_m=0.05, margin_m=0.08, max_push_m=0.15),
+                       [0.4 / 3, 0.0])

@@ -13,9 +13,9 @@ pose after each push. Here the plane is the table (world x, y):
 - the path is checked exactly (segment-to-circle distance) after planning, since OMPL checks edges
   at a finite resolution;
 - `split_into_pushes` cuts every edge into equal pushes no longer than the longest single push;
-- `push_along_path` runs the loop: plan the path from where the object is, push to the first
-  waypoint (`push` callback: plan a hand pose and arm motion, execute, observe), re-plan from the
-  observed position, until the object is within `goal_tolerance_m` of the goal;
+- `push_along_path` runs the loop: plan the path from where the object is, push along it as far as one
+  straight push goes (`next_push_target`; `push` callback: plan a hand pose and arm motion, execute,
+  observe), re-plan from the observed position, until the object is within `goal_tolerance_m` of the goal;
 - when the arm cannot make the path's push (the callback raises `DirectionInfeasible`: no hand pose
   for that direction has an IK solution or an arm plan), the same push turned by `TURNS_DEG` is
   tried, each only if its straight line keeps the object clear of every obstacle; re-planning from
@@ -39,6 +39,7 @@ DEFAULT_PADDING_M = 0.3  # default bounds: the start-goal box grown by this much
 EDGE_CHECK_M = 0.005  # OMPL's edge check spacing: cuts an inflated obstacle's edge by < 0.03 mm (sagitta)
 RRT_STAR_ITERATIONS = 1000  # measured: within 1% of the shortest path around one obstacle (0.681 vs 0.677 m), 0.15 s
 MAX_ITERATIONS_FACTOR = 10  # without a path after `iterations`, keep searching up to this many times longer
+SHORTCUT_SLACK_M = 0.01  # a push may cut this far into the obstacle margin to skip a corner of the path
 TURNS_DEG = (15.0, -15.0, 30.0, -30.0)  # the path's push turned by these, in order, when the arm cannot make it
 
 
@@ -256,7 +257,7 @@ def push_along_path(
         path = plan_object_path(positions[-1], goal, obstacles, object_radius_m=object_radius_m, margin_m=margin,
                                 bounds=bounds, iterations=iterations, seed=seed + len(paths))
         paths.append(path)
-        _, target = split_into_pushes(path.waypoints, max_push_m)[0]
+        target = next_push_target(path.waypoints, obstacles, object_radius_m, margin, max_push_m)
         options = [(0.0, target)] + turned_pushes(positions[-1], target, obstacles, object_radius_m, margin, turns_deg)
         turn, observed = _first_pushable(push, positions[-1], options)
         positions.append(observed)
@@ -265,6 +266,30 @@ def push_along_path(
     return MultiStepResult(positions, paths, bool(reached),
                            f"{'reached' if reached else 'did not reach'} the goal after {max_steps} pushes "
                            f"({np.linalg.norm(positions[-1] - goal):.3f} m away)", turns)
+
+
+def next_push_target(waypoints: np.ndarray, obstacles: Sequence, object_radius_m: float, margin_m: float,
+                     max_push_m: float, slack_m: float = SHORTCUT_SLACK_M) -> np.ndarray:
+    """Where the next push goes: the farthest end of a piece of the path (`split_into_pushes`) that one straight
+    push from the path's start reaches (<= `max_push_m`) keeping the object `object_radius_m + margin_m - slack_m`
+    clear of every obstacle; the first piece's end when no farther one qualifies.
+
+    A path around a round obstacle is a polygon hugging its inflated circle, and a path planned from just outside
+    that circle often starts with a corner a centimetre or two away: pushed piece by piece, that is a push too short
+    to move the object (the hand's approach gap) and one more push of the request's budget spent."""
+    waypoints = np.asarray(waypoints, dtype=np.float64)
+    pieces = split_into_pushes(waypoints, max_push_m)
+    start, target = waypoints[0], pieces[0][1]
+    discs = [Disc.of(o) for o in obstacles]
+    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
+    radii = np.array([d.radius for d in discs])
+    needed = object_radius_m + max(margin_m - slack_m, 0.0)
+    for _, end in pieces[1:]:
+        if np.linalg.norm(end - start) > max_push_m + 1e-9:
+            break
+        if _path_clearance(np.stack([start, end]), centres, radii) >= needed:
+            target = end
+    return target
 
 
 def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, object_radius_m: float,
