@@ -724,6 +724,42 @@ def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made()
     assert record.step.result.final_object_pose.position[1] < 0.05  # it moved toward the goal
 
 
+def test_a_sampler_draw_with_no_feasible_pose_is_followed_by_another_and_the_last_refusal_names_both():
+    """The first draw's poses are all out of reach (1.5 m up): the push draws again with another seed and
+    succeeds; when every draw is out of reach the error says how many draws were tried."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.outcome import PushError
+    from services.planner.pipeline import PushPipeline, PushServices
+    from services.planner.stages import PipelineSettings
+
+    seeds = []
+
+    def out_of_reach_first(request):
+        seeds.append(request.seed)
+        return _spatula_poses(request, lift_m=1.5 if len(seeds) == 1 else 0.0)
+
+    def never_in_reach(request):
+        return _spatula_poses(request, lift_m=1.5)
+
+    robot = LocalRobot()
+    settings = PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1)
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)), direction_deg=90.0,
+                          distance_m=0.1, k=8)
+    pipelines = [PushPipeline(PushServices(sample=sample, validate=validate_here, execute=robot.execute), settings)
+                 for sample in (out_of_reach_first, never_in_reach)]
+    try:
+        outcome = pipelines[0].run(request)
+        with pytest.raises(PushError) as failure:
+            pipelines[1].run(request)
+    finally:
+        for pipeline in pipelines:
+            pipeline.close()
+        robot.close()
+    assert outcome.response.success and len(seeds) == 2 and seeds[0] != seeds[1]
+    assert any("none of the sampler's 8 poses was kinematically feasible (draw 1)" in n for n in outcome.response.notes)
+    assert failure.value.code == "infeasible" and "none in the 1 draw(s) of 8 before either" in failure.value.message
+
+
 def test_a_multi_step_push_the_arm_cannot_make_is_turned_off_the_path_and_still_reaches_the_goal():
     """Pushes within 10 deg of straight toward the goal get only unreachable poses (1.5 m up): the first push
     is turned off the object path, the response says so, and the object reaches the goal."""

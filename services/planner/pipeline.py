@@ -216,14 +216,12 @@ class PushPipeline:
         """Plan, rank and execute one push from where the object is now (`state.advance`s by it);
         `reason`: why it is made, when it is not the request's first push."""
         request = state.request
-        candidates = stages.candidate_poses(state, push, self.services.sample)
-        settings = self.settings.for_push(request, candidates)
         with self.scene(request.arm, request.hand) as scene:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
             rolled_out = stages.rolls_out(request)
-            feasible = stages.screen(state, planner, candidates, push, settings, settings.feasible_first(rolled_out))
+            candidates, settings, feasible = self._screened(state, planner, push)
             planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), settings)
             if rolled_out:
                 chosen = self._rolled_out_choice(state, planning, feasible)
@@ -231,6 +229,28 @@ class PushPipeline:
                 chosen = self._first_planned(state, planning, feasible)
         state.advance(stages.execute(state, push, candidates, chosen, self.services.execute, settings,
                                      self._limits(request.arm, request.hand), reason))
+
+    def _screened(self, state: RequestState, planner: MotionPlanner,
+                  push: Push) -> tuple[stages.Candidates, PipelineSettings, Feasible]:
+        """The push's candidates, its settings and the kinematically feasible candidates. When none of a
+        diffusion draw's K samples is feasible, K more are drawn (another seed), up to `sample_draws` draws."""
+        request = state.request
+        draws = self.settings.sample_draws if request.method == "gd2p" else 1  # retrieval and fixed: the same poses
+        for draw in range(draws):
+            candidates = stages.candidate_poses(state, push, self.services.sample, draw)
+            settings = self.settings.for_push(request, candidates)
+            try:
+                needed = settings.feasible_first(stages.rolls_out(request))
+                return candidates, settings, stages.screen(state, planner, candidates, push, settings, needed)
+            except PushError as exc:
+                if exc.code != "infeasible" or draws == 1:
+                    raise
+                if draw + 1 == draws:
+                    raise PushError(exc.code, f"{exc.message}; none in the {draw} draw(s) of {request.k} before "
+                                    "either") from exc
+                state.notes.append(f"push {len(state.records) + 1}: none of the sampler's {request.k} poses was "
+                                   f"kinematically feasible (draw {draw + 1}); drew {request.k} more")
+        raise AssertionError("unreachable: the last draw returns or raises")
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an

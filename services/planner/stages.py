@@ -54,6 +54,7 @@ from shared.world.push_outcome import judge_push, object_pose, pose_matrix, rota
 # A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
 # this from how it sat in the last one's (the sampler would be asked the same question).
 REUSE_SAMPLES_DEG = 10.0
+DRAW_SEED_STRIDE = 1_000_003  # seed offset of a push's further sampler draws (`PipelineSettings.sample_draws`)
 SCREEN_CHUNK = 50  # candidates per batched IK screen (`screen`)
 PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers
 
@@ -82,6 +83,9 @@ class PipelineSettings:
     # runs out of reach, every path breaks a limit) is followed by one on the next poses, screened as
     # needed, up to this many rounds: a hand pose that screens feasible can still fail there.
     max_planless_rounds: int = 3
+    # A diffusion request none of whose K samples is kinematically feasible (the pose family the model favours
+    # is out of the arm's reach there) draws K more with another seed, up to this many draws in all.
+    sample_draws: int = 2
     # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
     # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
     max_plan_rounds: int = 2
@@ -145,12 +149,13 @@ class RequestState:
 # ------------------------------------------------------------------------------- 1. pose source
 
 
-def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidates:
+def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int = 0) -> Candidates:
     """The request's pose source's candidates for `push` (`PushRequest.method`).
 
     Candidates are poses in D, the frame of the object and the push direction: a later push of the request
     (a correction, the next push of a multi-step request) that sees the object in its D turned no more
-    than REUSE_SAMPLES_DEG from how the last sampled push saw it reuses that push's candidates."""
+    than REUSE_SAMPLES_DEG from how the last sampled push saw it reuses that push's candidates. `draw` > 0:
+    another draw of the sampler for the same push (its own seed), never a reused one."""
     request = state.request
     started = time.perf_counter()
     if request.method == "fixed":
@@ -163,12 +168,14 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample) -> Candidat
         p_success = None
     else:
         R_D_O = (invert_transform(push.T_world_D) @ push.T_world_O)[:3, :3]  # how the object sits in D
-        if state.sampled is not None and rotation_between_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG:
+        reusable = state.sampled is not None and rotation_between_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG
+        if draw == 0 and reusable:
             _, poses_d, p_success = state.sampled  # a later push sees the object in D as the last one did
         else:
             sampler = "nearest" if request.method == "nearest" else request.sampler
+            seed = (state.seed + DRAW_SEED_STRIDE * draw) % 2**31
             reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
-                                         sampler=sampler, seed=state.seed))
+                                         sampler=sampler, seed=seed))
             poses_d = reply.poses_d.to_numpy().astype(np.float64)
             p_success = None if reply.success_probability is None else reply.success_probability.to_numpy()
             state.sampled = (R_D_O, poses_d, p_success)
