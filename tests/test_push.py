@@ -593,7 +593,10 @@ def test_a_correction_that_cannot_be_planned_leaves_the_push_as_it_was_and_says_
 
     response, _ = _push_with_a_displaced_first_outcome(out_of_reach)
     assert len(response.steps) == 1 and not response.success
-    assert len(response.notes) == 1 and response.notes[0].startswith("no correction after push 1: ")
+    # The correction drew the sampler twice (no pose of the first draw was feasible), then gave up.
+    draw_note, correction_note = response.notes
+    assert draw_note.startswith("push 2: none of the sampler's") and "drew 8 more" in draw_note
+    assert correction_note.startswith("no correction after push 1: ") and "none in the 1 draw(s)" in correction_note
 
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
