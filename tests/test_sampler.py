@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import threading
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from services.sampler.dataset import (
     load_pose_dataset,
     split_objects,
 )
-from services.sampler.diffusion import TRAIN_TIMESTEPS
+from services.sampler.diffusion import TRAIN_TIMESTEPS, DiffusionConfigError
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
@@ -286,6 +287,38 @@ def test_a_lower_noise_scale_concentrates_the_samples_and_a_bad_one_is_refused(s
     monkeypatch.setenv("GD2P_SAMPLER_NOISE_SCALE", "warm")
     with pytest.raises(SamplerInputError, match="GD2P_SAMPLER_NOISE_SCALE"):
         sampler.sample(object_id, k=10, sampler=kind)
+
+
+def test_a_model_trained_with_condition_dropout_samples_with_guidance_and_a_plain_one_refuses_it(store, sampler, trained,
+                                                                                                 tmp_path):
+    """Classifier-free guidance: the weight travels in the shipped checkpoint; the same finished run re-ships
+    its weights with another weight; guidance needs the unconditional embedding and a weight in [1, 10]."""
+    unconditional = dataclasses.replace(TINY_MODEL, unconditional=True)
+    config = tiny_config(model=unconditional, condition_dropout=0.2)
+    guided_run = train(store, HAND, tmp_path / "guided.pt", config, quiet(guidance_scale=3.0))
+    shutil.copy(guided_run.state_path, tmp_path / "plain.pt.train.pt")  # the finished run, shipped again with weight 1
+    plain_run = train(store, HAND, tmp_path / "plain.pt", config, quiet())
+    assert plain_run.start_step == plain_run.step == 300  # nothing retrained
+    guided, plain = load_checkpoint(guided_run.checkpoint_path), load_checkpoint(plain_run.checkpoint_path)
+    assert guided.guidance_scale == 3.0 and plain.guidance_scale == 1.0 and guided.model_config.unconditional
+    assert all(torch.equal(guided.state_dict[k], plain.state_dict[k]) for k in guided.state_dict)
+    object_id = synthetic_objects()[0]
+    points = frame_points(Frame(object_id, -1, 0.0))
+    with PoseSampler(guided_run.checkpoint_path) as guided_sampler, PoseSampler(plain_run.checkpoint_path) as plain_sampler:
+        with_guidance = guided_sampler.sample(object_id, k=100, sampler="ddim", seed=0).poses_d
+        without = plain_sampler.sample(object_id, k=100, sampler="ddim", seed=0).poses_d
+    assert np.isfinite(with_guidance).all() and not np.allclose(with_guidance, without)
+    assert np.median(with_guidance[:, 0]) < points[:, 0].min() + 0.02  # still behind the object
+    with pytest.raises(TrainingError, match="unconditional"):
+        train(store, HAND, tmp_path / "a.pt", tiny_config(condition_dropout=0.2), quiet())
+    with pytest.raises(TrainingError, match="condition dropout"):
+        train(store, HAND, tmp_path / "b.pt", tiny_config(), quiet(guidance_scale=2.0))
+    with pytest.raises(TrainingError, match="guidance scale must be in"):
+        train(store, HAND, tmp_path / "c.pt", config, quiet(guidance_scale=0.5))
+    plain_model = load_checkpoint(trained.checkpoint_path)
+    plain_model.guidance_scale = 2.0
+    with pytest.raises(DiffusionConfigError, match="condition dropout"):
+        PoseSampler(plain_model)
 
 
 def test_concurrent_requests_are_batched_without_changing_their_samples(sampler):

@@ -52,6 +52,8 @@ class SamplerCheckpoint:
     surface_points: int
     surface_seed: int
     manifest: dict[str, Any] = field(default_factory=dict)
+    # Classifier-free guidance weight the sampler uses (`sample_normalized`); != 1 needs an unconditional model.
+    guidance_scale: float = 1.0
 
     def build_model(self) -> PoseDenoiser:
         """The denoiser with these weights, in fp32 and eval mode."""
@@ -73,6 +75,7 @@ class SamplerCheckpoint:
             "bps": {"n": bps["n"], "radius": bps["radius"], "seed": bps["seed"], "basis": torch.from_numpy(bps["basis"])},
             "surface": {"points": int(self.surface_points), "seed": int(self.surface_seed)},
             "manifest": json.loads(json.dumps(self.manifest)),  # plain JSON values only
+            **({} if self.guidance_scale == 1.0 else {"guidance_scale": float(self.guidance_scale)}),
         }
 
     @classmethod
@@ -93,6 +96,7 @@ class SamplerCheckpoint:
                 surface_points=int(data["surface"]["points"]),
                 surface_seed=int(data["surface"]["seed"]),
                 manifest=dict(data.get("manifest") or {}),
+                guidance_scale=float(data.get("guidance_scale", 1.0)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{source}: incomplete sampler checkpoint: {exc!r}") from exc

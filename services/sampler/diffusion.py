@@ -21,7 +21,7 @@ from diffusers import DDIMScheduler, DDPMScheduler
 from diffusers.training_utils import EMAModel
 from torch.nn import functional as F
 
-from services.sampler.model import PoseDenoiser
+from services.sampler.model import DenoiserConfig, PoseDenoiser
 
 SamplerKind = Literal["ddpm", "ddim"]
 SAMPLERS: tuple[str, ...] = ("ddpm", "ddim")
@@ -32,6 +32,7 @@ DEFAULT_DDIM_STEPS = 10
 EMA_POWER = 0.75
 EMA_MAX_DECAY = 0.9999  # diffusion_policy's EMAModel max_value
 DEFAULT_NOISE_SCALE = 1.0  # the sampling temperature when a request names none
+MAX_GUIDANCE_SCALE = 10.0  # classifier-free guidance weights above this only over-saturate
 NOISE_SCALE_ENV = "GD2P_SAMPLER_NOISE_SCALE"  # overrides DEFAULT_NOISE_SCALE, as GD2P_SAMPLER_CHECKPOINT_<HAND> the weights
 
 
@@ -114,12 +115,18 @@ class PoseNormalizer:
 
 # ----------------------------------------------------------------------------- training objective
 def denoising_loss(model: PoseDenoiser, scheduler: DDPMScheduler, poses: torch.Tensor, bps: torch.Tensor,
-                   generator: torch.Generator | None = None) -> torch.Tensor:
-    """DDPM epsilon loss: noise normalised poses at random steps, predict the noise, mean squared error."""
+                   generator: torch.Generator | None = None, condition_dropout: float = 0.0) -> torch.Tensor:
+    """DDPM epsilon loss: noise normalised poses at random steps, predict the noise, mean squared error.
+
+    With `condition_dropout` p > 0 each row sees the "no object" embedding with probability p, so the
+    model learns the unconditional noise too (classifier-free guidance, Ho & Salimans 2022)."""
     noise = torch.randn(poses.shape, generator=generator, device=poses.device, dtype=poses.dtype)
     timesteps = torch.randint(0, scheduler.config.num_train_timesteps, (poses.shape[0],), generator=generator, device=poses.device)
     noisy = scheduler.add_noise(poses, noise, timesteps)
-    return F.mse_loss(model(noisy, timesteps, bps), noise)
+    drop = None
+    if condition_dropout > 0:
+        drop = torch.rand(poses.shape[0], generator=generator, device=poses.device) < condition_dropout
+    return F.mse_loss(model(noisy, timesteps, bps, drop), noise)
 
 
 # ----------------------------------------------------------------------------- sampling
@@ -132,12 +139,17 @@ def sample_normalized(
     kind: str = "ddpm",
     steps: int | None = None,
     noise_scale: float = 1.0,
+    guidance_scale: float = 1.0,
 ) -> list[torch.Tensor]:
     """Reverse diffusion for R requests at once: R BPS rows, `counts[r]` poses each, one generator each.
 
     `noise_scale` (the sampling temperature, in (0, 1]) multiplies the initial noise and every DDPM
     step's noise (DDIM with eta 0 adds none): below 1 the samples concentrate on the model's modes,
     trading diversity for validity; 1 is the plain reverse process.
+
+    `guidance_scale` w != 1 (an `unconditional` model only) is classifier-free guidance: the noise is
+    eps(no object) + w (eps(object) - eps(no object)), pushing the samples toward what is particular to
+    this object; each step runs the network twice as many rows.
 
     The object embedding is computed once per request and the FiLM parameters once per step per
     request; the network runs on all rows together. Each request draws its initial noise and its
@@ -147,16 +159,27 @@ def sample_normalized(
     if len(counts) != bps.shape[0] or len(generators) != bps.shape[0]:
         raise ValueError(f"{bps.shape[0]} BPS rows need as many counts and generators, got {len(counts)} and {len(generators)}")
     check_noise_scale(noise_scale)
+    check_guidance_scale(guidance_scale, model.config)
     scheduler = make_sampling_scheduler(kind, steps)
     device = bps.device
     pose_dim = model.config.pose_dim
     samples = [noise_scale * torch.randn((n, pose_dim), generator=g, device=device) for n, g in zip(counts, generators, strict=True)]
     x = torch.cat(samples)
     bounds = _row_bounds(counts)
-    group = None if len(counts) == 1 else torch.repeat_interleave(torch.arange(len(counts), device=device), torch.as_tensor(counts, device=device))
+    request_of_row = torch.repeat_interleave(torch.arange(len(counts), device=device), torch.as_tensor(counts, device=device))
+    group = None if len(counts) == 1 else request_of_row
     object_embedding = model.encode_object(bps)
+    guided = guidance_scale != 1.0
+    if guided:  # the null object is one more FiLM row, R, shared by the second copy of every row
+        group = torch.cat([request_of_row, torch.full_like(request_of_row, len(counts))])
+        object_embedding = torch.cat([object_embedding, model.null_embedding(1)])
     for t in scheduler.timesteps:
-        epsilon = model.denoise(x, model.film(object_embedding, t.to(device)), group)
+        film = model.film(object_embedding, t.to(device))
+        if guided:  # both predictions in one pass: the rows twice, the second half with the null object
+            conditional, unconditional = model.denoise(torch.cat([x, x]), film, group).chunk(2)
+            epsilon = unconditional + guidance_scale * (conditional - unconditional)
+        else:
+            epsilon = model.denoise(x, film, group)
         x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g, noise_scale)
                        for (a, b), g in zip(bounds, generators, strict=True)])
     return [x[a:b] for a, b in bounds]
@@ -166,6 +189,16 @@ def check_noise_scale(noise_scale: float) -> None:
     """DiffusionConfigError unless 0 < noise_scale <= 1."""
     if not 0.0 < float(noise_scale) <= 1.0:
         raise DiffusionConfigError(f"the noise scale must be in (0, 1], got {noise_scale}")
+
+
+def check_guidance_scale(guidance_scale: float, config: DenoiserConfig | None = None) -> None:
+    """DiffusionConfigError unless 1 <= guidance_scale <= MAX_GUIDANCE_SCALE, and guidance (!= 1) has a model
+    trained for it."""
+    if not 1.0 <= float(guidance_scale) <= MAX_GUIDANCE_SCALE:
+        raise DiffusionConfigError(f"the guidance scale must be in [1, {MAX_GUIDANCE_SCALE:g}], got {guidance_scale}")
+    if guidance_scale != 1.0 and config is not None and not config.unconditional:
+        raise DiffusionConfigError("classifier-free guidance needs a model trained with condition dropout "
+                                   "(gd2p train --condition-dropout)")
 
 
 def default_noise_scale() -> float:

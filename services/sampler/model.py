@@ -47,20 +47,29 @@ class DenoiserConfig:
     time_dim: int = 64
     hidden_dim: int = 256
     num_blocks: int = 4
+    # A learned "no object" embedding (trained with condition dropout), so the model also predicts the noise
+    # without the object and can sample with classifier-free guidance (`sample_normalized`).
+    unconditional: bool = False
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
-            if not isinstance(value, int) or value < 1:
+            if name == "unconditional":
+                if not isinstance(value, bool):
+                    raise ValueError(f"DenoiserConfig.unconditional must be a bool, got {value!r}")
+            elif not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"DenoiserConfig.{name} must be a positive integer, got {value!r}")
         if self.time_dim % 2:
             raise ValueError(f"DenoiserConfig.time_dim must be even (sin/cos pairs), got {self.time_dim}")
 
-    def to_dict(self) -> dict[str, int]:
-        return asdict(self)
+    def to_dict(self) -> dict[str, int | bool]:
+        out = asdict(self)
+        if not self.unconditional:  # the config of every checkpoint made before the setting existed
+            del out["unconditional"]
+        return out
 
     @classmethod
     def from_dict(cls, data: dict) -> DenoiserConfig:
-        known = {k: int(v) for k, v in data.items() if k in cls.__dataclass_fields__}
+        known = {k: (bool(v) if k == "unconditional" else int(v)) for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(**known)
 
 
@@ -109,6 +118,8 @@ class PoseDenoiser(nn.Module):
         self.input_layer = nn.Linear(config.pose_dim, config.hidden_dim)
         self.blocks = nn.ModuleList(ResidualFiLMBlock(config.hidden_dim) for _ in range(config.num_blocks))
         self.output_layer = nn.Linear(config.hidden_dim, config.pose_dim)
+        if config.unconditional:
+            self.null_object = nn.Parameter(torch.zeros(config.object_dim))
 
     def set_bps_statistics(self, mean: torch.Tensor, std: torch.Tensor, min_std: float = 1e-3) -> None:
         """Standardise BPS features with the training set's per-feature mean and std."""
@@ -142,9 +153,20 @@ class PoseDenoiser(nn.Module):
             h = block(h, film[:, index, 0], film[:, index, 1])
         return self.output_layer(h)
 
-    def forward(self, noisy_pose: torch.Tensor, timesteps: torch.Tensor, bps: torch.Tensor) -> torch.Tensor:
-        """Training path: one timestep and one BPS per row ([B, 25], [B], [B, bps_dim]) -> [B, 25]."""
-        return self.denoise(noisy_pose, self.film(self.encode_object(bps), timesteps))
+    def null_embedding(self, rows: int) -> torch.Tensor:
+        """[rows, object_dim] copies of the learned "no object" embedding (an `unconditional` model only)."""
+        if not self.config.unconditional:
+            raise ValueError("this denoiser has no unconditional embedding: train it with condition dropout")
+        return self.null_object.expand(rows, -1)
+
+    def forward(self, noisy_pose: torch.Tensor, timesteps: torch.Tensor, bps: torch.Tensor,
+                drop_object: torch.Tensor | None = None) -> torch.Tensor:
+        """Training path: one timestep and one BPS per row ([B, 25], [B], [B, bps_dim]) -> [B, 25]; rows where
+        `drop_object` [B] is true see the "no object" embedding instead (condition dropout)."""
+        embedding = self.encode_object(bps)
+        if drop_object is not None:
+            embedding = torch.where(drop_object[:, None], self.null_embedding(embedding.shape[0]), embedding)
+        return self.denoise(noisy_pose, self.film(embedding, timesteps))
 
 
 def parameter_count(model: nn.Module) -> int:

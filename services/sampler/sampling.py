@@ -36,6 +36,7 @@ import torch
 from services.sampler.checkpoint import SamplerCheckpoint, checkpoint_id, load_checkpoint
 from services.sampler.diffusion import (
     DiffusionConfigError,
+    check_guidance_scale,
     check_noise_scale,
     default_noise_scale,
     resolve_steps,
@@ -172,6 +173,8 @@ class PoseSampler:
         self.hand = self.checkpoint.hand
         self.device = torch.device(device)
         self.model = self.checkpoint.build_model().to(self.device)
+        self.guidance_scale = self.checkpoint.guidance_scale
+        check_guidance_scale(self.guidance_scale, self.checkpoint.model_config)
         self.normalizer = self.checkpoint.normalizer
         self.bps = self.checkpoint.bps
         self.max_batch_poses = max_batch_poses
@@ -278,7 +281,7 @@ class PoseSampler:
             bps = torch.stack([job.bps for job in jobs]).to(self.device)
             generators = [torch.Generator(device=self.device).manual_seed(job.seed) for job in jobs]
             outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps,
-                                        jobs[0].noise_scale)
+                                        jobs[0].noise_scale, self.guidance_scale)
             for job, output in zip(jobs, outputs, strict=True):
                 job.future.set_result(self._to_poses(output))
         except Exception as exc:  # deliver the failure to every waiting caller, keep serving

@@ -49,7 +49,14 @@ from services.sampler.dataset import (
     load_pose_dataset,
     split_objects,
 )
-from services.sampler.diffusion import PoseNormalizer, denoising_loss, make_ema, make_noise_scheduler
+from services.sampler.diffusion import (
+    DiffusionConfigError,
+    PoseNormalizer,
+    check_guidance_scale,
+    denoising_loss,
+    make_ema,
+    make_noise_scheduler,
+)
 from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count
 from shared.world.bps import BasisPointSet
 
@@ -86,10 +93,18 @@ class TrainConfig:
     # dominate), or "objects", an object uniformly then one of its poses (every object weighs the same, as in
     # the evaluation, which pushes the same number of samples per object).
     balance: str = "poses"
+    # Rows of a batch trained without their object (the model's "no object" embedding), so the checkpoint can
+    # sample with classifier-free guidance; > 0 needs `model.unconditional`.
+    condition_dropout: float = 0.0
 
     def check(self) -> None:
         if self.balance not in BALANCES:
             raise TrainingError(f"--balance must be one of {', '.join(BALANCES)}, got {self.balance!r}")
+        if not 0.0 <= self.condition_dropout < 1.0:
+            raise TrainingError(f"--condition-dropout must be in [0, 1), got {self.condition_dropout}")
+        if (self.condition_dropout > 0) != self.model.unconditional:
+            raise TrainingError("condition dropout and the model's unconditional embedding go together "
+                                f"(dropout {self.condition_dropout}, unconditional {self.model.unconditional})")
         if self.steps is not None and self.epochs is not None:
             raise TrainingError("give --steps or --epochs, not both")
         if self.steps is not None and self.steps < 1:
@@ -112,6 +127,8 @@ class TrainConfig:
         out["model"] = self.model.to_dict()
         if self.balance == "poses":  # the setting every run had before it existed: states saved then still resume
             del out["balance"]
+        if self.condition_dropout == 0.0:  # likewise
+            del out["condition_dropout"]
         return out
 
 
@@ -128,6 +145,7 @@ class RunOptions:
     progress: bool = True
     resume: bool = True
     command: str | None = None  # recorded in the manifest
+    guidance_scale: float = 1.0  # written into the shipped checkpoint: its classifier-free guidance weight
     should_stop: Callable[[int], bool] | None = None  # polled after every step: save and return early
 
 
@@ -196,6 +214,10 @@ def train(dataset_dir: str | Path, hand: str, out: str | Path, config: TrainConf
     """Train (or resume training) a sampler for `hand` on the store at `dataset_dir`; see module doc."""
     config, options = config or TrainConfig(), options or RunOptions()
     config.check()
+    try:
+        check_guidance_scale(options.guidance_scale, config.model)
+    except DiffusionConfigError as exc:
+        raise TrainingError(f"--guidance-scale: {exc}") from exc
     out = Path(out)
     paths = output_paths(out)
     device = resolve_device(options.device)
@@ -303,7 +325,7 @@ class _Run:
     def _train_step(self) -> None:
         self.model.train()
         poses, bps = self.train_data.batch(self.train_data.draw(self.config.batch_size, self.generator))
-        loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator)
+        loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator, self.config.condition_dropout)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip, foreach=True)
@@ -390,7 +412,7 @@ class _Run:
             state_dict={k: v.detach().cpu() for k, v in ema_model.state_dict().items()},
             normalizer=self.normalizer, joint_lower=joint_lower, joint_upper=joint_upper,
             bps=self.bps, surface_points=SURFACE_POINTS, surface_seed=SURFACE_SEED,
-            manifest=self._manifest(dataset_dir, samples_per_s))
+            manifest=self._manifest(dataset_dir, samples_per_s), guidance_scale=self.options.guidance_scale)
 
     def _manifest(self, dataset_dir: Path, samples_per_s: float) -> dict[str, Any]:
         return {
