@@ -686,6 +686,20 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
     assert "any of the 4 feasible pose(s) tried (4× no IK solution)" in error.message
 
 
+def test_planning_time_leaves_out_the_screening_a_plan_less_round_does_inside_it(monkeypatch):
+    """A plan-less round screens the next poses while planning: those seconds count as "ik" only."""
+    from services.planner import stages
+
+    clock = iter([10.0, 10.2, 10.5, 13.0])  # planning starts, screening starts and ends, planning ends
+    monkeypatch.setattr(stages.time, "perf_counter", lambda: next(clock))
+    state = stages.RequestState(PushRequest(object=ObjectRef(library_id=BOX), direction_deg=0.0), None, "", None,
+                                np.eye(4))
+    with state.timing("planning", excluding="ik"):
+        started = stages.time.perf_counter()
+        state.time("ik", stages.time.perf_counter() - started)
+    assert state.timings["ik"] == pytest.approx(0.3) and state.timings["planning"] == pytest.approx(2.7)
+
+
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
     """The validator farm is gone by the second push: the PushError carries the first push's record."""
     from evaluation.local_system import LocalRobot, validate_here

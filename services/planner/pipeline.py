@@ -271,11 +271,8 @@ class PushPipeline:
     @staticmethod
     def _first_planned(state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """A random feasible choice: the plan of the first feasible candidate (in random order) that has one."""
-        started = time.perf_counter()
-        try:
+        with state.timing("planning", excluding="ik"):
             plans, _ = planning.plans(feasible, Counter())
-        finally:
-            state.time("planning", time.perf_counter() - started)
         return plans[0].ranked(None)
 
     # ------------------------------------------------------------------------------- resources

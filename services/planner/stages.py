@@ -17,12 +17,13 @@ the farm, before and after the robot moves) and raises `RequestCancelled`.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
@@ -134,6 +135,16 @@ class RequestState:
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+
+    @contextlib.contextmanager
+    def timing(self, stage: str, excluding: str) -> Iterator[None]:
+        """Time the block as `stage`, less the time it spent in `excluding` (timed inside it, e.g. the screening
+        of a plan-less round's next poses within planning), so no second counts in two stages."""
+        started, before = time.perf_counter(), self.timings.get(excluding, 0.0)
+        try:
+            yield
+        finally:
+            self.time(stage, time.perf_counter() - started - (self.timings.get(excluding, 0.0) - before))
 
     @property
     def seed(self) -> int:
@@ -493,15 +504,13 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
             pose_d = feasible.candidates.poses_d[candidate.index]
             rollouts.append(validate(rollout_job(state.request, planning.push, pose_d, candidate.plan)))
 
-        started = time.perf_counter()
-        try:
-            plans, rest = planning.plans(feasible, failures, on_plan=roll_out)
-        except PushError:
-            if ranked or rolled_out:  # a later round found nothing new: rank what the earlier rounds found
-                break
-            raise
-        finally:
-            state.time("planning", time.perf_counter() - started)
+        with state.timing("planning", excluding="ik"):
+            try:
+                plans, rest = planning.plans(feasible, failures, on_plan=roll_out)
+            except PushError:
+                if ranked or rolled_out:  # a later round found nothing new: rank what the earlier rounds found
+                    break
+                raise
         rolled_out += len(plans)
         ranked = best_first(ranked + rank(state, plans, rollouts, feasible.candidates.l_dir, settings))
         feasible = rest
