@@ -102,10 +102,9 @@ def plan_object_path(
         raise PlanningError("bad request",
                             f"object radius must be > 0 and margin >= 0, got {object_radius_m}, {margin_m}")
     start, goal = np.asarray(start_xy, dtype=np.float64)[:2], np.asarray(goal_xy, dtype=np.float64)[:2]
-    discs = [Disc.of(o) for o in obstacles]
     inflate = object_radius_m + margin_m
-    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
-    radii = np.array([d.radius + inflate for d in discs])
+    centres, radii = _centres_and_radii(obstacles)
+    radii = radii + inflate
     for name, point in (("start", start), ("goal", goal)):
         gaps = np.linalg.norm(centres - point, axis=1) - radii
         if gaps.size and gaps.min() < 0:
@@ -238,7 +237,7 @@ def push_along_path(
     seed: int = 0,
     turns_deg: Sequence[float] = TURNS_DEG,
 ) -> MultiStepResult:
-    """Push the object from `start_xy` to `goal_xy` around `obstacles`, one path edge (piece) at a time.
+    """Push the object from `start_xy` to `goal_xy` around `obstacles`, each push as far along the path as one reaches.
 
     After every push the path is planned again from the observed position (the paper's re-planning):
     a push that lands off the path is corrected by the next one. Raises PlanningError when no path
@@ -280,9 +279,7 @@ def next_push_target(waypoints: np.ndarray, obstacles: Sequence, object_radius_m
     waypoints = np.asarray(waypoints, dtype=np.float64)
     pieces = split_into_pushes(waypoints, max_push_m)
     start, target = waypoints[0], pieces[0][1]
-    discs = [Disc.of(o) for o in obstacles]
-    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
-    radii = np.array([d.radius for d in discs])
+    centres, radii = _centres_and_radii(obstacles)
     needed = object_radius_m + max(margin_m - slack_m, 0.0)
     for _, end in pieces[1:]:
         if np.linalg.norm(end - start) > max_push_m + 1e-9:
@@ -298,9 +295,7 @@ def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, o
     same length, kept when its straight line stays `object_radius_m + margin_m` clear of every obstacle."""
     start = np.asarray(from_xy, dtype=np.float64)[:2]
     offset = np.asarray(to_xy, dtype=np.float64)[:2] - start
-    discs = [Disc.of(o) for o in obstacles]
-    centres = np.array([[d.x, d.y] for d in discs]).reshape(-1, 2)
-    radii = np.array([d.radius for d in discs])
+    centres, radii = _centres_and_radii(obstacles)
     kept = []
     for turn in turns_deg:
         c, s = math.cos(math.radians(turn)), math.sin(math.radians(turn))
@@ -308,6 +303,12 @@ def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, o
         if _path_clearance(np.stack([start, target]), centres, radii) >= object_radius_m + margin_m:
             kept.append((float(turn), target))
     return kept
+
+
+def _centres_and_radii(obstacles: Sequence) -> tuple[np.ndarray, np.ndarray]:
+    """The obstacles' centres [n, 2] and radii [n] (metres)."""
+    discs = [Disc.of(o) for o in obstacles]
+    return np.array([[d.x, d.y] for d in discs]).reshape(-1, 2), np.array([d.radius for d in discs])
 
 
 def _first_pushable(push: PushStep, start: np.ndarray, options: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray]:
