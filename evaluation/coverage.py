@@ -287,12 +287,24 @@ def measure_object(source: PoseSource, object_id: str, settings: CoverageSetting
     poses = np.asarray(source.poses(obj, frame, settings.samples, object_seed(settings.seed, object_id)), dtype=np.float64)
     placed = table_object(obj, None, yaw_rad=object_yaw_in_d(frame, obj.default_pose.rotation))
     validator, hand = _validator(), _hand(settings.hand)
+    failures: list[str | None] = []
 
     def push(start: int, stop: int) -> list[bool]:
-        return [o.success for o in validator.validate(placed, hand, poses[start:stop]).outcomes]
+        outcomes = validator.validate(placed, hand, poses[start:stop]).outcomes
+        failures.extend(o.failure() for o in outcomes)
+        return [o.success for o in outcomes]
 
     tally = push_until_covered(len(poses), push, settings.fraction_poses, settings.chunk)
-    return coverage_record(object_id, tally, time.perf_counter() - started, validated_spread_cm(poses, tally))
+    record = coverage_record(object_id, tally, time.perf_counter() - started, validated_spread_cm(poses, tally))
+    record["failures"] = failure_counts(failures[: tally.fraction_pushed])
+    return record
+
+
+def failure_counts(failures: Sequence[str | None]) -> dict[str, int]:
+    """How many of the pushes failed in each way (`PushOutcome.failure`), every kind listed."""
+    from services.validator.push import FAILURES
+
+    return {kind: sum(f == kind for f in failures) for kind in FAILURES}
 
 
 def validated_spread_cm(poses: np.ndarray, tally: PushTally) -> float | None:
@@ -429,4 +441,14 @@ def summarize(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
         # None for stores made before the spread was recorded
         "median_validated_spread_cm": float(np.median(spreads)) if spreads else None,
         "seconds": round(sum(r["seconds"] for r in records), 1),
+        # Shares of the pushed poses (the first `fraction_poses` of each object) that failed each way; None for
+        # stores made before failures were recorded.
+        "failure_shares": _failure_shares(records, pushed),
     }
+
+
+def _failure_shares(records: Sequence[Mapping[str, Any]], pushed: int) -> dict[str, float] | None:
+    if not pushed or any("failures" not in r for r in records):
+        return None
+    kinds = records[0]["failures"].keys()
+    return {kind: sum(r["failures"][kind] for r in records) / pushed for kind in kinds}

@@ -249,6 +249,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
             f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
+            f"{failure_markdown(summaries, sources)}"
             f"By shape family (pooled validated fraction; objects with >= 1 validated pose):\n\n"
             f"{family_markdown(family_table_data(results, sources))}\n"
             "Protocol: 200 poses per object (seeded per object); the first 50 are all pushed (validated fraction); "
@@ -258,6 +259,19 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
             f"pose validates often with a spread near 0. {nn_text}\"worker-seconds\" sums the per-object "
             "time (sampling + pushes) over the worker processes.\n\n"
             f"![validated fraction per object]({plot_name})\n")
+
+
+def failure_markdown(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource]) -> str:
+    """Why the pushed poses failed, per method (empty for stores made before failures were recorded)."""
+    shares = {k: s["failure_shares"] for k, s in summaries.items() if s.get("failure_shares")}
+    if not shares:
+        return ""
+    kinds = list(next(iter(shares.values())))
+    names = {"turned": "turned > 45°", "toppled": "toppled", "missed": "missed by > 3 cm", "no contact": "never touched"}
+    rows = [[sources[k].label(), *(f"{v[kind]:.1%}" for kind in kinds)] for k, v in shares.items()]
+    return ("Why the pushed poses failed (share of all pushed poses, the first 50 per object; a pose that tipped "
+            "the object over counts as toppled even if it also turned):\n\n"
+            + markdown_table(["method", *(names.get(kind, kind) for kind in kinds)], rows) + "\n")
 
 
 def _spread(summary: dict[str, Any]) -> str:

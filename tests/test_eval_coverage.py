@@ -77,6 +77,8 @@ def test_early_stopping_matches_pushing_every_pose(source):
     assert record["any_success"] == any(full)
     assert record["first_success_index"] == (full.index(True) if any(full) else None)
     assert record["validated_fraction"] == sum(full[:4]) / 4
+    # the first 4 are the hand beyond the box, pushing away from it
+    assert record["failures"] == {"turned": 0, "toppled": 0, "missed": 0, "no contact": 4}
     if any(full):  # stopped at the end of the chunk holding the first success
         assert record["n_validated"] == min(len(full), 4 + 3 * -(-(full.index(True) + 1 - 4) // 3))
         assert record["n_validated"] < len(full)

@@ -233,3 +233,18 @@ def test_a_job_past_its_deadline_stops_between_episodes(zenoh_router, box):
         worker.stop()
         thread.join(15)
         session.close()
+
+
+def test_a_failed_push_says_why_toppled_before_turned_before_untouched_before_missed():
+    from services.validator.push import PushOutcome
+
+    def outcome(success=False, error=0.1, rotation=5.0, tilt=5.0, contact=1.0):
+        return PushOutcome(success=success, position_error_m=error, rotation_deg=rotation, max_tilt_deg=tilt,
+                           contact_fraction=contact, contact_kept=contact >= 0.8, hand_table_contact=False,
+                           initial_penetration_m=0.0)
+
+    assert outcome(success=True, error=0.01).failure() is None
+    assert outcome(rotation=120.0, tilt=80.0).failure() == "toppled"
+    assert outcome(rotation=60.0).failure() == "turned"
+    assert outcome(contact=0.0, error=0.2).failure() == "no contact"
+    assert outcome(error=0.05).failure() == "missed"

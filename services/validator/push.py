@@ -25,7 +25,7 @@ import numpy as np
 from shared.frames import FrameError, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.robots.hands import HandModel
 from shared.world.objects import ObjectModel, write_object_urdf
-from shared.world.push_outcome import judge_push, object_pose
+from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, TOPPLED_TILT_DEG, judge_push, object_pose
 from shared.world.sim import PhysicsParams, SimScene, pos_quat_to_transform
 
 DEFAULT_PUSH_DISTANCE_M = 0.20
@@ -74,6 +74,20 @@ class PushOutcome:
     contact_kept: bool
     hand_table_contact: bool
     initial_penetration_m: float
+
+    def failure(self) -> str | None:
+        """Why the push failed, one of FAILURES (None for a success): the object fell over at some point,
+        turned past the success bound, was never touched, or ended off the target."""
+        if self.success:
+            return None
+        if self.max_tilt_deg > TOPPLED_TILT_DEG:
+            return "toppled"
+        if self.rotation_deg > SUCCESS_MAX_ROTATION_DEG:
+            return "turned"
+        return "no contact" if self.contact_fraction == 0.0 else "missed"
+
+
+FAILURES = ("turned", "toppled", "missed", "no contact")  # PushOutcome.failure, in the order reports list them
 
 
 class PushSimulator:
