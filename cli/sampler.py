@@ -84,9 +84,13 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--condition-dropout", type=float_range(0.0, 1.0, high_open=True), default=0.0,
                         help="train this fraction of each batch without its object (a learned 'no object' embedding), so "
                              "the checkpoint can sample with classifier-free guidance (default 0: off)")
+    parser.add_argument("--learn-failures", action="store_true",
+                        help="train on the store's failed pushes too, under a learned 'failed push' embedding, so the "
+                             "checkpoint can sample guided away from what failed on the object (--guidance-scale; not with "
+                             "--condition-dropout)")
     parser.add_argument("--guidance-scale", type=float_range(1.0, 10.0), default=1.0,
                         help="classifier-free guidance weight written into the shipped checkpoint (default 1: none; needs "
-                             "--condition-dropout). Re-running a finished run with another value (its <out>.train.pt "
+                             "--condition-dropout or --learn-failures). Re-running a finished run with another value (its <out>.train.pt "
                              "copied beside the new --out) ships the same weights with that guidance")
     parser.add_argument("--val-every", type=positive_int, default=500, help="steps between validation losses")
     parser.add_argument("--checkpoint-every", type=positive_int, default=1000, help="steps between saved training states")
@@ -119,7 +123,8 @@ def run_train(args: argparse.Namespace) -> int:
                              warmup_steps=args.warmup_steps, val_fraction=args.val_fraction, fraction=args.fraction,
                              seed=args.seed, model=DenoiserConfig(hidden_dim=args.hidden_dim, num_blocks=args.num_blocks,
                                                                   object_dim=args.object_dim,
-                                                                  unconditional=args.condition_dropout > 0),
+                                                                  unconditional=args.condition_dropout > 0,
+                                                                  outcome=args.learn_failures),
                              balance=args.balance, condition_dropout=args.condition_dropout)
         options = RunOptions(device=args.device, val_every=max(1, args.val_every), checkpoint_every=max(1, args.checkpoint_every),
                              snapshot_every=max(0, args.snapshot_every), half=args.half, progress=not args.no_progress, resume=not args.restart,

@@ -321,6 +321,50 @@ def test_a_model_trained_with_condition_dropout_samples_with_guidance_and_a_plai
         PoseSampler(plain_model)
 
 
+def write_store_with_failures(directory: Path, objects: list[str]) -> Path:
+    """Per frame, successes half on the left (y = -4 cm) and half on the right of the object (+4 cm); failures,
+    as many, all on the right: the right side is where pushes of these objects fail."""
+    rng = np.random.default_rng(0)
+    tables = []
+    for object_id in objects:
+        for yaw in YAWS:
+            poses = synthetic_poses(object_id, yaw, 3 * POSES_PER_FRAME, rng)
+            side = np.repeat([-0.04, 0.04, 0.04], POSES_PER_FRAME)
+            poses[:, 1] += side
+            success = np.repeat([True, True, False], POSES_PER_FRAME)
+            tables.append(pa.table({
+                "object_id": pa.array([object_id] * len(poses), pa.string()), "hand": pa.array([HAND] * len(poses), pa.string()),
+                "pose": pa.array([p.tolist() for p in poses], pa.list_(pa.float32())),
+                "yaw_rad": pa.array([yaw] * len(poses), pa.float64()), "pose_index": pa.nulls(len(poses), pa.int32()),
+                "success": pa.array(success)}))
+    return write_pose_store(directory, pa.concat_tables(tables))
+
+
+def test_a_model_that_learns_failures_samples_guided_away_from_them(tmp_path):
+    """--learn-failures: training reads the failed pushes too, under the failure embedding; guidance then moves
+    the samples off the side where this object's pushes failed, without guidance they stay on both sides."""
+    objects = synthetic_objects()[:3]
+    store = write_store_with_failures(tmp_path / "store", objects)
+    assert len(load_pose_dataset(store, HAND)) == 3 * 2 * 2 * POSES_PER_FRAME  # the successes only
+    with_failures = load_pose_dataset(store, HAND, with_failures=True)
+    assert len(with_failures) == 3 * 2 * 3 * POSES_PER_FRAME and int(with_failures.failed.sum()) == 3 * 2 * POSES_PER_FRAME
+    assert np.all(with_failures.poses[with_failures.failed, 1] > 0.0)
+    config = tiny_config(model=dataclasses.replace(TINY_MODEL, outcome=True), steps=1500, val_fraction=0.0)
+    guided_run = train(store, HAND, tmp_path / "guided.pt", config, quiet(guidance_scale=4.0))
+    shutil.copy(guided_run.state_path, tmp_path / "plain.pt.train.pt")
+    plain_run = train(store, HAND, tmp_path / "plain.pt", config, quiet())
+    assert load_checkpoint(guided_run.checkpoint_path).manifest["dataset"]["failed_poses_trained"] == 3 * 2 * POSES_PER_FRAME
+    lateral = {}
+    for name, run in (("guided", guided_run), ("plain", plain_run)):
+        with PoseSampler(run.checkpoint_path) as pose_sampler:
+            lateral[name] = np.concatenate([pose_sampler.sample(o, k=100, sampler="ddpm", seed=0).poses_d[:, 1] for o in objects])
+    left = {name: float(np.mean(y < 0.0)) for name, y in lateral.items()}
+    assert 0.3 < left["plain"] < 0.7, left  # both sides, as the successes
+    assert left["guided"] > left["plain"] + 0.2, left  # away from the failures
+    with pytest.raises(ValueError, match="not both"):
+        dataclasses.replace(TINY_MODEL, outcome=True, unconditional=True)
+
+
 def test_concurrent_requests_are_batched_without_changing_their_samples(sampler):
     objects = synthetic_objects()[:4]
     alone = [sampler.sample(o, k=30, sampler="ddim", seed=i).poses_d for i, o in enumerate(objects)]

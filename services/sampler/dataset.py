@@ -3,7 +3,8 @@
 The store (`shared.data.dataset_store`: Parquet shards listed in a `manifest.json` with their checksums)
 is opened and verified through `DatasetStore`, the one reader of its layout: a shard that is
 missing, modified or not in the manifest is never read, and only successful pushes are read (a
-version-2 store keeps its failures beside them; `DatasetStore.rows` leaves them out). Columns used here:
+version-2 store keeps its failures beside them; `DatasetStore.rows` leaves them out) unless a model
+that learns from failures asks for them too (`load_pose_dataset(with_failures=True)`). Columns used here:
 
     object_id   string            library id (or `mesh-<hash>` of a mesh loaded on this machine)
     hand        string            "allegro" | "leap"
@@ -33,7 +34,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from tqdm import tqdm
 
-from shared.data.dataset_store import DatasetStore, StoreError
+from shared.data.dataset_store import SUCCESS_COLUMN, DatasetStore, StoreError, succeeded
 from shared.frames import POSE_DIM
 from shared.world.bps import BasisPointSet, BPSError
 from shared.world.objects import ObjectLoadError, load_object, split_of
@@ -72,6 +73,9 @@ class PoseDataset:
     # Frames of the store left out, with their poses: their resting pose does not exist on this machine
     # (`unplaceable_frames`); (frame, poses) pairs, recorded in what is built from the dataset.
     skipped: list[tuple[Frame, int]] = field(default_factory=list)
+    # [N] bool: the pose is a failed push (read only when asked, `load_pose_dataset(with_failures=True)`);
+    # None: every pose succeeded.
+    failed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -96,7 +100,16 @@ class PoseDataset:
         renumber[kept_frames] = np.arange(len(kept_frames))
         rows = renumber[self.frame_index] >= 0
         return PoseDataset(self.hand, self.poses[rows], renumber[self.frame_index[rows]],
-                           [self.frames[i] for i in kept_frames], self.fingerprint, skipped)
+                           [self.frames[i] for i in kept_frames], self.fingerprint, skipped,
+                           None if self.failed is None else self.failed[rows])
+
+    def successes(self) -> PoseDataset:
+        """The successful pushes only (frames kept, even one left without a pose)."""
+        if self.failed is None:
+            return self
+        keep = ~self.failed
+        return PoseDataset(self.hand, self.poses[keep], self.frame_index[keep], self.frames, self.fingerprint,
+                           self.skipped)
 
     def skipped_summary(self) -> list[dict]:
         """The skipped frames for a manifest: object, resting pose, yaw and how many poses each held."""
@@ -129,13 +142,14 @@ def dataset_fingerprint(store: DatasetStore) -> str:
     return digest.hexdigest()
 
 
-def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
-    """All poses of `hand` in the store, grouped into frames. Refuses test-split library objects."""
+def load_pose_dataset(directory: str | Path, hand: str, with_failures: bool = False) -> PoseDataset:
+    """All successful poses of `hand` in the store, grouped into frames, and its failed pushes too (marked in
+    `failed`) when `with_failures`. Refuses test-split library objects."""
     directory = Path(directory)
     store = open_store(directory)
     if not store.shard_paths():
         raise DatasetError(f"{directory}: the store holds no poses yet")
-    table = _read_rows(store)
+    table = _read_rows(store, "all" if with_failures else "success")
     rows = pc.fill_null(pc.equal(table.column("hand"), hand), False)
     if not pc.any(rows).as_py():
         present = sorted(h for h in pc.unique(table.column("hand")).to_pylist() if h is not None)
@@ -147,7 +161,8 @@ def load_pose_dataset(directory: str | Path, hand: str) -> PoseDataset:
     pose_index = _optional_column(table, "pose_index", DEFAULT_POSE_INDEX, np.int64)
     yaw = np.round(_optional_column(table, "yaw_rad", 0.0, np.float64), _YAW_DECIMALS)
     frames, frame_index = _group_frames(object_ids, pose_index, yaw)
-    dataset = PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store))
+    failed = pc.invert(succeeded(table)).to_numpy(zero_copy_only=False).astype(bool) if with_failures else None
+    dataset = PoseDataset(hand, poses, frame_index, frames, dataset_fingerprint(store), failed=failed)
     return _without_frames(dataset, unplaceable_frames(frames), directory)
 
 
@@ -187,16 +202,16 @@ def _without_frames(dataset: PoseDataset, dropped: list[Frame], directory: Path)
     return dataset.with_frames([i for i in range(len(dataset.frames)) if i not in drop], dataset.skipped + skipped)
 
 
-def _read_rows(store: DatasetStore) -> pa.Table:
-    """The store's successful rows (read by the store, the one reader of its shards), the columns training uses."""
+def _read_rows(store: DatasetStore, outcome: str) -> pa.Table:
+    """The store's rows of `outcome` (read by the store, the one reader of its shards), the columns training uses."""
     try:
-        table = store.rows()
+        table = store.rows(outcome=outcome)
     except (OSError, pa.ArrowException) as exc:
         raise DatasetError(f"{store.directory}: a shard is not readable Parquet: {exc}") from exc
     missing = [c for c in REQUIRED_COLUMNS if c not in table.column_names]
     if missing:
         raise DatasetError(f"{store.directory}: missing column(s) {missing}; a shard needs {list(REQUIRED_COLUMNS)}")
-    return table.select([c for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS if c in table.column_names])
+    return table.select([c for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS + (SUCCESS_COLUMN,) if c in table.column_names])
 
 
 def _pose_matrix(table: pa.Table, directory: Path) -> np.ndarray:

@@ -115,18 +115,20 @@ class PoseNormalizer:
 
 # ----------------------------------------------------------------------------- training objective
 def denoising_loss(model: PoseDenoiser, scheduler: DDPMScheduler, poses: torch.Tensor, bps: torch.Tensor,
-                   generator: torch.Generator | None = None, condition_dropout: float = 0.0) -> torch.Tensor:
+                   generator: torch.Generator | None = None, condition_dropout: float = 0.0,
+                   failed: torch.Tensor | None = None) -> torch.Tensor:
     """DDPM epsilon loss: noise normalised poses at random steps, predict the noise, mean squared error.
 
     With `condition_dropout` p > 0 each row sees the "no object" embedding with probability p, so the
-    model learns the unconditional noise too (classifier-free guidance, Ho & Salimans 2022)."""
+    model learns the unconditional noise too (classifier-free guidance, Ho & Salimans 2022). Rows where
+    `failed` [B] is true are failed pushes, learned under the object's failure embedding (an `outcome` model)."""
     noise = torch.randn(poses.shape, generator=generator, device=poses.device, dtype=poses.dtype)
     timesteps = torch.randint(0, scheduler.config.num_train_timesteps, (poses.shape[0],), generator=generator, device=poses.device)
     noisy = scheduler.add_noise(poses, noise, timesteps)
     drop = None
     if condition_dropout > 0:
         drop = torch.rand(poses.shape[0], generator=generator, device=poses.device) < condition_dropout
-    return F.mse_loss(model(noisy, timesteps, bps, drop), noise)
+    return F.mse_loss(model(noisy, timesteps, bps, drop, failed), noise)
 
 
 # ----------------------------------------------------------------------------- sampling
@@ -147,9 +149,11 @@ def sample_normalized(
     step's noise (DDIM with eta 0 adds none): below 1 the samples concentrate on the model's modes,
     trading diversity for validity; 1 is the plain reverse process.
 
-    `guidance_scale` w != 1 (an `unconditional` model only) is classifier-free guidance: the noise is
-    eps(no object) + w (eps(object) - eps(no object)), pushing the samples toward what is particular to
-    this object; each step runs the network twice as many rows.
+    `guidance_scale` w != 1 (a model with `config.guidable`) is classifier-free guidance: the noise is
+    eps(base) + w (eps(object) - eps(base)), where base is "no object" for an `unconditional` model
+    (pushing the samples toward what is particular to this object) and this object's failed pushes for
+    an `outcome` model (pushing them away from what failed on it, a negative prompt); each step runs the
+    network on twice as many rows.
 
     The object embedding is computed once per request and the FiLM parameters once per step per
     request; the network runs on all rows together. Each request draws its initial noise and its
@@ -170,14 +174,16 @@ def sample_normalized(
     group = None if len(counts) == 1 else request_of_row
     object_embedding = model.encode_object(bps)
     guided = guidance_scale != 1.0
-    if guided:  # the null object is one more FiLM row, R, shared by the second copy of every row
-        group = torch.cat([request_of_row, torch.full_like(request_of_row, len(counts))])
-        object_embedding = torch.cat([object_embedding, model.null_embedding(1)])
+    if guided:  # the second copy of every row sees the guidance base: one row per request, or one shared row
+        base = model.guidance_embedding(object_embedding)
+        base_of_row = request_of_row if base.shape[0] == len(counts) else torch.zeros_like(request_of_row)
+        group = torch.cat([request_of_row, base_of_row + len(counts)])
+        object_embedding = torch.cat([object_embedding, base])
     for t in scheduler.timesteps:
         film = model.film(object_embedding, t.to(device))
         if guided:  # both predictions in one pass: the rows twice, the second half with the null object
-            conditional, unconditional = model.denoise(torch.cat([x, x]), film, group).chunk(2)
-            epsilon = unconditional + guidance_scale * (conditional - unconditional)
+            conditional, base_epsilon = model.denoise(torch.cat([x, x]), film, group).chunk(2)
+            epsilon = base_epsilon + guidance_scale * (conditional - base_epsilon)
         else:
             epsilon = model.denoise(x, film, group)
         x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g, noise_scale)
@@ -196,9 +202,9 @@ def check_guidance_scale(guidance_scale: float, config: DenoiserConfig | None = 
     trained for it."""
     if not 1.0 <= float(guidance_scale) <= MAX_GUIDANCE_SCALE:
         raise DiffusionConfigError(f"the guidance scale must be in [1, {MAX_GUIDANCE_SCALE:g}], got {guidance_scale}")
-    if guidance_scale != 1.0 and config is not None and not config.unconditional:
-        raise DiffusionConfigError("classifier-free guidance needs a model trained with condition dropout "
-                                   "(gd2p train --condition-dropout)")
+    if guidance_scale != 1.0 and config is not None and not config.guidable:
+        raise DiffusionConfigError("classifier-free guidance needs a model trained with condition dropout or on "
+                                   "failures (gd2p train --condition-dropout or --learn-failures)")
 
 
 def default_noise_scale() -> float:

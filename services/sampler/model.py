@@ -36,6 +36,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+FLAGS = ("unconditional", "outcome")  # DenoiserConfig's bool fields
+
 
 @dataclass(frozen=True)
 class DenoiserConfig:
@@ -50,26 +52,37 @@ class DenoiserConfig:
     # A learned "no object" embedding (trained with condition dropout), so the model also predicts the noise
     # without the object and can sample with classifier-free guidance (`sample_normalized`).
     unconditional: bool = False
+    # A learned "failed push" embedding added to the object's (trained on the store's failures beside its
+    # successes), so guidance can steer the samples away from what failed on this object (`sample_normalized`).
+    outcome: bool = False
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
-            if name == "unconditional":
+            if name in FLAGS:
                 if not isinstance(value, bool):
-                    raise ValueError(f"DenoiserConfig.unconditional must be a bool, got {value!r}")
+                    raise ValueError(f"DenoiserConfig.{name} must be a bool, got {value!r}")
             elif not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"DenoiserConfig.{name} must be a positive integer, got {value!r}")
         if self.time_dim % 2:
             raise ValueError(f"DenoiserConfig.time_dim must be even (sin/cos pairs), got {self.time_dim}")
+        if self.unconditional and self.outcome:
+            raise ValueError("DenoiserConfig: guidance from the unconditional or from the failure embedding, not both")
+
+    @property
+    def guidable(self) -> bool:
+        """Whether the model has a second condition to guide against (classifier-free guidance)."""
+        return self.unconditional or self.outcome
 
     def to_dict(self) -> dict[str, int | bool]:
         out = asdict(self)
-        if not self.unconditional:  # the config of every checkpoint made before the setting existed
-            del out["unconditional"]
+        for flag in FLAGS:  # unset flags are left out: the config of every checkpoint made before they existed
+            if not out[flag]:
+                del out[flag]
         return out
 
     @classmethod
     def from_dict(cls, data: dict) -> DenoiserConfig:
-        known = {k: (bool(v) if k == "unconditional" else int(v)) for k, v in data.items() if k in cls.__dataclass_fields__}
+        known = {k: (bool(v) if k in FLAGS else int(v)) for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(**known)
 
 
@@ -120,6 +133,8 @@ class PoseDenoiser(nn.Module):
         self.output_layer = nn.Linear(config.hidden_dim, config.pose_dim)
         if config.unconditional:
             self.null_object = nn.Parameter(torch.zeros(config.object_dim))
+        if config.outcome:  # random, not zero: from zero the two conditions barely part (tests/test_sampler.py)
+            self.failure_offset = nn.Parameter(torch.randn(config.object_dim))
 
     def set_bps_statistics(self, mean: torch.Tensor, std: torch.Tensor, min_std: float = 1e-3) -> None:
         """Standardise BPS features with the training set's per-feature mean and std."""
@@ -159,13 +174,29 @@ class PoseDenoiser(nn.Module):
             raise ValueError("this denoiser has no unconditional embedding: train it with condition dropout")
         return self.null_object.expand(rows, -1)
 
+    def failed_embedding(self, object_embedding: torch.Tensor) -> torch.Tensor:
+        """[R, object_dim] the objects' embeddings as for a failed push (an `outcome` model only)."""
+        if not self.config.outcome:
+            raise ValueError("this denoiser has no failure embedding: train it with --learn-failures")
+        return object_embedding + self.failure_offset
+
+    def guidance_embedding(self, object_embedding: torch.Tensor) -> torch.Tensor:
+        """[R, object_dim] what guidance steers away from: each object's failures (`outcome`), else one "no object"
+        row shared by all (`unconditional`)."""
+        if self.config.outcome:
+            return self.failed_embedding(object_embedding)
+        return self.null_embedding(1)
+
     def forward(self, noisy_pose: torch.Tensor, timesteps: torch.Tensor, bps: torch.Tensor,
-                drop_object: torch.Tensor | None = None) -> torch.Tensor:
+                drop_object: torch.Tensor | None = None, failed: torch.Tensor | None = None) -> torch.Tensor:
         """Training path: one timestep and one BPS per row ([B, 25], [B], [B, bps_dim]) -> [B, 25]; rows where
-        `drop_object` [B] is true see the "no object" embedding instead (condition dropout)."""
+        `drop_object` [B] is true see the "no object" embedding instead (condition dropout), rows where `failed`
+        [B] is true the object's failure embedding (a failed push of the store)."""
         embedding = self.encode_object(bps)
         if drop_object is not None:
             embedding = torch.where(drop_object[:, None], self.null_embedding(embedding.shape[0]), embedding)
+        if failed is not None:
+            embedding = torch.where(failed[:, None], self.failed_embedding(embedding), embedding)
         return self.denoise(noisy_pose, self.film(embedding, timesteps))
 
 

@@ -173,9 +173,12 @@ class TrainingTensors:
     frame_index: torch.Tensor
     bps: torch.Tensor
     pose_weights: torch.Tensor | None = None  # [N] a pose's chance to be drawn; None: uniform
+    failed: torch.Tensor | None = None  # [N] bool: a failed push (a model that learns from failures); None: none
 
-    def batch(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.poses[rows], self.bps[self.frame_index[rows]]
+    def batch(self, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The rows' normalised poses, their BPS and whether each push failed (None: all succeeded)."""
+        failed = None if self.failed is None else self.failed[rows]
+        return self.poses[rows], self.bps[self.frame_index[rows]], failed
 
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """`count` pose rows, with replacement."""
@@ -221,7 +224,7 @@ def train(dataset_dir: str | Path, hand: str, out: str | Path, config: TrainConf
     out = Path(out)
     paths = output_paths(out)
     device = resolve_device(options.device)
-    dataset = load_pose_dataset(dataset_dir, hand)
+    dataset = load_pose_dataset(dataset_dir, hand, with_failures=config.model.outcome)
     train_set, val_set = _split(dataset, config)
     resumed = _load_resume_state(paths["state"], config, dataset, train_set, val_set) if options.resume else None
     return _Run(config, options, dataset, train_set, val_set, device, resumed).fit(paths, out, Path(dataset_dir))
@@ -266,11 +269,14 @@ class _Run:
         self.bps = BasisPointSet()
         train_bps = torch.from_numpy(frame_bps(train_set.frames, self.bps, progress=options.progress))
         val_bps = torch.from_numpy(frame_bps(val_set.frames, self.bps, progress=options.progress))
-        self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.poses))
+        # The range of the successful poses, failures or not: a failure far outside it must not squeeze it.
+        self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.successes().poses))
         self.train_data = self._device_data(train_set, train_bps)
         if config.balance == "objects":
             self.train_data.pose_weights = object_balanced_weights(train_set.object_ids).to(device)
-        self.val_data = self._device_data(val_set, val_bps) if len(val_set) else None
+        # The validation loss is over successes only, comparable between models that learn failures and not.
+        val_successes = val_set.successes()
+        self.val_data = self._device_data(val_successes, val_bps) if len(val_successes) else None
         with torch.random.fork_rng(devices=[]):  # seeded initial weights, global RNG untouched
             torch.manual_seed(config.seed)
             self.model = PoseDenoiser(config.model).to(device)
@@ -291,7 +297,9 @@ class _Run:
 
     def _device_data(self, subset: PoseDataset, frame_features: torch.Tensor) -> TrainingTensors:
         poses = self.normalizer.normalize(torch.from_numpy(subset.poses))
-        return TrainingTensors(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device), frame_features.to(self.device))
+        failed = None if subset.failed is None else torch.from_numpy(subset.failed).to(self.device)
+        return TrainingTensors(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device),
+                               frame_features.to(self.device), failed=failed)
 
     # ------------------------------------------------------------------ loop
     def fit(self, paths: dict[str, Path], out: Path, dataset_dir: Path) -> TrainResult:
@@ -324,8 +332,8 @@ class _Run:
 
     def _train_step(self) -> None:
         self.model.train()
-        poses, bps = self.train_data.batch(self.train_data.draw(self.config.batch_size, self.generator))
-        loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator, self.config.condition_dropout)
+        poses, bps, failed = self.train_data.batch(self.train_data.draw(self.config.batch_size, self.generator))
+        loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator, self.config.condition_dropout, failed)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip, foreach=True)
@@ -365,7 +373,7 @@ class _Run:
         self.model.eval()
         total = 0.0
         for chunk in rows.split(1024):
-            poses, bps = self.val_data.batch(chunk)
+            poses, bps, _ = self.val_data.batch(chunk)
             total += float(denoising_loss(self.model, self.scheduler, poses, bps, generator)) * len(chunk)
         self.ema.restore(self.model.parameters())
         self.history["val"].append([self.step, total / count])
@@ -420,6 +428,7 @@ class _Run:
             "dataset": {"path": str(dataset_dir), "sha256": self.dataset.fingerprint, "poses_total": len(self.dataset),
                         "train_poses": len(self.train_set), "train_objects": len(self.train_set.objects()),
                         "val_poses": len(self.val_set), "val_objects": len(self.val_set.objects()),
+                        "failed_poses_trained": _count(self.train_set.failed),
                         "frames": len(self.dataset.frames), "frames_skipped": self.dataset.skipped_summary()},
             "command": self.options.command,
             "config": self.config.to_dict(),
@@ -452,6 +461,10 @@ def hand_joint_limits(hand: str) -> tuple[torch.Tensor, torch.Tensor]:
     joints = [robot.joint(name) for name in spec.joint_names]
     return (torch.tensor([j.lower for j in joints], dtype=torch.float32),
             torch.tensor([j.upper for j in joints], dtype=torch.float32))
+
+
+def _count(flags: np.ndarray | None) -> int:
+    return 0 if flags is None else int(flags.sum())
 
 
 def _last(points: list[list[float]]) -> float | None:

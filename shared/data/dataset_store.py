@@ -336,14 +336,14 @@ def _read_shard(path: Path, columns: Sequence[str] | None, outcome: str) -> pa.T
         read.append(SUCCESS_COLUMN)  # to filter on, dropped below
     table = pq.read_table(path, columns=read)
     if outcome != "all":
-        succeeded = _succeeded(table)
-        table = table.filter(succeeded if outcome == "success" else pc.invert(succeeded))
+        ok = succeeded(table)
+        table = table.filter(ok if outcome == "success" else pc.invert(ok))
     if wanted is None:
         return table
     return pa.table({c: table.column(c) if c in table.column_names else pa.nulls(table.num_rows) for c in wanted})
 
 
-def _succeeded(table: pa.Table) -> pa.Array | pa.ChunkedArray:
+def succeeded(table: pa.Table) -> pa.Array | pa.ChunkedArray:
     """Per row: a success (null or absent `success`: a success, as every version-1 row is)."""
     if SUCCESS_COLUMN not in table.column_names:
         return pa.array([True] * table.num_rows)
@@ -352,18 +352,18 @@ def _succeeded(table: pa.Table) -> pa.Array | pa.ChunkedArray:
 
 def _outcome_counts(rows: pa.Table) -> dict[str, Any]:
     """Successes, failures and both per resting pose of one object's rows (its manifest entry)."""
-    succeeded = _succeeded(rows).to_pylist() if rows.num_rows else []
+    outcomes = succeeded(rows).to_pylist() if rows.num_rows else []
     if "pose_index" in rows.column_names:
         poses = [DEFAULT_POSE_KEY if p is None else str(p) for p in rows.column("pose_index").to_pylist()]
     else:
         poses = [DEFAULT_POSE_KEY] * rows.num_rows
     by_pose: dict[str, dict[str, int]] = {}
-    for pose, ok in zip(poses, succeeded, strict=True):
+    for pose, ok in zip(poses, outcomes, strict=True):
         entry = by_pose.setdefault(pose, {"rows": 0, "successes": 0})
         entry["rows"] += 1
         entry["successes"] += int(ok)
-    successes = sum(succeeded)
-    return {"successes": successes, "failures": len(succeeded) - successes,
+    successes = sum(outcomes)
+    return {"successes": successes, "failures": len(outcomes) - successes,
             "by_resting_pose": dict(sorted(by_pose.items()))}
 
 
