@@ -236,21 +236,29 @@ class PushPipeline:
         diffusion draw's K samples is feasible, K more are drawn (another seed), up to `sample_draws` draws."""
         request = state.request
         draws = self.settings.sample_draws if request.method == "gd2p" else 1  # retrieval and fixed: the same poses
-        for draw in range(draws):
-            candidates = stages.candidate_poses(state, push, self.services.sample, draw)
-            settings = self.settings.for_push(request, candidates)
+        for draw in range(draws - 1):
             try:
-                needed = settings.feasible_first(stages.rolls_out(request))
-                return candidates, settings, stages.screen(state, planner, candidates, push, settings, needed)
+                return self._screened_draw(state, planner, push, draw)
             except PushError as exc:
-                if exc.code != "infeasible" or draws == 1:
+                if exc.code != "infeasible":
                     raise
-                if draw + 1 == draws:
-                    raise PushError(exc.code, f"{exc.message}; none in the {draw} draw(s) of {request.k} before "
-                                    "either") from exc
                 state.notes.append(f"push {len(state.records) + 1}: none of the sampler's {request.k} poses was "
                                    f"kinematically feasible (draw {draw + 1}); drew {request.k} more")
-        raise AssertionError("unreachable: the last draw returns or raises")
+        try:
+            return self._screened_draw(state, planner, push, draws - 1)
+        except PushError as exc:
+            if exc.code != "infeasible" or draws == 1:
+                raise
+            raise PushError(exc.code, f"{exc.message}; none in the {draws - 1} draw(s) of {request.k} before "
+                            "either") from exc
+
+    def _screened_draw(self, state: RequestState, planner: MotionPlanner, push: Push,
+                       draw: int) -> tuple[stages.Candidates, PipelineSettings, Feasible]:
+        """Draw `draw`'s candidates, their settings and the feasible ones (PushError "infeasible" if none)."""
+        candidates = stages.candidate_poses(state, push, self.services.sample, draw)
+        settings = self.settings.for_push(state.request, candidates)
+        needed = settings.feasible_first(stages.rolls_out(state.request))
+        return candidates, settings, stages.screen(state, planner, candidates, push, settings, needed)
 
     def _rolled_out_choice(self, state: RequestState, planning: stages.ArmPlanning, feasible: Feasible) -> RankedPlan:
         """The best-ranked plan of the (prescreened) feasible candidates with its way back; for an
