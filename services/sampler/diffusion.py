@@ -181,7 +181,7 @@ def sample_normalized(
         object_embedding = torch.cat([object_embedding, base])
     for t in scheduler.timesteps:
         film = model.film(object_embedding, t.to(device))
-        if guided:  # both predictions in one pass: the rows twice, the second half with the null object
+        if guided:  # both predictions in one pass: the rows twice, the second half with the guidance base
             conditional, base_epsilon = model.denoise(torch.cat([x, x]), film, group).chunk(2)
             epsilon = base_epsilon + guidance_scale * (conditional - base_epsilon)
         else:
