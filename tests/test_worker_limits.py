@@ -115,7 +115,9 @@ def test_a_slow_job_does_not_starve_a_normal_job_past_its_deadline(client, serve
     assert time.monotonic() - started < 2.0  # waited for the slow job's deadline, not its 30 s
     answer = slow()
     assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
-    assert "within its deadline of 0.9 s" in answer.message
+    # The watchdog ("did not finish within its deadline") or the job's own check ("ran past its deadline"),
+    # whichever answers first under load: both are the caller's deadline less the reply margin.
+    assert "deadline of 0.9 s" in answer.message, answer.message
     wait_until(lambda: worker.status().in_flight == 0, 2, "the slow job's thread to stop")
 
 
