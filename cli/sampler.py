@@ -116,6 +116,10 @@ def run_train(args: argparse.Namespace) -> int:
     from services.sampler.model import DenoiserConfig
     from services.sampler.train import RunOptions, TrainConfig, TrainingError, train
 
+    if args.learn_failures and args.condition_dropout > 0:
+        print("gd2p train: error: --learn-failures and --condition-dropout do not combine (guidance steers away "
+              "from the object's failures or from no object, not both)", file=sys.stderr)
+        return 2
     torch.set_num_threads(max(1, args.threads))
     interrupted = _StopFlag()
     try:

@@ -495,6 +495,8 @@ def test_cli_train_then_sample_json(store, tmp_path, capsys, monkeypatch):
     assert report["latency_s"] > 0 and "validated_success" not in report
     assert main(["sample", "--object", "no-such-object", "--hand", HAND, "--n", "2", "--json"]) == 2
     assert "unknown object" in capsys.readouterr().err
+    assert main([*args[:-1], "--learn-failures", "--condition-dropout", "0.1"]) == 2  # one guidance base per model
+    assert "do not combine" in capsys.readouterr().err
 
 
 def test_cli_sample_validate_counts_successes_in_simulation(trained, capsys):
