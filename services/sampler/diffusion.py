@@ -174,11 +174,9 @@ def sample_normalized(
     group = None if len(counts) == 1 else request_of_row
     object_embedding = model.encode_object(bps)
     guided = guidance_scale != 1.0
-    if guided:  # the second copy of every row sees the guidance base: one row per request, or one shared row
-        base = model.guidance_embedding(object_embedding)
-        base_of_row = request_of_row if base.shape[0] == len(counts) else torch.zeros_like(request_of_row)
-        group = torch.cat([request_of_row, base_of_row + len(counts)])
-        object_embedding = torch.cat([object_embedding, base])
+    if guided:  # the second copy of every row sees its request's guidance base, FiLM rows R..2R-1
+        group = torch.cat([request_of_row, request_of_row + len(counts)])
+        object_embedding = torch.cat([object_embedding, model.guidance_embedding(object_embedding)])
     for t in scheduler.timesteps:
         film = model.film(object_embedding, t.to(device))
         if guided:  # both predictions in one pass: the rows twice, the second half with the guidance base

@@ -181,11 +181,11 @@ class PoseDenoiser(nn.Module):
         return object_embedding + self.failure_offset
 
     def guidance_embedding(self, object_embedding: torch.Tensor) -> torch.Tensor:
-        """[R, object_dim] what guidance steers away from: each object's failures (`outcome`), else one "no object"
-        row shared by all (`unconditional`)."""
+        """[R, object_dim] what guidance steers away from: each object's failures (`outcome`), else "no object"
+        (`unconditional`)."""
         if self.config.outcome:
             return self.failed_embedding(object_embedding)
-        return self.null_embedding(1)
+        return self.null_embedding(object_embedding.shape[0])
 
     def forward(self, noisy_pose: torch.Tensor, timesteps: torch.Tensor, bps: torch.Tensor,
                 drop_object: torch.Tensor | None = None, failed: torch.Tensor | None = None) -> torch.Tensor:
