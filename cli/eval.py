@@ -2,6 +2,7 @@
 
     gd2p eval methods --out results/          # GD2P vs baselines, 14 objects x 3 directions x 5 trials
     gd2p eval methods --world exact           # ... executed in the planner's own world (for comparison)
+    gd2p eval methods --world exact --tag v2  # the `exact` run beside `methods-real-v2` (same tag, same models)
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
@@ -16,7 +17,8 @@
 World (`--world`, methods / leap / closed-loop / multistep): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
 the object off its told pose (shared/world/sim/world.py documents each range); `exact` executes in the
-planner's own world. Results go to `<out>/<experiment>-<world>/`.
+planner's own world. Results go to `<out>/<experiment>-<world>/` (`...-<tag>/` with `--tag`); a `real` report of
+methods / leap / closed-loop gives the `exact` rates of the run of the same name and models in `<out>` beside its own.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and
 refreshes `<out>/README.md`. Every finished trial is recorded at once: re-running the same command

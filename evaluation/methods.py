@@ -4,8 +4,9 @@ Both follow the protocol of `push_protocol.py` in an execution world (`--world r
 like the paper's appendix table: per object and direction, the successful trials out of the trial
 count for each method ("–": no trial had a kinematically feasible plan), and the averages over the
 procedural ("3D") objects, the everyday ("DO") objects and all 14, each with its 95% interval
-clustered by object (`stats.py`). Results go to `<out>/<experiment>-<world>/`; a `real` report shows
-the same methods' `exact` rates beside its own when an `exact` run is found in `<out>`.
+clustered by object (`stats.py`). Results go to `<out>/<experiment>-<world>[-cameraN][-split][-tag]/`; a
+`real` report shows the same methods' `exact` rates beside its own when `<out>` holds the `exact` run of the
+same name (objects, perception, tag) made with the same pose models.
 """
 from __future__ import annotations
 
@@ -14,14 +15,14 @@ import math
 import time
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
-from evaluation.store import ResultStore
+from evaluation.store import SETTINGS_FILE, ResultStore
 from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M
 from shared.world.sim.world import WorldLevel
 
@@ -125,7 +126,7 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
     records = [store.records[e.key] for e in todo]
     summary = summarise(records, spec)
-    body = report_body(records, spec, summary, exact_rates(Path(out), spec))
+    body = report_body(records, spec, summary, exact_rates(Path(out), spec, settings["pose_models"]))
     _plot(records, spec, directory / "success_by_direction.png")
     body += "\n![success by method and direction](success_by_direction.png)\n"
     return write_experiment(directory, spec.title, body, {"settings": {**settings, "trials": spec.trials,
@@ -151,26 +152,35 @@ def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: in
     return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag)
 
 
-def exact_rates(out: Path, spec: Protocol) -> dict[str, dict[str, Any]]:
+def exact_rates(out: Path, spec: Protocol, pose_models: dict[str, str]) -> dict[str, dict[str, Any]]:
     """Per method, the success rate of the same protocol under `exact` found in `out` (for a `real` report):
-    `<name>-exact[-cameraN]` (the same perception), else, for a mesh-told run, the run made before
-    execution worlds existed (`<name>`)."""
-    if spec.world == "exact" or spec.split != "test" or spec.tag:  # the runs in the planner's own world used test
-        return {}  # objects and the models then shipped
-    suffix = f"-camera{spec.cameras}" if spec.cameras else ""
-    candidates = [(out / f"{spec.name}-exact{suffix}", {})]
-    if not spec.cameras:  # the run before execution worlds existed told the planner the mesh
+    the run named as this one with `exact` for `real` (the same objects, tag and perception) if its trials
+    used the same pose models, else, for an untagged mesh-told run on the test objects, the run made before
+    execution worlds existed (`<name>`, the models then shipped)."""
+    if spec.world == "exact":
+        return {}
+    candidates = [(out / replace(spec, world="exact").directory_name, {})]
+    if not spec.cameras and spec.split == "test" and not spec.tag:
         candidates.append((out / spec.name, LEGACY_EXACT_NAMES))
     for directory, names in candidates:
         path = directory / SUMMARY_FILE
-        if path.is_file():
-            summary = json.loads(path.read_text())
-            methods = {names.get(m, m): v for m, v in summary.get("methods", {}).items()}
-            code = summary.get("code", "code before commit ids were recorded")
-            return {m: {"rate": v["success_rate"],
-                        "source": f"results/{directory.name}, {v['trials']} trials per method, {code}"}
-                    for m, v in methods.items()}
+        if not path.is_file() or _other_pose_models(directory, pose_models):
+            continue
+        summary = json.loads(path.read_text())
+        methods = {names.get(m, m): v for m, v in summary.get("methods", {}).items()}
+        code = summary.get("code", "code before commit ids were recorded")
+        return {m: {"rate": v["success_rate"],
+                    "source": f"results/{directory.name}, {v['trials']} trials per method, {code}"}
+                for m, v in methods.items()}
     return {}
+
+
+def _other_pose_models(directory: Path, pose_models: dict[str, str]) -> bool:
+    """Whether the run in `directory` recorded pose models other than `pose_models` (a run made before the
+    models were recorded is taken as it stands)."""
+    path = directory / SETTINGS_FILE
+    recorded = json.loads(path.read_text()).get("pose_models") if path.is_file() else None
+    return recorded is not None and recorded != pose_models
 
 
 # ------------------------------------------------------------------------------------------ tables

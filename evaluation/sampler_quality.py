@@ -263,15 +263,16 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
 
 def failure_markdown(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource]) -> str:
     """Why the pushed poses failed, per method (empty for stores made before failures were recorded)."""
+    from services.validator.push import FAILURES  # pybullet, imported only by what pushes or reports pushes
+
     shares = {k: s["failure_shares"] for k, s in summaries.items() if s.get("failure_shares")}
     if not shares:
         return ""
     kinds = list(next(iter(shares.values())))
-    names = {"turned": "turned > 45°", "toppled": "toppled", "missed": "missed by > 3 cm", "no contact": "never touched"}
     rows = [[sources[k].label(), *(f"{v[kind]:.1%}" for kind in kinds)] for k, v in shares.items()]
     return ("Why the pushed poses failed (share of all pushed poses, the first 50 per object; a pose that tipped "
             "the object over counts as toppled even if it also turned):\n\n"
-            + markdown_table(["method", *(names.get(kind, kind) for kind in kinds)], rows) + "\n")
+            + markdown_table(["method", *(FAILURES.get(kind, kind) for kind in kinds)], rows) + "\n")
 
 
 def _spread(summary: dict[str, Any]) -> str:

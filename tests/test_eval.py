@@ -195,16 +195,29 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
     assert record["path_xy"] == [[round(float(v), 4) for v in start], [0.45, 0.0], [0.47, 0.1]]
 
 
-def test_a_real_report_compares_with_the_exact_run_of_the_same_perception(tmp_path):
+def test_a_real_report_compares_with_the_exact_run_of_the_same_perception_and_models(tmp_path):
     from evaluation.methods import exact_rates, protocol_for
 
-    legacy = tmp_path / "methods"
-    legacy.mkdir()
-    (legacy / "summary.json").write_text(json.dumps({"methods": {"gd2p-no-ranking": {"success_rate": 0.3, "trials": 210}}}))
-    told_mesh = exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p-random",)))
+    def committed(name: str, method: str, rate: float, pose_models: dict | None = None) -> None:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(
+            {"code": "abc1234", "methods": {method: {"success_rate": rate, "trials": 210}}}))
+        if pose_models is not None:
+            (tmp_path / name / "settings.json").write_text(json.dumps({"pose_models": pose_models}))
+
+    shipped, other = {"diffusion": "d1", "nearest": "n1"}, {"diffusion": "d0", "nearest": "n1"}
+    committed("methods", "gd2p-no-ranking", 0.3)  # made before execution worlds (and model ids) were recorded
+    told_mesh = exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p-random",)), shipped)
     assert told_mesh["gd2p-random"]["rate"] == 0.3 and "results/methods, 210 trials" in told_mesh["gd2p-random"]["source"]
-    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p",), cameras=1)) == {}
-    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "exact", ("gd2p",))) == {}
+    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "real", ("gd2p",), cameras=1), shipped) == {}
+    assert exact_rates(tmp_path, protocol_for("methods", False, 3, "exact", ("gd2p",)), shipped) == {}
+
+    tagged = protocol_for("methods", False, 3, "real", ("gd2p",), tag="v2")
+    assert exact_rates(tmp_path, tagged, shipped) == {}  # never the run of the models shipped before
+    committed("methods-exact-v2", "gd2p", 0.97, other)
+    assert exact_rates(tmp_path, tagged, shipped) == {}  # an exact run of other models compares nothing
+    assert exact_rates(tmp_path, tagged, other)["gd2p"] == {
+        "rate": 0.97, "source": "results/methods-exact-v2, 210 trials per method, abc1234"}
 
 
 def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):
@@ -222,12 +235,11 @@ def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):
 
 
 def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_models(tmp_path, monkeypatch):
-    from evaluation.methods import exact_rates, protocol_for
+    from evaluation.methods import protocol_for
     from services.sampler.checkpoint import SHIPPED_DIR
 
     spec = protocol_for("methods", True, 1, "real", ("gd2p",), tag="v2")
     assert spec.directory_name == "methods-real-v2" and spec.title.endswith("(v2)")
-    assert exact_rates(tmp_path, spec) == {}  # the exact runs were made with other models
     models = spec.settings()["pose_models"]
     assert models["diffusion"] and models["nearest"]  # the shipped checkpoint and index, by content
     ResultStore(tmp_path / spec.directory_name, spec.settings())

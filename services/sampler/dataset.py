@@ -149,7 +149,7 @@ def load_pose_dataset(directory: str | Path, hand: str, with_failures: bool = Fa
     store = open_store(directory)
     if not store.shard_paths():
         raise DatasetError(f"{directory}: the store holds no poses yet")
-    table = _read_rows(store, "all" if with_failures else "success")
+    table = _read_rows(store, with_failures)
     rows = pc.fill_null(pc.equal(table.column("hand"), hand), False)
     if not pc.any(rows).as_py():
         present = sorted(h for h in pc.unique(table.column("hand")).to_pylist() if h is not None)
@@ -202,16 +202,18 @@ def _without_frames(dataset: PoseDataset, dropped: list[Frame], directory: Path)
     return dataset.with_frames([i for i in range(len(dataset.frames)) if i not in drop], dataset.skipped + skipped)
 
 
-def _read_rows(store: DatasetStore, outcome: str) -> pa.Table:
-    """The store's rows of `outcome` (read by the store, the one reader of its shards), the columns training uses."""
+def _read_rows(store: DatasetStore, with_failures: bool) -> pa.Table:
+    """The store's successful rows, and its failed ones when `with_failures` (read by the store, the one reader
+    of its shards), in the columns training uses: the outcome column only when it tells rows apart."""
     try:
-        table = store.rows(outcome=outcome)
+        table = store.rows(outcome="all" if with_failures else "success")
     except (OSError, pa.ArrowException) as exc:
         raise DatasetError(f"{store.directory}: a shard is not readable Parquet: {exc}") from exc
     missing = [c for c in REQUIRED_COLUMNS if c not in table.column_names]
     if missing:
         raise DatasetError(f"{store.directory}: missing column(s) {missing}; a shard needs {list(REQUIRED_COLUMNS)}")
-    return table.select([c for c in REQUIRED_COLUMNS + OPTIONAL_COLUMNS + (SUCCESS_COLUMN,) if c in table.column_names])
+    wanted = REQUIRED_COLUMNS + OPTIONAL_COLUMNS + ((SUCCESS_COLUMN,) if with_failures else ())
+    return table.select([c for c in wanted if c in table.column_names])
 
 
 def _pose_matrix(table: pa.Table, directory: Path) -> np.ndarray:

@@ -25,7 +25,13 @@ import numpy as np
 from shared.frames import FrameError, pose25_to_matrix, quat_xyzw_to_matrix
 from shared.robots.hands import HandModel
 from shared.world.objects import ObjectModel, write_object_urdf
-from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, TOPPLED_TILT_DEG, judge_push, object_pose
+from shared.world.push_outcome import (
+    SUCCESS_MAX_ROTATION_DEG,
+    SUCCESS_POSITION_TOLERANCE_M,
+    TOPPLED_TILT_DEG,
+    judge_push,
+    object_pose,
+)
 from shared.world.sim import PhysicsParams, SimScene, pos_quat_to_transform
 
 DEFAULT_PUSH_DISTANCE_M = 0.20
@@ -87,7 +93,12 @@ class PushOutcome:
         return "no contact" if self.contact_fraction == 0.0 else "missed"
 
 
-FAILURES = ("turned", "toppled", "missed", "no contact")  # PushOutcome.failure, in the order reports list them
+# PushOutcome.failure's kinds, in the order reports list them, each with the words a report prints (from the
+# thresholds themselves, so a report cannot name a bound the judge does not use).
+FAILURES = {"turned": f"turned > {SUCCESS_MAX_ROTATION_DEG:g}°",
+            "toppled": "toppled",
+            "missed": f"missed by > {SUCCESS_POSITION_TOLERANCE_M * 100:g} cm",
+            "no contact": "never touched"}
 
 
 class PushSimulator:
