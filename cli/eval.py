@@ -253,6 +253,9 @@ def register_compare(subparsers: argparse._SubParsersAction) -> None:
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_a", metavar="RUN_A", help="DIR[:METHOD] (the method defaults to gd2p)")
     parser.add_argument("run_b", metavar="RUN_B", help="DIR[:METHOD]; the difference reported is B - A")
+    parser.add_argument("--across-worlds", action="store_true",
+                        help="match trials by the request alone (object, direction, trial, seed), whatever world "
+                             "executed them: e.g. results/methods-exact-v2:gd2p against results/methods-real-v2:gd2p")
     parser.add_argument("--out", type=Path, default=None, help="also write the markdown report here")
     parser.set_defaults(func=run_compare)
 
@@ -262,7 +265,7 @@ def run_compare(args: argparse.Namespace) -> int:
     from shared.atomic import atomic_write_text
 
     try:
-        report = compare(load_run(*parse_run(args.run_a)), load_run(*parse_run(args.run_b)))
+        report = compare(load_run(*parse_run(args.run_a)), load_run(*parse_run(args.run_b)), args.across_worlds)
     except CompareError as exc:
         print(f"gd2p compare: {exc}", file=sys.stderr)
         return 2

@@ -6,6 +6,10 @@ execution world's draw. Only matched trials are compared, so a run with 3 trials
 with the first 3 of a run with 5, and the difference is paired: the bootstrap draws the same objects
 for both runs (`evaluation.stats.difference_interval`). Use it to ask whether another checkpoint,
 other ranking weights or new code changed the outcome of the same trials.
+
+With `--across-worlds` trials are matched by the request alone (object, direction, trial index and episode
+seed: the same told start pose), whatever world executed them: a `real` run against the `exact` run of the
+same protocol then says what the world the planner does not know costs each method, paired by object.
 """
 from __future__ import annotations
 
@@ -59,17 +63,24 @@ def load_run(directory: Path, method: str) -> RunRecords:
     return RunRecords(directory, method, tuple(records))
 
 
-def episode_key(record: dict[str, Any]) -> tuple:
-    """What makes two trials the same episode: where, which way, which trial, and which world was drawn."""
-    draw = record.get("world_draw") or {}
+def request_key(record: dict[str, Any]) -> tuple:
+    """What the planner is asked: where, which way, which trial (its seed places the object it is told of)."""
     return (record["hand"], record["object_id"], float(record["direction_deg"]), int(record["trial"]),
-            record.get("seed"), record.get("world", "exact"), draw.get("seed"))
+            record.get("seed"))
 
 
-def matched(a: RunRecords, b: RunRecords) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The trials of `a` and `b` that are the same episode, in the same order."""
-    by_key = {episode_key(r): r for r in b.records}
-    pairs = [(r, by_key[episode_key(r)]) for r in a.records if episode_key(r) in by_key]
+def episode_key(record: dict[str, Any]) -> tuple:
+    """What makes two trials the same episode: the same request executed in the same drawn world."""
+    draw = record.get("world_draw") or {}
+    return request_key(record) + (record.get("world", "exact"), draw.get("seed"))
+
+
+def matched(a: RunRecords, b: RunRecords, across_worlds: bool = False) -> tuple[list[dict[str, Any]],
+                                                                                list[dict[str, Any]]]:
+    """The trials of `a` and `b` that are the same episode (the same request, if `across_worlds`), in order."""
+    key = request_key if across_worlds else episode_key
+    by_key = {key(r): r for r in b.records}
+    pairs = [(r, by_key[key(r)]) for r in a.records if key(r) in by_key]
     return [p[0] for p in pairs], [p[1] for p in pairs]
 
 
@@ -78,21 +89,24 @@ def _described(records: list[dict[str, Any]], field: str) -> str:
     return ", ".join(f"{v} ({n})" for v, n in values.items())
 
 
-def compare(a: RunRecords, b: RunRecords) -> str:
-    """A markdown report: each run on the shared episodes, B − A paired by object, and where they differ."""
-    shared_a, shared_b = matched(a, b)
+def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False) -> str:
+    """A markdown report: each run on the shared episodes (requests, if `across_worlds`), B − A paired by
+    object, and where they differ."""
+    shared_a, shared_b = matched(a, b, across_worlds)
     if not shared_a:
-        raise CompareError(f"{a.label} and {b.label} share no episode (object, direction, trial, seed and world "
-                           "draw): they are not runs of the same protocol")
-    rows = [[run.label, len(shared), str(success_interval(shared)), _described(shared, "pose_model"),
-             _described(shared, "ranking_weights"), _described(shared, "code")]
+        what = "request (object, direction, trial and seed)" if across_worlds else \
+            "episode (object, direction, trial, seed and world draw)"
+        raise CompareError(f"{a.label} and {b.label} share no {what}: they are not runs of the same protocol")
+    same = "request, each executed in its run's world," if across_worlds else "episode"
+    rows = [[run.label, len(shared), str(success_interval(shared)), _described(shared, "world"),
+             _described(shared, "pose_model"), _described(shared, "ranking_weights"), _described(shared, "code")]
             for run, shared in ((a, shared_a), (b, shared_b))]
-    table = markdown_table(["run:method", "shared trials", "success [95% CI]", "pose model", "ranking weights (α, β, γ)",
-                            "code"], rows)
+    table = markdown_table(["run:method", "shared trials", "success [95% CI]", "world", "pose model",
+                            "ranking weights (α, β, γ)", "code"], rows)
     outcomes = Counter((bool(x["success"]), bool(y["success"])) for x, y in zip(shared_a, shared_b, strict=True))
     objects = len({r["object_id"] for r in shared_a})
     return (f"# {b.label} against {a.label}\n\n"
-            f"{len(shared_a)} trials are the same episode in both runs ({objects} objects; of {len(a.records)} and "
+            f"{len(shared_a)} trials are the same {same} in both runs ({objects} objects; of {len(a.records)} and "
             f"{len(b.records)} trials). Intervals: 95%, bootstrap clustered by object.\n\n{table}\n"
             f"**B − A, paired by object: {difference_interval(shared_b, shared_a).points()} points.**\n\n"
             f"| both succeed | only A | only B | both fail |\n|---|---|---|---|\n"

@@ -45,3 +45,19 @@ def test_another_world_draw_is_another_episode_and_bad_runs_are_refused(tmp_path
     out = tmp_path / "cmp.md"
     assert main(["compare", f"{a}:gd2p", str(a), "--out", str(out)]) == 0
     assert "+0.0" in out.read_text()
+
+
+def test_across_worlds_the_same_request_is_paired_whatever_world_executed_it(tmp_path):
+    exact = _run(tmp_path / "methods-exact-v2", [{**_record(o, t, True), "world": "exact", "world_draw": {"seed": 7}}
+                                                 for o in ("box", "mug") for t in range(2)])
+    real = _run(tmp_path / "methods-real-v2", [_record(o, t, o == "box" or t == 0) for o in ("box", "mug")
+                                               for t in range(2)] + [_record("box", 0, True, method="fixed")])
+    with pytest.raises(CompareError, match="share no episode"):
+        compare(load_run(exact, "gd2p"), load_run(real, "gd2p"))
+    report = compare(load_run(exact, "gd2p"), load_run(real, "gd2p"), across_worlds=True)
+    assert "4 trials are the same request, each executed in its run's world, in both runs (2 objects" in report
+    assert "| methods-exact-v2:gd2p | 4 | 100.0%" in report and "| exact (4) |" in report and "| real (4) |" in report
+    assert "B − A, paired by object: -25.0" in report and "| 3 | 1 | 0 | 0 |" in report
+    out = tmp_path / "cmp.md"
+    assert main(["compare", f"{exact}:gd2p", str(real), "--across-worlds", "--out", str(out)]) == 0
+    assert "-25.0" in out.read_text()
