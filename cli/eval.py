@@ -262,10 +262,12 @@ def register_compare(subparsers: argparse._SubParsersAction) -> None:
 
 def run_compare(args: argparse.Namespace) -> int:
     from evaluation.compare import CompareError, compare, load_run, parse_run
+    from evaluation.report import command_line
     from shared.atomic import atomic_write_text
 
     try:
-        report = compare(load_run(*parse_run(args.run_a)), load_run(*parse_run(args.run_b)), args.across_worlds)
+        report = compare(load_run(*parse_run(args.run_a)), load_run(*parse_run(args.run_b)), args.across_worlds,
+                         command=command_line())
     except CompareError as exc:
         print(f"gd2p compare: {exc}", file=sys.stderr)
         return 2

@@ -89,9 +89,9 @@ def _described(records: list[dict[str, Any]], field: str) -> str:
     return ", ".join(f"{v} ({n})" for v, n in values.items())
 
 
-def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False) -> str:
+def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False, command: str | None = None) -> str:
     """A markdown report: each run on the shared episodes (requests, if `across_worlds`), B − A paired by
-    object, and where they differ."""
+    object, and where they differ; headed by the `command` that made it, when given."""
     shared_a, shared_b = matched(a, b, across_worlds)
     if not shared_a:
         what = "request (object, direction, trial and seed)" if across_worlds else \
@@ -105,8 +105,8 @@ def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False) -> str:
                             "ranking weights (α, β, γ)", "code"], rows)
     outcomes = Counter((bool(x["success"]), bool(y["success"])) for x, y in zip(shared_a, shared_b, strict=True))
     objects = len({r["object_id"] for r in shared_a})
-    return (f"# {b.label} against {a.label}\n\n"
-            f"{len(shared_a)} trials are the same {same} in both runs ({objects} objects; of {len(a.records)} and "
+    return (f"# {b.label} against {a.label}\n\n" + (f"- command: `{command}`\n\n" if command else "")
+            + f"{len(shared_a)} trials are the same {same} in both runs ({objects} objects; of {len(a.records)} and "
             f"{len(b.records)} trials). Intervals: 95%, bootstrap clustered by object.\n\n{table}\n"
             f"**B − A, paired by object: {difference_interval(shared_b, shared_a).points()} points.**\n\n"
             f"| both succeed | only A | only B | both fail |\n|---|---|---|---|\n"

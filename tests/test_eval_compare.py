@@ -60,4 +60,4 @@ def test_across_worlds_the_same_request_is_paired_whatever_world_executed_it(tmp
     assert "B − A, paired by object: -25.0" in report and "| 3 | 1 | 0 | 0 |" in report
     out = tmp_path / "cmp.md"
     assert main(["compare", f"{exact}:gd2p", str(real), "--across-worlds", "--out", str(out)]) == 0
-    assert "-25.0" in out.read_text()
+    assert "-25.0" in out.read_text() and "- command: `" in out.read_text()
