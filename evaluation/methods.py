@@ -191,9 +191,13 @@ def _rate(records: Sequence[dict[str, Any]]) -> float:
 
 def failure_cause(record: dict[str, Any]) -> str | None:
     """Why a trial failed: "planning" (no feasible plan, or an error), "pose quality" (the chosen plan's
-    own rollout predicted the failure: nothing better was found), "world gap" (predicted to succeed in
-    the planner's world, failed in the execution world: physics or pose error), "unpredicted" (a
-    random choice has no rollout to tell). None for a success."""
+    own rollout predicted the failure: nothing better was found), "unpredicted" (a random choice has no
+    rollout to tell); a plan predicted to succeed is split by its replays (`push_protocol.replay_failure`)
+    into "prediction" (it fails in the planner's own world too: rollout and robot parted), "perception"
+    (it fails on the true object where it truly stood, in nominal physics: the told pose or the
+    reconstruction) and "physics" (it succeeds there: the execution world's physics), or is "world gap"
+    where no replay was made (trials before replays existed, and requests of several pushes). None for
+    a success."""
     if record["success"]:
         return None
     if record["outcome"] != "failure":
@@ -201,7 +205,28 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     predicted = record.get("predicted_l_goal")
     if predicted is None:
         return "unpredicted"
-    return "world gap" if predicted <= SUCCESS_POSITION_TOLERANCE_M else "pose quality"
+    if predicted > SUCCESS_POSITION_TOLERANCE_M:
+        return "pose quality"
+    replayed = record.get("replayed")
+    if replayed is None:
+        return "world gap"
+    if not replayed["planner_world"]:
+        return "prediction"
+    return "physics" if replayed["true_object"] else "perception"
+
+
+FAILURE_CAUSES = {
+    "planning": "no feasible plan (or an error)",
+    "pose quality": "the executed plan's own rollout predicted the failure",
+    "prediction": "predicted to succeed, and the same plan fails in the planner's own world too (rollout and robot parted)",
+    "perception": "predicted to succeed, and the same plan fails on the true object where it truly stood, in nominal "
+                  "physics (the told pose or the reconstruction was off)",
+    "physics": "predicted to succeed, and the same plan succeeds on the true object in nominal physics (the execution "
+               "world's friction, mass, centre of mass or controller made it fail)",
+    "world gap": "predicted to succeed in the planner's world, failed in the execution world, not replayed (perception "
+                 "or physics; trials before replays, requests of several pushes)",
+    "unpredicted": "a random choice, no rollout",
+}
 
 
 def summarise(records: Sequence[dict[str, Any]], spec: Protocol) -> dict[str, Any]:
@@ -323,12 +348,11 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
                                [[" − ".join(method_label(m) for m in key.split(" - ")),
                                  f"{d['value'] * 100:+.1f} [{d['low'] * 100:+.1f}, {d['high'] * 100:+.1f}]"]
                                 for key, d in summary["differences_95"].items()])
-    causes = ("planning", "pose quality", "world gap", "unpredicted")
-    text += ("\n### Failures by cause\n\nplanning: no feasible plan (or an error); pose quality: the executed "
-             "plan's own rollout predicted the failure; world gap: predicted to succeed in the planner's world, "
-             "failed in the execution world (physics, pose error); unpredicted: a random choice, no rollout.\n\n")
-    text += markdown_table(["method"] + list(causes),
-                           [[method_label(m)] + [averages[m]["failure_causes"].get(c, 0) for c in causes] for m in spec.methods])
+    counts = {m: averages[m]["failure_causes"] for m in spec.methods}
+    causes = [c for c in FAILURE_CAUSES if c in ("planning", "pose quality") or any(c in n for n in counts.values())]
+    text += "\n### Failures by cause\n\n" + "".join(f"- {c}: {FAILURE_CAUSES[c]}\n" for c in causes) + "\n"
+    text += markdown_table(["method"] + causes, [[method_label(m)] + [counts[m].get(c, 0) for c in causes]
+                                                 for m in spec.methods])
     return text
 
 

@@ -49,11 +49,11 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
-from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, PlanChoice, PushRequest
+from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, Plan, PlanChoice, PushRequest, SimWorld
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
-from shared.world.push_outcome import judge_push, object_pose
+from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, judge_push, object_pose
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
 
@@ -255,6 +255,37 @@ def captured_cloud(episode: Episode) -> np.ndarray:
     return cloud_for_request(capture.cloud)
 
 
+def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest, plan: Plan) -> dict[str, bool]:
+    """Why a plan its rollout predicted to succeed failed: the same plan executed again, in nominal physics,
+    (a) on what the planner was told or saw, where it was told it stood ("planner_world": False means the
+    rollout and the robot parted in the planner's own world) and (b) on the true object where it truly
+    stood ("true_object": False means what the system was told or saw was off enough to fail the push;
+    True leaves the execution world's physics - friction, mass, centre of mass, controller - as the cause)."""
+    from shared.world.object_refs import captured_object
+    from shared.world.push_outcome import pose_matrix
+
+    robot = _system.robot
+    if request.object.point_cloud is not None:
+        T_told = captured_object(request.object).T_world_O
+    else:
+        assert request.object_pose is not None  # a told mesh comes with its pose
+        T_told = pose_matrix(request.object_pose)
+    told = SimWorld(object=request.object, object_pose=object_pose(T_told))
+    drawn, truth = robot.execution_world, robot.true_object
+    try:
+        robot.execution_world = robot.true_object = None
+        robot.execute(plan, told)
+        final = robot.true_object_pose(episode.arm, episode.hand)
+        target = T_told[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg)
+        in_planner_world = judge_push(T_told, target, final).success
+        robot.true_object = truth
+        robot.execute(plan, told)
+        on_true_object = judge_episode(episode, world, robot.true_object_pose(episode.arm, episode.hand)).success
+    finally:
+        robot.execution_world, robot.true_object = drawn, truth
+    return {"planner_world": bool(in_planner_world), "true_object": bool(on_true_object)}
+
+
 def judge_episode(episode: Episode, world: ExecutionWorld, final: ObjectPose) -> ExecutionResult:
     """The trial's outcome judged from where the object truly started (the told pose may be off)."""
     T_start = world.pose_error.true_pose(placement(episode))
@@ -322,6 +353,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
+            if not result.success and len(response.steps) <= 1 and response.score.l_goal <= SUCCESS_POSITION_TOLERANCE_M:
+                record["replayed"] = replay_failure(episode, world, push_request(episode), response.plan)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
         if response.notes:  # e.g. why a correction the request allowed was not made, or a push was stopped

@@ -9,6 +9,7 @@ import pytest
 
 from evaluation import push_protocol as protocol
 from evaluation.grasp_baseline import GraspPoseSource
+from evaluation.methods import failure_cause
 from evaluation.report import markdown_table, write_experiment, write_index
 from evaluation.store import ResultStore, ResultStoreError
 from shared.contracts.messages import DirectionFrame, ObjectRef, SampleRequest
@@ -153,6 +154,37 @@ def test_fixed_pose_pull_toward_the_robot_succeeds_with_the_arm(tmp_path):
     assert record["world_draw"]["level"] == "exact"
     assert record["position_error_m"] <= 0.03 and not record["toppled"]
     assert record["pose_model"] is None  # the fixed pose comes from no model or index
+
+
+def test_a_failed_plan_is_replayed_to_tell_perception_from_physics(tmp_path):
+    """The spatula pull planned for the told pose: replayed in nominal physics it succeeds where the planner
+    was told the box stood; on the true box 15 cm to the side it misses (perception), on the true box
+    where it was told to be it succeeds (so a failure there was the physics')."""
+    from dataclasses import replace
+
+    from shared.world.sim.world import PoseError
+
+    protocol._init_worker(str(tmp_path))
+    episode = protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0, world="exact")
+    request = protocol.push_request(episode)
+    response = protocol._system.pipeline("sampler").run(request).response
+    exact = protocol.execution_world(episode)
+    for error, on_true_object in ((PoseError(0.0, 0.15, 0.0), False), (PoseError(), True)):
+        world = replace(exact, pose_error=error)
+        truth = (ObjectRef(library_id="proc-box-001"), world.pose_error.true_pose(protocol.placement(episode)))
+        protocol._system.robot.true_object = truth
+        replayed = protocol.replay_failure(episode, world, request, response.plan)
+        assert replayed == {"planner_world": True, "true_object": on_true_object}
+        assert protocol._system.robot.true_object is truth and protocol._system.robot.execution_world is None
+
+
+def test_failure_causes_follow_the_replays():
+    failed = {"success": False, "outcome": "failure", "predicted_l_goal": 0.01}
+    assert failure_cause(failed) == "world gap"  # not replayed
+    assert failure_cause({**failed, "replayed": {"planner_world": False, "true_object": False}}) == "prediction"
+    assert failure_cause({**failed, "replayed": {"planner_world": True, "true_object": False}}) == "perception"
+    assert failure_cause({**failed, "replayed": {"planner_world": True, "true_object": True}}) == "physics"
+    assert failure_cause({**failed, "predicted_l_goal": 0.05}) == "pose quality"
 
 
 def test_reports_and_index(tmp_path):
