@@ -1,6 +1,7 @@
 """`gd2p eval EXPERIMENT [--quick] --out results/`: reproduce the paper's experiments in simulation.
 
-    gd2p eval methods --out results/          # GD2P vs baselines, 14 objects x 3 directions x 5 trials
+    gd2p eval methods --out results/          # GD2P vs baselines, 14 objects x 3 directions x 5 trials, 3 cameras
+    gd2p eval methods --cameras 0             # ... the system told the object's mesh (and a pose off by the world's error)
     gd2p eval methods --world exact           # ... executed in the planner's own world (for comparison)
     gd2p eval methods --world exact --tag v2  # the `exact` run beside `methods-real-v2` (same tag, same models)
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
@@ -16,9 +17,11 @@
 
 World (`--world`, methods / leap / closed-loop / multistep): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
-the object off its told pose (shared/world/sim/world.py documents each range); `exact` executes in the
-planner's own world. Results go to `<out>/<experiment>-<world>/` (`...-<tag>/` with `--tag`); a `real` report of
-methods / leap / closed-loop gives the `exact` rates of the run of the same name and models in `<out>` beside its own.
+the object off its told pose (shared/world/sim/world.py documents each range), and the system does not get the
+object's mesh: it sees the object through 3 simulated depth cameras (`--cameras`, 0 for the mesh); `exact`
+executes in the planner's own world, told the mesh. Results go to `<out>/<experiment>-<world>[-cameraN]/`
+(`...-<tag>/` with `--tag`); a `real` report of methods / leap / closed-loop gives the `exact` rates of the run
+of the same name and models in `<out>` beside its own.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and
 refreshes `<out>/README.md`. Every finished trial is recorded at once: re-running the same command
@@ -61,10 +64,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "later be extended to more trials in the same --out")
     parser.add_argument("--world", choices=("real", "exact"), default="real",
                         help="methods / leap / closed-loop / multistep: the execution world (default real; see above)")
-    parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=0,
-                        help="methods / leap / closed-loop: 0 (default) tells the system the object's mesh and a pose off by the "
-                             "world's pose error; 1-3: the system sees the object only through that many simulated "
-                             "depth cameras and plans around its own reconstruction (<out>/<experiment>-<world>-cameraN/)")
+    parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=None,
+                        help="methods / leap / closed-loop: 1-3: the system sees the object only through that many "
+                             "simulated depth cameras and plans around its own reconstruction "
+                             "(<out>/<experiment>-<world>-cameraN/); 0 tells it the object's mesh and a pose off by the "
+                             "world's pose error (<out>/<experiment>-<world>/). Default: 3 under `real`, 0 under `exact`")
     parser.add_argument("--split", choices=("test", "val", "unseen"), default="test",
                         help="methods / leap / closed-loop: the 14 test objects (default, for reporting), 14 val objects (for "
                              "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test) or 6 test "
@@ -175,6 +179,7 @@ def experiment_function(name: str):
 
 def run(args: argparse.Namespace) -> int:
     from evaluation.coverage import CoverageError
+    from evaluation.methods import DEFAULT_CAMERAS
     from evaluation.report import write_index
     from evaluation.store import ResultStoreError
 
@@ -197,6 +202,10 @@ def run(args: argparse.Namespace) -> int:
     if args.split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):
         print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
               "within the test split)", file=sys.stderr)
+        return 2
+    if args.cameras is not None and not any(name in TRIAL_EXPERIMENTS for name in names):
+        print(f"gd2p eval: --cameras applies to {', '.join(TRIAL_EXPERIMENTS)} (the others are told the mesh)",
+              file=sys.stderr)
         return 2
     if data_size_only and args.experiment != "data-size":
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
@@ -222,8 +231,8 @@ def run(args: argparse.Namespace) -> int:
             options["world"] = args.world
         if args.methods is not None and name in TRIAL_EXPERIMENTS:
             options["methods"] = args.methods
-        if args.cameras and name in TRIAL_EXPERIMENTS:
-            options["cameras"] = args.cameras
+        if name in TRIAL_EXPERIMENTS:
+            options["cameras"] = DEFAULT_CAMERAS[args.world] if args.cameras is None else args.cameras
         if args.split != "test" and (name in TRIAL_EXPERIMENTS or (name == "multistep" and args.split == "val")):
             options["split"] = args.split
         if args.tag is not None and name in TRIAL_EXPERIMENTS:

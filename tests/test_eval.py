@@ -250,6 +250,8 @@ def test_a_real_report_compares_with_the_exact_run_of_the_same_perception_and_mo
     assert exact_rates(tmp_path, tagged, shipped) == {}  # an exact run of other models compares nothing
     assert exact_rates(tmp_path, tagged, other)["gd2p"] == {
         "rate": 0.97, "source": "results/methods-exact-v2, 210 trials per method, abc1234"}
+    seen = protocol_for("methods", False, 3, "real", ("gd2p",), cameras=3, tag="v2")  # its `exact`: told the mesh
+    assert exact_rates(tmp_path, seen, other)["gd2p"]["source"].startswith("results/methods-exact-v2,")
 
 
 def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):

@@ -256,6 +256,27 @@ def test_eval_refuses_a_checkpoint_for_an_experiment_that_would_not_use_it(capsy
     assert "--nn-index apply to sampler-quality only" in capsys.readouterr().err
 
 
+def test_eval_sees_the_object_through_three_cameras_under_real_and_is_told_the_mesh_under_exact(monkeypatch, capsys):
+    import cli.eval
+    from cli.main import main
+
+    calls = []
+
+    def experiment(out, quick, workers, **options):
+        calls.append(options)
+        return out / "report.md"
+
+    monkeypatch.setattr(cli.eval, "experiment_function", lambda name: experiment)
+    monkeypatch.setattr("evaluation.report.write_index", lambda out: out / "README.md")
+    for argv, cameras in ((["methods"], 3), (["leap", "--world", "exact"], 0), (["methods", "--cameras", "0"], 0),
+                          (["closed-loop", "--world", "exact", "--cameras", "1"], 1)):
+        calls.clear()
+        assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 0
+        assert calls[0]["cameras"] == cameras, argv
+    assert main(["eval", "multistep", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
+    assert "--cameras applies to methods, leap, closed-loop" in capsys.readouterr().err
+
+
 def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(capsys):
     from cli.main import main
 
