@@ -339,8 +339,9 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
     _system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record()}
+    request = push_request(episode)  # with cameras: rendered once (the capture is seeded by the trial)
     try:
-        response = pipeline.run(push_request(episode)).response
+        response = pipeline.run(request).response
     except PushError as exc:
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
                       error_code=exc.code, message=exc.message[:300])
@@ -354,7 +355,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
             if not result.success and len(response.steps) <= 1 and response.score.l_goal <= SUCCESS_POSITION_TOLERANCE_M:
-                record["replayed"] = replay_failure(episode, world, push_request(episode), response.plan)
+                record["replayed"] = replay_failure(episode, world, request, response.plan)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
         if response.notes:  # e.g. why a correction the request allowed was not made, or a push was stopped
@@ -370,7 +371,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     if method.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
-    record["sampler"] = push_request(episode).sampler if method.source == "gd2p" else None
+    record["sampler"] = request.sampler if method.source == "gd2p" else None
     record["pose_model"] = _pose_model(episode.hand, method.source)
     record["critic"] = method.critic and method.source == "gd2p" and _has_critic(episode.hand)
     settings = pipeline.settings
