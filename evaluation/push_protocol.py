@@ -276,8 +276,7 @@ def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest
         robot.execution_world = robot.true_object = None
         robot.execute(plan, told)
         final = robot.true_object_pose(episode.arm, episode.hand)
-        target = T_told[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg)
-        in_planner_world = judge_push(T_told, target, final).success
+        in_planner_world = judged_from(episode, T_told, final).success
         robot.true_object = truth
         robot.execute(plan, told)
         on_true_object = judge_episode(episode, world, robot.true_object_pose(episode.arm, episode.hand)).success
@@ -288,7 +287,11 @@ def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest
 
 def judge_episode(episode: Episode, world: ExecutionWorld, final: ObjectPose) -> ExecutionResult:
     """The trial's outcome judged from where the object truly started (the told pose may be off)."""
-    T_start = world.pose_error.true_pose(placement(episode))
+    return judged_from(episode, world.pose_error.true_pose(placement(episode)), final)
+
+
+def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> ExecutionResult:
+    """The episode's push judged from `T_start`: its target is the push distance along the direction from there."""
     return judge_push(T_start, T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg), final)
 
 
