@@ -92,6 +92,13 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
                         help="classifier-free guidance weight written into the shipped checkpoint (default 1: none; needs "
                              "--condition-dropout or --learn-failures). Re-running a finished run with another value (its <out>.train.pt "
                              "copied beside the new --out) ships the same weights with that guidance")
+    parser.add_argument("--capture-fraction", type=float_range(0.0, 1.0), default=0.0,
+                        help="share of each batch conditioned on a simulated camera capture of the pose's object instead "
+                             "of its mesh BPS, as the planner sees an object through cameras (needs --captures)")
+    parser.add_argument("--captures", type=Path, default=None,
+                        help="capture store directory for --capture-fraction: built there first (resumable, "
+                             "--capture-workers processes, 2 captures of each training frame by 3 cameras) when not finished")
+    parser.add_argument("--capture-workers", type=positive_int, default=2, help="processes capturing the training frames (default 2)")
     parser.add_argument("--val-every", type=positive_int, default=500, help="steps between validation losses")
     parser.add_argument("--checkpoint-every", type=positive_int, default=1000, help="steps between saved training states")
     parser.add_argument("--snapshot-every", type=int, default=0,
@@ -129,11 +136,13 @@ def run_train(args: argparse.Namespace) -> int:
                                                                   object_dim=args.object_dim,
                                                                   unconditional=args.condition_dropout > 0,
                                                                   outcome=args.learn_failures),
-                             balance=args.balance, condition_dropout=args.condition_dropout)
+                             balance=args.balance, condition_dropout=args.condition_dropout,
+                             capture_fraction=args.capture_fraction,
+                             captures=None if args.captures is None else str(args.captures.resolve()))
         options = RunOptions(device=args.device, val_every=max(1, args.val_every), checkpoint_every=max(1, args.checkpoint_every),
                              snapshot_every=max(0, args.snapshot_every), half=args.half, progress=not args.no_progress, resume=not args.restart,
                              command=shlex.join(["gd2p", *sys.argv[1:]]), should_stop=interrupted,
-                             guidance_scale=args.guidance_scale)
+                             guidance_scale=args.guidance_scale, capture_workers=args.capture_workers)
         with interrupted.on_sigint():
             result = train(args.dataset, args.hand, args.out, config, options)
     except (TrainingError, DatasetError, CheckpointError, ValueError) as exc:
@@ -379,6 +388,9 @@ def _register_nn(subparsers: argparse._SubParsersAction) -> None:
     build.add_argument("--out", required=True, type=Path, help="index file to write (e.g. ckpt/allegro_nn.npz)")
     build.add_argument("--half", action="store_true",
                        help="store the BPS in float16 (half the size); refused if any frame's nearest neighbour changes")
+    build.add_argument("--captures", type=Path, default=None,
+                       help="a finished capture store (gd2p train --captures): its camera captures of the frames are "
+                            "keys too, each with the frame's poses moved into the capture's frame")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     build.add_argument("--json", action="store_true", help="print a JSON summary on stdout")
     build.set_defaults(func=run_nn_build)
@@ -390,10 +402,11 @@ def run_nn_build(args: argparse.Namespace) -> int:
 
     # The command that reproduces the file (from the parsed arguments, so it is right however gd2p was called).
     command = shlex.join(["gd2p", "sampler-nn", "build", "--dataset", str(args.dataset), "--hand", args.hand,
-                          "--out", str(args.out), *(["--half"] if args.half else [])])
+                          "--out", str(args.out), *(["--half"] if args.half else []),
+                          *(["--captures", str(args.captures)] if args.captures else [])])
     try:
         index = build_index(args.dataset, args.hand, args.out, half=args.half, command=command,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, captures=args.captures)
     except (DatasetError, NearestNeighborError) as exc:
         print(f"gd2p sampler-nn build: error: {exc}", file=sys.stderr)
         return 2

@@ -92,17 +92,17 @@ class PoseNormalizer:
         return cls(poses.min(dim=0).values.float(), poses.max(dim=0).values.float())
 
     @property
-    def _centre_and_half_range(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def centre_and_half_range(self) -> tuple[torch.Tensor, torch.Tensor]:
         centre = (self.high + self.low) / 2
         half = ((self.high - self.low) / 2).clamp_min(self.MIN_RANGE / 2)
         return centre, half
 
     def normalize(self, poses: torch.Tensor) -> torch.Tensor:
-        centre, half = self._centre_and_half_range
+        centre, half = self.centre_and_half_range
         return (poses - centre.to(poses)) / half.to(poses)
 
     def unnormalize(self, normalized: torch.Tensor) -> torch.Tensor:
-        centre, half = self._centre_and_half_range
+        centre, half = self.centre_and_half_range
         return normalized * half.to(normalized) + centre.to(normalized)
 
     def to_dict(self) -> dict[str, torch.Tensor]:

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from services.sampler.capture_bps import FrameCaptures, capture_store_spec, load_captures
 from services.sampler.checkpoint import SHIPPED_DIR, checkpoint_id, manifest_path
 from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED, Frame, PoseDataset, frame_bps, load_pose_dataset
 from services.sampler.sampling import ObjectInput, ObjectPoints, SampleResult, SamplerInputError, check_count_and_seed
@@ -88,11 +89,16 @@ class NearestNeighborBaseline:
         return view
 
     @classmethod
-    def from_dataset(cls, dataset: PoseDataset, bps: BasisPointSet | None = None, progress: bool = False) -> NearestNeighborBaseline:
+    def from_dataset(cls, dataset: PoseDataset, bps: BasisPointSet | None = None, progress: bool = False,
+                     captures: FrameCaptures | None = None) -> NearestNeighborBaseline:
+        """The frames' mesh BPS as keys; with `captures`, also every reconstructed capture of a frame as a key of
+        its own, holding the frame's poses moved into that capture's frame (the data a capture-trained sampler has)."""
         bps = bps or BasisPointSet()
         features = frame_bps(dataset.frames, bps, SURFACE_POINTS, SURFACE_SEED, progress=progress)
-        return cls(dataset.hand, bps, dataset.frames, features, dataset.poses, dataset.frame_index,
-                   SURFACE_POINTS, SURFACE_SEED)
+        frames, poses, frame_index = dataset.frames, dataset.poses, dataset.frame_index
+        if captures is not None:
+            frames, features, poses, frame_index = _with_capture_keys(dataset, features, captures)
+        return cls(dataset.hand, bps, frames, features, poses, frame_index, SURFACE_POINTS, SURFACE_SEED)
 
     @classmethod
     def from_directory(cls, directory: str | Path, hand: str, bps: BasisPointSet | None = None,
@@ -172,6 +178,27 @@ class NearestNeighborBaseline:
                    surface_points, surface_seed, manifest)
 
 
+def _with_capture_keys(dataset: PoseDataset, features: np.ndarray, captures: FrameCaptures
+                       ) -> tuple[list[Frame], np.ndarray, np.ndarray, np.ndarray]:
+    """Frames, keys, poses and pose rows with a row added per reconstructed capture of a captured frame."""
+    row_of = {frame: i for i, frame in enumerate(captures.frames)}
+    frames, keys = list(dataset.frames), [features]
+    poses, frame_index = [dataset.poses], [dataset.frame_index]
+    for row, frame in enumerate(dataset.frames):
+        if frame not in row_of:
+            continue
+        mine = dataset.poses[dataset.frame_index == row]
+        captured = row_of[frame]
+        for variant in np.flatnonzero(captures.ok[captured]):
+            moved = mine.copy()
+            moved[:, :2] += captures.shift_xy[captured, variant]
+            poses.append(moved)
+            frame_index.append(np.full(len(mine), len(frames), dtype=np.int64))
+            keys.append(captures.bps[captured, variant][None])
+            frames.append(frame)
+    return frames, np.concatenate(keys), np.concatenate(poses), np.concatenate(frame_index)
+
+
 # ----------------------------------------------------------------------------- building a shipped index
 def default_nn_index_path(hand: str) -> Path:
     """Where the sampler looks for `hand`'s index: $GD2P_SAMPLER_NN_INDEX_<HAND>, else the shipped file."""
@@ -204,15 +231,17 @@ def half_precision_agreement(frame_features: np.ndarray) -> dict[str, Any]:
 
 
 def build_index(dataset_dir: str | Path, hand: str, out: str | Path, half: bool = False, command: str = "",
-                progress: bool = False) -> NearestNeighborBaseline:
+                progress: bool = False, captures: str | Path | None = None) -> NearestNeighborBaseline:
     """Index every training frame of `hand` in a dataset store; write `out` and `<out>.manifest.json`.
+    `captures`: a finished capture store (services/sampler/capture_bps.py) whose captures are added as keys.
 
     With `half` the frames' BPS are stored in float16, but only if that changes no frame's nearest
     neighbour (see `half_precision_agreement`); NearestNeighborError otherwise.
     """
     started = time.perf_counter()
     dataset = load_pose_dataset(dataset_dir, hand)
-    index = NearestNeighborBaseline.from_dataset(dataset, progress=progress)
+    frame_captures = None if captures is None else load_captures(captures)
+    index = NearestNeighborBaseline.from_dataset(dataset, progress=progress, captures=frame_captures)
     manifest: dict[str, Any] = {
         "format": INDEX_FORMAT, "hand": hand, "command": command,
         "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -223,6 +252,8 @@ def build_index(dataset_dir: str | Path, hand: str, out: str | Path, half: bool 
         "surface": {"points": index.surface_points, "seed": index.surface_seed},
         "features_dtype": "float16" if half else "float32",
     }
+    if captures is not None:
+        manifest["captures"] = {**capture_store_spec(captures), "keys": len(index) - len(dataset.frames)}
     if half:
         agreement = half_precision_agreement(index.frame_features)
         if agreement["top1_agreement"] < 1.0 or (agreement["leave_one_out_top1_agreement"] or 1.0) < 1.0:

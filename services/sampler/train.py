@@ -34,6 +34,7 @@ import torch
 from diffusers.optimization import get_cosine_schedule_with_warmup
 from tqdm import tqdm
 
+from services.sampler.capture_bps import CaptureSettings, FrameCaptures, build_captures, capture_store_spec
 from services.sampler.checkpoint import (
     SamplerCheckpoint,
     load_training_state,
@@ -96,12 +97,20 @@ class TrainConfig:
     # Rows of a batch trained without their object (the model's "no object" embedding), so the checkpoint can
     # sample with classifier-free guidance; > 0 needs `model.unconditional`.
     condition_dropout: float = 0.0
+    # Rows of a batch conditioned on a camera capture of their frame instead of its mesh BPS, the pose moved into
+    # the reconstruction's frame (services/sampler/capture_bps.py); > 0 needs `captures`, the capture store.
+    capture_fraction: float = 0.0
+    captures: str | None = None
 
     def check(self) -> None:
         if self.balance not in BALANCES:
             raise TrainingError(f"--balance must be one of {', '.join(BALANCES)}, got {self.balance!r}")
         if not 0.0 <= self.condition_dropout < 1.0:
             raise TrainingError(f"--condition-dropout must be in [0, 1), got {self.condition_dropout}")
+        if not 0.0 <= self.capture_fraction <= 1.0:
+            raise TrainingError(f"--capture-fraction must be in [0, 1], got {self.capture_fraction}")
+        if (self.capture_fraction > 0) != (self.captures is not None):
+            raise TrainingError("--capture-fraction and --captures go together")
         if (self.condition_dropout > 0) != self.model.unconditional:
             raise TrainingError("condition dropout and the model's unconditional embedding go together "
                                 f"(dropout {self.condition_dropout}, unconditional {self.model.unconditional})")
@@ -127,8 +136,9 @@ class TrainConfig:
         out["model"] = self.model.to_dict()
         if self.balance == "poses":  # the setting every run had before it existed: states saved then still resume
             del out["balance"]
-        if self.condition_dropout == 0.0:  # likewise
-            del out["condition_dropout"]
+        for name in ("condition_dropout", "capture_fraction", "captures"):  # likewise
+            if not out[name]:
+                del out[name]
         return out
 
 
@@ -147,6 +157,7 @@ class RunOptions:
     command: str | None = None  # recorded in the manifest
     guidance_scale: float = 1.0  # written into the shipped checkpoint: its classifier-free guidance weight
     should_stop: Callable[[int], bool] | None = None  # polled after every step: save and return early
+    capture_workers: int = 2  # processes capturing the training frames when the capture store is not finished
 
 
 @dataclass
@@ -185,6 +196,33 @@ class TrainingTensors:
         if self.pose_weights is None:
             return torch.randint(0, len(self.poses), (count,), generator=generator, device=self.poses.device)
         return torch.multinomial(self.pose_weights, count, replacement=True, generator=generator)
+
+
+@dataclass
+class CaptureTensors:
+    """The training frames' camera captures on the device (services/sampler/capture_bps.py)."""
+
+    bps: torch.Tensor  # [F, V, n]
+    shift: torch.Tensor  # [F, V, 25] added to a normalised pose conditioned on the capture (only x, y non-zero)
+    ok: torch.Tensor  # [F, V] bool: reconstructed
+
+    @classmethod
+    def from_captures(cls, captures: FrameCaptures, normalizer: PoseNormalizer, device: torch.device) -> CaptureTensors:
+        _, half = normalizer.centre_and_half_range
+        shift = torch.zeros(*captures.shift_xy.shape[:2], len(half))
+        shift[..., :2] = torch.from_numpy(captures.shift_xy) / half[:2]
+        return cls(torch.from_numpy(captures.bps).to(device), shift.to(device), torch.from_numpy(captures.ok).to(device))
+
+    def swap(self, frame_rows: torch.Tensor, poses: torch.Tensor, bps: torch.Tensor, fraction: float,
+             generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """A `fraction` of the rows conditioned on one of their frame's captures instead of the mesh BPS,
+        each such pose moved into its capture's reconstructed frame."""
+        count = len(frame_rows)
+        variant = torch.randint(0, self.ok.shape[1], (count,), generator=generator, device=frame_rows.device)
+        use = (torch.rand(count, generator=generator, device=frame_rows.device) < fraction) & self.ok[frame_rows, variant]
+        bps = torch.where(use[:, None], self.bps[frame_rows, variant], bps)
+        poses = poses + use[:, None] * self.shift[frame_rows, variant]
+        return poses, bps
 
 
 def object_balanced_weights(object_ids: np.ndarray) -> torch.Tensor:
@@ -272,6 +310,9 @@ class _Run:
         # The range of the successful poses, failures or not: a failure far outside it must not squeeze it.
         self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.successes().poses))
         self.train_data = self._device_data(train_set, train_bps)
+        self.captures = self._captures(train_set) if config.capture_fraction > 0 else None
+        if self.captures is not None:  # the model's BPS statistics over both kinds of input it trains on
+            train_bps = torch.cat([train_bps, self.captures.bps[self.captures.ok].cpu()])
         if config.balance == "objects":
             self.train_data.pose_weights = object_balanced_weights(train_set.object_ids).to(device)
         # The validation loss is over successes only, comparable between models that learn failures and not.
@@ -300,6 +341,14 @@ class _Run:
         failed = None if subset.failed is None else torch.from_numpy(subset.failed).to(self.device)
         return TrainingTensors(poses.to(self.device), torch.from_numpy(subset.frame_index).to(self.device),
                                frame_features.to(self.device), failed=failed)
+
+    def _captures(self, train_set: PoseDataset) -> CaptureTensors:
+        assert self.config.captures is not None
+        captures = build_captures(train_set.frames, self.config.captures, CaptureSettings(), self.dataset.fingerprint,
+                                  workers=self.options.capture_workers, progress=self.options.progress)
+        log.info("captures: %s", captures.summary())
+        self.capture_summary = captures.summary()
+        return CaptureTensors.from_captures(captures.for_frames(train_set.frames), self.normalizer, self.device)
 
     # ------------------------------------------------------------------ loop
     def fit(self, paths: dict[str, Path], out: Path, dataset_dir: Path) -> TrainResult:
@@ -332,7 +381,11 @@ class _Run:
 
     def _train_step(self) -> None:
         self.model.train()
-        poses, bps, failed = self.train_data.batch(self.train_data.draw(self.config.batch_size, self.generator))
+        rows = self.train_data.draw(self.config.batch_size, self.generator)
+        poses, bps, failed = self.train_data.batch(rows)
+        if self.captures is not None:
+            poses, bps = self.captures.swap(self.train_data.frame_index[rows], poses, bps, self.config.capture_fraction,
+                                            self.generator)
         loss = denoising_loss(self.model, self.scheduler, poses, bps, self.generator, self.config.condition_dropout, failed)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -432,6 +485,8 @@ class _Run:
                         "frames": len(self.dataset.frames), "frames_skipped": self.dataset.skipped_summary()},
             "command": self.options.command,
             "config": self.config.to_dict(),
+            **({"captures": {**capture_store_spec(self.config.captures), **self.capture_summary}}
+               if self.config.captures is not None else {}),
             "steps": self.step,
             "final_train_loss": _last(self.history["train"]),
             "final_val_loss": _last(self.history["val"]),
