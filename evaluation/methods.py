@@ -23,7 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
-from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M
+from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
 
 QUICK_OBJECTS = ("proc-box-001", "pb-mug")
@@ -215,7 +215,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     predicted = record.get("predicted_l_goal")
     if predicted is None:
         return "unpredicted"
-    if predicted > SUCCESS_POSITION_TOLERANCE_M:
+    if not rollout_predicts_success(predicted):
         return "pose quality"
     replayed = record.get("replayed")
     if replayed is None:

@@ -53,7 +53,7 @@ from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, Pl
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
-from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, judge_push, object_pose
+from shared.world.push_outcome import judge_push, object_pose, rollout_predicts_success
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
 
@@ -357,7 +357,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
-            if not result.success and len(response.steps) <= 1 and response.score.l_goal <= SUCCESS_POSITION_TOLERANCE_M:
+            if not result.success and len(response.steps) <= 1 and rollout_predicts_success(response.score.l_goal):
                 record["replayed"] = replay_failure(episode, world, request, response.plan)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]

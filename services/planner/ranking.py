@@ -44,7 +44,7 @@ import numpy as np
 from shared.contracts.messages import ScoreTerms, ValidationResult
 from shared.frames import pose25_to_matrix
 from shared.robots.hands import HandModel
-from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, SUCCESS_POSITION_TOLERANCE_M, TOPPLED_TILT_DEG
+from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, TOPPLED_TILT_DEG, rollout_predicts_success
 
 FAILED_PUSH_PENALTY_M = 0.1  # a rotated or toppled rollout ranks behind any clean miss of up to 10 cm
 ALPHA = 30.0
@@ -87,13 +87,13 @@ def score_rollout(result: ValidationResult, l_dir: float, weights: Weights = Wei
     terms = score(float(np.mean(costs)), float(result.collision_cost.to_numpy()[0]), l_dir, weights)
     if result.draws is None:
         return terms
-    succeeded = int(sum(c <= SUCCESS_POSITION_TOLERANCE_M for c in costs))
+    succeeded = int(sum(rollout_predicts_success(c) for c in costs))
     return terms.model_copy(update={"draws_succeeded": succeeded, "draws": len(costs)})
 
 
 def predicts_success(terms: ScoreTerms) -> bool:
     """Whether a rolled-out plan's rollout met the success criterion (within 0.03 m, upright)."""
-    return terms.l_goal <= SUCCESS_POSITION_TOLERANCE_M
+    return rollout_predicts_success(terms.l_goal)
 
 
 def score(l_goal: float, l_coll: float, l_dir: float, weights: Weights = Weights()) -> ScoreTerms:

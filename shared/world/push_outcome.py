@@ -16,6 +16,12 @@ SUCCESS_MAX_ROTATION_DEG = 45.0
 TOPPLED_TILT_DEG = 45.0  # the object's up axis leaned over this far: it fell over
 
 
+def rollout_predicts_success(l_goal_m: float) -> bool:
+    """Whether a rollout's goal cost (the ranking's L_goal, metres) says the push succeeds: its error is
+    within the success tolerance (the rollout's cost already counts toppling and turning as misses)."""
+    return l_goal_m <= SUCCESS_POSITION_TOLERANCE_M
+
+
 def object_pose(T_world_O: np.ndarray) -> ObjectPose:
     return ObjectPose(position=tuple(float(v) for v in T_world_O[:3, 3]),
                       quaternion_xyzw=tuple(float(v) for v in matrix_to_quat_xyzw(T_world_O[:3, :3])))
