@@ -103,6 +103,8 @@ def _frame_seed(frame: Frame, settings: CaptureSettings, variant: int) -> np.ran
 def capture_frame(frame: Frame, variant: int, settings: CaptureSettings, bps: BasisPointSet,
                   cache_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(BPS [n], shift [2]) of one capture of `frame`, or None when the capture cannot be reconstructed."""
+    # Imported here: PyBullet's renderer and the reconstruction pipeline are needed only by the capture
+    # workers, not by every process that reads a finished store.
     from shared.world.objects import ObjectLoadError, load_object
     from shared.world.perception import PerceptionError
     from shared.world.perception.cloud import cloud_for_request

@@ -310,6 +310,7 @@ class _Run:
         # The range of the successful poses, failures or not: a failure far outside it must not squeeze it.
         self.normalizer = PoseNormalizer.fit(torch.from_numpy(train_set.successes().poses))
         self.train_data = self._device_data(train_set, train_bps)
+        self.capture_summary: dict[str, Any] = {}
         self.captures = self._captures(train_set) if config.capture_fraction > 0 else None
         if self.captures is not None:  # the model's BPS statistics over both kinds of input it trains on
             train_bps = torch.cat([train_bps, self.captures.bps[self.captures.ok].cpu()])
@@ -346,8 +347,8 @@ class _Run:
         assert self.config.captures is not None
         captures = build_captures(train_set.frames, self.config.captures, CaptureSettings(), self.dataset.fingerprint,
                                   workers=self.options.capture_workers, progress=self.options.progress)
-        log.info("captures: %s", captures.summary())
-        self.capture_summary = captures.summary()
+        self.capture_summary = captures.summary()  # for the manifest
+        log.info("captures: %s", self.capture_summary)
         return CaptureTensors.from_captures(captures.for_frames(train_set.frames), self.normalizer, self.device)
 
     # ------------------------------------------------------------------ loop
