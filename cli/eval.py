@@ -49,7 +49,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
     "sampler-diagnosis": "evaluation.sampler_diagnosis:run",
 }
 TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
-WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")
+WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")  # these also take --cameras and --tag
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -65,16 +65,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--world", choices=("real", "exact"), default="real",
                         help="methods / leap / closed-loop / multistep: the execution world (default real; see above)")
     parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=None,
-                        help="methods / leap / closed-loop: 1-3: the system sees the object only through that many "
+                        help="methods / leap / closed-loop / multistep: 1-3: the system sees the object only through that many "
                              "simulated depth cameras and plans around its own reconstruction "
-                             "(<out>/<experiment>-<world>-cameraN/); 0 tells it the object's mesh and a pose off by the "
-                             "world's pose error (<out>/<experiment>-<world>/). Default: 3 under `real`, 0 under `exact`")
+                             "(<out>/<experiment>-<world>-cameraN/, multistep-<world>[-closed]-cameraN/); 0 tells it the "
+                             "object's mesh and a pose off by the world's pose error (<out>/<experiment>-<world>/). "
+                             "Default: 3 under `real`, 0 under `exact`")
     parser.add_argument("--split", choices=("test", "val", "unseen"), default="test",
                         help="methods / leap / closed-loop: the 14 test objects (default, for reporting), 14 val objects (for "
                              "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test) or 6 test "
                              "objects of the mug family that no model trains on (<out>/<experiment>-<world>-unseen/); "
                              "multistep: test (default) or 3 val objects of the test objects' footprints "
-                             "(<out>/multistep-<world>[-closed]-val/); sampler-quality: the whole test or val split")
+                             "(<out>/multistep-<world>[-closed][-cameraN]-val/); sampler-quality: the whole test or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
                              "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser); "
@@ -100,8 +101,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "(default: all of them); data-size: this many test objects (default 40)")
     parser.add_argument("--tag", default=None,
                         help="suffix of the results directory: sampler-quality / data-size: a non-shipped "
-                             "--checkpoint, another --dataset; methods / leap / closed-loop: a run with other models "
-                             "(<out>/<experiment>-<world>[-cameraN][-split]-TAG/)")
+                             "--checkpoint, another --dataset; methods / leap / closed-loop / multistep: a run with other "
+                             "models (<out>/<experiment>-<world>[-closed][-cameraN][-split]-TAG/)")
     parser.add_argument("--dataset", type=Path, default=None,
                         help="data-size: the training store whose objects are subsampled (default data/allegro-train)")
     parser.add_argument("--train-steps", type=int, default=None,
@@ -203,8 +204,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
               "within the test split)", file=sys.stderr)
         return 2
-    if args.cameras is not None and not any(name in TRIAL_EXPERIMENTS for name in names):
-        print(f"gd2p eval: --cameras applies to {', '.join(TRIAL_EXPERIMENTS)} (the others are told the mesh)",
+    if args.cameras is not None and not any(name in WORLD_EXPERIMENTS for name in names):
+        print(f"gd2p eval: --cameras applies to {', '.join(WORLD_EXPERIMENTS)} (the others are told the mesh)",
               file=sys.stderr)
         return 2
     if data_size_only and args.experiment != "data-size":
@@ -231,11 +232,11 @@ def run(args: argparse.Namespace) -> int:
             options["world"] = args.world
         if args.methods is not None and name in TRIAL_EXPERIMENTS:
             options["methods"] = args.methods
-        if name in TRIAL_EXPERIMENTS:
+        if name in WORLD_EXPERIMENTS:
             options["cameras"] = DEFAULT_CAMERAS[args.world] if args.cameras is None else args.cameras
         if args.split != "test" and (name in TRIAL_EXPERIMENTS or (name == "multistep" and args.split == "val")):
             options["split"] = args.split
-        if args.tag is not None and name in TRIAL_EXPERIMENTS:
+        if args.tag is not None and name in WORLD_EXPERIMENTS:
             options["tag"] = args.tag
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True

@@ -44,6 +44,7 @@ from shared.contracts.messages import (
     SimWorld,
     ValidationJob,
 )
+from shared.frames import invert_transform
 from shared.world.push_outcome import object_pose, pose_matrix
 from shared.world.sim.world import ExecutionWorld
 
@@ -73,21 +74,28 @@ def true_world(told: SimWorld, execution: ExecutionWorld | None,
     """The world the simulated robot is reset to, from the world the planner was told: the object at its
     true pose — `true_object` (a reconstruction was planned on: the library object where it truly
     stands) or the told object moved by the execution world's pose error — with that world's physics,
-    mass and centre of mass (None: the told world, nominal physics)."""
+    mass and centre of mass (None: the told world, nominal physics). When the planner was told a
+    reconstruction, the tracker reports the reconstruction's frame O, rigidly attached to the true
+    object where the capture placed it: later pushes of the request (corrections, the next push of a
+    multi-step request) and the closed-loop monitor then see the model they plan around, not the
+    library object's own frame, which may be the reconstruction's turned upside down."""
     obstacles = tuple((o.x, o.y, o.radius) for o in told.obstacles)
+    T_O_tracked = None
     if true_object is not None:
         obj, T_true = true_object
         # Through an ObjectPose, as the pose travelled when this was a SimWorld: committed results stay
         # reproducible to the last bit (a quaternion round trip moves the last digit now and then).
         T_world_O = pose_matrix(object_pose(T_true))
+        if told.object.point_cloud is not None:  # the tracker follows the reconstruction, from where it was seen
+            T_O_tracked = invert_transform(T_world_O) @ pose_matrix(told.object_pose)
     else:
         obj, T_world_O = told.object, pose_matrix(told.object_pose)
         if execution is not None:
             T_world_O = execution.pose_error.true_pose(T_world_O)
     if execution is None:
-        return TrueWorld(obj, T_world_O, obstacles)
+        return TrueWorld(obj, T_world_O, obstacles, T_O_tracked=T_O_tracked)
     return TrueWorld(obj, T_world_O, obstacles, execution.physics, execution.mass_scale, execution.com_offset_m,
-                     tracker_seed=execution.seed)
+                     tracker_seed=execution.seed, T_O_tracked=T_O_tracked)
 
 
 class LocalRobot:

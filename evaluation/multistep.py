@@ -7,6 +7,12 @@ observed after the previous one. Success: the object's centre ends within 0.03 m
 did not topple, and nothing — robot or object — touched the obstacle (watched in the simulated
 robot while every plan runs). Each run executes in its own execution world (`--world`, as the
 methods experiment: `shared.world.sim.world`), drawn once for all its pushes.
+
+With `cameras` (1-3; under `real` 3 by default, as the methods experiment) the system is not told the
+object: the request carries the cloud the depth cameras capture of it where it truly stands, the
+planner plans every push around its reconstruction, and the robot's tracker follows that
+reconstruction's frame as the object moves (`evaluation.local_system.true_world`). The cameras render
+the object alone; the obstacle reaches the planner as the request's circle, as in the paper.
 """
 from __future__ import annotations
 
@@ -30,7 +36,7 @@ from shared.world.objects import load_object
 from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, judge_push, object_pose, pose_matrix
 from shared.world.sim.world import ExecutionWorld, WorldLevel, sample_world
 
-TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`{loop}"
+TITLE = "Multi-step pushing around an obstacle (Allegro + Panda), world `{world}`{loop}{seen}"
 PLOT_FILE = "object_paths.png"
 MAX_PUSH_M = 0.15  # longest single push along the path
 MAX_STEPS = 6
@@ -69,6 +75,7 @@ class Run:
     hand: str = "allegro"
     world: WorldLevel = "real"
     closed_loop: bool = False
+    cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
 
     @property
     def key(self) -> str:
@@ -76,24 +83,44 @@ class Run:
 
     def execution_world(self) -> ExecutionWorld:
         seed = int.from_bytes(hashlib.sha256(f"world/{self.key}".encode()).digest()[:4], "little") & 0x7FFFFFFF
-        return sample_world(self.world, seed, protocol.half_extents(self.object_id))
+        return sample_world(self.world, seed, protocol.half_extents(self.object_id), cameras=self.cameras)
 
     @property
     def seed(self) -> int:
         return int.from_bytes(hashlib.sha256(self.key.encode()).digest()[:4], "little") & 0x7FFFFFFF
 
 
-def request(run: Run) -> PushRequest:
+def placement(run: Run) -> np.ndarray:
+    """T_world_O the run places the object at (the scenario's start with placement noise): what the
+    system is told, which the execution world's pose error moves (under cameras it is where it stands)."""
     rng = np.random.default_rng(run.seed)
     dx, dy = rng.uniform(-protocol.PLACEMENT_NOISE_M, protocol.PLACEMENT_NOISE_M, 2)
     yaw = math.radians(rng.uniform(-protocol.PLACEMENT_NOISE_DEG, protocol.PLACEMENT_NOISE_DEG))
     x, y = run.scenario.start_xy
-    T_world_O = make_transform(yaw_rotation(yaw), np.array([x + dx, y + dy, 0.0])) @ load_object(run.object_id).T_D_O()
+    return make_transform(yaw_rotation(yaw), np.array([x + dx, y + dy, 0.0])) @ load_object(run.object_id).T_D_O()
+
+
+def request(run: Run) -> PushRequest:
+    """The multi-step request: the object told (mesh and pose) or, with cameras, the cloud they capture of it."""
     ox, oy, radius = run.scenario.obstacle
-    return PushRequest(object=ObjectRef(library_id=run.object_id), object_pose=object_pose(T_world_O),
-                       goal_xy=run.scenario.goal_xy, obstacles=[CircleObstacle(x=ox, y=oy, radius=radius)],
-                       distance_m=MAX_PUSH_M, max_steps=MAX_STEPS, hand=run.hand, arm=protocol.ROBOTS[run.hand],
-                       seed=run.seed, closed_loop=run.closed_loop)
+    common = dict(goal_xy=run.scenario.goal_xy, obstacles=[CircleObstacle(x=ox, y=oy, radius=radius)],
+                  distance_m=MAX_PUSH_M, max_steps=MAX_STEPS, hand=run.hand, arm=protocol.ROBOTS[run.hand],
+                  seed=run.seed, closed_loop=run.closed_loop)
+    if run.cameras:
+        from shared.world.perception import cloud_for_request
+        from shared.world.sim.camera import capture_object
+
+        world = run.execution_world()
+        capture = capture_object(load_object(run.object_id), true_start(run, world), n_cameras=run.cameras,
+                                 seed=world.seed)
+        return PushRequest(object=ObjectRef(point_cloud=cloud_for_request(capture.cloud)), **common)
+    return PushRequest(object=ObjectRef(library_id=run.object_id), object_pose=object_pose(placement(run)), **common)
+
+
+def true_start(run: Run, world: ExecutionWorld) -> np.ndarray:
+    """Where the object truly starts: the placement moved by the world's pose error (none under cameras,
+    whose own capture and reconstruction errors take its place)."""
+    return world.pose_error.true_pose(pose_matrix(object_pose(placement(run))))  # the placement as a request carries it
 
 
 def run_one(run: Run) -> dict[str, Any]:
@@ -105,7 +132,9 @@ def run_one(run: Run) -> dict[str, Any]:
     started = time.perf_counter()
     world = run.execution_world()
     system.robot.execution_world = world
-    system.robot.true_object = None  # the planner is told the library object; its pose error applies
+    # Told the mesh, the robot pushes it moved by the world's pose error; seen by cameras, the true object
+    # where it truly stands (the planner plans around a reconstruction).
+    system.robot.true_object = (ObjectRef(library_id=run.object_id), true_start(run, world)) if run.cameras else None
     record: dict[str, Any] = {"scenario": run.scenario.name, "object_id": run.object_id, "trial": run.trial,
                               "world_draw": world.record()}
     pipeline, the_request = system.pipeline("sampler"), request(run)
@@ -122,8 +151,7 @@ def run_one(run: Run) -> dict[str, Any]:
         response, executed = outcome.response, outcome.records
         contacts = system.robot.contacts
         # Judged where the object truly started and truly is (the planner knows what its tracker saw).
-        true_start = world.pose_error.true_pose(pose_matrix(the_request.object_pose))
-        result = judge_push(true_start, np.asarray(run.scenario.goal_xy),
+        result = judge_push(true_start(run, world), np.asarray(run.scenario.goal_xy),
                             system.robot.true_object_pose(the_request.arm, the_request.hand), max_rotation_deg=None)
         success = result.success and not contacts.any  # at the goal, standing, the obstacle untouched
         record.update(outcome="success" if success else "failure", success=success,
@@ -133,30 +161,36 @@ def run_one(run: Run) -> dict[str, Any]:
         stopped = [i for i, step in enumerate(response.steps) if step.stopped]
         if stopped:
             record["stopped_pushes"] = stopped
-    record["path_xy"] = _object_path(the_request, executed)
+    record["path_xy"] = _object_path(true_start(run, world), executed)
     record["seconds"] = round(time.perf_counter() - started, 2)
     record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
     return record
 
 
-def _object_path(the_request: PushRequest, steps) -> list[list[float]]:
-    """The object's centre (x, y) at the start and after every executed push (also of a failed request)."""
-    poses = [the_request.object_pose] + [s.step.result.final_object_pose for s in steps]
-    return [[round(float(v), 4) for v in pose_matrix(p)[:2, 3]] for p in poses]
+def _object_path(T_start: np.ndarray, steps) -> list[list[float]]:
+    """The object's centre (x, y) where it truly started and where the tracker saw it after every executed
+    push (also of a failed request)."""
+    centres = [T_start[:2, 3]] + [pose_matrix(s.step.result.final_object_pose)[:2, 3] for s in steps]
+    return [[round(float(v), 4) for v in xy] for xy in centres]
 
 
 def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "real", closed_loop: bool = False,
-        split: str = "test") -> Path:
-    """The multi-step experiment into `<out>/multistep-<world>[-closed][-val]/`; `closed_loop`: every push watched;
-    `split="val"`: the val objects (`VAL_OBJECTS`), for choosing settings."""
+        split: str = "test", cameras: int = 0, tag: str | None = None) -> Path:
+    """The multi-step experiment into `<out>/multistep-<world>[-closed][-cameraN][-val][-TAG]/`; `closed_loop`: every
+    push watched; `split="val"`: the val objects (`VAL_OBJECTS`), for choosing settings; `cameras`: the system sees
+    the object through that many depth cameras (0: told the mesh); `tag`: a run with other models."""
     if split not in SPLITS:
         raise ValueError(f"multistep: split must be one of {', '.join(SPLITS)}, got {split!r}")
     scenarios, objects, trials = (SCENARIOS[:1], SPLITS[split][:1], 1) if quick else (SCENARIOS, SPLITS[split], TRIALS)
-    runs = [Run(s, o, t, world=world, closed_loop=closed_loop) for s in scenarios for o in objects for t in range(trials)]
-    directory = Path(out) / (f"multistep-{world}" + ("-closed" if closed_loop else "") + ("" if split == "test" else f"-{split}"))
+    runs = [Run(s, o, t, world=world, closed_loop=closed_loop, cameras=cameras)
+            for s in scenarios for o in objects for t in range(trials)]
+    directory = Path(out) / "-".join(["multistep", world] + ["closed"] * closed_loop + [f"camera{cameras}"] * bool(cameras)
+                                     + ([] if split == "test" else [split]) + ([tag] if tag else []))
     settings = {"scenarios": [vars(s) for s in scenarios], "objects": list(objects), "trials": trials,
                 "max_push_m": MAX_PUSH_M, "max_steps": MAX_STEPS, "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                 "world": world, **({"closed_loop": True} if closed_loop else {})}
+    if cameras:  # (runs told the mesh predate these keys: their stores resume as they were written)
+        settings.update(cameras=cameras, pose_models=protocol.pose_model_ids("allegro"))
     store = ResultStore(directory, settings)
     started = time.perf_counter()
     protocol.run_in_workers([r for r in runs if not store.done(r.key)], run_one, store, workers,
@@ -176,7 +210,9 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
                      sum(r["outcome"] in ("infeasible", "error") for r in rs)])
     interval = success_interval(records)
     rate = interval.value
-    body = (f"World `{world}` (`shared.world.sim.world`). Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
+    seen = (f"The system never sees the object's mesh: it receives the point cloud {cameras} simulated depth camera(s) "
+            "capture of it and plans every push around its reconstruction. " if cameras else "The system is told the object's mesh. ")
+    body = (f"World `{world}` (`shared.world.sim.world`). {seen}Objects {', '.join(objects)}; {trials} trial(s) per object and scenario with placement noise; pushes of "
             f"at most {MAX_PUSH_M:.2f} m, at most {MAX_STEPS} pushes. Success: within "
             f"{SUCCESS_POSITION_TOLERANCE_M:.2f} m of the goal, not toppled, no robot or object contact with the "
             f"obstacle.\n\n**Success: {rate:.0%}** ({sum(r['success'] for r in records)}/{len(records)}; 95% interval clustered "
@@ -190,7 +226,8 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
         [[r["scenario"], r["object_id"], r["trial"], r["outcome"], _fmt(r.get("goal_error_m")), r.get("pushes", ""),
           ", ".join(r.get("robot_obstacle_contact") or []) + (" object" if r.get("object_obstacle_contact") else ""),
           r.get("message", "")[:120] or ("toppled" if r.get("toppled") else "")] for r in records])
-    return write_experiment(directory, TITLE.format(world=world, loop=", closed loop" if closed_loop else ""), body, {"success_rate": rate, "interval_95": interval.as_dict(),
+    return write_experiment(directory, TITLE.format(world=world, loop=", closed loop" if closed_loop else "",
+                                                     seen=f", {cameras} camera(s)" if cameras else ""), body, {"success_rate": rate, "interval_95": interval.as_dict(),
                                                 "runs": len(records), "settings": settings},
                             time.perf_counter() - started, quick, records)
 

@@ -104,6 +104,41 @@ def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
     assert truth.physics == world.physics
 
 
+def test_with_cameras_the_tracker_follows_the_reconstruction_the_planner_plans_around():
+    """The reconstruction's frame O (principal axes of what the cameras saw) can be the mug's own frame
+    turned upside down. The robot's tracker reports the reconstruction's frame, rigidly attached to the
+    true mug: a correction or the next push then sees an upright object that has moved with the push,
+    where the library frame would read "toppled" before anything moved."""
+    from dataclasses import replace
+
+    from evaluation.local_system import true_world
+    from services.robot_bridge.robots.sim.config import SimConfig
+    from services.robot_bridge.robots.sim.robot import SimRobot
+    from shared.contracts.messages import SimWorld
+    from shared.frames import make_transform, yaw_rotation
+    from shared.world.object_refs import captured_object
+    from shared.world.push_outcome import judge_push
+
+    episode = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 0, cameras=3)
+    request = protocol.push_request(episode)
+    seen = captured_object(request.object).T_world_O
+    T_true = protocol.execution_world(episode).pose_error.true_pose(protocol.placement(episode))
+    assert (seen[:3, 2] @ T_true[:3, 2]) < -0.9  # what makes this case: the two frames' z axes are opposite
+    told = SimWorld(object=request.object, object_pose=object_pose(seen))
+    truth = true_world(told, protocol.execution_world(episode), (ObjectRef(library_id="pb-mug"), T_true))
+    target = seen[:2, 3] + 0.2 * direction_xy(180.0)
+    with SimRobot(SimConfig("panda", "allegro")) as robot:
+        robot.reset_world(truth)
+        tracked = pose_matrix(robot.observe().object_pose)
+        assert np.linalg.norm(tracked[:2, 3] - seen[:2, 3]) < 0.01 and tracked[:3, 2] @ seen[:3, 2] > 0.99
+        assert np.allclose(pose_matrix(robot.true_object_pose()), T_true, atol=1e-3)  # the truth is unchanged
+        moved = make_transform(yaw_rotation(math.radians(30.0)) @ T_true[:3, :3], T_true[:3, 3] + [-0.2, 0.0, 0.0])
+        robot.reset_world(replace(truth, T_world_O=moved))  # the mug pushed 20 cm and turned 30 degrees
+        after = pose_matrix(robot.observe().object_pose)
+    judged = judge_push(seen, target, object_pose(after), max_rotation_deg=None)
+    assert not judged.toppled and judged.position_error_m < 0.03
+
+
 def test_a_trial_is_judged_from_where_the_object_truly_started():
     """Told pose off by 2 cm: an object pushed exactly 0.20 m from its true start succeeds, although it
     ends 2 cm from the target the planner computed from the told pose."""
@@ -223,8 +258,35 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
     run = multistep.Run(multistep.SCENARIOS[0], "proc-cylinder-001", 0)
     record = multistep.run_one(run)
     assert record["outcome"] == "infeasible" and record["pushes"] == 2 and not record["success"]
-    start = pose_matrix(multistep.request(run).object_pose)[:2, 3]
+    start = multistep.true_start(run, run.execution_world())[:2, 3]  # where it truly stood, not where it was told
+    assert np.linalg.norm(start - pose_matrix(multistep.request(run).object_pose)[:2, 3]) > 1e-3
     assert record["path_xy"] == [[round(float(v), 4) for v in start], [0.45, 0.0], [0.47, 0.1]]
+
+
+def test_a_multistep_run_with_cameras_sends_a_capture_and_the_robot_pushes_the_true_object(monkeypatch):
+    from types import SimpleNamespace
+
+    from evaluation import multistep
+    from evaluation.local_system import Contacts
+    from services.planner.outcome import PushError
+
+    run = multistep.Run(multistep.SCENARIOS[0], "proc-cylinder-001", 0, cameras=3)
+    request = multistep.request(run)
+    assert request.object.point_cloud is not None and request.object_pose is None and request.goal_xy is not None
+    assert np.array_equal(request.object.point_cloud.to_numpy(), multistep.request(run).object.point_cloud.to_numpy())
+    cloud_centre = request.object.point_cloud.to_numpy()[:, :2].mean(axis=0)
+    world = run.execution_world()
+    assert np.linalg.norm(cloud_centre - multistep.true_start(run, world)[:2, 3]) < 0.02  # captured where it stands
+
+    class NoPlan:
+        def run(self, request):
+            raise PushError("infeasible", "no plan", records=[])
+
+    system = SimpleNamespace(robot=SimpleNamespace(contacts=Contacts()), pipeline=lambda _name: NoPlan())
+    monkeypatch.setattr(protocol, "_system", system)
+    multistep.run_one(run)
+    true_ref, T_true = system.robot.true_object
+    assert true_ref.library_id == "proc-cylinder-001" and np.allclose(T_true, multistep.true_start(run, world))
 
 
 def test_a_real_report_compares_with_the_exact_run_of_the_same_perception_and_models(tmp_path):

@@ -269,12 +269,13 @@ def test_eval_sees_the_object_through_three_cameras_under_real_and_is_told_the_m
     monkeypatch.setattr(cli.eval, "experiment_function", lambda name: experiment)
     monkeypatch.setattr("evaluation.report.write_index", lambda out: out / "README.md")
     for argv, cameras in ((["methods"], 3), (["leap", "--world", "exact"], 0), (["methods", "--cameras", "0"], 0),
-                          (["closed-loop", "--world", "exact", "--cameras", "1"], 1)):
+                          (["closed-loop", "--world", "exact", "--cameras", "1"], 1), (["multistep"], 3),
+                          (["multistep", "--world", "exact"], 0), (["multistep", "--cameras", "0", "--closed-loop"], 0)):
         calls.clear()
         assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 0
         assert calls[0]["cameras"] == cameras, argv
-    assert main(["eval", "multistep", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
-    assert "--cameras applies to methods, leap, closed-loop" in capsys.readouterr().err
+    assert main(["eval", "sampler-quality", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
+    assert "--cameras applies to methods, leap, closed-loop, multistep" in capsys.readouterr().err
 
 
 def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(capsys):

@@ -60,6 +60,10 @@ class TrueWorld:
     mass_scale: float = 1.0
     com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the object's frame O
     tracker_seed: int = 0  # the tracker's noise draws
+    # Where the frame the tracker reports sits in the object's frame O (None: O itself). A model-based
+    # tracker follows the model the system has: for a reconstruction from a camera cloud, its own frame
+    # (centre of mass and principal axes of what was seen), which may be the true O turned 180 degrees.
+    T_O_tracked: np.ndarray | None = None
 
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
@@ -86,6 +90,7 @@ class SimRobot(Robot):
         self.tracker = SimTracker(config.tracker)
         self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
         self._tracked: ObjectPose | None = None  # the tracker's latest frame (what the robot reports)
+        self._T_O_tracked = np.eye(4)  # the frame the tracker follows, in the object's frame O (TrueWorld)
         self.scene: RobotScene | None = None
         self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
         # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
@@ -142,6 +147,7 @@ class SimRobot(Robot):
         self.add_object(urdf, world.T_world_O)
         self.add_obstacles(world.obstacles)
         self.tracker.reset(world.tracker_seed)
+        self._T_O_tracked = np.eye(4) if world.T_O_tracked is None else np.asarray(world.T_O_tracked, dtype=np.float64)
         self._tracked = None  # the next observation is a frame of this world's object
 
     def reset_told(self, world: SimWorld) -> None:
@@ -158,6 +164,7 @@ class SimRobot(Robot):
         with self._lock:
             scene.add_object(urdf_path, T_world_O)
             self._tracked = None
+            self._T_O_tracked = np.eye(4)  # tracked in its own frame, unless the world says otherwise (reset_world)
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
         """Static cylinders (x, y, radius) on the table."""
@@ -185,7 +192,7 @@ class SimRobot(Robot):
             if self._tracked is None:
                 true = self._true_pose()
                 if true is not None:
-                    self._tracked = self.tracker.frame(true)
+                    self._tracked = self.tracker.frame(true @ self._T_O_tracked)
             return self._tracked
 
     def true_object_pose(self) -> ObjectPose | None:
@@ -204,7 +211,7 @@ class SimRobot(Robot):
         if true is None:
             return
         with self._lock:
-            self._tracked = self.tracker.frame(true)
+            self._tracked = self.tracker.frame(true @ self._T_O_tracked)
         if self.track is not None:
             self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
                                    command_id=command_id, plan_time_s=plan_time_s))
