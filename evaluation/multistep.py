@@ -186,7 +186,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, world: WorldLevel = "r
             for s in scenarios for o in objects for t in range(trials)]
     directory = Path(out) / "-".join(["multistep", world] + ["closed"] * closed_loop + [f"camera{cameras}"] * bool(cameras)
                                      + ([] if split == "test" else [split]) + ([tag] if tag else []))
-    settings = {"scenarios": [vars(s) for s in scenarios], "objects": list(objects), "trials": trials,
+    settings: dict[str, Any] = {"scenarios": [vars(s) for s in scenarios], "objects": list(objects), "trials": trials,
                 "max_push_m": MAX_PUSH_M, "max_steps": MAX_STEPS, "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                 "world": world, **({"closed_loop": True} if closed_loop else {})}
     if cameras:  # (runs told the mesh predate these keys: their stores resume as they were written)
