@@ -273,7 +273,10 @@ _ROBOT = (
                       " services/robot_bridge/robots/sim/tracker.py). With hardware a user's tracker publishes here"
                       " and the bridge folds the latest pose into its ExecutionStates (with their plan time), where"
                       " the planner's closed-loop monitor reads it (examples/object_tracker.py publishes one from"
-                      " zenoh and msgpack alone); the recorder records both.",
+                      " zenoh and msgpack alone); the recorder records both. The pose is of the frame O the"
+                      " request gave the planner: the library object's, or for a point-cloud request its"
+                      " reconstruction's (centre of mass and principal axes of what was seen, where the cloud"
+                      " showed it), which may differ from the library object's own by a half turn.",
               qos="Publish at the tracker's rate (10-30 Hz) while the robot moves; a pose older than 0.5 s is not"
                   " folded into a state.",
               code=("services/robot_bridge/robots/sim/robot.py: SimRobot._track_frame",
