@@ -700,6 +700,31 @@ def test_planning_time_leaves_out_the_screening_a_plan_less_round_does_inside_it
     assert state.timings["ik"] == pytest.approx(0.3) and state.timings["planning"] == pytest.approx(2.7)
 
 
+def test_a_later_push_of_a_point_cloud_request_reads_the_cloud_as_the_object_now_sits():
+    """The request's cloud stays where the cameras captured it; after a push moved the object 20 cm and turned
+    it 30 degrees, the next push's sampler frame puts the captured points where the moved object's are in
+    that push's D (the first push's frame is the push's own)."""
+    from services.planner import stages
+    from services.planner.candidates import Push
+    from services.planner.outcome import StepRecord
+    from shared.frames import frame_transform, make_transform, points_world_to_d, transform_points, yaw_rotation
+
+    rng = np.random.default_rng(0)
+    T_captured = make_transform(yaw_rotation(0.4), np.array([0.45, -0.05, 0.03]))
+    cloud = transform_points(T_captured, rng.uniform([-0.06, -0.02, -0.03], [0.06, 0.02, 0.03], (500, 3)))
+    T_now = make_transform(yaw_rotation(0.4 + math.radians(30.0)), np.array([0.40, 0.14, 0.03]))
+    request = PushRequest(object=ObjectRef(point_cloud=cloud.astype(np.float32)), direction_deg=0.0)
+    state = stages.RequestState(request, None, "", None, T_captured)
+    first = Push(T_captured, np.array([0.0, 1.0]), 0.2)
+    assert stages.sampling_frame(state, first) == first.frame
+    state.records.append(StepRecord(None, T_captured, None, None))  # type: ignore[arg-type]
+    later = Push(T_now, np.array([math.cos(2.0), math.sin(2.0)]), 0.1)
+    seen = points_world_to_d(cloud, frame_transform(stages.sampling_frame(state, later)))
+    truth = points_world_to_d(transform_points(T_now @ np.linalg.inv(T_captured), cloud), later.T_world_D)
+    assert np.abs(seen - truth).max() < 1e-9
+    assert np.abs(points_world_to_d(cloud, later.T_world_D) - truth).max() > 0.1  # what the push's own frame read
+
+
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
     """The validator farm is gone by the second push: the PushError carries the first push's record."""
     from evaluation.local_system import LocalRobot, validate_here

@@ -36,6 +36,7 @@ from services.planner.monitor import MonitorThresholds, PushMonitor, backed_out
 from services.planner.motion import MotionPlanner, PlanningError
 from services.planner.outcome import Execution, PushError, StepRecord
 from shared.contracts.messages import (
+    DirectionFrame,
     Plan,
     PushRequest,
     PushStep,
@@ -187,14 +188,30 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
         else:
             sampler = "nearest" if request.method == "nearest" else request.sampler
             seed = (state.seed + DRAW_SEED_STRIDE * draw) % 2**31
-            reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=push.frame, k=request.k,
-                                         sampler=sampler, seed=seed))
+            reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=sampling_frame(state, push),
+                                         k=request.k, sampler=sampler, seed=seed))
             poses_d = reply.poses_d.to_numpy().astype(np.float64)
             p_success = None if reply.success_probability is None else reply.success_probability.to_numpy()
             state.sampled = (R_D_O, poses_d, p_success)
     state.time("sampling", time.perf_counter() - started)
     state.cancel.check()
     return Candidates.in_frame(poses_d, push, state.hand, p_success)
+
+
+def sampling_frame(state: RequestState, push: Push) -> DirectionFrame:
+    """`push`'s direction frame D as the pose source is to read the request's object.
+
+    A point cloud stays where the cameras captured it, while a later push of the request (a correction,
+    the next push of a multi-step request) starts where the object went since: that push is carried back
+    by the object's motion to where the cloud was captured, so the cloud is seen from the push as the
+    object now is (the poses in D are the same). A mesh is placed by the frame itself."""
+    if state.request.object.point_cloud is None or not state.records:
+        return push.frame
+    T_world_O_captured = state.records[0].T_world_O_start  # the first push starts where the cloud showed it
+    T_back = T_world_O_captured @ invert_transform(push.T_world_O)  # the object's motion since, undone
+    direction = T_back[:3, :3] @ push.direction
+    return DirectionFrame(object_pose=object_pose(T_world_O_captured),
+                          direction_xy=(float(direction[0]), float(direction[1])))
 
 
 # ------------------------------------------------------------------------------- 2. IK and screening
