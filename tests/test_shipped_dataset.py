@@ -38,8 +38,8 @@ def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_su
     assert all(e is not None and e >= 0 for e in failed_errors)
 
 
-# Allegro's default model is its v2 one; LEAP's v2 model ships beside its default (version 1 won on val objects
-# under `real`: README "In a world the planner does not know").
+# Allegro's default model is its v2 one; LEAP's v2 mesh-trained model ships beside its default (the default is
+# trained on the same store with captures; its index stays version 1's: README "In a world the planner does not know").
 @pytest.mark.parametrize(("hand", "model", "poses"), [("allegro", "allegro", 44_204), ("leap", "leap_v2", 18_916)])
 def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, poses):
     import json
@@ -60,3 +60,18 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, pose
     assert index["dataset"]["poses_total"] == trained["poses_total"] + sum(f["poses"] for f in skipped) == poses
     with np.load(SHIPPED_DIR / f"{model}_nn.npz", allow_pickle=False) as arrays:
         assert arrays["frame_features"].shape[0] == index["dataset"]["frames"] == trained["frames"] + len(skipped)
+
+
+@pytest.mark.parametrize("hand", ["allegro", "leap"])
+def test_shipped_default_model_was_trained_on_this_store_and_its_camera_captures(hand):
+    # The planner sees objects through cameras by default, so each hand's default sampler was trained with half
+    # its batches on captures of its own store's frames (README "Trained on what the cameras see").
+    from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
+    from services.sampler.dataset import dataset_fingerprint
+    from shared.data.dataset_store import DatasetStore
+
+    fingerprint = dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
+    manifest = load_checkpoint(SHIPPED_DIR / f"{hand}.pt").manifest
+    assert manifest["hand"] == hand and manifest["dataset"]["sha256"] == fingerprint
+    assert manifest["captures"]["dataset_sha256"] == fingerprint and manifest["config"]["capture_fraction"] == 0.5
+    assert manifest["captures"]["reconstructed"] > 0.9 * manifest["captures"]["captures"]
