@@ -2,6 +2,7 @@
 large as issue 17 asks (Allegro >= 1,000 objects and 40 k validated poses, LEAP >= 300 and 12 k)."""
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,15 @@ from services.sampler.dataset import open_store
 from shared.world.objects import split_of
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
+
+
+@cache
+def store_fingerprint(hand: str) -> str:
+    """The fingerprint training records for a shipped store (its shard bytes), hashed once per hand."""
+    from services.sampler.dataset import dataset_fingerprint
+    from shared.data.dataset_store import DatasetStore
+
+    return dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
 
 
 @pytest.mark.parametrize(("hand", "min_objects", "min_successes"), [("allegro", 1000, 40_000), ("leap", 300, 12_000)])
@@ -45,11 +55,9 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, pose
     import json
 
     from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
-    from services.sampler.dataset import dataset_fingerprint
-    from shared.data.dataset_store import DatasetStore
 
-    # the fingerprint training records (shard bytes); the store's integrity is the test above's
-    fingerprint = dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
+    # the store's integrity is the test above's
+    fingerprint = store_fingerprint(hand)
     checkpoint = load_checkpoint(SHIPPED_DIR / f"{model}.pt")
     index = json.loads((SHIPPED_DIR / f"{model}_nn.npz.manifest.json").read_text())
     assert checkpoint.hand == hand and checkpoint.manifest["dataset"]["sha256"] == fingerprint
@@ -67,10 +75,8 @@ def test_shipped_default_model_was_trained_on_this_store_and_its_camera_captures
     # The planner sees objects through cameras by default, so each hand's default sampler was trained with half
     # its batches on captures of its own store's frames (README "Trained on what the cameras see").
     from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
-    from services.sampler.dataset import dataset_fingerprint
-    from shared.data.dataset_store import DatasetStore
 
-    fingerprint = dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
+    fingerprint = store_fingerprint(hand)
     manifest = load_checkpoint(SHIPPED_DIR / f"{hand}.pt").manifest
     assert manifest["hand"] == hand and manifest["dataset"]["sha256"] == fingerprint
     assert manifest["captures"]["dataset_sha256"] == fingerprint and manifest["config"]["capture_fraction"] == 0.5
