@@ -246,6 +246,17 @@ def test_approaches_are_tried_in_order_until_one_works(box, scene):
     assert error.value.reason == "no IK solution" and "approach segment" in error.value.detail
 
 
+def test_a_pose_no_approach_leads_to_names_why_each_way_in_failed(box, scene):
+    """Out of reach from behind and blocked from above (here: "above" 10 cm down, through the table)."""
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    blocked = MotionPlanner(scene, settings=MotionSettings(approaches=((5.0, 0.05), (0.0, -0.10))))
+    with pytest.raises(PlanningError) as error:
+        blocked.plan_push(T_world_hand, q_hand, push_frame()[:3, 0], 0.15, return_home=False)
+    assert error.value.reason.startswith("no approach (from behind: no IK solution; from above: ")
+    assert "collision" in error.value.reason and "table" in error.value.detail
+    assert error.value.detail.startswith("from behind: approach segment: the arm cannot follow")
+
+
 def test_target_inside_the_table_is_infeasible_with_a_clear_reason(box, planner):
     T_world_hand, q_hand = spatula_pre_contact(box)
     T_world_hand[2, 3] = -0.05  # the hand base 5 cm below the table top

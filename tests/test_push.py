@@ -666,11 +666,12 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
 
     planned = []
     plan_push = stages.ArmPlanning._plan_push
+    reason = ["no IK solution"]
 
     def first_four_unreachable(self, feasible, index):
         planned.append(index)
         if len(planned) <= 4:
-            raise PlanningError("no IK solution", "approach segment: the arm cannot follow the straight line")
+            raise PlanningError(reason[0], "approach segment: the arm cannot follow the straight line")
         return plan_push(self, feasible, index)
 
     monkeypatch.setattr(stages.ArmPlanning, "_plan_push", first_four_unreachable)
@@ -684,6 +685,14 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
                                                   dataclasses.replace(settings, max_planless_rounds=2), choice)
     assert isinstance(error, PushError) and error.code == "infeasible" and rollouts == 0
     assert "any of the 4 feasible pose(s) tried (4× no IK solution)" in error.message
+    assert "reach" not in error.message  # the pre-contact poses themselves were reached: no hint on a guess
+    # At the edge of the arm's reach (an xArm7 pulling toward itself): out of reach from behind, blocked from above.
+    planned.clear()
+    reason[0] = "no approach (from behind: no IK solution; from above: approach configuration in collision)"
+    error, _ = _push_with_altered_rollouts(lambda i, result: result,
+                                           dataclasses.replace(settings, max_planless_rounds=2), choice)
+    assert isinstance(error, PushError) and f"(4× {reason[0]})" in error.message
+    assert "edge of the arm's reach" in error.message and "nearer the robot" in error.message
 
 
 def test_planning_time_leaves_out_the_screening_a_plan_less_round_does_inside_it(monkeypatch):

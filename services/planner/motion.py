@@ -328,17 +328,16 @@ class MotionPlanner:
                        q_hand: np.ndarray, tracked: StraightLines | None = None) -> np.ndarray:
         """Joint waypoints down from above a standoff, then in along the push to the pre-contact pose,
         for the first of `MotionSettings.approaches` that is reachable and collision-free (the first
-        as `tracked` holds it, when it does)."""
-        first_error: PlanningError | None = None
+        as `tracked` holds it, when it does). When none is, the error names why each way in failed."""
+        failed: list[tuple[str, PlanningError]] = []
         for option, (standoff_m, lift_m) in enumerate(self.settings.approaches):
             try:
                 if option == 0 and tracked is not None and tracked.approach is not None:
                     return self._checked_approach(tracked.approach, standoff_m * direction, lift_m, q_hand)
                 return self._approach_via(q_pre, T_pre, standoff_m * direction, lift_m, q_hand)
             except PlanningError as exc:
-                first_error = first_error or exc
-        assert first_error is not None, "MotionSettings.approaches is empty"
-        raise first_error
+                failed.append(("from behind" if standoff_m > 0 else "from above", exc))
+        raise _no_approach(failed)
 
     def _approach_via(self, q_pre: np.ndarray, T_pre: np.ndarray, standoff: np.ndarray, lift_m: float,
                       q_hand: np.ndarray) -> np.ndarray:
@@ -666,6 +665,19 @@ def _bisection_order(steps: int) -> list[int]:
             order += [k for k in range(1, steps) if k not in seen]
             break
     return order
+
+
+def _no_approach(failed: list[tuple[str, PlanningError]]) -> PlanningError:
+    """The error of a pre-contact pose no approach leads to: the approaches' own reason when they share it,
+    else "no approach" with each way's reason, e.g. on a pull at the edge of the arm's reach: "no approach
+    (from behind: no IK solution; from above: approach configuration in collision)"."""
+    assert failed, "MotionSettings.approaches is empty"
+    reasons = {exc.reason for _, exc in failed}
+    detail = "; ".join(f"{way}: {exc.detail}" for way, exc in failed)
+    if len(reasons) == 1:
+        return PlanningError(failed[0][1].reason, detail)
+    ways = dict.fromkeys(f"{way}: {exc.reason}" for way, exc in failed)  # ordered, without repeats
+    return PlanningError(f"no approach ({'; '.join(ways)})", detail)
 
 
 def _horizontal_unit(direction: np.ndarray) -> np.ndarray:

@@ -404,7 +404,7 @@ class ArmPlanning:
             except PushError:  # no candidate left that screens feasible
                 break
         raise PushError("infeasible", f"no collision-free arm plan for any of the {sum(failures.values())} "
-                        f"feasible pose(s) tried ({_counted(failures)})")
+                        f"feasible pose(s) tried ({_counted(failures)}){_reach_hint(failures)}")
 
     def _round(self, feasible: Feasible, failures: Counter,
                on_plan: Callable[[CandidatePlan], None] | None) -> tuple[list[CandidatePlan], int]:
@@ -457,6 +457,14 @@ def robot_start(state: RequestState, planner: MotionPlanner) -> tuple[np.ndarray
 
 def _counted(failures: Counter) -> str:
     return ", ".join(f"{n}× {reason}" for reason, n in failures.most_common())
+
+
+def _reach_hint(failures: Counter) -> str:
+    """What to do when every pose tried was reached but no way in to it was (the arm cannot come from behind)."""
+    if failures and all(reason.startswith("no approach (from behind: no IK solution") for reason in failures):
+        return (" — the hand poses are at the edge of the arm's reach: it cannot come in from behind them; "
+                "an object nearer the robot can be pulled")
+    return ""
 
 
 # ------------------------------------------------------------------------------- 5. rollout
