@@ -692,7 +692,7 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
     error, _ = _push_with_altered_rollouts(lambda i, result: result,
                                            dataclasses.replace(settings, max_planless_rounds=2), choice)
     assert isinstance(error, PushError) and f"(4× {reason[0]})" in error.message
-    assert "edge of the arm's reach" in error.message and "nearer the robot" in error.message
+    assert "cannot come in to them from behind" in error.message
 
 
 def test_planning_time_leaves_out_the_screening_a_plan_less_round_does_inside_it(monkeypatch):

@@ -460,10 +460,11 @@ def _counted(failures: Counter) -> str:
 
 
 def _reach_hint(failures: Counter) -> str:
-    """What to do when every pose tried was reached but no way in to it was (the arm cannot come from behind)."""
+    """Why, when every pose tried was reached but no way in to it was. Seen on the xArm7's pulls toward itself,
+    with the object at 0.32-0.40 m alike: a hand facing the robot folds its wrist near the joint's stop."""
     if failures and all(reason.startswith("no approach (from behind: no IK solution") for reason in failures):
-        return (" — the hand poses are at the edge of the arm's reach: it cannot come in from behind them; "
-                "an object nearer the robot can be pulled")
+        return (" — the arm reaches these hand poses but cannot come in to them from behind (beyond its reach "
+                "or a joint's range for the hand's orientation)")
     return ""
 
 
