@@ -461,7 +461,7 @@ def _counted(failures: Counter) -> str:
 
 def _reach_hint(failures: Counter) -> str:
     """Why, when every pose tried was reached but no way in to it was. Seen on the xArm7's pulls toward itself,
-    with the object at 0.32-0.40 m alike: a hand facing the robot folds its wrist near the joint's stop."""
+    with the object at 0.36 m as at 0.40 m: a hand facing the robot folds the wrist near its joint stop."""
     if failures and all(reason.startswith("no approach (from behind: no IK solution") for reason in failures):
         return (" — the arm reaches these hand poses but cannot come in to them from behind (beyond its reach "
                 "or a joint's range for the hand's orientation)")
