@@ -123,3 +123,18 @@ def test_the_planner_tries_the_poses_the_critic_likes_best_first():
     assert priority(state(False), candidates).tolist() == [0, 1, 2, 3]  # the default: L_dir alone
     assert PipelineSettings().for_push(state(True).request, candidates).prescreen == 0
     assert PipelineSettings().for_push(state(False).request, candidates).prescreen == 24
+
+
+@pytest.mark.parametrize("hand", ["allegro", "leap"])
+def test_each_hand_ships_a_critic_for_its_default_sampler(hand, monkeypatch):
+    # The sampler service ignores a critic made for another checkpoint: a retrained default without its
+    # critic retrained would silently lose the fast path's order (README "The success critic").
+    from services.sampler.critic_train import default_critic_path
+
+    monkeypatch.delenv(f"GD2P_CRITIC_CHECKPOINT_{hand.upper()}", raising=False)
+    monkeypatch.delenv(f"GD2P_SAMPLER_CHECKPOINT_{hand.upper()}", raising=False)
+    path = default_critic_path(hand)
+    assert path is not None and path.is_file(), f"no shipped {hand} critic"
+    loaded = load_critic(path)
+    assert loaded.hand == hand and loaded.sampler_checkpoint_id == checkpoint_id(default_checkpoint_path(hand))
+    assert loaded.manifest["best_val"]["roc_auc"] > 0.7  # chosen on val objects, well above chance
