@@ -669,7 +669,7 @@ def _bisection_order(steps: int) -> list[int]:
 
 def _no_approach(failed: list[tuple[str, PlanningError]]) -> PlanningError:
     """The error of a pre-contact pose no approach leads to: the approaches' own reason when they share it,
-    else "no approach" with each way's reason, e.g. on a pull at the edge of the arm's reach: "no approach
+    else "no approach" with each way's reason, e.g. on an xArm7 pulling toward itself: "no approach
     (from behind: no IK solution; from above: approach configuration in collision)"."""
     assert failed, "MotionSettings.approaches is empty"
     reasons = {exc.reason for _, exc in failed}
