@@ -18,7 +18,7 @@ from services.planner.multistep import (
 )
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
 from shared.robots.hands import load_hand
-from shared.robots.robot_limits import RobotLimits
+from shared.robots.robot_limits import RobotLimits, WorkspaceBox
 from shared.world.fixed_poses import spatula_pose
 from shared.world.objects import load_object, write_object_urdf
 from shared.world.sim.robot_scene import Collision, RobotScene
@@ -378,3 +378,25 @@ def test_the_next_push_skips_a_corner_it_can_cut_and_keeps_one_that_passes_an_ob
     long_edge = np.array([[0.0, 0.0], [0.4, 0.0]])
     assert np.allclose(next_push_target(long_edge, [], object_radius_m=0.05, margin_m=0.08, max_push_m=0.15),
                        [0.4 / 3, 0.0])
+
+
+def test_joint_paths_keep_the_hand_inside_the_workspace_box_the_robot_enforces(scene):
+    """A straight joint-space edge whose hand bulges 5 cm out of a box around its two ends: with the box the
+    path goes around inside it (the robot bridge would refuse the straight one), and a start outside the box is
+    refused by name."""
+    limits = RobotLimits.for_robot("panda", "allegro")
+    home = limits.arm.home.double().numpy()
+    goal = home + np.array([-0.95, -0.53, 0.0, 0.49, 0.0, 0.0, 0.0])  # shoulder turned, arm raised
+    ends = limits.tool_points(np.stack([home, goal])).reshape(-1, 3)
+    box = WorkspaceBox(tuple(ends.min(axis=0) - 0.03), tuple(ends.max(axis=0) + 0.03))
+    straight = home + np.linspace(0.0, 1.0, 100)[:, None] * (goal - home)
+    assert not np.all(box.contains(limits.tool_points(straight)))
+    q_hand, planner = np.zeros(16), MotionPlanner(scene, workspace=box)
+    path = planner.plan_joint_path(home, goal, q_hand)
+    dense = np.concatenate([a + np.linspace(0.0, 1.0, 50)[:, None] * (b - a)
+                            for a, b in zip(path[:-1], path[1:], strict=True)])
+    assert np.all(box.contains(limits.tool_points(dense)))
+    turned_away = home - np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(PlanningError) as error:
+        planner.plan_joint_path(turned_away, goal, q_hand)
+    assert error.value.reason == "start configuration outside the workspace box"

@@ -45,6 +45,7 @@ from ompl import util as ou
 
 from services.planner.ik import ArmIK
 from shared.contracts.messages import Plan, PlanSegment
+from shared.robots.robot_limits import WorkspaceBox
 from shared.world.sim.robot_scene import RobotScene
 
 ou.setLogLevel(ou.LogLevel.LOG_ERROR)
@@ -133,11 +134,16 @@ class ScreenResult:
 class MotionPlanner:
     """Plans pushes for one arm + hand in one scene (table, object, obstacles already added)."""
 
-    def __init__(self, scene: RobotScene, ik: ArmIK | None = None, settings: MotionSettings | None = None):
+    def __init__(self, scene: RobotScene, ik: ArmIK | None = None, settings: MotionSettings | None = None,
+                 workspace: WorkspaceBox | None = None):
+        """`workspace`: the robot's safety box (`RobotLimits.workspace`), which joint-space paths then keep
+        the flange and the hand base inside; the robot refuses a plan that leaves it, and a straight
+        joint-space edge can swing the hand far behind the arm (an xArm7 joint turning half a circle)."""
         self.scene = scene
         self.arm = scene.arm
         self.ik = ik or ArmIK(scene.arm, scene.hand, T_world_base=scene.T_world_base)
         self.settings = settings or MotionSettings()
+        self.workspace = workspace
         self.lower = self.arm.joint_lower.double().numpy()
         self.upper = self.arm.joint_upper.double().numpy()
         self.velocity_limits = self.arm.velocity_limits.double().numpy()
@@ -476,7 +482,8 @@ class MotionPlanner:
             scene.set_configuration(q_start, q_hand)
 
         def valid(state) -> bool:
-            return scene.is_collision_free([state[i] for i in range(dof)], clearance_m=clearance)
+            return scene.is_collision_free([state[i] for i in range(dof)], clearance_m=clearance) and \
+                self._inside_workspace()
 
         setup.setStateValidityChecker(valid)
         start, goal = space.allocState(), space.allocState()
@@ -488,6 +495,9 @@ class MotionPlanner:
             hits = scene.collisions(q, clearance_m=clearance)
             if hits:
                 raise PlanningError(f"{name} configuration in collision", ", ".join(str(h) for h in hits[:3]))
+            if not self._inside_workspace():
+                raise PlanningError(f"{name} configuration outside the workspace box",
+                                    f"the flange or the hand base is outside {self.workspace}")
         started = time.perf_counter()
         if self._straight_edge_free(q_start, q_goal, valid):
             # Most approaches and ways back are one straight joint-space edge: RRTConnect and the
@@ -511,6 +521,14 @@ class MotionPlanner:
         waypoints = np.array([[st[i] for i in range(dof)] for st in path.getStates()])
         self._count_rrt(started, waypoints)
         return waypoints
+
+    def _inside_workspace(self) -> bool:
+        """Whether the flange and the hand base, as the scene's robot stands, are inside `workspace` (if any)."""
+        if self.workspace is None:
+            return True
+        flange = self.scene.link_pose(self.arm.flange_link)
+        points = np.stack([flange[:3, 3], (flange @ self.ik.T_flange_hand)[:3, 3]])
+        return bool(np.all(self.workspace.contains(points)))
 
     def _count_rrt(self, started: float, waypoints: np.ndarray) -> None:
         elapsed = time.perf_counter() - started

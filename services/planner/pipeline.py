@@ -219,7 +219,8 @@ class PushPipeline:
         with self.scene(request.arm, request.hand) as scene:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
-            planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene))
+            planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene),
+                                    workspace=self._limits(request.arm, request.hand).workspace)
             rolled_out = stages.rolls_out(request)
             candidates, settings, feasible = self._screened(state, planner, push)
             planning = stages.ArmPlanning(state, planner, push, self._limits(request.arm, request.hand), settings)
