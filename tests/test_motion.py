@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from services.planner.candidates import Candidates, Push
 from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
 from services.planner.multistep import (
     DirectionInfeasible,
@@ -16,7 +17,7 @@ from services.planner.multistep import (
     split_into_pushes,
     turned_pushes,
 )
-from shared.frames import direction_frame, make_transform, pose25_to_matrix
+from shared.frames import direction_frame, direction_xy, make_transform, matrix_to_r6, pose25_to_matrix
 from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits, WorkspaceBox
 from shared.world.fixed_poses import spatula_pose
@@ -197,11 +198,36 @@ def test_screening_does_not_retry_ik_when_the_hand_itself_collides(box, planner,
 
     def palm_in_the_table(q, *args, **kwargs):
         calls.append(q)
-        return [Collision("link_0.0", "table", -0.02)]
+        return [Collision("link_0.0", "table", -0.05)]  # deeper than screening ever raises a pose
 
     monkeypatch.setattr(planner.scene, "collisions", palm_in_the_table)
     result = planner.screen(T_world_hand[None], q_hand[None])
-    assert result.feasible.tolist() == [False] and len(calls) == 1  # another arm solution moves no hand link
+    # one arm solution looked at (how deep the palm is included): another moves no hand link
+    assert result.feasible.tolist() == [False] and len({tuple(q) for q in calls}) == 1
+
+
+def table_clearance(scene, q, q_hand) -> float:
+    """The hand's closest distance to the table at (q, q_hand), m (negative: in it)."""
+    near = [h for h in scene.collisions(q, q_hand, clearance_m=0.05) if h.other == "table"]
+    return min(h.distance_m for h in near)
+
+
+def test_screening_raises_a_pose_a_few_mm_in_the_table_out_of_it_and_not_one_deep_in_it(box, planner):
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    screened = planner.screen(T_world_hand[None], q_hand[None])
+    clearance = table_clearance(planner.scene, screened.q[0], q_hand)
+    s = planner.settings
+    low, deep = T_world_hand.copy(), T_world_hand.copy()
+    low[2, 3] -= clearance + 0.008  # the hand 8 mm in the table, as learned poses often are
+    deep[2, 3] -= clearance + s.table_lift_max_m + 0.01
+    result = planner.screen(np.stack([low, deep]), np.repeat(q_hand[None], 2, axis=0))
+    assert result.feasible.tolist() == [True, False]
+    assert result.lift_m[0] == pytest.approx(0.008 - s.contact_tolerance_m + 0.001, abs=1e-3)
+    assert result.lift_m[1] == 0.0 and "table" in result.reasons[1]
+    raised = table_clearance(planner.scene, result.q[0], q_hand)
+    assert -s.contact_tolerance_m < raised < 0.0  # out of the table but for the tolerated graze
+    flange_z = planner.arm.flange_pose(torch.as_tensor(np.stack([screened.q[0], result.q[0]]), dtype=torch.float32))[:, 2, 3]
+    assert float(flange_z[1] - flange_z[0]) == pytest.approx(result.lift_m[0] - clearance - 0.008, abs=1e-3)
 
 
 def test_screening_with_the_push_rejects_a_pose_whose_push_runs_out_of_reach(box, planner):
@@ -400,3 +426,20 @@ def test_joint_paths_keep_the_hand_inside_the_workspace_box_the_robot_enforces(s
     with pytest.raises(PlanningError) as error:
         planner.plan_joint_path(turned_away, goal, q_hand)
     assert error.value.reason == "start configuration outside the workspace box"
+
+
+def test_a_candidate_raised_out_of_the_table_is_the_same_pose_in_the_direction_frame_and_the_world(box):
+    push = Push(box_pose(box), direction_xy(125.0), 0.2)  # D turned against the world: z is shared all the same
+    _, q_hand = spatula_pre_contact(box)
+    rng = np.random.default_rng(0)
+    poses_d = np.concatenate([rng.uniform(-0.1, 0.1, (3, 3)), np.repeat(matrix_to_r6(np.eye(3))[None], 3, axis=0),
+                              np.repeat(q_hand[None], 3, axis=0)], axis=1)
+    hand = load_hand("allegro")
+    raised = Candidates.in_frame(poses_d.copy(), push, hand)
+    raised.raise_poses(np.array([0, 2]), np.array([0.006, 0.011]))
+    lifted_d = poses_d.copy()
+    lifted_d[[0, 2], 2] += [0.006, 0.011]
+    expected = Candidates.in_frame(lifted_d, push, hand)
+    for got, want in ((raised.poses_d, expected.poses_d), (raised.poses_world, expected.poses_world),
+                      (raised.T_world_hand, expected.T_world_hand)):
+        np.testing.assert_allclose(got, want, atol=1e-12)

@@ -80,6 +80,13 @@ class Candidates:
     def __len__(self) -> int:
         return len(self.poses_d)
 
+    def raise_poses(self, rows: np.ndarray, lift_m: np.ndarray) -> None:
+        """Raise candidates `rows` by `lift_m` (m, one per row) in place, as screening raised them out of the
+        table (`ScreenResult.lift_m`): D's z is the world's, so one shift moves the pose in both frames."""
+        for poses in (self.poses_d, self.poses_world):
+            poses[rows, 2] += lift_m
+        self.T_world_hand[rows, 2, 3] += lift_m
+
 
 @dataclass(frozen=True)
 class Feasible:

@@ -50,6 +50,8 @@ from shared.world.sim.robot_scene import RobotScene
 
 ou.setLogLevel(ou.LogLevel.LOG_ERROR)
 
+TABLE_LIFT_MARGIN_M = 0.001  # a pose raised out of the table grazes it this much less than the tolerance
+
 
 def seed_ompl(seed: int) -> None:
     """Seed the RNGs OMPL creates next (the state sampler's, the planner's): the same problem and seed
@@ -90,6 +92,11 @@ class MotionSettings:
     max_ik_candidates: int = 4  # distinct IK solutions of the pre-contact pose tried for the straight lines
     clearance_m: float = 0.005  # free-space motion keeps this distance from table, object, obstacles
     contact_tolerance_m: float = 0.003  # Cartesian segments: the hand may graze the table by this much
+    # A pre-contact pose whose hand is in the table by up to this much, and touches nothing else, is
+    # raised until it grazes the table by less than `contact_tolerance_m` (`screen`). The floating hand
+    # that validates the data is driven kinematically, so the table never pushed it out: learned and
+    # retrieved poses sit a few mm low in the URDF's collision shapes. 0: never raised.
+    table_lift_max_m: float = 0.02
     planning_time_s: float = 5.0  # RRTConnect time limit
     seed: int = 0  # every RRTConnect call starts from this OMPL seed: the same request plans the same arm paths
     check_resolution_rad: float = 0.01  # joint-space collision-check step (max joint change)
@@ -129,6 +136,9 @@ class ScreenResult:
     feasible: np.ndarray  # [K] bool
     reasons: list[str]  # [K] "" when feasible, else why not ("no IK solution", ...)
     lines: list[StraightLines | None] = field(default_factory=list)  # [K] with a push: each feasible pose's lines
+    # [K] how far each pose was raised out of the table (m; `MotionSettings.table_lift_max_m`): q and lines
+    # belong to the raised pose, which the caller must plan instead of the one it gave
+    lift_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class MotionPlanner:
@@ -163,19 +173,54 @@ class MotionPlanner:
         each collision-free solution too, all poses in one batch, as `plan_push` would track it: a
         pull far across the workspace often starts reachable and runs out of reach.
         """
+        T_world_hand = np.array(T_world_hand, dtype=np.float64).reshape(-1, 4, 4)
+        q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(T_world_hand), -1)
+        q, reasons = self._collision_free_solutions(T_world_hand, q_hands)
+        lift = self._raise_out_of_table(T_world_hand, q_hands, q, reasons)
+        lines: list[StraightLines | None] = [None] * len(T_world_hand)
+        if push is not None:
+            lines = self._screen_lines(T_world_hand, q, np.asarray(push, dtype=np.float64), reasons)
+        return ScreenResult(q=q, feasible=np.array([not r for r in reasons]), reasons=reasons, lines=lines, lift_m=lift)
+
+    def _collision_free_solutions(self, T_world_hand: np.ndarray, q_hands: np.ndarray) -> tuple[np.ndarray, list[str]]:
+        """Batched IK of [K,4,4] hand poses, then each pose's first collision-free solution: (q [K, dof], reasons)."""
         started = time.perf_counter()
         options = self.ik.distinct_solutions(T_world_hand, limit=self.settings.max_ik_candidates)
         self.stats.ik_s += time.perf_counter() - started
-        q_hands = np.asarray(q_hands, dtype=np.float64).reshape(len(options), -1)
         chosen = [self._first_collision_free(options_k, q_hand)
                   for options_k, q_hand in zip(options, q_hands, strict=True)]
-        q = np.array([q_k for q_k, _ in chosen]).reshape(len(options), self.arm.dof)
-        reasons = [reason for _, reason in chosen]
-        lines: list[StraightLines | None] = [None] * len(options)
-        if push is not None:
-            lines = self._screen_lines(np.asarray(T_world_hand, dtype=np.float64).reshape(-1, 4, 4), q,
-                                       np.asarray(push, dtype=np.float64), reasons)
-        return ScreenResult(q=q, feasible=np.array([not r for r in reasons]), reasons=reasons, lines=lines)
+        return np.array([q_k for q_k, _ in chosen]).reshape(len(options), self.arm.dof), [r for _, r in chosen]
+
+    def _raise_out_of_table(self, T_world_hand: np.ndarray, q_hands: np.ndarray, q: np.ndarray,
+                            reasons: list[str]) -> np.ndarray:
+        """Raise the poses whose hand is only in the table, by at most `table_lift_max_m`, until it grazes it
+        by less than `contact_tolerance_m`, and solve them there. T_world_hand, q and reasons of the poses
+        raised and then feasible are updated in place; returns each pose's lift [K] (m, 0: not raised)."""
+        s = self.settings
+        lift = np.zeros(len(T_world_hand))
+        for i, reason in enumerate(reasons):
+            depth = self._table_depth(q[i], q_hands[i]) if reason.startswith("pre-contact pose in collision") else None
+            if depth is not None and depth <= s.table_lift_max_m:
+                lift[i] = depth - s.contact_tolerance_m + TABLE_LIFT_MARGIN_M
+        rows = np.flatnonzero(lift > 0)
+        if rows.size == 0:
+            return lift
+        raised = T_world_hand[rows].copy()
+        raised[:, 2, 3] += lift[rows]
+        q_raised, raised_reasons = self._collision_free_solutions(raised, q_hands[rows])
+        for k, i in enumerate(rows):
+            if raised_reasons[k]:
+                lift[i] = 0.0
+            else:
+                T_world_hand[i], q[i], reasons[i] = raised[k], q_raised[k], ""
+        return lift
+
+    def _table_depth(self, q: np.ndarray, q_hand: np.ndarray) -> float | None:
+        """How deep the hand is in the table (m) at (q, q_hand) when that is all it collides with, else None."""
+        hits = self.scene.collisions(q, q_hand, clearance_m=-self.settings.contact_tolerance_m, allow_hand_object=True)
+        if not hits or any(h.other != "table" or h.robot_link not in self._hand_links for h in hits):
+            return None
+        return -min(h.distance_m for h in hits)
 
     def _first_collision_free(self, options: np.ndarray, q_hand: np.ndarray) -> tuple[np.ndarray, str]:
         """The first IK solution among `options` [n, dof] whose arm and hand touch nothing but the object

@@ -248,6 +248,7 @@ def screen_more(state: RequestState, planner: MotionPlanner, feasible: Feasible,
         state.cancel.check()
         chunk, unscreened = unscreened[:SCREEN_CHUNK], unscreened[SCREEN_CHUNK:]
         result = planner.screen(candidates.T_world_hand[chunk], candidates.q_hands[chunk], push=push.offset)
+        candidates.raise_poses(chunk, result.lift_m)
         q_pre[chunk] = result.q
         for index, tracked in zip(chunk, result.lines, strict=True):
             lines[index] = tracked
