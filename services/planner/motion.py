@@ -2,7 +2,8 @@
 
 The paper plans with cuRobo; here (CPU, no GPU) the same plan is built from pieces. First,
 `MotionPlanner.screen` discards the sampled poses that can never be executed (batched IK, then a
-collision check of each pre-contact configuration) and tracks the straight lines of every pose left
+collision check of each pre-contact configuration; a pose whose hand is only a few mm in the table is
+raised out of it instead, `table_lift_max_m`) and tracks the straight lines of every pose left
 (`StraightLines`: approach, push, back-off) in one IK batch. Then, per pose, `plan_push`:
 
 0. tries up to `max_ik_candidates` distinct IK solutions of the pre-contact pose until the straight
