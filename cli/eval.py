@@ -81,7 +81,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser); "
                              "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-closed, "
                              "gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
-                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn")
+                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn (default), "
+                             "nn-fill (the nearest frames up to K = 200 poses), ddpm100-critic, nn-fill-critic (in the success "
+                             "critic's order: $GD2P_CRITIC_CHECKPOINT_<HAND>, else the shipped critic)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="sampler-quality: the diffusion checkpoint to measure (default the shipped Allegro one; its poses "
                              "are pushed with the hand it was trained for); name its results with --tag. Refused elsewhere: methods / "

@@ -124,7 +124,7 @@ class PoseSource(Protocol):
 
 
 _OPEN_SOURCES: OrderedDict[tuple, Any] = OrderedDict()  # per process: loaded checkpoints / indexes
-_OPEN_LIMIT = 2
+_OPEN_LIMIT = 3  # a critic-ordered retrieval holds an index, a sampler (its BPS encoder) and a critic
 
 
 def _cached(key: tuple, load: Callable[[], Any], close: Callable[[Any], None] | None = None) -> Any:
@@ -174,9 +174,10 @@ class NearestNeighborSource:
     """
 
     index: str  # a NearestNeighborBaseline .npz
+    fill: bool = False  # the nearest frames' poses up to k, so retrieval gets the model's candidate budget
 
     def label(self) -> str:
-        return "Nearest neighbour"
+        return "Nearest neighbour, nearest frames up to K" if self.fill else "Nearest neighbour"
 
     def baseline(self) -> Any:
         """The index as a `NearestNeighborBaseline`, loaded once per process."""
@@ -188,7 +189,49 @@ class NearestNeighborSource:
         from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
 
         points, _ = obj.surface_points(SURFACE_POINTS, seed=SURFACE_SEED, T_D_O=object_in_d(frame))
-        return self.baseline().query_points(points, k=k, seed=seed).poses
+        baseline = self.baseline()
+        if self.fill:
+            return baseline.nearest_frames_poses(baseline.bps.encode(points), k)
+        return baseline.query_points(points, k=k, seed=seed).poses
+
+
+@dataclass(frozen=True)
+class CriticOrderedSource:
+    """Another source's poses, most likely to push well first by the success critic: the order the planner's
+    critic path (`PushRequest.critic`) tries them in, so the first poses pushed are the ones it would plan.
+
+    The critic scores a pose from the object's BPS as `checkpoint`'s sampler encodes it (the encoding it was
+    trained on), whatever the poses came from.
+    """
+
+    inner: DiffusionSource | NearestNeighborSource
+    checkpoint: str  # the sampler checkpoint the critic was trained for
+    critic: str  # a `gd2p critic train` checkpoint
+
+    def label(self) -> str:
+        return f"{self.inner.label()}, critic order"
+
+    def scorer(self) -> Any:
+        """The critic's model, loaded once per process; CoverageError for a critic of another checkpoint."""
+        from services.sampler.checkpoint import checkpoint_id
+        from services.sampler.critic_train import load_critic
+
+        def load() -> Any:
+            loaded = load_critic(self.critic)
+            if loaded.sampler_checkpoint_id != checkpoint_id(self.checkpoint):
+                raise CoverageError(f"the critic {self.critic} was trained for the sampler checkpoint "
+                                    f"{loaded.sampler_checkpoint_id}, not {self.checkpoint} ({checkpoint_id(self.checkpoint)})")
+            return loaded.model
+
+        return _cached(("critic", self.critic, _file_stamp(self.critic)), load)
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        from services.sampler.critic_train import success_probabilities
+
+        poses = self.inner.poses(obj, frame, k, seed)
+        bps, _, _ = DiffusionSource(self.checkpoint).pose_sampler().encode(obj, frame)
+        scores = success_probabilities(self.scorer(), bps, poses)
+        return poses[np.argsort(-scores, kind="stable")]
 
 
 def _file_stamp(path: str) -> tuple[int, int]:

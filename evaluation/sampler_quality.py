@@ -11,6 +11,10 @@ anchor: 169 of 300 unseen objects (56%); the target: >= 75%.
 The same measurement chooses among trained checkpoints on the val split (`split="val"`, a
 `checkpoint` and a `tag`), and `yaw="random"` turns every object by a seeded yaw first, as a user
 places objects (the shipped version-1 model only ever saw yaw 0).
+
+On request (`--methods`) the same poses are also measured in the success critic's order ("-critic": the
+order the planner's critic path plans in), and retrieval is also given the model's K candidates
+("nn-fill": the nearest frames' poses up to K), so the critic stage is compared with equal candidates.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ from evaluation.coverage import (
     CoverageError,
     CoveragePool,
     CoverageSettings,
+    CriticOrderedSource,
     DiffusionSource,
     NearestNeighborSource,
     PoseSource,
@@ -42,7 +47,12 @@ from evaluation.store import ResultStore
 NAME = "sampler-quality"
 QUICK_OBJECTS = 8
 PAPER_COVERED, PAPER_OBJECTS = 169.33, 300
-METHOD_KEYS = ("ddpm100", "ddim10", "nn")  # record-key prefixes, in table order
+DEFAULT_METHOD_KEYS = ("ddpm100", "ddim10", "nn")  # what a run measures unless told otherwise
+# Record-key prefixes, in table order. With the critic: each source's poses in the success critic's order, the
+# order the planner's critic path tries them in; "nn-fill": retrieval given the model's K candidates (the
+# nearest frames' poses up to K), so that the critic has as many poses to choose from as it has of the model's.
+CRITIC_METHOD_KEYS = ("ddpm100-critic", "nn-fill-critic")
+METHOD_KEYS = (*DEFAULT_METHOD_KEYS, "nn-fill", *CRITIC_METHOD_KEYS)
 SPLITS = ("test", "val")
 
 
@@ -114,22 +124,30 @@ def quality_objects(quick: bool = False, split: str = "test", count: int | None 
     return interleaved[:count]
 
 
-def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = METHOD_KEYS,
-            noise_scale: float | None = None) -> dict[str, PoseSource]:
-    """Record-key prefix -> pose source, in table order; `noise_scale`: the diffusion sources' temperature."""
+def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = DEFAULT_METHOD_KEYS,
+            noise_scale: float | None = None, critic: Path | None = None) -> dict[str, PoseSource]:
+    """Record-key prefix -> pose source, in table order; `noise_scale`: the diffusion sources' temperature;
+    `critic`: the success critic ordering the "-critic" methods (trained for `checkpoint`)."""
     unknown = [k for k in keys if k not in METHOD_KEYS]
     if unknown or not keys:
         raise CoverageError(f"unknown sampler-quality method(s) {unknown or '(none)'}; known: {', '.join(METHOD_KEYS)}")
-    every = {
+    every: dict[str, PoseSource] = {
         "ddpm100": DiffusionSource(str(checkpoint), "ddpm", noise_scale=noise_scale),
         "ddim10": DiffusionSource(str(checkpoint), "ddim", noise_scale=noise_scale),
         "nn": NearestNeighborSource(str(nn_index)),
+        "nn-fill": NearestNeighborSource(str(nn_index), fill=True),
     }
+    if any(k in CRITIC_METHOD_KEYS for k in keys):
+        if critic is None or not Path(critic).is_file():
+            raise CoverageError(f"the methods {', '.join(CRITIC_METHOD_KEYS)} need a success critic for {checkpoint.name}; "
+                                f"none at {critic} (set $GD2P_CRITIC_CHECKPOINT_<HAND>)")
+        every["ddpm100-critic"] = CriticOrderedSource(every["ddpm100"], str(checkpoint), str(critic))
+        every["nn-fill-critic"] = CriticOrderedSource(every["nn-fill"], str(checkpoint), str(critic))
     return {k: every[k] for k in METHOD_KEYS if k in keys}
 
 
 def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings,
-                noise_scale: float = 1.0) -> dict[str, Any]:
+                noise_scale: float = 1.0, critic: Path | None = None) -> dict[str, Any]:
     """What the store pins: the objects, the exact weights and index, the sampling temperature and the protocol.
 
     The methods are not pinned: a run can be extended with another method later (each method's
@@ -138,9 +156,11 @@ def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, cov
     from services.sampler.checkpoint import checkpoint_id
 
     settings = {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
-                "methods": list(METHOD_KEYS), "coverage": coverage.to_dict()}
+                "methods": list(DEFAULT_METHOD_KEYS), "coverage": coverage.to_dict()}
     if noise_scale != 1.0:  # pinned only when set, so stores made before the option existed still resume
         settings["noise_scale"] = float(noise_scale)
+    if critic is not None:  # likewise: pinned by the runs that order poses by a critic
+        settings["critic_id"] = checkpoint_id(critic)
     return settings
 
 
@@ -161,14 +181,17 @@ def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str
 
 
 def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
-        nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = METHOD_KEYS,
+        nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = DEFAULT_METHOD_KEYS,
         tag: str | None = None, objects: int | None = None, noise_scale: float | None = None) -> Path:
     """Measure the pose sources on a split into `result_directory(...)`; returns the report path.
 
     `checkpoint` / `nn_index`: the model and index to measure (default the shipped ones); a run of
     another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val);
-    `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`).
+    `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`);
+    the "-critic" methods order poses by the hand's critic (`default_critic_path`: $GD2P_CRITIC_CHECKPOINT_<HAND>,
+    else the shipped one).
     """
+    from services.sampler.critic_train import default_critic_path
     from services.sampler.diffusion import default_noise_scale
 
     started = time.perf_counter()
@@ -184,9 +207,10 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
         raise CoverageError(f"no nearest-neighbour index at {nn_index}")
     object_ids = quality_objects(quick, split, objects)
     coverage = CoverageSettings(hand=hand, yaw=yaw)
-    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale))
+    critic = default_critic_path(hand) if any(k in CRITIC_METHOD_KEYS for k in methods_to_run) else None
+    sources = methods(checkpoint, nn_index, methods_to_run, noise_scale, critic)
+    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale, critic))
     results: dict[str, list[dict[str, Any]]] = {}
-    sources = methods(checkpoint, nn_index, methods_to_run, noise_scale)
     with CoveragePool(workers) as pool:
         for key, source in sources.items():
             results[key] = pool.measure(source, object_ids, store, key, coverage, desc=source.label())
@@ -194,7 +218,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     plot = plot_validated_fractions(results, sources, directory / "validated_fraction.png")
     body = report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw, hand)
     summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "hand": hand, "checkpoint": checkpoint.name,
-               "nn_index": nn_index.name, "methods": {sources[k].label(): v for k, v in summaries.items()},
+               "nn_index": nn_index.name, "critic": None if critic is None else critic.name, "methods": {sources[k].label(): v for k, v in summaries.items()},
                "families": family_table_data(results, sources),
                "paper_anchor": {"covered": PAPER_COVERED, "objects": PAPER_OBJECTS}, "target_covered_pct": TARGET_COVERED_PCT}
     return write_experiment(directory, f"Sampler quality on the {split} split", body, summary,
@@ -246,6 +270,9 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
         nn_text = (f"The Nearest Neighbor baseline returns the stored poses of the training frame nearest in BPS: "
                    f"{np.mean(nn_counts):.0f} per object on average (min {min(nn_counts)}, max {max(nn_counts)}); "
                    f"its index: `{nn_index.name}`. ")
+    critic_text = next((f"\"critic order\": the source's 200 poses sorted by the success critic `{Path(source.critic).name}` "
+                        "(most likely to push well first), so the first 50 pushed are those the planner's critic path "
+                        "would plan from. " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
             f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
@@ -256,7 +283,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
             "then 25 at a time until one succeeds (>= 1 validated pose of 200 — early stopping gives exactly the "
             "count that pushing all 200 would). \"Spread\": per object, the RMS distance of the validated poses' palm "
             "positions (among the first 50) from their mean, median over objects: a source that repeats one good "
-            f"pose validates often with a spread near 0. {nn_text}\"worker-seconds\" sums the per-object "
+            f"pose validates often with a spread near 0. {nn_text}{critic_text}\"worker-seconds\" sums the per-object "
             "time (sampling + pushes) over the worker processes.\n\n"
             f"![validated fraction per object]({plot_name})\n")
 
@@ -291,7 +318,7 @@ def family_markdown(families: dict[str, dict[str, Any]]) -> str:
 def verdict(summaries: dict[str, dict[str, Any]], results: dict[str, list[dict[str, Any]]]) -> str:
     """Sentences comparing DDPM-100 with the target, and each other method with it (paired by object)."""
     if "ddpm100" not in summaries:
-        return ""
+        return critic_verdict(summaries, results)
     ddpm = summaries["ddpm100"]
     gap = ddpm["covered_pct"] - TARGET_COVERED_PCT
     target = (f"meets the >= {TARGET_COVERED_PCT:.0f}% target" if gap >= 0
@@ -304,6 +331,18 @@ def verdict(summaries: dict[str, dict[str, Any]], results: dict[str, list[dict[s
             sentences.append(f"{name} validates {summaries[key]['pooled_validated_fraction']:.1%} and covers "
                              f"{summaries[key]['covered']}; DDPM-100 minus {name}: {diff.points()} points "
                              "(paired by object).")
+    return " ".join([*sentences, critic_verdict(summaries, results)]).strip()
+
+
+def critic_verdict(summaries: dict[str, dict[str, Any]], results: dict[str, list[dict[str, Any]]]) -> str:
+    """DDPM-100 in the critic's order against retrieval with and without the same stage (paired by object)."""
+    if "ddpm100-critic" not in summaries:
+        return ""
+    sentences = [f"DDPM-100 in the critic's order validates {summaries['ddpm100-critic']['pooled_validated_fraction']:.1%}."]
+    for key, name in (("nn-fill-critic", "the nearest frames' poses in the critic's order"), ("nn", "Nearest Neighbor")):
+        if key in summaries:
+            diff = difference_interval(pose_trials(results["ddpm100-critic"]), pose_trials(results[key]))
+            sentences.append(f"Minus {name}: {diff.points()} points (paired by object).")
     return " ".join(sentences)
 
 

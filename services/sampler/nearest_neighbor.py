@@ -106,14 +106,33 @@ class NearestNeighborBaseline:
         return cls.from_dataset(load_pose_dataset(directory, hand), bps, progress)
 
     # ------------------------------------------------------------------ queries
-    def nearest(self, features: np.ndarray) -> tuple[int, float]:
-        """(row of the nearest training frame, Euclidean BPS distance) for a query BPS vector."""
+    def _squared_distances(self, features: np.ndarray) -> np.ndarray:
+        """[frames] squared Euclidean BPS distance of every training frame to a query BPS vector."""
         query = np.asarray(features, dtype=np.float64).reshape(-1)
         if query.shape != (self.bps.n,):
             raise NearestNeighborError(f"query BPS must have {self.bps.n} values, got {query.size}")
-        squared = self._squared_norms - 2.0 * (self.frame_features @ query) + query @ query
+        return self._squared_norms - 2.0 * (self.frame_features @ query) + query @ query
+
+    def nearest(self, features: np.ndarray) -> tuple[int, float]:
+        """(row of the nearest training frame, Euclidean BPS distance) for a query BPS vector."""
+        squared = self._squared_distances(features)
         row = int(np.argmin(squared))
         return row, float(np.sqrt(max(squared[row], 0.0)))
+
+    def nearest_frames_poses(self, features: np.ndarray, k: int) -> np.ndarray:
+        """[<= k, 25] the stored poses of the nearest frames, nearest first, until there are `k`.
+
+        Retrieval given the same number of candidates as the model's K samples (one frame holds
+        typically 20-90 poses): every pose of the nearest frame, then of the next nearest, and so on;
+        the last frame contributes its first poses in stored order.
+        """
+        if k < 1:
+            raise NearestNeighborError(f"k must be >= 1, got {k}")
+        counts = np.diff(self._starts)
+        order = np.argsort(self._squared_distances(features), kind="stable")
+        needed = int(np.searchsorted(np.cumsum(counts[order]), k)) + 1
+        rows = order[:needed]
+        return np.concatenate([self._poses[self._starts[r]:self._starts[r + 1]] for r in rows])[:k].copy()
 
     def query(self, features: np.ndarray, k: int | None = None, seed: int = 0) -> NeighborMatch:
         """The nearest frame's poses: all of them, or a seeded random subset of `k` when it has more."""
