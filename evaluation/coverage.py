@@ -223,7 +223,7 @@ class CriticOrderedSource:
                                     f"{loaded.sampler_checkpoint_id}, not {self.checkpoint} ({checkpoint_id(self.checkpoint)})")
             return loaded.model
 
-        return _cached(("critic", self.critic, _file_stamp(self.critic)), load)
+        return _cached(("critic", self.critic, _file_stamp(self.critic), self.checkpoint), load)
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
         from services.sampler.critic_train import success_probabilities

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from evaluation.coverage import (
+    CoverageError,
     CoverageSettings,
     PushTally,
     measure_coverage,
@@ -309,3 +310,32 @@ def test_sampler_quality_takes_the_hand_a_checkpoint_was_trained_for_and_its_ind
     assert checkpoint_hand(shipped_checkpoint("leap")) == "leap"
     assert checkpoint_hand(shipped_checkpoint()) == "allegro"
     assert nearest_neighbor_index(Path("/tmp/never-written"), hand="leap") == shipped_nn_index("leap")
+
+
+def test_critic_order_puts_the_samples_the_critic_likes_first_and_refuses_another_checkpoints_critic():
+    from evaluation.coverage import CriticOrderedSource, DiffusionSource, coverage_frame
+    from evaluation.sampler_quality import shipped_checkpoint
+    from services.sampler.critic_train import load_critic, success_probabilities
+    from services.sampler.sampling import PoseSampler
+
+    checkpoint, critic = shipped_checkpoint(), shipped_checkpoint().with_name("allegro_critic.pt")
+    obj = load_object("proc-box-000")
+    frame = coverage_frame(obj, CoverageSettings(yaw="random"), "proc-box-000")
+    drawn = DiffusionSource(str(checkpoint)).poses(obj, frame, 24, seed=3)
+    ordered = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint), str(critic)).poses(obj, frame, 24, seed=3)
+    # The same 24 samples, only reordered, and the critic's probability never rises down the list.
+    assert sorted(map(tuple, ordered)) == sorted(map(tuple, drawn))
+    bps, _, _ = PoseSampler(str(checkpoint)).encode(obj, frame)
+    scores = success_probabilities(load_critic(critic).model, bps, ordered)
+    assert np.all(np.diff(scores) <= 0) and scores[0] > scores[-1]
+    wrong = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint.with_name("allegro_v1.pt")), str(critic))
+    with pytest.raises(CoverageError, match="trained for the sampler checkpoint"):
+        wrong.poses(obj, frame, 4, seed=0)
+
+
+def test_sampler_quality_refuses_critic_methods_without_a_critic(tmp_path):
+    from evaluation.sampler_quality import methods, shipped_checkpoint, shipped_nn_index
+
+    with pytest.raises(CoverageError, match="need a success critic"):
+        methods(shipped_checkpoint(), shipped_nn_index(), ("ddpm100-critic",), critic=tmp_path / "none.pt")
+    assert list(methods(shipped_checkpoint(), shipped_nn_index(), ("nn", "nn-fill"))) == ["nn", "nn-fill"]

@@ -243,3 +243,17 @@ def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zeno
     stored = NearestNeighborBaseline.load(default_nn_index_path("allegro")).poses
     assert (stored == response.chosen_pose.to_numpy()).all(axis=1).any()  # a stored pose, not a sampled one
     assert response.success and response.result.position_error_m <= 0.03
+
+
+def test_retrieval_given_k_candidates_takes_whole_frames_nearest_first(index_path):
+    baseline = NearestNeighborBaseline.load(index_path)
+    query = baseline.frame_features[2].astype(np.float64)
+    filled = baseline.nearest_frames_poses(query, 15)
+    stored = baseline.poses
+    # 6 + 6 poses of the two nearest frames, then the first 3 of the third; the query's own frame first.
+    blocks = [filled[:6], filled[6:12], filled[12:]]
+    rows = [sorted({r // POSES_PER_FRAME for r in rows_of(block, stored)}) for block in blocks]
+    assert len(filled) == 15 and all(len(r) == 1 for r in rows) and rows[0] == [2]
+    distances = [float(np.linalg.norm(baseline.frame_features[r[0]] - query)) for r in rows]
+    assert distances == sorted(distances) and len({r[0] for r in rows}) == 3
+    assert len(baseline.nearest_frames_poses(query, 1000)) == len(stored)  # fewer stored than asked: all of them
