@@ -283,6 +283,22 @@ def test_a_pose_no_approach_leads_to_names_why_each_way_in_failed(box, scene):
     assert error.value.detail.startswith("from behind: approach segment: the arm cannot follow")
 
 
+def test_a_hand_too_near_the_object_6_cm_above_its_pose_comes_straight_down_from_higher(box, scene):
+    """The spatula pose behind the box with no way in from behind (5 m back): 6 cm above the pose a finger is
+    within the free-space clearance of the box; the shipped ways down from higher up plan."""
+    T_world_hand, q_hand = spatula_pre_contact(box)
+    direction = push_frame()[:3, 0]
+    from_6_cm = MotionPlanner(scene, settings=MotionSettings(approaches=((5.0, 0.05), (0.0, 0.06))))
+    with pytest.raises(PlanningError) as error:
+        from_6_cm.plan_push(T_world_hand, q_hand, direction, 0.15, return_home=False)
+    assert "from above: approach configuration in collision" in error.value.reason and "vs object" in error.value.detail
+    straight_down = tuple(a for a in MotionSettings().approaches if a[0] == 0.0)
+    assert max(lift for _, lift in straight_down) > 0.06
+    shipped = MotionPlanner(scene, settings=MotionSettings(approaches=((5.0, 0.05), *straight_down)))
+    plan = shipped.plan_push(T_world_hand, q_hand, direction, 0.15, return_home=False)
+    assert [s.label for s in plan.segments] == ["approach", "push", "retreat"]
+
+
 def test_target_inside_the_table_is_infeasible_with_a_clear_reason(box, planner):
     T_world_hand, q_hand = spatula_pre_contact(box)
     T_world_hand[2, 3] = -0.05  # the hand base 5 cm below the table top
