@@ -20,7 +20,8 @@ it (`critic eval`; `critic train` refuses test data). Resumable: a restarted com
 rate of each object's six best-scored poses and of all its poses, and that of L_dir's six (the order
 without a critic).
 
-`train` fits the critic (BPS of the object + pose -> P(success), position error) and keeps the step
+`train` fits the critic (BPS of the object + pose + where the hand meets the object -> P(success), position
+error; `--no-contact` leaves the contact features out, as critics before them were) and keeps the step
 with the best ROC AUC on `--val`; it prints that AUC and the success rate of each val object's six
 best-scored poses against all of its poses. The sampler service picks up
 `services/sampler/checkpoints/<hand>_critic.pt` (or $GD2P_CRITIC_CHECKPOINT_<HAND>; "none" turns it off)
@@ -29,6 +30,7 @@ when it was trained for the installed sampler checkpoint.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -66,6 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     train.add_argument("--steps", type=positive_int, default=2000)
     train.add_argument("--seed", type=non_negative_int, default=0)
+    train.add_argument("--no-contact", action="store_true",
+                       help="without the contact features (where the hand meets the object): BPS and pose only")
     train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
     train.set_defaults(func=run_train)
     report = commands.add_parser("eval", help="ROC AUC and top-6 success of a critic on labelled data",
@@ -108,7 +112,6 @@ def run_train(args: argparse.Namespace) -> int:
     from services.sampler.critic_train import (
         CriticError,
         CriticTraining,
-        encode_records,
         manifest_for,
         read_records,
         save_critic,
@@ -135,8 +138,10 @@ def run_train(args: argparse.Namespace) -> int:
             print(f"gd2p critic train: the data was sampled with checkpoint(s) {sorted(stale)}, the installed one is "
                   f"{sampler.checkpoint_id}: rebuild the data with it", file=sys.stderr)
             return 2
-        train, val = encode_records(train_records, sampler), encode_records(val_records, sampler)
+        train, val = _encode(train_records, sampler, "train data"), _encode(val_records, sampler, "val data")
     settings = CriticTraining(steps=args.steps, seed=args.seed)
+    if args.no_contact:
+        settings = dataclasses.replace(settings, config=dataclasses.replace(settings.config, contact_dim=0))
     model, result = train_critic(train, val, settings, progress=lambda m: print(json.dumps(m), file=sys.stderr))
     command = "gd2p " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     manifest = manifest_for(args.data, args.val, settings, train, val, result, started, command)
@@ -154,7 +159,6 @@ def run_eval(args: argparse.Namespace) -> int:
     from services.sampler.critic_train import (
         CriticError,
         default_critic_path,
-        encode_records,
         evaluate,
         load_critic,
         read_records,
@@ -175,9 +179,19 @@ def run_eval(args: argparse.Namespace) -> int:
         print("gd2p critic eval: no critic installed ($GD2P_CRITIC_CHECKPOINT_<HAND> is 'none')", file=sys.stderr)
         return 2
     with PoseSampler(default_checkpoint_path(args.hand)) as sampler:
-        data = encode_records(records, sampler)
+        data = _encode(records, sampler, "data")
     metrics = evaluate(critic.model, data)
     l_dir = ranking.direction_costs(load_hand(args.hand), data.poses.double().numpy())
     metrics["l_dir_top6_success"] = round(top_k_success(-l_dir, data.success.numpy() > 0.5, data.group.numpy()), 4)
     print(json.dumps({"critic": str(path), "data": str(args.data), **metrics}))
     return 0 if np.isfinite(metrics["roc_auc"]) else 1
+
+
+def _encode(records: list, sampler, what: str):
+    """`encode_records` with a progress bar: BPS and contact features take about 3 s per 1,000 poses."""
+    from tqdm import tqdm
+
+    from services.sampler.critic_train import encode_records
+
+    with tqdm(total=len(records), desc=f"encoding {what}", unit="object", file=sys.stderr) as bar:
+        return encode_records(records, sampler, progress=bar.update)

@@ -212,7 +212,7 @@ class CriticOrderedSource:
         return f"{self.inner.label()}, critic order"
 
     def scorer(self) -> Any:
-        """The critic's model, loaded once per process; CoverageError for a critic of another checkpoint."""
+        """The critic (`LoadedCritic`), loaded once per process; CoverageError for a critic of another checkpoint."""
         from services.sampler.checkpoint import checkpoint_id
         from services.sampler.critic_train import load_critic
 
@@ -221,7 +221,7 @@ class CriticOrderedSource:
             if loaded.sampler_checkpoint_id != checkpoint_id(self.checkpoint):
                 raise CoverageError(f"the critic {self.critic} was trained for the sampler checkpoint "
                                     f"{loaded.sampler_checkpoint_id}, not {self.checkpoint} ({checkpoint_id(self.checkpoint)})")
-            return loaded.model
+            return loaded
 
         return _cached(("critic", self.critic, _file_stamp(self.critic), self.checkpoint), load)
 
@@ -229,8 +229,10 @@ class CriticOrderedSource:
         from services.sampler.critic_train import success_probabilities
 
         poses = self.inner.poses(obj, frame, k, seed)
-        bps, _, _ = DiffusionSource(self.checkpoint).pose_sampler().encode(obj, frame)
-        scores = success_probabilities(self.scorer(), bps, poses)
+        sampler = DiffusionSource(self.checkpoint).pose_sampler()
+        points_d, _, label = sampler.points_in_d(obj, frame)
+        critic = self.scorer()
+        scores = success_probabilities(critic.model, critic.hand, sampler.encode_points(points_d, label), points_d, poses)
         return poses[np.argsort(-scores, kind="stable")]
 
 

@@ -12,6 +12,7 @@ from services.planner.candidates import Candidates
 from services.planner.stages import PipelineSettings, RequestState, priority
 from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
 from services.sampler.critic import CriticConfig, SuccessCritic
+from services.sampler.critic_features import CONTACT_FEATURES, contact_features
 from services.sampler.critic_train import (
     CriticData,
     CriticError,
@@ -26,7 +27,7 @@ from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
 from shared.robots.hands import load_hand
 
 torch.set_num_threads(1)
-TINY = CriticConfig(bps_dim=32, object_dim=16, hidden_dim=64, num_layers=2)
+TINY = CriticConfig(bps_dim=32, object_dim=16, hidden_dim=64, num_layers=2, contact_dim=3)
 
 
 def test_roc_auc_is_the_fraction_of_success_failure_pairs_ranked_right():
@@ -37,16 +38,17 @@ def test_roc_auc_is_the_fraction_of_success_failure_pairs_ranked_right():
 
 
 def synthetic_data(objects: int, seed: int) -> CriticData:
-    """Objects with random BPS; a pose succeeds when its x plus the object's first BPS feature is positive,
-    so the critic must use both the pose and the geometry."""
+    """Objects with random BPS; a pose succeeds when its x plus the object's first BPS feature plus its first
+    contact feature is positive, so the critic must use the pose, the geometry and where they meet."""
     rng = np.random.default_rng(seed)
     bps = rng.normal(size=(objects, TINY.bps_dim)).astype(np.float32)
     group = np.repeat(np.arange(objects), 40)
     poses = rng.normal(size=(len(group), 25)).astype(np.float32)
-    success = (poses[:, 0] + bps[group, 0] > 0).astype(np.float32)
+    contact = rng.normal(size=(len(group), TINY.contact_dim)).astype(np.float32)
+    success = (poses[:, 0] + bps[group, 0] + contact[:, 0] > 0).astype(np.float32)
     error = np.where(success > 0, 0.01, 0.1).astype(np.float32)
     return CriticData(torch.as_tensor(poses), torch.as_tensor(group), torch.as_tensor(bps), torch.as_tensor(success),
-                      torch.as_tensor(error), [f"obj-{i}" for i in range(objects)])
+                      torch.as_tensor(error), [f"obj-{i}" for i in range(objects)], torch.as_tensor(contact))
 
 
 @pytest.fixture(scope="module")
@@ -69,14 +71,38 @@ def test_a_critic_round_trips_through_its_checkpoint(trained, tmp_path):
     loaded = load_critic(path)
     data = synthetic_data(2, seed=3)
     assert loaded.hand == "allegro" and loaded.sampler_checkpoint_id == "sampler-abc"
-    assert torch.allclose(loaded.model(data.poses, data.bps, data.group)[0], model(data.poses, data.bps, data.group)[0])
+    assert torch.allclose(loaded.model(data.poses, data.bps, data.group, data.contact)[0],
+                          model(data.poses, data.bps, data.group, data.contact)[0])
+    with pytest.raises(ValueError, match="contact features"):
+        loaded.model(data.poses, data.bps, data.group)  # a critic trained with contact features cannot score without
     assert (tmp_path / "critic.pt.manifest.json").is_file()
     torch.save({"format": "something else"}, tmp_path / "other.pt")
     with pytest.raises(CriticError, match="not a gd2p-critic"):
         load_critic(tmp_path / "other.pt")
 
 
-def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoint(tmp_path, monkeypatch):
+def test_contact_features_say_where_the_hand_meets_the_object():
+    hand = load_hand("allegro")
+    pose = hand.open_pose(1)
+    pose[0, :3] = torch.tensor([-0.12, 0.0, 0.08])
+    touched = hand.contact_candidates_world(hand.forward(pose))[0][0, 0]  # a point on the hand's surface
+    rng = np.random.default_rng(0)
+    near = touched + torch.as_tensor(rng.normal(scale=0.001, size=(200, 3)), dtype=torch.float32)
+    far = torch.tensor([0.5, 0.5, 0.3]) + torch.as_tensor(rng.normal(scale=0.01, size=(200, 3)), dtype=torch.float32)
+    features = contact_features(hand, pose, torch.cat([near, far]))[0]
+    assert features.shape == (CONTACT_FEATURES,)
+    centroid, closest, share_1cm = features[:3], features[3], features[4]
+    assert torch.linalg.norm(centroid - touched) < 0.003  # the push acts where the hand touches, not at the far points
+    assert abs(float(closest)) < 0.005 and 0.45 < float(share_1cm) < 0.55  # half the points are at the hand
+    assert torch.allclose(features[13:16], torch.cat([near, far]).min(0).values, atol=0.05)  # the object's extent
+    moved_away = contact_features(hand, pose, torch.cat([near, far]) + torch.tensor([0.0, 0.0, 1.0]))[0]
+    assert float(moved_away[3]) > 0.5 and float(moved_away[4]) == 0.0  # nothing within a centimetre
+    with pytest.raises(ValueError, match="object points"):
+        contact_features(hand, pose, torch.zeros(0, 3))
+
+
+@pytest.mark.parametrize("contact_dim", [0, CONTACT_FEATURES])  # 0: critics trained before contact features
+def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoint(tmp_path, monkeypatch, contact_dim):
     from services.sampler.service import SamplerService
 
     shipped = default_checkpoint_path("allegro")
@@ -85,7 +111,7 @@ def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoi
     service = SamplerService()
     request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=20,
                             frame=_frame_at_origin())
-    critic = SuccessCritic(CriticConfig(bps_dim=service.sampler("allegro").bps.n))
+    critic = SuccessCritic(CriticConfig(bps_dim=service.sampler("allegro").bps.n, contact_dim=contact_dim))
     matching = save_critic(critic, tmp_path / "matching.pt", "allegro", checkpoint_id(shipped), {})
     other = save_critic(critic, tmp_path / "other.pt", "allegro", "another-checkpoint", {})
     try:

@@ -325,8 +325,10 @@ def test_critic_order_puts_the_samples_the_critic_likes_first_and_refuses_anothe
     ordered = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint), str(critic)).poses(obj, frame, 24, seed=3)
     # The same 24 samples, only reordered, and the critic's probability never rises down the list.
     assert sorted(map(tuple, ordered)) == sorted(map(tuple, drawn))
-    bps, _, _ = PoseSampler(str(checkpoint)).encode(obj, frame)
-    scores = success_probabilities(load_critic(critic).model, bps, ordered)
+    sampler = PoseSampler(str(checkpoint))
+    points_d, _, _ = sampler.points_in_d(obj, frame)
+    scores = success_probabilities(load_critic(critic).model, "allegro", sampler.encode_points(points_d, "box"), points_d,
+                                   ordered)
     assert np.all(np.diff(scores) <= 0) and scores[0] > scores[-1]
     wrong = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint.with_name("allegro_v1.pt")), str(critic))
     with pytest.raises(CoverageError, match="trained for the sampler checkpoint"):

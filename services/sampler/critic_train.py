@@ -29,6 +29,7 @@ from torch.nn import functional as F
 
 from services.sampler.checkpoint import SHIPPED_DIR, atomic_torch_save, manifest_path
 from services.sampler.critic import ERROR_FLOOR_M, CriticConfig, SuccessCritic
+from services.sampler.critic_features import CONTACT_FEATURES, contact_features
 from services.sampler.sampling import PoseSampler
 from shared.atomic import atomic_write_text
 from shared.contracts.messages import DirectionFrame
@@ -53,7 +54,8 @@ def critic_frame(object_id: str, yaw_deg: float) -> DirectionFrame:
 
 @dataclass(frozen=True)
 class CriticData:
-    """Labelled poses of many objects: poses [N, 25], `group` [N] into bps [R, n_basis], outcomes [N]."""
+    """Labelled poses of many objects: poses [N, 25] and their contact features [N, CONTACT_FEATURES],
+    `group` [N] into bps [R, n_basis], outcomes [N]."""
 
     poses: torch.Tensor
     group: torch.Tensor
@@ -61,6 +63,7 @@ class CriticData:
     success: torch.Tensor
     error_m: torch.Tensor
     object_ids: list[str]
+    contact: torch.Tensor
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -83,20 +86,28 @@ def read_records(directory: str | Path) -> list[dict[str, Any]]:
     return list(records.values())
 
 
-def encode_records(records: list[dict[str, Any]], sampler: PoseSampler) -> CriticData:
-    """The records as tensors, each object's BPS computed by `sampler`'s encoder."""
-    bps, poses, group, success, error, ids = [], [], [], [], [], []
+def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress=None) -> CriticData:
+    """The records as tensors, each object's BPS computed by `sampler`'s encoder and the poses' contact
+    features from the same surface points."""
+    from shared.robots.hands import load_hand
+
+    bps, poses, group, success, error, ids, contact = [], [], [], [], [], [], []
     for index, record in enumerate(records):
-        encoded, _, _ = sampler.encode(record["object_id"], critic_frame(record["object_id"], record["yaw_deg"]))
-        bps.append(encoded)
+        frame = critic_frame(record["object_id"], record["yaw_deg"])
+        points_d, _, _ = sampler.points_in_d(record["object_id"], frame)
+        bps.append(sampler.encode_points(points_d, record["object_id"]))
         poses.append(np.asarray(record["poses_d"], dtype=np.float32))
+        contact.append(contact_features(load_hand(record["hand"]), torch.as_tensor(poses[-1]),
+                                        torch.as_tensor(points_d, dtype=torch.float32)))
         group.append(np.full(len(record["success"]), index))
         success.append(np.asarray(record["success"], dtype=np.float32))
         error.append(np.asarray(record["position_error_m"], dtype=np.float32))
         ids.append(record["object_id"])
+        if progress is not None:
+            progress()
     return CriticData(torch.as_tensor(np.concatenate(poses)), torch.as_tensor(np.concatenate(group)),
                       torch.as_tensor(np.stack(bps)), torch.as_tensor(np.concatenate(success)),
-                      torch.as_tensor(np.concatenate(error)), ids)
+                      torch.as_tensor(np.concatenate(error)), ids, torch.cat(contact))
 
 
 @dataclass(frozen=True)
@@ -108,7 +119,7 @@ class CriticTraining:
     error_weight: float = 0.5  # the position-error head's share of the loss
     eval_every: int = 250
     seed: int = 0
-    config: CriticConfig = field(default_factory=CriticConfig)
+    config: CriticConfig = field(default_factory=lambda: CriticConfig(contact_dim=CONTACT_FEATURES))
 
 
 def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -125,7 +136,7 @@ def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
 def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, float]:
     """ROC AUC, and the success rate of each object's TOP_K best-scored poses against all its poses."""
     model.eval()
-    logits, _ = model(data.poses, data.bps, data.group)
+    logits, _ = model(data.poses, data.bps, data.group, data.contact)
     scores, labels, groups = logits.numpy(), data.success.numpy() > 0.5, data.group.numpy()
     overall = [labels[groups == g].mean() for g in np.unique(groups)]
     return {"roc_auc": round(roc_auc(scores, labels), 4), f"top{TOP_K}_success": round(top_k_success(scores, labels, groups), 4),
@@ -146,7 +157,7 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
     """The critic with the best val ROC AUC seen during training, and the metrics history."""
     torch.manual_seed(settings.seed)
     model = SuccessCritic(settings.config)
-    model.set_statistics(train.bps, train.poses)
+    model.set_statistics(train.bps, train.poses, train.contact)
     optimiser = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
     generator = torch.Generator().manual_seed(settings.seed)
     target_error = torch.log(train.error_m + ERROR_FLOOR_M)
@@ -155,7 +166,7 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
     for step in range(1, settings.steps + 1):
         model.train()
         rows = torch.randint(len(train), (settings.batch_size,), generator=generator)
-        logits, log_error = model(train.poses[rows], train.bps, train.group[rows])
+        logits, log_error = model(train.poses[rows], train.bps, train.group[rows], train.contact[rows])
         loss = (F.binary_cross_entropy_with_logits(logits, train.success[rows])
                 + settings.error_weight * F.smooth_l1_loss(log_error, target_error[rows]))
         optimiser.zero_grad()
@@ -201,10 +212,16 @@ def default_critic_path(hand: str) -> Path | None:
 
 
 @torch.no_grad()
-def success_probabilities(critic: SuccessCritic, bps: np.ndarray, poses_d: np.ndarray) -> np.ndarray:
-    """[K] P(success) of a floating-hand push from each pose [K, 25] in D of the object with BPS [n_basis]."""
-    logits, _ = critic(torch.as_tensor(np.asarray(poses_d, dtype=np.float32)),
-                       torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(1, -1))
+def success_probabilities(critic: SuccessCritic, hand: str, bps: np.ndarray, points_d: np.ndarray,
+                          poses_d: np.ndarray) -> np.ndarray:
+    """[K] P(success) of a floating-hand push by `hand` from each pose [K, 25] in D of the object with
+    BPS [n_basis] of its surface points [N, 3] in D."""
+    from shared.robots.hands import load_hand
+
+    poses = torch.as_tensor(np.asarray(poses_d, dtype=np.float32))
+    contact = (contact_features(load_hand(hand), poses, torch.as_tensor(np.asarray(points_d, dtype=np.float32)))
+               if critic.uses_contact else None)
+    logits, _ = critic(poses, torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(1, -1), None, contact)
     return torch.sigmoid(logits).double().numpy()
 
 

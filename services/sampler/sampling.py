@@ -82,6 +82,7 @@ class SampleResult:
     object_label: str
     bps: np.ndarray | None = None  # [n_basis] the object's BPS in D, when the sampler encoded one
     noise_scale: float = 1.0  # the sampling temperature the poses were drawn with
+    points_d: np.ndarray | None = None  # [N, 3] the surface points in D the BPS encodes
 
 
 @dataclass
@@ -207,8 +208,12 @@ class PoseSampler:
     def encode(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
         """(BPS [n_basis] float32 of the object in D, T_world_D, label); SamplerInputError if it cannot be encoded."""
         points_d, T_world_D, label = self.points_in_d(obj, frame)
+        return self.encode_points(points_d, label), T_world_D, label
+
+    def encode_points(self, points_d: np.ndarray, label: str) -> np.ndarray:
+        """BPS [n_basis] float32 of surface points [N, 3] in D; SamplerInputError (naming `label`) if impossible."""
         try:
-            return self.bps.encode(points_d), T_world_D, label
+            return self.bps.encode(points_d)
         except BPSError as exc:
             raise SamplerInputError(f"{label}: {exc}") from exc
 
@@ -219,10 +224,11 @@ class PoseSampler:
         started = time.perf_counter()
         noise_scale = _resolve_noise_scale(noise_scale)
         step_count = _check_request(k, sampler, steps, seed, noise_scale)
-        bps, T_world_D, label = self.encode(obj, frame)
+        points_d, T_world_D, label = self.points_in_d(obj, frame)
+        bps = self.encode_points(points_d, label)
         poses_d = self.sample_from_bps(bps, k, sampler, steps, seed, noise_scale)
         return SampleResult(poses_d, poses_d_to_world(poses_d, T_world_D), T_world_D, time.perf_counter() - started,
-                            sampler, step_count, label, bps, noise_scale)
+                            sampler, step_count, label, bps, noise_scale, points_d)
 
     def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0,
                         noise_scale: float | None = None) -> np.ndarray:

@@ -107,7 +107,8 @@ class SamplerService:
         except SamplerInputError as exc:
             raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
         critic = self.critic(request.hand, sampler)
-        scores = None if critic is None or result.bps is None else success_probabilities(critic, result.bps, result.poses_d)
+        scores = (None if critic is None or result.bps is None or result.points_d is None
+                  else success_probabilities(critic, request.hand, result.bps, result.points_d, result.poses_d))
         return SampleResponse(
             request_id=request.id, hand=request.hand, poses_d=result.poses_d,
             poses_world=result.poses_world, latency_s=result.latency_s,
