@@ -63,7 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     data.set_defaults(func=run_data)
     train = commands.add_parser("train", help="train the critic, keep the step with the best val ROC AUC",
                                 description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    train.add_argument("--data", type=Path, required=True, help="`gd2p critic data` output of train objects")
+    train.add_argument("--data", type=Path, required=True, nargs="+",
+                       help="`gd2p critic data` output(s) of train objects (several: e.g. the same objects at "
+                            "another --seed's yaw)")
     train.add_argument("--val", type=Path, required=True, help="`gd2p critic data` output of val objects")
     train.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     train.add_argument("--steps", type=positive_int, default=2000)
@@ -124,7 +126,8 @@ def run_train(args: argparse.Namespace) -> int:
     started = time.time()
     sampler_path = default_checkpoint_path(args.hand)
     try:
-        train_records, val_records = read_records(args.data), read_records(args.val)
+        train_records = [r for directory in args.data for r in read_records(directory)]
+        val_records = read_records(args.val)
     except CriticError as exc:
         print(f"gd2p critic train: {exc}", file=sys.stderr)
         return 2
@@ -144,7 +147,7 @@ def run_train(args: argparse.Namespace) -> int:
         settings = dataclasses.replace(settings, config=dataclasses.replace(settings.config, contact_dim=0))
     model, result = train_critic(train, val, settings, progress=lambda m: print(json.dumps(m), file=sys.stderr))
     command = "gd2p " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    manifest = manifest_for(args.data, args.val, settings, train, val, result, started, command)
+    manifest = manifest_for([str(d) for d in args.data], args.val, settings, train, val, result, started, command)
     save_critic(model, args.out, args.hand, checkpoint_id(sampler_path), manifest)
     print(json.dumps({"out": str(args.out), "best_step": result["best_step"], "val": manifest["best_val"]}))
     return 0

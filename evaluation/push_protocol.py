@@ -377,6 +377,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["sampler"] = request.sampler if method.source == "gd2p" else None
     record["pose_model"] = _pose_model(episode.hand, method.source)
     record["critic"] = method.critic and method.source == "gd2p" and _has_critic(episode.hand)
+    if record["critic"]:  # which critic ordered the poses (the sampler loads it from the same path)
+        record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
     return record
@@ -415,6 +417,14 @@ def _has_critic(hand: str) -> bool:
     """Whether the sampler scores its samples with a success critic for `hand` (the planner then orders by it)."""
     sampler = _system.sampler
     return sampler.critic(hand, sampler.sampler(hand)) is not None
+
+
+def _critic_id(hand: str) -> str | None:
+    from services.sampler.checkpoint import checkpoint_id
+    from services.sampler.critic_train import default_critic_path
+
+    path = default_critic_path(hand)
+    return checkpoint_id(path) if path is not None and path.is_file() else None
 
 
 def _keyed(job: tuple[Callable[[Any], dict[str, Any]], Any]) -> tuple[str, dict[str, Any]]:

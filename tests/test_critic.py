@@ -164,3 +164,48 @@ def test_each_hand_ships_a_critic_for_its_default_sampler(hand, monkeypatch):
     loaded = load_critic(path)
     assert loaded.hand == hand and loaded.sampler_checkpoint_id == checkpoint_id(default_checkpoint_path(hand))
     assert loaded.manifest["best_val"]["roc_auc"] > 0.7  # chosen on val objects, well above chance
+
+
+def _write_records(directory, object_ids: list[str], sampler_id: str, seed: int) -> None:
+    """Labelled records as `gd2p critic data` writes them (random poses near the object, random outcomes)."""
+    import json
+
+    rng = np.random.default_rng(seed)
+    hand = load_hand("allegro")
+    directory.mkdir()
+    with (directory / "records.jsonl").open("w") as out:
+        for object_id in object_ids:
+            poses = hand.open_pose(16).numpy()
+            poses[:, :3] = rng.uniform([-0.15, -0.05, 0.02], [-0.08, 0.05, 0.1], size=(16, 3))
+            success = rng.random(16) < 0.5
+            out.write(json.dumps({"key": f"allegro/{object_id}", "object_id": object_id, "hand": "allegro",
+                                  "yaw_deg": float(rng.uniform(-180, 180)), "per_object": 16, "seed": seed,
+                                  "checkpoint_id": sampler_id, "poses_d": poses.tolist(), "success": success.tolist(),
+                                  "position_error_m": np.where(success, 0.01, 0.08).tolist()}) + "\n")
+
+
+def test_critic_train_learns_from_several_data_directories_and_refuses_test_objects(tmp_path, capsys):
+    import json
+
+    from cli.main import main
+
+    sampler_id = checkpoint_id(default_checkpoint_path("allegro"))
+    _write_records(tmp_path / "train-a", ["proc-spatula-077", "rnd-957"], sampler_id, seed=0)
+    _write_records(tmp_path / "train-b", ["proc-spatula-077"], sampler_id, seed=1)  # the same object at another yaw
+    _write_records(tmp_path / "val", ["proc-bottle-076", "rnd-211"], sampler_id, seed=2)
+    out = tmp_path / "critic.pt"
+    assert main(["critic", "train", "--data", str(tmp_path / "train-a"), str(tmp_path / "train-b"),
+                 "--val", str(tmp_path / "val"), "--steps", "20", "--out", str(out)]) == 0
+    manifest = json.loads((tmp_path / "critic.pt.manifest.json").read_text())
+    assert manifest["train_poses"] == 48 and manifest["train_objects"] == 2
+    assert manifest["train_data"] == [str(tmp_path / "train-a"), str(tmp_path / "train-b")]
+    assert load_critic(out).model.config.contact_dim == CONTACT_FEATURES
+    assert main(["critic", "train", "--data", str(tmp_path / "train-a"), "--val", str(tmp_path / "val"), "--steps", "20",
+                 "--no-contact", "--out", str(tmp_path / "plain.pt")]) == 0
+    assert load_critic(tmp_path / "plain.pt").model.config.contact_dim == 0
+    _write_records(tmp_path / "test", ["rnd-741"], sampler_id, seed=3)
+    capsys.readouterr()
+    assert main(["critic", "train", "--data", str(tmp_path / "train-a"), str(tmp_path / "test"),
+                 "--val", str(tmp_path / "val"), "--out", str(tmp_path / "never.pt")]) == 2
+    assert "test objects are for reporting only" in capsys.readouterr().err
+    assert not (tmp_path / "never.pt").exists()

@@ -238,9 +238,10 @@ def load_critic(path: str | Path) -> LoadedCritic:
     return LoadedCritic(data["hand"], model.eval(), data["sampler_checkpoint_id"], data.get("manifest", {}))
 
 
-def manifest_for(train_dir: str | Path, val_dir: str | Path, settings: CriticTraining, train: CriticData,
+def manifest_for(train_dirs: list[str], val_dir: str | Path, settings: CriticTraining, train: CriticData,
                  val: CriticData, result: dict[str, Any], started: float, command: str) -> dict[str, Any]:
-    return {"command": command, "train_data": str(train_dir), "val_data": str(val_dir),
+    train_data = train_dirs[0] if len(train_dirs) == 1 else train_dirs  # a single one as before
+    return {"command": command, "train_data": train_data, "val_data": str(val_dir),
             "train_poses": len(train), "train_objects": len(set(train.object_ids)), "val_poses": len(val),
             "val_objects": len(set(val.object_ids)), "settings": {**asdict(settings), "config": settings.config.to_dict()},
             "best_step": result["best_step"], "val": result["history"][-1]["val"] if result["history"] else None,
