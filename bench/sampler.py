@@ -10,6 +10,10 @@ service); `cold_first_call_s` is the first call including that load. Latency doe
 weights: without a checkpoint the default architecture is benchmarked with random weights and
 `"weights": "random-init"` says so (no quality figures then).
 
+Critic: the success critic's scores for the 200 poses (`success_probabilities`, what the sampler service adds to
+each reply), with and without the contact features (where the hand meets the object); the cost does not depend
+on the weights, so the default critic architecture is timed with random weights.
+
 Batching: 4 concurrent requests of 200 poses vs the same 4 one after the other.
 Training: samples/s of one optimiser step (loss, backward, clip, fused Adam, foreach EMA) at batch
 256 on random data, for the default network.
@@ -39,6 +43,9 @@ if REPO_DIR not in sys.path:
 import torch  # noqa: E402
 
 from services.sampler.checkpoint import SamplerCheckpoint, default_checkpoint_path, load_checkpoint  # noqa: E402
+from services.sampler.critic import CriticConfig, SuccessCritic  # noqa: E402
+from services.sampler.critic_features import CONTACT_FEATURES  # noqa: E402
+from services.sampler.critic_train import success_probabilities  # noqa: E402
 from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED  # noqa: E402
 from services.sampler.diffusion import PoseNormalizer, denoising_loss, make_ema, make_noise_scheduler  # noqa: E402
 from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count  # noqa: E402
@@ -80,6 +87,22 @@ def measure_bps_ms(sampler: PoseSampler, repeats: int = 20) -> float:
         sampler.bps.encode(points)
         times.append(time.perf_counter() - started)
     return round(1000 * statistics.median(times), 2)
+
+
+def measure_critic_ms(sampler: PoseSampler, hand: str, repeats: int = 10) -> dict:
+    obj = load_object(LATENCY_OBJECT)
+    frame = default_frame(obj, 30.0)
+    result = sampler.sample(obj, frame, k=K, sampler="ddim")
+    timings = {}
+    for name, contact_dim in (("with_contact_features", CONTACT_FEATURES), ("bps_and_pose_only", 0)):
+        critic = SuccessCritic(CriticConfig(bps_dim=sampler.bps.n, contact_dim=contact_dim)).eval()
+        times = []
+        for _ in range(repeats + 1):
+            started = time.perf_counter()
+            success_probabilities(critic, hand, result.bps, result.points_d, result.poses_d)
+            times.append(time.perf_counter() - started)
+        timings[name] = round(1000 * statistics.median(times[1:]), 2)
+    return timings
 
 
 def measure_batching(sampler: PoseSampler, kind: str, requests: int = 4) -> dict:
@@ -177,6 +200,7 @@ def run(args: argparse.Namespace) -> dict:
                 "ddpm_100": measure_latency(sampler, "ddpm", None, args.repeats),
                 "ddim_10": measure_latency(sampler, "ddim", 10, args.repeats),
                 "bps_encode_ms": measure_bps_ms(sampler),
+                "critic_scores_ms": measure_critic_ms(sampler, args.hand),
                 "cold_first_call_s": round(cold, 4),
             }
     torch.set_num_threads(args.threads[0])

@@ -253,6 +253,8 @@ def family_table_data(results: dict[str, list[dict[str, Any]]], sources: dict[st
 def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource], results: dict[str, list[dict[str, Any]]],
                 objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
                 yaw: str = "zero", hand: str = HAND) -> str:
+    from services.sampler.checkpoint import checkpoint_id
+
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
              (f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
               f"{s['pooled_validated_fraction_ci'][1]:.1%}]"),
@@ -271,8 +273,8 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
                    f"{np.mean(nn_counts):.0f} per object on average (min {min(nn_counts)}, max {max(nn_counts)}); "
                    f"its index: `{nn_index.name}`. ")
     critic_text = next((f"\"critic order\": the source's 200 poses sorted by the success critic `{Path(source.critic).name}` "
-                        "(most likely to push well first), so the first 50 pushed are those the planner's critic path "
-                        "would plan from. " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
+                        f"(id `{checkpoint_id(source.critic)}`; most likely to push well first), so the first 50 pushed "
+                        "are those the planner's critic path would plan from. " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
             f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
