@@ -72,7 +72,8 @@ def label_object(unit: CriticObject) -> dict[str, Any]:
 
     frame = critic_frame(unit.object_id, unit.yaw_deg)
     ref = ObjectRef(library_id=unit.object_id)
-    reply = _sampler.handle(SampleRequest(object=ref, hand=unit.hand, frame=frame, k=K_SAMPLES, seed=unit.seed))
+    reply = _sampler.handle(SampleRequest(object=ref, hand=unit.hand, frame=frame, k=K_SAMPLES, seed=unit.seed,
+                                          score=False))
     poses = reply.poses_d.to_numpy().astype(np.float64)
     chosen = np.random.default_rng(unit.seed).choice(len(poses), size=min(unit.per_object, len(poses)), replace=False)
     result = validate(ValidationJob(object=ref, hand=unit.hand, poses=poses[chosen], frame=frame,

@@ -118,6 +118,7 @@ def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoi
         monkeypatch.setenv("GD2P_CRITIC_CHECKPOINT_ALLEGRO", str(matching))
         scores = service.handle(request).success_probability.to_numpy()
         assert scores.shape == (20,) and ((scores > 0) & (scores < 1)).all()
+        assert service.handle(request.model_copy(update={"score": False})).success_probability is None  # not asked
     finally:
         service.close()
     service = SamplerService()

@@ -106,7 +106,7 @@ class SamplerService:
                                     steps=request.steps, seed=request.seed, noise_scale=request.noise_scale)
         except SamplerInputError as exc:
             raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
-        critic = self.critic(request.hand, sampler)
+        critic = self.critic(request.hand, sampler) if request.score else None
         scores = (None if critic is None or result.bps is None or result.points_d is None
                   else success_probabilities(critic, request.hand, result.bps, result.points_d, result.poses_d))
         return SampleResponse(
