@@ -6,7 +6,7 @@ The system runs as `gd2p up` brings it up (`deploy.launcher`: an embedded router
 per service, one validator per core unless `--validators`); each request goes through the push
 client exactly as `gd2p push` sends it, one at a time (the next once the previous storyboard is
 rendered). Start-up is not timed. K = 200 candidate poses from the diffusion sampler
-(method "gd2p"; `--sampler ddim --critic` for the fast path: the success critic's order, no prescreen) when an
+(method "gd2p"; `--sampler ddim --no-prescreen` for the fast path: the success critic's order, no prescreen) when an
 Allegro checkpoint is at the default
 path, else the fixed spatula pose (method "fixed", one candidate) — the JSON says which. Stages
 (from the response's timings): sampling, ik (batched IK + collision and push-line screen),
@@ -76,7 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--method", choices=("auto", "gd2p", "fixed"), default="auto")
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler of method gd2p (DDIM-10: the fast path)")
-    parser.add_argument("--critic", action="store_true", help="PushRequest.critic: the critic's order, no prescreen")
+    parser.add_argument("--no-critic", dest="critic", action="store_false",
+                        help="PushRequest.critic off: L_dir's order instead of the success critic's (the default)")
+    parser.add_argument("--no-prescreen", dest="prescreen", action="store_false",
+                        help="PushRequest.prescreen off: no floating-hand pushes before planning (with DDIM: the fast path)")
     parser.add_argument("--record-dir", default="/tmp/gd2p-bench-push")
     parser.add_argument("--validators", type=int, default=None,
                         help="validator processes (default: one per core, as `gd2p up`)")
@@ -92,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
         for object_id in OBJECTS:
             for direction in DIRECTIONS_DEG:
                 request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, k=args.k,
-                                      method=method, sampler=args.sampler, critic=args.critic)
+                                      method=method, sampler=args.sampler, critic=args.critic,
+                                      prescreen=args.prescreen)
                 started = time.perf_counter()
                 try:
                     response = push(request, cfg, timeout_s=300.0)
@@ -118,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
 
     summary = {
         "machine": machine(), "date": time.strftime("%Y-%m-%d"), "code": code_version(),
-        "method": method, "sampler": args.sampler if method == "gd2p" else None, "critic": args.critic, "validators": args.validators or os.cpu_count(), "k": args.k if method == "gd2p" else 1, "requests": len(rows),
+        "method": method, "sampler": args.sampler if method == "gd2p" else None, "critic": args.critic, "prescreen": args.prescreen, "validators": args.validators or os.cpu_count(), "k": args.k if method == "gd2p" else 1, "requests": len(rows),
         "success": sum(r["success"] for r in rows), "success_rate": round(sum(r["success"] for r in rows) / len(rows), 3),
         "infeasible": sum(r.get("error") == "infeasible" for r in rows),
         "latency_s": {"p50": percentile(totals, 50), "p95": percentile(totals, 95), "target_p50": 3.0},

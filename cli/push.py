@@ -35,7 +35,7 @@ FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direc
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
          "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler", "choice": "--choice",
          "physics_draws": "--physics-draws", "corrections": "--corrections", "closed_loop": "--closed-loop",
-         "critic": "--critic"}
+         "critic": "--no-critic", "prescreen": "--no-prescreen"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -62,9 +62,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
-    parser.add_argument("--critic", action="store_true",
-                        help="order the samples by the success critic and skip the prescreen pushes (faster; "
-                             "see PushRequest.critic for what it costs in success)")
+    parser.add_argument("--no-critic", dest="critic", action="store_false",
+                        help="consider the samples best-aligned palm first (the paper's L_dir order) instead of in the "
+                             "success critic's order (the default when the sampler has a critic)")
+    parser.add_argument("--no-prescreen", dest="prescreen", action="store_false",
+                        help="push no floating hand before planning: with --sampler ddim the fast path (about 1.2 s "
+                             "less to plan; see PushRequest.prescreen for what it costs in success)")
     parser.add_argument("--choice", choices=("ranked", "unranked", "random"), default="ranked",
                         help="how the executed plan is chosen: ranked by arm rollouts (GD2P, default); unranked: "
                              "the same rolled-out plans, one drawn at random (the ranking ablation); random: a "
@@ -132,7 +135,8 @@ def build_request(args: argparse.Namespace):
                        goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
                        arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
                        k=args.k, choice=args.choice, seed=args.seed, method=args.method,
-                       sampler=args.sampler, critic=args.critic, physics_draws=args.physics_draws,
+                       sampler=args.sampler, critic=args.critic, prescreen=args.prescreen,
+                       physics_draws=args.physics_draws,
                        **({} if args.corrections is None else {"corrections": args.corrections}),
                        **({} if args.closed_loop is None else {"closed_loop": args.closed_loop}))
 

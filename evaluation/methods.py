@@ -46,10 +46,10 @@ COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked")
                ("gd2p-closed", "gd2p"), ("gd2p-closed", "gd2p-corrected"), ("gd2p-closed-tight", "gd2p-corrected"),
                ("gd2p-closed-3cm", "gd2p-corrected"), ("gd2p-closed-loose", "gd2p-corrected"),
                ("gd2p-closed-looser", "gd2p-corrected"), ("gd2p-closed", "fixed-corrected"),
-               ("gd2p-closed", "nearest-corrected"))
+               ("gd2p-closed", "nearest-corrected"), ("gd2p-closed-critic-p24", "gd2p-closed"))
 # The closed-loop experiment (`gd2p eval closed-loop`): open loop, corrective pushes after a push, and
-# pushes watched and stopped mid-way, run together on one commit.
-CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed")
+# pushes watched and stopped mid-way, run together on one commit; the last in the critic's order (the planner's default).
+CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed", "gd2p-closed-critic-p24")
 
 
 @dataclass(frozen=True)

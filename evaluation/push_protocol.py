@@ -89,7 +89,10 @@ class Method:
     # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
     budget: tuple[int, int] | None = None
     sampler: str | None = None  # PushRequest.sampler: the diffusion sampler (None: the request's default)
-    critic: bool = False  # PushRequest.critic: the success critic's order (and its prescreen budget)
+    # PushRequest.critic: the success critic's order. Off for the paper's methods and the baselines (their names
+    # keep meaning what their committed trials ran: L_dir's order); on in the methods named for it.
+    critic: bool = False
+    prescreen: bool = True  # PushRequest.prescreen: false is the fast path (no floating-hand pushes before planning)
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
@@ -120,7 +123,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
     # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
-    Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order, prescreen 24 (val candidate)", "gd2p", "ranked",
+    # The planner's default since stop 42 (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
+    Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p8", "GD2P closed loop, critic order, prescreen 8 (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True, sampler="ddpm"),
@@ -130,9 +134,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
-    # The fast path (README "Time to plan") as a request asks for it: critic=True, sampler="ddim" (no prescreen pushes).
+    # The fast path (README "Time to plan") as a request asks for it: critic, no prescreen pushes, sampler "ddim".
     Method("gd2p-closed-fast", "GD2P closed loop, fast path (critic order, no prescreen, DDIM)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, critic=True, sampler="ddim"),
+           corrections=CORRECTIONS, closed_loop=True, critic=True, prescreen=False, sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
     # 3.3 cm miss instead of a 10 cm one.
     Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
@@ -151,7 +155,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
 TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
                             "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
-                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p24", "gd2p-closed-critic-p8",
+                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p8",
                             "gd2p-closed-critic-p0", "gd2p-closed-critic-p0x4", "gd2p-closed-critic-p0-ddim"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
@@ -237,7 +241,7 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
                   physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
-                  critic=method.critic,
+                  critic=method.critic, prescreen=method.prescreen,
                   **({} if method.sampler is None else {"sampler": method.sampler}))
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
@@ -336,7 +340,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
     pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                                prescreen=prescreen, critic_prescreen=prescreen, max_plans=max_plans)
+                                prescreen=prescreen, max_plans=max_plans)
     world = execution_world(episode)
     _system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
@@ -380,7 +384,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     if record["critic"]:  # which critic ordered the poses (the sampler loads it from the same path)
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
-    record["budget"] = [settings.critic_prescreen if record["critic"] else settings.prescreen, settings.max_plans]
+    record["budget"] = [settings.prescreen if request.prescreen else 0, settings.max_plans]
     return record
 
 

@@ -142,14 +142,14 @@ def test_the_planner_tries_the_poses_the_critic_likes_best_first():
     candidates = Candidates(poses, poses, np.repeat(np.eye(4)[None], 4, axis=0), np.zeros((4, 16)),
                             l_dir=np.array([0.1, 0.2, 0.3, 0.4]), p_success=np.array([0.2, 0.9, 0.9, 0.1]))
 
-    def state(critic: bool) -> RequestState:
-        request = PushRequest(object=ObjectRef(library_id="proc-box-000"), direction_deg=0.0, critic=critic)
+    def state(**asks: bool) -> RequestState:
+        request = PushRequest(object=ObjectRef(library_id="proc-box-000"), direction_deg=0.0, **asks)
         return RequestState(request, None, "", hand, np.eye(4))
 
-    assert priority(state(True), candidates).tolist() == [1, 2, 0, 3]  # L_dir breaks the tie
-    assert priority(state(False), candidates).tolist() == [0, 1, 2, 3]  # the default: L_dir alone
-    assert PipelineSettings().for_push(state(True).request, candidates).prescreen == 0
-    assert PipelineSettings().for_push(state(False).request, candidates).prescreen == 24
+    assert priority(state(), candidates).tolist() == [1, 2, 0, 3]  # the default: the critic, L_dir breaks the tie
+    assert priority(state(critic=False), candidates).tolist() == [0, 1, 2, 3]  # L_dir alone
+    assert PipelineSettings().for_push(state().request).prescreen == 24  # the critic's order keeps the prescreen
+    assert PipelineSettings().for_push(state(prescreen=False).request).prescreen == 0  # the fast path
 
 
 @pytest.mark.parametrize("hand", ["allegro", "leap"])

@@ -457,9 +457,11 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
     assert np.allclose(rollouts[1].poses.to_numpy()[0], tested[1])
 
 
-def test_with_the_critic_s_scores_the_best_scored_pose_is_planned_first_and_nothing_is_prescreened():
-    """A request asking for the critic's order whose samples the sampler scored (success_probability): the
-    planner pushes no floating hand (critic_prescreen is 0) and rolls out the plan of the best-scored pose first."""
+@pytest.mark.parametrize("critic, prescreen", [(True, True), (True, False), (False, True)])
+def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path_prescreens_nothing(critic, prescreen):
+    """Samples the sampler scored (success_probability): by default (critic on) the best-scored pose is the first
+    the prescreen pushes; with `prescreen` off (the fast path) no floating hand pushes and its plan is rolled out
+    first; with the critic off the best-aligned palm (L_dir; here all alike, so the first sample) goes first."""
     from evaluation.local_system import LocalRobot, validate_here
     from services.planner.pipeline import PushPipeline, PushServices
     from services.planner.stages import PipelineSettings
@@ -484,14 +486,15 @@ def test_with_the_critic_s_scores_the_best_scored_pose_is_planned_first_and_noth
                             PipelineSettings(max_plans=2, max_plan_rounds=1))
     try:
         pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, k=8, critic=True))
+                                 direction_deg=90.0, k=8, critic=critic, prescreen=prescreen))
     finally:
         pipeline.close()
         robot.close()
-    assert jobs and all(job.with_arm for job in jobs)  # arm rollouts only: no prescreen
+    assert jobs[0].with_arm is not prescreen  # the prescreen's floating-hand pushes come first, when asked for
+    assert all(job.with_arm for job in jobs) is not prescreen
     poses = scored(SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", k=8,
                                  frame=jobs[0].frame)).poses_d.to_numpy()
-    assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked])
+    assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked if critic else 0])
 
 
 def _one_plan_settings():
@@ -973,3 +976,14 @@ def test_near_copies_of_a_pose_are_tried_after_the_poses_that_differ():
     assert spread_out(order, positions, 0.015).tolist() == [0, 2, 4, 1, 3]
     assert spread_out(np.array([3, 2, 1, 0]), positions, 0.015).tolist() == [3, 1, 2, 0]
     assert spread_out(order, positions, 0.0).tolist() == order.tolist()
+
+
+@pytest.mark.parametrize("flags, critic, prescreen", [([], True, True), (["--no-critic"], False, True),
+                                                      (["--sampler", "ddim", "--no-prescreen"], True, False)])
+def test_gd2p_push_orders_by_the_critic_and_prescreens_unless_told_not_to(flags, critic, prescreen):
+    from cli.main import build_parser
+    from cli.push import build_request
+
+    args = build_parser().parse_args(["push", "--object", BOX, "--direction-deg", "90", *flags])
+    request = build_request(args)
+    assert (request.critic, request.prescreen) == (critic, prescreen)

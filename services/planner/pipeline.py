@@ -257,7 +257,7 @@ class PushPipeline:
                        draw: int) -> tuple[stages.Candidates, PipelineSettings, Feasible]:
         """Draw `draw`'s candidates, their settings and the feasible ones (PushError "infeasible" if none)."""
         candidates = stages.candidate_poses(state, push, self.services.sample, draw)
-        settings = self.settings.for_push(state.request, candidates)
+        settings = self.settings.for_push(state.request)
         needed = settings.feasible_first(stages.rolls_out(state.request))
         return candidates, settings, stages.screen(state, planner, candidates, push, settings, needed)
 

@@ -75,11 +75,10 @@ class PipelineSettings:
     # Multi-step: the object's path keeps this far from obstacles beyond its own footprint, room for the
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
-    prescreen: int = 24  # feasible poses pushed by a floating hand before planning (0: off); see `prescreen`
-    # ... when the candidates come in the success critic's order instead (PushRequest.critic, the fast path).
-    # Val objects (84 trials each, real world, closed loop): critic + no prescreen 83.3%, + 8 pushes 83.3%,
-    # + 24 84.5%; no critic + 24 81.0%. No prescreen is the fastest (bench/push.py: 0.4 s less than 8 pushes).
-    critic_prescreen: int = 0
+    # Feasible poses pushed by a floating hand before planning (0: off; a request with `prescreen` false, the fast
+    # path, pushes none); see `prescreen`. With the critic's order, val closed loop (84 trials, real world):
+    # 24 pushes 84.5%, 8 83.3%, none 83.3% (README "Time to plan"); 24 kept for success.
+    prescreen: int = 24
     max_plan_attempts: int = 10  # poses planned per round before giving up
     # A round in which none of its `max_plan_attempts` poses has an arm plan (the approach or the way out
     # runs out of reach, every path breaks a limit) is followed by one on the next poses, screened as
@@ -103,9 +102,9 @@ class PipelineSettings:
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
 
-    def for_push(self, request: PushRequest, candidates: Candidates) -> PipelineSettings:
-        """The settings of a push of these candidates: `critic_prescreen` pushes when they are in the critic's order."""
-        return dataclasses.replace(self, prescreen=self.critic_prescreen) if orders_by_critic(request, candidates) else self
+    def for_push(self, request: PushRequest) -> PipelineSettings:
+        """The settings of a push the request asks for: no prescreen pushes when it turns them off (the fast path)."""
+        return self if request.prescreen else dataclasses.replace(self, prescreen=0)
 
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
