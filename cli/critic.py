@@ -72,6 +72,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--seed", type=non_negative_int, default=0)
     train.add_argument("--no-contact", action="store_true",
                        help="without the contact features (where the hand meets the object): BPS and pose only")
+    train.add_argument("--object-dim", type=positive_int, default=None,
+                       help="width of the BPS embedding (default: CriticConfig's, 8)")
+    train.add_argument("--hidden-dim", type=positive_int, default=None,
+                       help="width of the hidden layers (default: CriticConfig's, 64)")
+    train.add_argument("--layers", type=positive_int, default=None, help="hidden layers (default: CriticConfig's, 2)")
     train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
     train.set_defaults(func=run_train)
     report = commands.add_parser("eval", help="ROC AUC and top-6 success of a critic on labelled data",
@@ -143,8 +148,10 @@ def run_train(args: argparse.Namespace) -> int:
             return 2
         train, val = _encode(train_records, sampler, "train data"), _encode(val_records, sampler, "val data")
     settings = CriticTraining(steps=args.steps, seed=args.seed)
-    if args.no_contact:
-        settings = dataclasses.replace(settings, config=dataclasses.replace(settings.config, contact_dim=0))
+    asked = {"object_dim": args.object_dim, "hidden_dim": args.hidden_dim, "num_layers": args.layers,
+             **({"contact_dim": 0} if args.no_contact else {})}
+    config = dataclasses.replace(settings.config, **{k: v for k, v in asked.items() if v is not None})
+    settings = dataclasses.replace(settings, config=config)
     model, result = train_critic(train, val, settings, progress=lambda m: print(json.dumps(m), file=sys.stderr))
     command = "gd2p " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     manifest = manifest_for([str(d) for d in args.data], args.val, settings, train, val, result, started, command)

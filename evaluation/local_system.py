@@ -205,7 +205,7 @@ class LocalSystem:
     def pipeline(self, source_name: str, source: PoseSource | None = None, **overrides: Any) -> PushPipeline:
         """The pipeline whose pose source is `source` (default: the sampler service), with the system's
         `PipelineSettings` but for `overrides` (any of its fields: ranking weights, monitor thresholds,
-        physics budget, critic), None values meaning "as the system's"."""
+        physics budget), None values meaning "as the system's"."""
         settings = replace(self.settings, **{k: v for k, v in overrides.items() if v is not None})
         key = f"{source_name}/{settings}"
         if key not in self._pipelines:

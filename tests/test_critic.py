@@ -202,8 +202,9 @@ def test_critic_train_learns_from_several_data_directories_and_refuses_test_obje
     assert manifest["train_data"] == [str(tmp_path / "train-a"), str(tmp_path / "train-b")]
     assert load_critic(out).model.config.contact_dim == CONTACT_FEATURES
     assert main(["critic", "train", "--data", str(tmp_path / "train-a"), "--val", str(tmp_path / "val"), "--steps", "20",
-                 "--no-contact", "--out", str(tmp_path / "plain.pt")]) == 0
-    assert load_critic(tmp_path / "plain.pt").model.config.contact_dim == 0
+                 "--no-contact", "--hidden-dim", "16", "--layers", "3", "--out", str(tmp_path / "plain.pt")]) == 0
+    config = load_critic(tmp_path / "plain.pt").model.config
+    assert (config.contact_dim, config.hidden_dim, config.num_layers, config.object_dim) == (0, 16, 3, 8)
     _write_records(tmp_path / "test", ["rnd-741"], sampler_id, seed=3)
     capsys.readouterr()
     assert main(["critic", "train", "--data", str(tmp_path / "train-a"), str(tmp_path / "test"),
