@@ -457,11 +457,11 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
     assert np.allclose(rollouts[1].poses.to_numpy()[0], tested[1])
 
 
-@pytest.mark.parametrize("critic, prescreen", [(True, True), (True, False), (False, True)])
-def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path_prescreens_nothing(critic, prescreen):
+@pytest.mark.parametrize("prescreen", [True, False])
+def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path_prescreens_nothing(prescreen):
     """Samples the sampler scored (success_probability): by default (critic on) the best-scored pose is the first
     the prescreen pushes; with `prescreen` off (the fast path) no floating hand pushes and its plan is rolled out
-    first; with the critic off the best-aligned palm (L_dir; here all alike, so the first sample) goes first."""
+    first. (Without the critic, L_dir's order: tests/test_critic.py.)"""
     from evaluation.local_system import LocalRobot, validate_here
     from services.planner.pipeline import PushPipeline, PushServices
     from services.planner.stages import PipelineSettings
@@ -486,7 +486,7 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
                             PipelineSettings(max_plans=2, max_plan_rounds=1))
     try:
         pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, k=8, critic=critic, prescreen=prescreen))
+                                 direction_deg=90.0, k=8, prescreen=prescreen))
     finally:
         pipeline.close()
         robot.close()
@@ -494,7 +494,7 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
     assert all(job.with_arm for job in jobs) is not prescreen
     poses = scored(SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", k=8,
                                  frame=jobs[0].frame)).poses_d.to_numpy()
-    assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked if critic else 0])
+    assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked])
 
 
 def _one_plan_settings():
