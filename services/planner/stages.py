@@ -76,8 +76,9 @@ class PipelineSettings:
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
     # Feasible poses pushed by a floating hand before planning (0: off; a request with `prescreen` false, the fast
-    # path, pushes none); see `prescreen`. With the critic's order, val closed loop (84 trials, real world):
-    # 24 pushes 84.5%, 8 83.3%, none 83.3% (README "Time to plan"); 24 kept for success.
+    # path, pushes none); see `prescreen`. In the critic's order, val closed loop (84 trials, real world): Allegro
+    # with the critic before stop 41 24 pushes 84.5%, 8 83.3%, none 83.3%; LEAP with the contact critic 24 pushes
+    # 86.9%, none (DDIM) 83.3% (README "Time to plan", "The critic's order by default"); 24 kept for success.
     prescreen: int = 24
     max_plan_attempts: int = 10  # poses planned per round before giving up
     # A round in which none of its `max_plan_attempts` poses has an arm plan (the approach or the way out
