@@ -739,8 +739,8 @@ class PushRequest(Message):
     # Consider the samples in the order of the sampler's success critic (when it has one for its checkpoint and
     # scored them) instead of the best-aligned palms first (L_dir, the paper's order). On by default since
     # stop 42: under the evaluation's `real` world, closed loop, 3 cameras, with the same 24 prescreen pushes,
-    # LEAP 81.0% -> 86.9% on val (where it was chosen) and 88.1% -> 92.1% on test; Allegro 95.2% -> 95.2% on val
-    # and 96.8% -> 96.0% on test (results/*-contact-critic*, README "The critic's order by default").
+    # LEAP 81.0% -> 86.9% on val (where it was chosen) and 90.0% -> 91.4% on 210 test trials; Allegro 95.2% -> 95.2%
+    # on val and 96.2% -> 95.2% on test (results/*-contact-critic*, README "The critic's order by default").
     critic: bool = True
     # Push `PipelineSettings.prescreen` of the first feasible poses with a floating hand before planning (the
     # prescreen). False is the fast path (with sampler "ddim"): 1.2 s less to plan (bench/push.py), some success
