@@ -274,7 +274,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
                    f"its index: `{nn_index.name}`. ")
     critic_text = next((f"\"critic order\": the source's 200 poses sorted by the success critic `{Path(source.critic).name}` "
                         f"(id `{checkpoint_id(source.critic)}`; most likely to push well first), so the first 50 pushed "
-                        "are those the planner's critic path would plan from. " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
+                        "are those the planner would plan from (its default order since stop 42). " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
             f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
