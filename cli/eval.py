@@ -8,20 +8,24 @@
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
-    gd2p eval data-size --out results/        # test objects covered vs training-data fraction
+    gd2p eval data-size --world exact --out results/  # test objects covered vs training-data fraction
     gd2p eval data-size --dataset datasets/allegro-v2 --yaw random --train-steps 20000 --lr 1e-3 --seeds 0 --tag v2  # v2
-    gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split
-    gd2p eval sampler-quality --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose a checkpoint
+    gd2p eval sampler-quality --out results/  # diffusion vs nearest neighbour on the whole test split, 3 cameras
+    gd2p eval sampler-quality --world exact --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose
     gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
 
-World (`--world`, methods / leap / closed-loop / multistep): `real` (default) executes every plan in a world drawn
+World (`--world`, every experiment but sampler-diagnosis): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
 the object off its told pose (shared/world/sim/world.py documents each range), and the system does not get the
 object's mesh: it sees the object through 3 simulated depth cameras (`--cameras`, 0 for the mesh); `exact`
 executes in the planner's own world, told the mesh. Results go to `<out>/<experiment>-<world>[-cameraN]/`
 (`...-<tag>/` with `--tag`); a `real` report of methods / leap / closed-loop gives the `exact` rates of the run
-of the same name and models in `<out>` beside its own.
+of the same name and models in `<out>` beside its own. sampler-quality and data-size push their poses by the
+floating hand in a world drawn per object (the same for every pose source) and the sources sample for the
+cameras' reconstruction; their exact runs keep their first names (`<out>/sampler-quality[-val]...`,
+`<out>/data-size...`), a real run is `<out>/sampler-quality-real-camera3...` with the exact run of the same
+name beside it, and `data-size-real-camera3...` measures its models in both worlds.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and
 refreshes `<out>/README.md`. Every finished trial is recorded at once: re-running the same command
@@ -50,6 +54,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
 }
 TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
 WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")  # these also take --cameras and --tag
+COVERAGE_EXPERIMENTS = ("sampler-quality", "data-size")  # --world and --cameras too: where the poses are pushed
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -63,10 +68,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="methods / leap / closed-loop: trials per object and direction (default: the paper's 5); a run can "
                              "later be extended to more trials in the same --out")
     parser.add_argument("--world", choices=("real", "exact"), default="real",
-                        help="methods / leap / closed-loop / multistep: the execution world (default real; see above)")
+                        help="the execution world, every experiment but sampler-diagnosis (default real; see above)")
     parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=None,
-                        help="methods / leap / closed-loop / multistep: 1-3: the system sees the object only through that many "
-                             "simulated depth cameras and plans around its own reconstruction "
+                        help="every experiment but sampler-diagnosis: 1-3: the system sees the object only through that many "
+                             "simulated depth cameras and plans (or samples) for its own reconstruction "
                              "(<out>/<experiment>-<world>-cameraN/, multistep-<world>[-closed]-cameraN/); 0 tells it the "
                              "object's mesh and a pose off by the world's pose error (<out>/<experiment>-<world>/). "
                              "Default: 3 under `real`, 0 under `exact`")
@@ -206,9 +211,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
               "within the test split)", file=sys.stderr)
         return 2
-    if args.cameras is not None and not any(name in WORLD_EXPERIMENTS for name in names):
-        print(f"gd2p eval: --cameras applies to {', '.join(WORLD_EXPERIMENTS)} (the others are told the mesh)",
-              file=sys.stderr)
+    if args.cameras is not None and not any(name in WORLD_EXPERIMENTS + COVERAGE_EXPERIMENTS for name in names):
+        print(f"gd2p eval: --cameras applies to {', '.join(WORLD_EXPERIMENTS + COVERAGE_EXPERIMENTS)} (sampler-diagnosis "
+              "measures training objects as the dataset stores them)", file=sys.stderr)
         return 2
     if data_size_only and args.experiment != "data-size":
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
@@ -230,11 +235,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     for name in names:
         options = {"trials": args.trials} if args.trials is not None and name in TRIAL_EXPERIMENTS else {}
-        if name in WORLD_EXPERIMENTS:
+        if name in WORLD_EXPERIMENTS + COVERAGE_EXPERIMENTS:
             options["world"] = args.world
         if args.methods is not None and name in TRIAL_EXPERIMENTS:
             options["methods"] = args.methods
-        if name in WORLD_EXPERIMENTS:
+        if name in WORLD_EXPERIMENTS + COVERAGE_EXPERIMENTS:
             options["cameras"] = DEFAULT_CAMERAS[args.world] if args.cameras is None else args.cameras
         if args.split != "test" and (name in TRIAL_EXPERIMENTS or (name == "multistep" and args.split == "val")):
             options["split"] = args.split

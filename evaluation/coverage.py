@@ -8,8 +8,17 @@ pose") and the sampler-quality benchmark. For every object:
    object id) alone, as an object placed by a user would be (the version-1 data only ever saw yaw 0);
 2. the pose source draws `samples` poses (200, the paper's count) for it in D, seeded from
    (settings seed, object id) so a record never depends on scheduling or on other objects;
-3. the poses are pushed in order in the floating-hand validator with its default physics — the
-   data engine's success criterion (centre within 0.03 m of the goal, <= 45 deg turned):
+3. the poses are pushed in order in the floating-hand validator — the data engine's success criterion
+   (centre within 0.03 m of the goal, <= 45 deg turned) — in its nominal physics (`world="exact"`), or
+   with `world="real"` in an execution world drawn per object that the pose source does not know
+   (shared/world/sim/world.py: friction, rolling friction, mass, centre of mass, and where the object
+   truly stands; the arm's controller draws do not apply to the floating hand). The source is then
+   told the mesh at a pose off by the world's error (`cameras=0`) or, with `cameras` 1-3, gets only
+   what that many simulated depth cameras see of the object standing at the evaluation's spot: it
+   samples for the reconstruction, in the direction frame of the reconstruction's pose, as the
+   sampler service does for a point cloud (`Sighting`). Every source of a run sees the same world and
+   the same capture of an object (both drawn from the settings seed and the object id), so their
+   outcomes pair up object by object:
    - the first `fraction_poses` (50) are all pushed: successes / pushed = `validated_fraction`;
    - then chunks of `chunk` (25) are pushed only until one pose has succeeded or all are tried:
      `any_success` ("the object has >= 1 validated pose of 200").
@@ -53,6 +62,8 @@ HAND = "allegro"  # the hand the coverage experiments measure (the shipped Alleg
 DEFAULT_DATASET = Path(__file__).resolve().parents[1] / "data" / f"{HAND}-train"
 TARGET_COVERED_PCT = 75.0  # target: test objects with >= 1 validated pose of 200 samples
 COVERAGE_YAWS = ("zero", "random")
+COVERAGE_WORLDS = ("exact", "real")
+NOT_PERCEIVED = "not perceived"  # a failure kind of the camera runs: the capture could not be reconstructed
 
 
 class CoverageError(ValueError):
@@ -70,10 +81,16 @@ class CoverageSettings:
     seed: int = 0
     hand: str = HAND
     yaw: str = "zero"  # "zero": yaw 0 in D (the paper's protocol); "random": a seeded yaw per object
+    world: str = "exact"  # "exact": the validator's nominal physics; "real": a drawn execution world per object
+    cameras: int = 0  # 0: the source is told the mesh; 1-3: it gets that many depth cameras' view of the object
 
     def __post_init__(self) -> None:
         if self.yaw not in COVERAGE_YAWS:
             raise CoverageError(f"yaw must be one of {', '.join(COVERAGE_YAWS)}, got {self.yaw!r}")
+        if self.world not in COVERAGE_WORLDS:
+            raise CoverageError(f"world must be one of {', '.join(COVERAGE_WORLDS)}, got {self.world!r}")
+        if self.cameras not in (0, 1, 2, 3):
+            raise CoverageError(f"cameras must be 0 (the mesh is told) or 1-3, got {self.cameras}")
         if self.samples < 1 or self.fraction_poses < 1 or self.chunk < 1:
             raise CoverageError(f"samples, fraction_poses and chunk must be >= 1; got {self.samples}, "
                                 f"{self.fraction_poses}, {self.chunk}")
@@ -82,9 +99,16 @@ class CoverageSettings:
 
     def to_dict(self) -> dict[str, Any]:
         settings = dataclasses.asdict(self)
-        if self.yaw == "zero":
-            del settings["yaw"]  # the pin of the stores made before the setting existed
+        # the pin of the stores made before these settings existed
+        for name, first in (("yaw", "zero"), ("world", "exact"), ("cameras", 0)):
+            if settings[name] == first:
+                del settings[name]
         return settings
+
+    @property
+    def perceived(self) -> bool:
+        """True when the measurement differs from the first protocol: a drawn world or a camera's view."""
+        return self.world != "exact" or self.cameras > 0
 
 
 def object_seed(seed: int, object_id: str, purpose: str = "") -> int:
@@ -179,20 +203,18 @@ class NearestNeighborSource:
     def label(self) -> str:
         return "Nearest neighbour, nearest frames up to K" if self.fill else "Nearest neighbour"
 
-    def baseline(self) -> Any:
-        """The index as a `NearestNeighborBaseline`, loaded once per process."""
-        from services.sampler.nearest_neighbor import NearestNeighborBaseline
+    def sampler(self) -> Any:
+        """The index served as the sampler service serves it (`NearestNeighborSampler`), loaded once per process."""
+        from services.sampler.nearest_neighbor import NearestNeighborSampler
 
-        return _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborBaseline.load(self.index))
+        return _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborSampler.load(self.index))
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
-
-        points, _ = obj.surface_points(SURFACE_POINTS, seed=SURFACE_SEED, T_D_O=object_in_d(frame))
-        baseline = self.baseline()
+        sampler = self.sampler()
         if self.fill:
-            return baseline.nearest_frames_poses(baseline.bps.encode(points), k)
-        return baseline.query_points(points, k=k, seed=seed).poses
+            points_d, _, _ = sampler.points_in_d(obj, frame)
+            return sampler.index.nearest_frames_poses(sampler.index.bps.encode(points_d), k)
+        return sampler.sample(obj, frame, k=k, seed=seed).result.poses_d
 
 
 @dataclass(frozen=True)
@@ -320,36 +342,118 @@ def _hand(name: str):
     return hands[name]
 
 
+# ----------------------------------------------------------------------------- what the source is given
+@dataclass(eq=False)
+class Sighting:
+    """What a pose source is given of an object, and how its poses map onto the true object.
+
+    `sampler_input` is what `PoseSampler.sample` takes: the told `ObjectModel`, or a capture's object points
+    in the world (thinned as the sampler service thins a request's cloud); `frame` places it (its pose as
+    told or as reconstructed, pushed along +x); `T_true_seen` is the source's direction frame D in the
+    measurement's coordinates (the validator's scene, where the true object stands at `coverage_frame`);
+    a told pose error moves the true object instead (`object_offset`)."""
+
+    sampler_input: Any
+    frame: Any
+    T_true_seen: np.ndarray
+    object_offset: np.ndarray | None = None  # 4x4 in D: where the true object stands relative to the told pose
+
+
+def coverage_world(obj: Any, settings: CoverageSettings, object_id: str) -> Any:
+    """The object's execution world (`sample_world`), drawn around the validator's nominal physics from
+    (settings seed, object id): the same for every source measured, so sources pair up object by object."""
+    from shared.world.sim.params import PhysicsParams
+    from shared.world.sim.world import half_extents, sample_world
+
+    return sample_world(settings.world, object_seed(settings.seed, object_id, ":world"), half_extents(obj.mesh.vertices),
+                        base=PhysicsParams(), cameras=settings.cameras)
+
+
+def sight(obj: Any, frame: Any, world: Any) -> Sighting:
+    """What the pose source gets of `obj` standing at `frame` in `world`; ObjectLoadError when the cameras'
+    view cannot be reconstructed."""
+    from shared.frames import frame_object_transform, frame_transform
+
+    if not world.cameras:
+        T_told = frame_object_transform(frame)
+        offset = world.pose_error.true_pose(T_told) @ np.linalg.inv(T_told)
+        return Sighting(obj, frame, frame_transform(frame), None if np.allclose(offset, np.eye(4)) else offset)
+    return _camera_sighting(obj, frame, world)
+
+
+def _camera_sighting(obj: Any, frame: Any, world: Any) -> Sighting:
+    """The object captured by `world.cameras` cameras where the evaluation stands objects (so the cameras look
+    at it from the evaluation's angles), reconstructed, and carried back to the measurement's coordinates."""
+    from evaluation.push_protocol import OBJECT_XY
+    from shared.contracts.messages import DirectionFrame, ObjectRef
+    from shared.frames import frame_object_transform, frame_transform, make_transform
+    from shared.world.object_refs import captured_object
+    from shared.world.perception import bps_points, cloud_for_request
+    from shared.world.push_outcome import object_pose
+    from shared.world.sim.camera import capture_object
+
+    spot = np.array([OBJECT_XY[0], OBJECT_XY[1], 0.0])
+    capture = capture_object(obj, make_transform(np.eye(3), spot) @ frame_object_transform(frame),
+                             n_cameras=world.cameras, seed=world.seed)
+    captured = captured_object(ObjectRef(point_cloud=cloud_for_request(capture.cloud)))  # as a request's cloud is
+    T_seen = captured.T_world_O.copy()
+    T_seen[:3, 3] -= spot
+    seen = DirectionFrame(object_pose=object_pose(T_seen), yaw_deg=frame.yaw_deg)
+    return Sighting(bps_points(captured.object_points) - spot, seen, frame_transform(seen))
+
+
 def measure_object(source: PoseSource, object_id: str, settings: CoverageSettings) -> dict[str, Any]:
     """Sample, push with early stopping, and return the object's coverage record."""
     from services.validator.push import table_object
-    from shared.frames import object_yaw_in_d
-    from shared.world.objects import load_object
+    from shared.frames import object_yaw_in_d, poses_d_to_world
+    from shared.world.objects import ObjectLoadError, load_object
 
     started = time.perf_counter()
     obj = load_object(object_id)
     frame = coverage_frame(obj, settings, object_id)
-    poses = np.asarray(source.poses(obj, frame, settings.samples, object_seed(settings.seed, object_id)), dtype=np.float64)
-    placed = table_object(obj, None, yaw_rad=object_yaw_in_d(frame, obj.default_pose.rotation))
+    world = coverage_world(obj, settings, object_id)
+    try:
+        seen = sight(obj, frame, world)
+    except ObjectLoadError as exc:
+        return not_perceived_record(object_id, settings, world, str(exc), time.perf_counter() - started)
+    poses_seen = source.poses(seen.sampler_input, seen.frame, settings.samples, object_seed(settings.seed, object_id))
+    poses = poses_d_to_world(np.asarray(poses_seen, dtype=np.float64), seen.T_true_seen)  # into the true D
+    placed = table_object(obj, None, object_yaw_in_d(frame, obj.default_pose.rotation), world.mass_scale, world.com_offset_m)
     validator, hand = _validator(), _hand(settings.hand)
+    params = world.physics if settings.world == "real" else None  # exact: the validator's own (the first protocol)
     failures: list[str | None] = []
 
     def push(start: int, stop: int) -> list[bool]:
-        outcomes = validator.validate(placed, hand, poses[start:stop]).outcomes
+        outcomes = validator.validate(placed, hand, poses[start:stop], params=params,
+                                      object_offsets=[seen.object_offset] * (stop - start)).outcomes
         failures.extend(o.failure() for o in outcomes)
         return [o.success for o in outcomes]
 
     tally = push_until_covered(len(poses), push, settings.fraction_poses, settings.chunk)
     record = coverage_record(object_id, tally, time.perf_counter() - started, validated_spread_cm(poses, tally))
-    record["failures"] = failure_counts(failures[: tally.fraction_pushed])
+    record["failures"] = failure_counts(failures[: tally.fraction_pushed], settings)
+    if settings.perceived:
+        record["world"] = world.record()
     return record
 
 
-def failure_counts(failures: Sequence[str | None]) -> dict[str, int]:
-    """How many of the pushes failed in each way (`PushOutcome.failure`), every kind listed."""
+def not_perceived_record(object_id: str, settings: CoverageSettings, world: Any, why: str, seconds: float) -> dict[str, Any]:
+    """An object the cameras' view could not be reconstructed from: no pose pushed, every one of its
+    `fraction_poses` counted as failed (the planner would have had nothing to push either)."""
+    tally = PushTally(settings.fraction_poses, [False] * settings.fraction_poses, settings.fraction_poses)
+    record = coverage_record(object_id, tally, seconds)
+    record.update(n_poses=0, n_validated=0, not_perceived=why, world=world.record(),
+                  failures={**failure_counts([], settings), NOT_PERCEIVED: settings.fraction_poses})
+    return record
+
+
+def failure_counts(failures: Sequence[str | None], settings: CoverageSettings | None = None) -> dict[str, int]:
+    """How many of the pushes failed in each way (`PushOutcome.failure`), every kind listed (with cameras
+    also the poses lost to a capture that could not be reconstructed)."""
     from services.validator.push import FAILURES
 
-    return {kind: sum(f == kind for f in failures) for kind in FAILURES}
+    kinds = [*FAILURES, NOT_PERCEIVED] if settings is not None and settings.cameras else list(FAILURES)
+    return {kind: sum(f == kind for f in failures) for kind in kinds}
 
 
 def validated_spread_cm(poses: np.ndarray, tally: PushTally) -> float | None:
@@ -497,3 +601,59 @@ def _failure_shares(records: Sequence[Mapping[str, Any]], pushed: int) -> dict[s
         return None
     kinds = records[0]["failures"].keys()
     return {kind: sum(r["failures"][kind] for r in records) / pushed for kind in kinds}
+
+
+# ----------------------------------------------------------------------------- the world beside exact
+def world_text(settings: CoverageSettings) -> str:
+    """One sentence on the world the poses were pushed in and what the sources were given."""
+    if not settings.perceived:
+        return "the validator's nominal physics, the source told the object's mesh and exact pose"
+    physics = ("an execution world drawn per object that the source does not know (friction, rolling friction, mass, "
+               "centre of mass drawn from the `real` ranges of shared/world/sim/world.py; the floating hand has no arm "
+               "controller to draw)" if settings.world == "real" else "the validator's nominal physics")
+    given = (f"the source given only what {settings.cameras} simulated depth camera{'s' if settings.cameras > 1 else ''} "
+             "see of the object (it samples for its own reconstruction, in the direction frame of the reconstruction's "
+             "pose; a capture that cannot be reconstructed fails all its poses)" if settings.cameras else
+             "the source told the mesh at a pose off by the world's ±1 cm / ±5° error")
+    return f"{physics}, {given}"
+
+
+def world_rows(perceived: Mapping[str, Sequence[Mapping[str, Any]]],
+               exact: Mapping[str, Sequence[Mapping[str, Any]]]) -> list[dict[str, Any]]:
+    """Per source measured in both worlds, on the objects both measured: the validated fraction and objects covered
+    in each, and the perceived world's minus the exact world's validated fraction, paired by object."""
+    from evaluation.stats import difference_interval, success_interval
+
+    rows = []
+    for label, records in perceived.items():
+        if not exact.get(label):
+            continue
+        objects = {r["object"] for r in records} & {r["object"] for r in exact[label]}
+        mine = [r for r in records if r["object"] in objects]
+        theirs = [r for r in exact[label] if r["object"] in objects]
+        rows.append({"source": label, "objects": len(objects),
+                     "exact": success_interval(pose_trials(theirs)).as_dict(), "perceived": success_interval(pose_trials(mine)).as_dict(),
+                     "difference": difference_interval(pose_trials(mine), pose_trials(theirs)).as_dict(),
+                     "covered_exact": summarize(theirs)["covered"], "covered_perceived": summarize(mine)["covered"]})
+    return rows
+
+
+def world_markdown(rows: Sequence[Mapping[str, Any]], settings: CoverageSettings, exact_from: str) -> str:
+    """`world_rows` as a table with a line on where the exact figures come from (empty without rows)."""
+    from evaluation.report import markdown_table
+
+    if not rows:
+        return ""
+
+    def cell(v: Mapping[str, float]) -> str:
+        return f"{v['value']:.1%} [{v['low']:.1%}, {v['high']:.1%}]"
+
+    label = f"{settings.world}{f', {settings.cameras} cameras' if settings.cameras else ', mesh told'}"
+    table = markdown_table(
+        ["source", "objects", "validated fraction, exact", f"validated fraction, {label}", f"{settings.world} − exact (points, paired by object)",
+         "covered, exact", f"covered, {settings.world}"],
+        [[r["source"], r["objects"], cell(r["exact"]), cell(r["perceived"]),
+          f"{100 * r['difference']['value']:+.1f} [{100 * r['difference']['low']:+.1f}, {100 * r['difference']['high']:+.1f}]",
+          r["covered_exact"], r["covered_perceived"]] for r in rows])
+    return (f"The same sources on the same objects in the `exact` world ({exact_from}) beside this run's, 95% intervals "
+            f"clustered by object:\n\n{table}\n")

@@ -49,6 +49,9 @@ from evaluation.coverage import (
     DiffusionSource,
     pose_trials,
     summarize,
+    world_markdown,
+    world_rows,
+    world_text,
 )
 from evaluation.report import markdown_table, write_experiment
 from evaluation.stats import success_interval
@@ -76,6 +79,8 @@ class DataSizeSettings:
     subset_seed: int = SUBSET_SEED
     samples: int = 200
     yaw: str = "zero"  # "random": each test object turned by a seeded yaw, the subset taken family by family
+    world: str = "exact"  # "real": each object pushed in a drawn execution world (evaluation/coverage.py)
+    cameras: int = 0  # 1-3: the model samples for what that many cameras see of the object
 
     def __post_init__(self) -> None:
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
@@ -86,7 +91,8 @@ class DataSizeSettings:
             raise CoverageError(f"the learning rate must be > 0, got {self.lr}")
 
     def coverage(self) -> CoverageSettings:
-        return CoverageSettings(samples=self.samples, fraction_poses=min(50, self.samples), hand=HAND, yaw=self.yaw)
+        return CoverageSettings(samples=self.samples, fraction_poses=min(50, self.samples), hand=HAND, yaw=self.yaw,
+                                world=self.world, cameras=self.cameras)
 
     def to_dict(self) -> dict[str, Any]:
         # coverage().to_dict() carries the yaw only when it is random, and the learning rate appears only when it
@@ -110,9 +116,11 @@ def test_objects(settings: DataSizeSettings) -> list[str]:
     return object_subset(settings.test_objects, settings.subset_seed)
 
 
-def result_directory(out: Path, yaw: str = "zero", tag: str | None = None) -> Path:
-    """`<out>/data-size[-random-yaw][-TAG]/`: one store per protocol and training store."""
-    name = NAME + ("-random-yaw" if yaw == "random" else "")
+def result_directory(out: Path, yaw: str = "zero", tag: str | None = None, world: str = "exact", cameras: int = 0) -> Path:
+    """`<out>/data-size[-<world>[-cameraN]][-random-yaw][-TAG]/`: one store per world, protocol and training store
+    (the exact world told the mesh keeps the name of the runs made before worlds existed)."""
+    perceived = CoverageSettings(world=world, cameras=cameras).perceived
+    name = NAME + (f"-{world}" + (f"-camera{cameras}" if cameras else "") if perceived else "") + ("-random-yaw" if yaw == "random" else "")
     return Path(out) / (f"{name}-{tag}" if tag else name)
 
 
@@ -192,27 +200,31 @@ def train_model(dataset_dir: Path, path: Path, fraction: float, seed: int, setti
 # ----------------------------------------------------------------------------- the experiment
 def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DEFAULT_DATASET, yaw: str = "zero",
         train_steps: int | None = None, seeds: Sequence[int] | None = None, objects: int | None = None,
-        lr: float | None = None, tag: str | None = None) -> Path:
-    """Train and measure every (fraction, seed) into `result_directory(out, yaw, tag)`; returns the report path.
+        lr: float | None = None, tag: str | None = None, world: str = "exact", cameras: int = 0) -> Path:
+    """Train and measure every (fraction, seed) into `result_directory(out, yaw, tag, world, cameras)`; returns the
+    report path.
 
-    `train_steps`, `lr`, `seeds`, `objects` and `yaw` replace the protocol's (FULL, or QUICK with `quick`).
+    `train_steps`, `lr`, `seeds`, `objects` and `yaw` replace the protocol's (FULL, or QUICK with `quick`). A run of
+    another world than exact-told-the-mesh measures each model in the exact world too, so the two stand side by side
+    for the same models (a model is the expensive part and is not kept between runs).
     """
     started = time.perf_counter()
     base = QUICK if quick else FULL
     settings = dataclasses.replace(
         base, yaw=yaw, train_steps=train_steps or base.train_steps, lr=lr or base.lr, seeds=tuple(seeds) if seeds else base.seeds,
-        test_objects=objects or base.test_objects)
+        test_objects=objects or base.test_objects, world=world, cameras=cameras)
     dataset_dir = Path(dataset_dir)
     if not dataset_dir.is_dir():
         raise CoverageError(f"no {HAND} training store at {dataset_dir}; build it with "
                             f"`gd2p dataset build --split train --hand {HAND} ... --out {dataset_dir}`")
-    directory = result_directory(out, yaw, tag)
+    directory = result_directory(out, yaw, tag, world, cameras)
     object_ids = test_objects(settings)
     from services.sampler.dataset import load_pose_dataset
 
     fingerprint = load_pose_dataset(dataset_dir, HAND).fingerprint
     store = ResultStore(directory, {**settings.to_dict(), "objects": object_ids, "dataset_sha256": fingerprint})
-    models, coverage = {}, {}
+    models, coverage, exact = {}, {}, {}
+    exact_settings = dataclasses.replace(settings.coverage(), world="exact", cameras=0)
     with CoveragePool(workers) as pool:
         for fraction in settings.fractions:
             for seed in settings.seeds:
@@ -221,12 +233,23 @@ def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DE
                                         workers)
                 source = DiffusionSource(str(directory / "models" / f"{name}.pt"), "ddpm")
                 coverage[name] = pool.measure(source, object_ids, store, f"coverage/{name}", settings.coverage(), desc=f"coverage {name}")
+                if settings.coverage().perceived:
+                    exact[name] = pool.measure(source, object_ids, store, f"coverage-exact/{name}", exact_settings,
+                                               desc=f"coverage {name}, exact")
     rows = table_rows(settings, models, coverage)
     plot = plot_coverage(settings, rows, len(object_ids), directory / "coverage_vs_fraction.png")
-    body = report_body(settings, object_ids, rows, models, plot.name)
-    summary = {"objects": object_ids, "settings": settings.to_dict(), "per_fraction": rows,
+    worlds = world_rows(*(_by_fraction(settings, records) for records in (coverage, exact))) if exact else []
+    body = (report_body(settings, object_ids, rows, models, plot.name)
+            + world_markdown(worlds, settings.coverage(), "the same models, measured in this run"))
+    summary = {"objects": object_ids, "settings": settings.to_dict(), "per_fraction": rows, "exact_beside": worlds,
                "models": {name: {**models[name], **summarize(coverage[name])} for name in models}}
     return write_experiment(directory, TITLE, body, summary, time.perf_counter() - started, quick)
+
+
+def _by_fraction(settings: DataSizeSettings, coverage: dict[str, list[dict[str, Any]]]) -> dict[str, list[dict[str, Any]]]:
+    """Each data fraction's records pooled over its seeds, labelled by the fraction."""
+    return {f"{fraction:.0%} of the data": [r for seed in settings.seeds for r in coverage[model_name(fraction, seed)]]
+            for fraction in settings.fractions}
 
 
 def _trained(store: ResultStore, dataset_dir: Path, path: Path, fraction: float, seed: int, settings: DataSizeSettings,
@@ -295,8 +318,8 @@ def report_body(settings: DataSizeSettings, objects: Sequence[str], rows: list[d
             f"(batch {settings.batch_size}, "
             f"default model, the {HAND} training store), then {settings.samples} DDPM-100 samples per object on a fixed "
             f"subset of **{n} test-split objects** ({placement}; the paper used 300), the first "
-            f"{settings.coverage().fraction_poses} pushed 0.20 m along +x in the floating-hand validator (validated "
-            f"fraction), then more until one succeeds. Seeds {', '.join(map(str, settings.seeds))}: the validated "
+            f"{settings.coverage().fraction_poses} pushed 0.20 m along +x by the floating hand in "
+            f"{world_text(settings.coverage())} (validated fraction), then more until one succeeds. Seeds {', '.join(map(str, settings.seeds))}: the validated "
             f"fraction pools them, the coverage is mean ± std over them.\n\n{table}\n{verdict(rows, n)}\n\n"
             f"![validated fraction and objects covered vs data fraction]({plot_name})\n\n### Models\n\n{model_table}\n"
             f"Test objects: {', '.join(objects)}.\n")

@@ -19,6 +19,7 @@ order the planner's critic path plans in), and retrieval is also given the model
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -39,10 +40,13 @@ from evaluation.coverage import (
     PoseSource,
     pose_trials,
     summarize,
+    world_markdown,
+    world_rows,
+    world_text,
 )
 from evaluation.report import markdown_table, write_experiment
 from evaluation.stats import difference_interval, success_interval
-from evaluation.store import ResultStore
+from evaluation.store import RECORDS_FILE, SETTINGS_FILE, ResultStore, read_records
 
 NAME = "sampler-quality"
 QUICK_OBJECTS = 8
@@ -174,29 +178,59 @@ def index_fingerprint(path: Path) -> str:
     return digest.hexdigest()[:16]
 
 
-def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str | None = None) -> Path:
-    """`<out>/sampler-quality[-val][-random-yaw][-TAG]/`: one store per split, placement and model."""
-    name = NAME + ("-val" if split == "val" else "") + ("-random-yaw" if yaw == "random" else "")
+def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str | None = None, world: str = "exact",
+                     cameras: int = 0) -> Path:
+    """`<out>/sampler-quality[-<world>[-cameraN]][-val][-random-yaw][-TAG]/`: one store per world, split, placement
+    and model; the exact world told the mesh keeps the name of the runs made before worlds existed."""
+    perceived = CoverageSettings(world=world, cameras=cameras).perceived
+    name = (NAME + (f"-{world}" + (f"-camera{cameras}" if cameras else "") if perceived else "")
+            + ("-val" if split == "val" else "") + ("-random-yaw" if yaw == "random" else ""))
     return Path(out) / (f"{name}-{tag}" if tag else name)
+
+
+def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: dict[str, Any],
+                  sources: dict[str, PoseSource]) -> tuple[dict[str, list[dict[str, Any]]], str]:
+    """The records of the exact run of the same name (`result_directory` of the exact world) for each source, when
+    it measured the same checkpoint, index and (for the critic's order) critic; ({}, "") when there is none."""
+    directory = result_directory(out, split, yaw, tag)
+    try:
+        stored = json.loads((directory / SETTINGS_FILE).read_text())
+        records = read_records(directory / RECORDS_FILE)
+    except (OSError, ValueError):
+        return {}, ""
+    same = all(stored.get(k) == settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale"))
+    same_critic = stored.get("critic_id") == settings.get("critic_id")
+    if not same or stored.get("coverage", {}).get("yaw", "zero") != yaw:
+        return {}, ""
+    found = {}
+    for key, source in sources.items():
+        if key in CRITIC_METHOD_KEYS and not same_critic:
+            continue
+        rows = [r for k, r in records.items() if k.startswith(f"{key}/")]
+        if rows:
+            found[source.label()] = rows
+    return found, f"`{directory.name}/`"
 
 
 def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
         nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = DEFAULT_METHOD_KEYS,
-        tag: str | None = None, objects: int | None = None, noise_scale: float | None = None) -> Path:
+        tag: str | None = None, objects: int | None = None, noise_scale: float | None = None, world: str = "exact",
+        cameras: int = 0) -> Path:
     """Measure the pose sources on a split into `result_directory(...)`; returns the report path.
 
     `checkpoint` / `nn_index`: the model and index to measure (default the shipped ones); a run of
     another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val);
     `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`);
     the "-critic" methods order poses by the hand's critic (`default_critic_path`: $GD2P_CRITIC_CHECKPOINT_<HAND>,
-    else the shipped one).
+    else the shipped one); `world` / `cameras`: where the poses are pushed and what the sources are given
+    (`CoverageSettings`; a run of another world than exact-told-the-mesh puts the exact run of the same name beside it).
     """
     from services.sampler.critic_train import default_critic_path
     from services.sampler.diffusion import default_noise_scale
 
     started = time.perf_counter()
     noise_scale = default_noise_scale() if noise_scale is None else float(noise_scale)
-    directory = result_directory(out, split, yaw, tag)
+    directory = result_directory(out, split, yaw, tag, world, cameras)
     directory.mkdir(parents=True, exist_ok=True)
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     if not checkpoint.is_file():
@@ -206,18 +240,23 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     if not nn_index.is_file():
         raise CoverageError(f"no nearest-neighbour index at {nn_index}")
     object_ids = quality_objects(quick, split, objects)
-    coverage = CoverageSettings(hand=hand, yaw=yaw)
+    coverage = CoverageSettings(hand=hand, yaw=yaw, world=world, cameras=cameras)
     critic = default_critic_path(hand) if any(k in CRITIC_METHOD_KEYS for k in methods_to_run) else None
     sources = methods(checkpoint, nn_index, methods_to_run, noise_scale, critic)
-    store = ResultStore(directory, settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale, critic))
+    pinned = settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale, critic)
+    store = ResultStore(directory, pinned)
     results: dict[str, list[dict[str, Any]]] = {}
     with CoveragePool(workers) as pool:
         for key, source in sources.items():
             results[key] = pool.measure(source, object_ids, store, key, coverage, desc=source.label())
     summaries = {key: summarize_with_interval(records) for key, records in results.items()}
     plot = plot_validated_fractions(results, sources, directory / "validated_fraction.png")
-    body = report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw, hand)
-    summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "hand": hand, "checkpoint": checkpoint.name,
+    beside = exact_records(out, split, yaw, tag, pinned, sources) if coverage.perceived else ({}, "")
+    worlds = world_rows({sources[k].label(): v for k, v in results.items()}, beside[0])
+    body = (report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw, hand, coverage)
+            + world_markdown(worlds, coverage, f"the run {beside[1]}"))
+    summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "world": world, "cameras": cameras,
+               "exact_beside": worlds, "hand": hand, "checkpoint": checkpoint.name,
                "nn_index": nn_index.name, "critic": None if critic is None else critic.name, "methods": {sources[k].label(): v for k, v in summaries.items()},
                "families": family_table_data(results, sources),
                "paper_anchor": {"covered": PAPER_COVERED, "objects": PAPER_OBJECTS}, "target_covered_pct": TARGET_COVERED_PCT}
@@ -252,7 +291,7 @@ def family_table_data(results: dict[str, list[dict[str, Any]]], sources: dict[st
 
 def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource], results: dict[str, list[dict[str, Any]]],
                 objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
-                yaw: str = "zero", hand: str = HAND) -> str:
+                yaw: str = "zero", hand: str = HAND, coverage: CoverageSettings | None = None) -> str:
     from services.sampler.checkpoint import checkpoint_id
 
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
@@ -276,7 +315,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
                         f"(id `{checkpoint_id(source.critic)}`; most likely to push well first), so the first 50 pushed "
                         "are those the planner would plan from (its default order since stop 42). " for source in sources.values() if isinstance(source, CriticOrderedSource)), "")
     return (f"{len(objects)} objects of {split_text}, checkpoint `{checkpoint.name}`; each object {placement} by the "
-            f"floating {hand} hand (validator default physics, the data engine's criterion).\n\n{table}\n"
+            f"floating {hand} hand (the data engine's criterion) in {world_text(coverage or CoverageSettings())}.\n\n{table}\n"
             f"{verdict(summaries, results)}\n\n"
             f"{failure_markdown(summaries, sources)}"
             f"By shape family (pooled validated fraction; objects with >= 1 validated pose):\n\n"

@@ -275,8 +275,13 @@ def test_eval_sees_the_object_through_three_cameras_under_real_and_is_told_the_m
         calls.clear()
         assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 0
         assert calls[0]["cameras"] == cameras, argv
-    assert main(["eval", "sampler-quality", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
-    assert "--cameras applies to methods, leap, closed-loop, multistep" in capsys.readouterr().err
+    for argv, world, cameras in ((["sampler-quality"], "real", 3), (["data-size", "--world", "exact"], "exact", 0),
+                                 (["sampler-quality", "--cameras", "0"], "real", 0)):
+        calls.clear()
+        assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 0
+        assert (calls[0]["world"], calls[0]["cameras"]) == (world, cameras), argv
+    assert main(["eval", "sampler-diagnosis", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
+    assert "--cameras applies to methods, leap, closed-loop, multistep, sampler-quality, data-size" in capsys.readouterr().err
 
 
 def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(capsys):
@@ -341,3 +346,120 @@ def test_sampler_quality_refuses_critic_methods_without_a_critic(tmp_path):
     with pytest.raises(CoverageError, match="need a success critic"):
         methods(shipped_checkpoint(), shipped_nn_index(), ("ddpm100-critic",), critic=tmp_path / "none.pt")
     assert list(methods(shipped_checkpoint(), shipped_nn_index(), ("nn", "nn-fill"))) == ["nn", "nn-fill"]
+
+
+# ----------------------------------------------------------------------------- coverage in a drawn world
+@dataclass(frozen=True)
+class SeenSpatulaSource:
+    """The spatula pose (and Halton copies) built from whatever the source is given of the object: a told mesh
+    placed by the frame, or a capture's points, in the source's own direction frame."""
+
+    def label(self) -> str:
+        return "seen spatula"
+
+    def poses(self, obj, frame, k, seed) -> np.ndarray:
+        from shared.frames import frame_transform, points_world_to_d
+
+        hand = load_hand("allegro")
+        if isinstance(obj, np.ndarray):
+            vertices_d = points_world_to_d(obj, frame_transform(frame))
+        else:
+            vertices_d = table_object(obj).vertices_d
+        pose = spatula_pose(hand, vertices_d)
+        lower, upper = hand.joint_lower.double().numpy(), hand.joint_upper.double().numpy()
+        return np.concatenate([pose[None], halton_perturbations(pose, k - 1, seed, lower, upper)])
+
+
+def test_poses_sampled_for_the_cameras_reconstruction_push_the_true_object():
+    """With cameras the source gets only the captured points, in the reconstruction's frame (a few mm off the
+    true one); its poses are carried into the true object's frame and pushed against the true object."""
+    from evaluation.coverage import coverage_frame, coverage_world, sight
+
+    settings = CoverageSettings(samples=4, fraction_poses=4, chunk=1, world="exact", cameras=3)
+    obj = load_object(BOX_ID)
+    seen = sight(obj, coverage_frame(obj, settings, BOX_ID), coverage_world(obj, settings, BOX_ID))
+    assert isinstance(seen.sampler_input, np.ndarray) and seen.sampler_input.shape[1] == 3
+    assert 0.0 < np.linalg.norm(seen.T_true_seen[:2, 3]) < 0.01  # perception's own error: millimetres for a box
+
+    record = measure_object(SeenSpatulaSource(), BOX_ID, settings)
+    assert record["validated_fraction"] >= 0.75
+    assert record["failures"]["not perceived"] == 0 and record["world"]["cameras"] == 3
+
+
+def test_the_real_world_pushes_the_object_where_it_truly_stands(monkeypatch):
+    """Told the mesh at a pose 20 cm off to the side of the truth, every pose misses the true object."""
+    import dataclasses
+
+    import evaluation.coverage as coverage
+    from shared.world.sim.world import PoseError
+
+    settings = CoverageSettings(samples=3, fraction_poses=3, chunk=1, world="real")
+    told = measure_object(SeenSpatulaSource(), BOX_ID, dataclasses.replace(settings, world="exact"))
+    assert told["fraction_successes"] >= 2
+
+    drawn = coverage.coverage_world
+
+    def far_off(obj, settings, object_id):
+        return dataclasses.replace(drawn(obj, settings, object_id), pose_error=PoseError(dy_m=0.2))
+
+    monkeypatch.setattr(coverage, "coverage_world", far_off)
+    record = measure_object(SeenSpatulaSource(), BOX_ID, settings)
+    assert record["fraction_successes"] == 0 and record["failures"]["no contact"] == 3
+    assert record["world"]["level"] == "real" and record["world"]["pose_error"]["dy_m"] == 0.2
+
+
+def test_each_object_has_one_world_for_every_source_and_objects_differ():
+    from evaluation.coverage import coverage_world
+
+    settings = CoverageSettings(world="real", cameras=3)
+    box, other = load_object(BOX_ID), load_object("proc-box-002")
+    assert coverage_world(box, settings, BOX_ID).record() == coverage_world(box, settings, BOX_ID).record()
+    assert coverage_world(box, settings, BOX_ID).record() != coverage_world(other, settings, "proc-box-002").record()
+    assert coverage_world(box, CoverageSettings(), BOX_ID).level == "exact"
+    with pytest.raises(CoverageError, match="world must be"):
+        CoverageSettings(world="lab")
+    with pytest.raises(CoverageError, match="cameras"):
+        CoverageSettings(cameras=4)
+    # the stores of the first protocol keep their pin: the exact world told the mesh adds nothing to it
+    assert "world" not in CoverageSettings().to_dict() and CoverageSettings(world="real", cameras=3).to_dict()["cameras"] == 3
+
+
+def test_an_object_the_cameras_cannot_reconstruct_fails_all_its_poses(monkeypatch):
+    import evaluation.coverage as coverage
+    from shared.world.objects import ObjectLoadError
+
+    def blind(obj, frame, world):
+        raise ObjectLoadError("the point cloud cannot be reconstructed: no object above the table")
+
+    monkeypatch.setattr(coverage, "sight", blind)
+    settings = CoverageSettings(samples=4, fraction_poses=4, world="real", cameras=3)
+    record = measure_object(RefusingSource(), BOX_ID, settings)
+    assert (record["validated_fraction"], record["any_success"], record["n_validated"]) == (0.0, False, 0)
+    assert record["failures"]["not perceived"] == 4 and "no object above the table" in record["not_perceived"]
+    assert summarize([record])["failure_shares"]["not perceived"] == 1.0
+
+
+def test_result_directories_keep_the_first_names_for_the_exact_world():
+    from evaluation import data_size, sampler_quality
+
+    out = Path("/tmp/r")
+    assert sampler_quality.result_directory(out, "val", "random", "x") == out / "sampler-quality-val-random-yaw-x"
+    assert (sampler_quality.result_directory(out, "val", "random", "x", "real", 3)
+            == out / "sampler-quality-real-camera3-val-random-yaw-x")
+    assert data_size.result_directory(out, "random", "v2") == out / "data-size-random-yaw-v2"
+    assert data_size.result_directory(out, "random", "v2", "real", 0) == out / "data-size-real-random-yaw-v2"
+
+
+def test_the_world_table_pairs_sources_on_the_objects_both_worlds_measured():
+    from evaluation.coverage import world_rows
+
+    def record(object_id, successes):
+        return {"object": object_id, "fraction_pushed": 4, "fraction_successes": successes, "n_validated": 4,
+                "validated_fraction": successes / 4, "any_success": successes > 0, "seconds": 1.0}
+
+    real = {"ddpm": [record("a", 1), record("b", 2)], "nn": [record("a", 0)]}
+    exact = {"ddpm": [record("a", 3), record("b", 4), record("c", 4)]}  # "c" was not measured in the real world
+    (row,) = world_rows(real, exact)  # "nn" has no exact records: no row
+    assert (row["source"], row["objects"]) == ("ddpm", 2)
+    assert row["exact"]["value"] == pytest.approx(7 / 8) and row["perceived"]["value"] == pytest.approx(3 / 8)
+    assert row["difference"]["value"] == pytest.approx(-0.5)

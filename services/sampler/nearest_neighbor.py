@@ -323,11 +323,15 @@ class NearestNeighborSampler:
             raise NearestNeighborError(f"{path}: no such nearest-neighbour index")
         return cls(NearestNeighborBaseline.load(path), f"nn:{path.name}@{checkpoint_id(path)[:8]}")
 
+    def points_in_d(self, obj: ObjectInput, frame: DirectionFrame | None = None) -> tuple[np.ndarray, np.ndarray, str]:
+        """(the object's surface points in D [N, 3] as the index encodes them, T_world_D, a label naming the object)."""
+        return self._objects.in_d(obj, frame)
+
     def sample(self, obj: ObjectInput, frame: DirectionFrame | None = None, k: int = 200, seed: int = 0) -> NearestSample:
         """The nearest training frame's poses for `obj` in `frame`: a seeded subset of `k`, or all when it has fewer."""
         started = time.perf_counter()
         check_count_and_seed(k, seed)
-        points_d, T_world_D, label = self._objects.in_d(obj, frame)
+        points_d, T_world_D, label = self.points_in_d(obj, frame)
         try:
             match = self.index.query_points(points_d, k=k, seed=seed)
         except NearestNeighborError as exc:

@@ -61,11 +61,15 @@ class TableObject:
         return float(self.vertices_d[:, 2].max())
 
 
-def table_object(obj: ObjectModel, pose_index: int | None = None, yaw_rad: float = 0.0) -> TableObject:
-    """The library object resting in `pose_index` (its default pose if None), yawed by `yaw_rad` in D."""
+def table_object(obj: ObjectModel, pose_index: int | None = None, yaw_rad: float = 0.0, mass_scale: float = 1.0,
+                 com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> TableObject:
+    """The library object resting in `pose_index` (its default pose if None), yawed by `yaw_rad` in D.
+
+    `mass_scale` / `com_offset_m` (frame O): the true object of an execution world, heavier or lighter than
+    the model and unevenly filled (`shared.world.sim.world`); the resting pose is the model's either way."""
     transform = obj.T_D_O(pose_index, yaw_rad)
     vertices = obj.mesh.vertices @ transform[:3, :3].T + transform[:3, 3]
-    return TableObject(obj.id, write_object_urdf(obj), transform, vertices)
+    return TableObject(obj.id, write_object_urdf(obj, mass_scale, com_offset_m), transform, vertices)
 
 
 @dataclass(frozen=True)
