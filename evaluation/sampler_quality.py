@@ -190,26 +190,34 @@ def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str
 
 def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: dict[str, Any],
                   sources: dict[str, PoseSource]) -> tuple[dict[str, list[dict[str, Any]]], str]:
-    """The records of the exact run of the same name (`result_directory` of the exact world) for each source, when
-    it measured the same checkpoint, index and (for the critic's order) critic; ({}, "") when there is none."""
-    directory = result_directory(out, split, yaw, tag)
-    try:
-        stored = json.loads((directory / SETTINGS_FILE).read_text())
-        records = read_records(directory / RECORDS_FILE)
-    except (OSError, ValueError):
-        return {}, ""
-    same = all(stored.get(k) == settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale"))
-    same_critic = stored.get("critic_id") == settings.get("critic_id")
-    if not same or stored.get("coverage", {}).get("yaw", "zero") != yaw:
-        return {}, ""
-    found = {}
-    for key, source in sources.items():
-        if key in CRITIC_METHOD_KEYS and not same_critic:
+    """Each source's records from an exact run (told the mesh) in `out` of the same split and placement that measured
+    the same checkpoint, index, temperature and, for the critic's order, critic, on some of the same objects: the run of
+    the same name first, then the others in name order. Returns (source label -> records, which runs they came from)."""
+    first = result_directory(out, split, yaw, tag)
+    others = sorted(d for d in Path(out).glob(f"{NAME}*") if d != first)
+    found: dict[str, list[dict[str, Any]]] = {}
+    origin: dict[str, str] = {}
+    for directory in [first, *others]:
+        try:
+            stored = json.loads((directory / SETTINGS_FILE).read_text())
+            records = read_records(directory / RECORDS_FILE)
+        except (OSError, ValueError):
             continue
-        rows = [r for k, r in records.items() if k.startswith(f"{key}/")]
-        if rows:
-            found[source.label()] = rows
-    return found, f"`{directory.name}/`"
+        if any(stored.get(k) != settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale")):
+            continue
+        coverage = stored.get("coverage", {})
+        if (coverage.get("yaw", "zero") != yaw or "world" in coverage or "cameras" in coverage
+                or not set(stored.get("objects", ())) & set(settings["objects"])):
+            continue  # another placement, world or split
+        for key, source in sources.items():
+            if source.label() in found or (key in CRITIC_METHOD_KEYS and stored.get("critic_id") != settings.get("critic_id")):
+                continue
+            rows = [r for k, r in records.items() if k.startswith(f"{key}/")]
+            if rows:
+                found[source.label()], origin[source.label()] = rows, directory.name
+    runs = sorted(set(origin.values()))
+    text = "; ".join(f"`{run}/` ({', '.join(label for label, o in origin.items() if o == run)})" for run in runs)
+    return found, text
 
 
 def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
@@ -254,7 +262,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     beside = exact_records(out, split, yaw, tag, pinned, sources) if coverage.perceived else ({}, "")
     worlds = world_rows({sources[k].label(): v for k, v in results.items()}, beside[0])
     body = (report_body(summaries, sources, results, object_ids, checkpoint, nn_index, plot.name, split, yaw, hand, coverage)
-            + world_markdown(worlds, coverage, f"the run {beside[1]}"))
+            + world_markdown(worlds, coverage, f"the runs {beside[1]}"))
     summary = {"objects": len(object_ids), "split": split, "yaw": yaw, "world": world, "cameras": cameras,
                "exact_beside": worlds, "hand": hand, "checkpoint": checkpoint.name,
                "nn_index": nn_index.name, "critic": None if critic is None else critic.name, "methods": {sources[k].label(): v for k, v in summaries.items()},

@@ -463,3 +463,23 @@ def test_the_world_table_pairs_sources_on_the_objects_both_worlds_measured():
     assert (row["source"], row["objects"]) == ("ddpm", 2)
     assert row["exact"]["value"] == pytest.approx(7 / 8) and row["perceived"]["value"] == pytest.approx(3 / 8)
     assert row["difference"]["value"] == pytest.approx(-0.5)
+
+
+def test_a_real_run_finds_each_sources_exact_records_in_the_runs_that_measured_the_same_models(tmp_path):
+    from evaluation.sampler_quality import exact_records, methods, shipped_checkpoint, shipped_nn_index
+
+    def exact_run(name, keys, world="exact", **settings):
+        store = ResultStore(tmp_path / name, {"checkpoint_id": "ckpt", "nn_index": "nn", "objects": ["a", "b"],
+                                              "coverage": CoverageSettings(yaw="random", world=world).to_dict(), **settings})
+        for key in keys:
+            store.add(f"{key}/a", {"object": "a"})
+
+    exact_run("sampler-quality-random-yaw-mine", ["nn"])
+    exact_run("sampler-quality-random-yaw-older", ["ddpm100", "nn"])
+    exact_run("sampler-quality-random-yaw-other-model", ["ddim10"], nn_index="another")
+    exact_run("sampler-quality-real-random-yaw-x", ["ddim10"], world="real")  # a perceived run: never the exact one
+    sources = methods(shipped_checkpoint(), shipped_nn_index(), ("ddpm100", "ddim10", "nn"))
+    pinned = {"checkpoint_id": "ckpt", "nn_index": "nn", "objects": ["a"]}
+    found, text = exact_records(tmp_path, "test", "random", "mine", pinned, sources)
+    assert set(found) == {"DDPM-100", "Nearest neighbour"}  # DDIM-10 only in runs of another index or world
+    assert "`sampler-quality-random-yaw-mine/` (Nearest neighbour)" in text and "-older/` (DDPM-100)" in text
