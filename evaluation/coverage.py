@@ -655,5 +655,5 @@ def world_markdown(rows: Sequence[Mapping[str, Any]], settings: CoverageSettings
         [[r["source"], r["objects"], cell(r["exact"]), cell(r["perceived"]),
           f"{100 * r['difference']['value']:+.1f} [{100 * r['difference']['low']:+.1f}, {100 * r['difference']['high']:+.1f}]",
           r["covered_exact"], r["covered_perceived"]] for r in rows])
-    return (f"The same sources on the same objects in the `exact` world ({exact_from}) beside this run's, 95% intervals "
-            f"clustered by object:\n\n{table}\n")
+    return (f"\n### Beside the `exact` world\n\nThe same sources on the same objects in the `exact` world ({exact_from}) "
+            f"beside this run's, 95% intervals clustered by object:\n\n{table}\n")

@@ -30,6 +30,7 @@ import numpy as np
 from evaluation.coverage import (
     DEFAULT_DATASET,
     HAND,
+    NOT_PERCEIVED,
     TARGET_COVERED_PCT,
     CoverageError,
     CoveragePool,
@@ -344,10 +345,14 @@ def failure_markdown(summaries: dict[str, dict[str, Any]], sources: dict[str, Po
     shares = {k: s["failure_shares"] for k, s in summaries.items() if s.get("failure_shares")}
     if not shares:
         return ""
-    kinds = list(next(iter(shares.values())))
+    listed = list(FAILURES)  # the judge's order; records come back from disk with their keys sorted
+    kinds = sorted(next(iter(shares.values())), key=lambda kind: listed.index(kind) if kind in listed else len(listed))
     rows = [[sources[k].label(), *(f"{v[kind]:.1%}" for kind in kinds)] for k, v in shares.items()]
+    perceived = (" \"not perceived\": the object's 50 poses, counted as failed, when the cameras' view could not be "
+                 "reconstructed (for retrieval, which returns fewer than 50 poses of a seen object, they weigh a little more)"
+                 if NOT_PERCEIVED in kinds else "")
     return ("Why the pushed poses failed (share of all pushed poses, the first 50 per object; a pose that tipped "
-            "the object over counts as toppled even if it also turned):\n\n"
+            f"the object over counts as toppled even if it also turned){perceived}:\n\n"
             + markdown_table(["method", *(FAILURES.get(kind, kind) for kind in kinds)], rows) + "\n")
 
 
