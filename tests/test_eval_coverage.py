@@ -226,6 +226,10 @@ def test_data_size_at_random_yaw_measures_every_family_and_reports_the_unseen_on
     assert set(UNSEEN_FAMILIES) <= families and len(families) >= 12
     assert "yaw" in settings.to_dict()["coverage"]  # a random-yaw run cannot resume a yaw-0 store
     assert "lr" not in settings.to_dict() and dataclasses.replace(settings, lr=1e-3).to_dict()["lr"] == 1e-3
+    # a run in the drawn world cannot resume an exact store either, and pushes its poses there
+    real = dataclasses.replace(settings, world="real", cameras=3)
+    assert real.to_dict()["coverage"]["world"] == "real" and real.coverage().cameras == 3
+    assert "world" not in settings.to_dict()["coverage"]
 
     mug = next(o for o in objects if resolve_library_id(o).family in UNSEEN_FAMILIES)
     other = next(o for o in objects if resolve_library_id(o).family not in UNSEEN_FAMILIES)
