@@ -110,6 +110,14 @@ class CoverageSettings:
         """True when the measurement differs from the first protocol: a drawn world or a camera's view."""
         return self.world != "exact" or self.cameras > 0
 
+    @property
+    def world_suffix(self) -> str:
+        """What a results directory's name says of the world: `-<world>[-cameraN]`, nothing for the exact world
+        told the mesh (the names of the runs made before worlds existed)."""
+        if not self.perceived:
+            return ""
+        return f"-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
+
 
 def object_seed(seed: int, object_id: str, purpose: str = "") -> int:
     """The sampling seed of one object: from (settings seed, object id) only, never from scheduling."""

@@ -119,8 +119,7 @@ def test_objects(settings: DataSizeSettings) -> list[str]:
 def result_directory(out: Path, yaw: str = "zero", tag: str | None = None, world: str = "exact", cameras: int = 0) -> Path:
     """`<out>/data-size[-<world>[-cameraN]][-random-yaw][-TAG]/`: one store per world, protocol and training store
     (the exact world told the mesh keeps the name of the runs made before worlds existed)."""
-    perceived = CoverageSettings(world=world, cameras=cameras).perceived
-    name = NAME + (f"-{world}" + (f"-camera{cameras}" if cameras else "") if perceived else "") + ("-random-yaw" if yaw == "random" else "")
+    name = NAME + CoverageSettings(world=world, cameras=cameras).world_suffix + ("-random-yaw" if yaw == "random" else "")
     return Path(out) / (f"{name}-{tag}" if tag else name)
 
 

@@ -117,7 +117,7 @@ class StoredPosesSource(NearestNeighborSource):
 
         if abs(object_yaw_in_d(frame, obj.default_pose.rotation)) > 1e-6:
             raise CoverageError(f"{obj.id}: stored poses are in the default placement (yaw 0 in D), not this frame")
-        baseline = self.baseline()
+        baseline = self.sampler().index
         return baseline.frame_poses(baseline.frame_row(Frame(obj.id, DEFAULT_POSE_INDEX, 0.0)), k, seed)
 
 

@@ -183,8 +183,7 @@ def result_directory(out: Path, split: str = "test", yaw: str = "zero", tag: str
                      cameras: int = 0) -> Path:
     """`<out>/sampler-quality[-<world>[-cameraN]][-val][-random-yaw][-TAG]/`: one store per world, split, placement
     and model; the exact world told the mesh keeps the name of the runs made before worlds existed."""
-    perceived = CoverageSettings(world=world, cameras=cameras).perceived
-    name = (NAME + (f"-{world}" + (f"-camera{cameras}" if cameras else "") if perceived else "")
+    name = (NAME + CoverageSettings(world=world, cameras=cameras).world_suffix
             + ("-val" if split == "val" else "") + ("-random-yaw" if yaw == "random" else ""))
     return Path(out) / (f"{name}-{tag}" if tag else name)
 
