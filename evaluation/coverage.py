@@ -271,14 +271,6 @@ def _file_stamp(path: str) -> tuple[int, int]:
     return stat.st_size, stat.st_mtime_ns
 
 
-def object_in_d(frame: Any) -> np.ndarray:
-    """T_D_O: the object's pose in the direction frame D of a `DirectionFrame`."""
-    from shared.frames import frame_transform, invert_transform, pos_quat_to_matrix
-
-    T_world_O = pos_quat_to_matrix(np.asarray(frame.object_pose.position), np.asarray(frame.object_pose.quaternion_xyzw))
-    return invert_transform(frame_transform(frame)) @ T_world_O
-
-
 # ----------------------------------------------------------------------------- early stopping
 @dataclass
 class PushTally:

@@ -200,7 +200,6 @@ def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: di
     for directory in [first, *others]:
         try:
             stored = json.loads((directory / SETTINGS_FILE).read_text())
-            records = read_records(directory / RECORDS_FILE)
         except (OSError, ValueError):
             continue
         if any(stored.get(k) != settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale")):
@@ -209,6 +208,10 @@ def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: di
         if (coverage.get("yaw", "zero") != yaw or "world" in coverage or "cameras" in coverage
                 or not set(stored.get("objects", ())) & set(settings["objects"])):
             continue  # another placement, world or split
+        try:  # read only the records of a run that matches: the results directory holds dozens of runs
+            records = read_records(directory / RECORDS_FILE)
+        except OSError:
+            continue
         for key, source in sources.items():
             if source.label() in found or (key in CRITIC_METHOD_KEYS and stored.get("critic_id") != settings.get("critic_id")):
                 continue

@@ -153,9 +153,10 @@ class TurnedSpatulaSource:
         return "turned spatula"
 
     def poses(self, obj, frame, k, seed) -> np.ndarray:
-        from evaluation.coverage import object_in_d
+        from shared.frames import frame_object_transform, frame_transform, invert_transform
 
-        vertices = obj.mesh.vertices @ object_in_d(frame)[:3, :3].T + object_in_d(frame)[:3, 3]
+        T_D_O = invert_transform(frame_transform(frame)) @ frame_object_transform(frame)
+        vertices = obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
         return spatula_pose(load_hand("allegro"), vertices)[None]
 
 
