@@ -23,7 +23,12 @@ without a critic).
 `train` fits the critic (BPS of the object + pose + where the hand meets the object -> P(success), position
 error; `--no-contact` leaves the contact features out, as critics before them were) and keeps the step
 with the best ROC AUC on `--val`; it prints that AUC and the success rate of each val object's six
-best-scored poses against all of its poses. The sampler service picks up
+best-scored poses against all of its poses. Under the default perception the planner gives the critic a
+camera capture, not the mesh: `--capture-fraction F` trains F of each batch on captures of the records'
+objects (3 simulated depth cameras, 2 captures per object, reconstructed the planner's way, the poses
+moved into the reconstruction's frame; stored resumably in `<data>/captures`, about 0.5 s per capture
+per core) and the val AUC then pools mesh and capture views. `eval --captures` reports mesh and
+capture views apart. The sampler service picks up
 `services/sampler/checkpoints/<hand>_critic.pt` (or $GD2P_CRITIC_CHECKPOINT_<HAND>; "none" turns it off)
 when it was trained for the installed sampler checkpoint.
 """
@@ -37,7 +42,7 @@ import sys
 import time
 from pathlib import Path
 
-from cli.args import non_negative_int, positive_int
+from cli.args import non_negative_int, positive_int, probability
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -77,6 +82,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--hidden-dim", type=positive_int, default=None,
                        help="width of the hidden layers (default: CriticConfig's, 64)")
     train.add_argument("--layers", type=positive_int, default=None, help="hidden layers (default: CriticConfig's, 2)")
+    train.add_argument("--capture-fraction", type=probability, default=0.0,
+                       help="share of each batch on camera captures of the objects instead of their meshes "
+                            "(default 0: meshes only; > 0 captures every data directory first)")
+    train.add_argument("--workers", type=positive_int, default=2, help="capture processes (default 2: one per core)")
     train.add_argument("--out", type=Path, required=True, help="critic checkpoint to write")
     train.set_defaults(func=run_train)
     report = commands.add_parser("eval", help="ROC AUC and top-6 success of a critic on labelled data",
@@ -84,6 +93,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     report.add_argument("--data", type=Path, required=True, help="`gd2p critic data` output")
     report.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     report.add_argument("--critic", type=Path, default=None, help="critic checkpoint (default: the installed one)")
+    report.add_argument("--captures", action="store_true",
+                        help="also score camera captures of the objects (built in <data>/captures if missing) and "
+                             "report mesh and capture views apart")
+    report.add_argument("--workers", type=positive_int, default=2, help="capture processes (default 2)")
     report.set_defaults(func=run_eval)
 
 
@@ -131,8 +144,9 @@ def run_train(args: argparse.Namespace) -> int:
     started = time.time()
     sampler_path = default_checkpoint_path(args.hand)
     try:
-        train_records = [r for directory in args.data for r in read_records(directory)]
+        train_sources = [(directory, read_records(directory)) for directory in args.data]
         val_records = read_records(args.val)
+        train_records = [r for _, records in train_sources for r in records]
     except CriticError as exc:
         print(f"gd2p critic train: {exc}", file=sys.stderr)
         return 2
@@ -146,8 +160,10 @@ def run_train(args: argparse.Namespace) -> int:
             print(f"gd2p critic train: the data was sampled with checkpoint(s) {sorted(stale)}, the installed one is "
                   f"{sampler.checkpoint_id}: rebuild the data with it", file=sys.stderr)
             return 2
-        train, val = _encode(train_records, sampler, "train data"), _encode(val_records, sampler, "val data")
-    settings = CriticTraining(steps=args.steps, seed=args.seed)
+        captured = args.capture_fraction > 0
+        train = _encode_dirs(train_sources, sampler, "train data", captured, args.workers)
+        val = _encode_dirs([(args.val, val_records)], sampler, "val data", captured, args.workers)
+    settings = CriticTraining(steps=args.steps, seed=args.seed, capture_fraction=args.capture_fraction)
     asked = {"object_dim": args.object_dim, "hidden_dim": args.hidden_dim, "num_layers": args.layers,
              **({"contact_dim": 0} if args.no_contact else {})}
     config = dataclasses.replace(settings.config, **{k: v for k, v in asked.items() if v is not None})
@@ -189,19 +205,27 @@ def run_eval(args: argparse.Namespace) -> int:
         print("gd2p critic eval: no critic installed ($GD2P_CRITIC_CHECKPOINT_<HAND> is 'none')", file=sys.stderr)
         return 2
     with PoseSampler(default_checkpoint_path(args.hand)) as sampler:
-        data = _encode(records, sampler, "data")
+        data = _encode_dirs([(args.data, records)], sampler, "data", args.captures, args.workers)
     metrics = evaluate(critic.model, data)
+    # L_dir's order (no critic) on the same views; it reads the pose only, so mesh and capture views agree up to
+    # the poses' shift into the reconstruction's frame.
     l_dir = ranking.direction_costs(load_hand(args.hand), data.poses.double().numpy())
     metrics["l_dir_top6_success"] = round(top_k_success(-l_dir, data.success.numpy() > 0.5, data.group.numpy()), 4)
     print(json.dumps({"critic": str(path), "data": str(args.data), **metrics}))
     return 0 if np.isfinite(metrics["roc_auc"]) else 1
 
 
-def _encode(records: list, sampler, what: str):
-    """`encode_records` with a progress bar: BPS and contact features take about 3 s per 1,000 poses."""
+def _encode_dirs(sources: list[tuple[Path, list]], sampler, what: str, captures: bool, workers: int):
+    """The records of each (data directory, its records) encoded (`encode_records`; with `captures`, the
+    directory's camera captures built or resumed first), with progress bars: BPS and contact features take
+    ~3 s per 1,000 poses."""
     from tqdm import tqdm
 
-    from services.sampler.critic_train import encode_records
+    from services.sampler.critic_train import CriticData, encode_records, record_captures
 
-    with tqdm(total=len(records), desc=f"encoding {what}", unit="object", file=sys.stderr) as bar:
-        return encode_records(records, sampler, progress=bar.update)
+    parts = []
+    for directory, records in sources:
+        frame_captures = record_captures(directory, records, workers=workers) if captures else None
+        with tqdm(total=len(records), desc=f"encoding {what}", unit="object", file=sys.stderr) as bar:
+            parts.append(encode_records(records, sampler, progress=bar.update, captures=frame_captures))
+    return CriticData.concat(parts)

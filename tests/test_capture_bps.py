@@ -46,32 +46,42 @@ def test_a_capture_is_the_frames_object_seen_by_three_cameras_in_the_reconstruct
     assert np.array_equal(features, again) and not np.array_equal(features, different)
 
 
-def fake_capture(frame, variant, settings, bps, cache_dir):
+def fake_capture(frame, variant, settings, cache_dir):
     """A stand-in capture: recognisable per frame and variant, the second variant of frame 1 unreconstructable."""
     if frame.yaw_rad == 1.0 and variant == 1:
         return None
-    return np.full(bps.n, frame.yaw_rad + variant, np.float32), np.array([0.001 * variant, 0.0], np.float32)
+    points = np.full((3 + variant, 3), 0.01 * (frame.yaw_rad + variant), np.float32)
+    return points, np.array([0.001 * variant, 0.0], np.float32)
 
 
-def test_a_killed_capture_build_resumes_with_the_missing_chunks_only(tmp_path, monkeypatch):
+@pytest.mark.parametrize("keep_points", [False, True])
+def test_a_killed_capture_build_resumes_with_the_missing_chunks_only(tmp_path, monkeypatch, keep_points):
     monkeypatch.setattr(capture_bps, "CHUNK_FRAMES", 1)
     calls: list[tuple[float, int]] = []
-    monkeypatch.setattr(capture_bps, "capture_frame",
+    monkeypatch.setattr(capture_bps, "capture_points",
                         lambda f, v, *rest: calls.append((f.yaw_rad, v)) or fake_capture(f, v, *rest))
     frames = [Frame("proc-box-003", -1, 0.0), Frame("proc-box-003", -1, 1.0)]
     store = tmp_path / "captures"
-    built = build_captures(frames, store, CaptureSettings(), "sha", workers=1, progress=False)
+    built = build_captures(frames, store, CaptureSettings(), "sha", workers=1, progress=False, keep_points=keep_points)
     assert built.ok.tolist() == [[True, True], [True, False]]
-    assert built.summary()["reconstructed"] == 3 and float(built.bps[1, 0, 0]) == 1.0
+    seen, _ = fake_capture(frames[1], 0, None, None)
+    assert built.summary()["reconstructed"] == 3 and np.allclose(built.bps[1, 0], BasisPointSet().encode(seen))
+    if keep_points:  # the critic's store: the points each BPS encodes, as captured
+        assert np.array_equal(built.points(1, 0), seen) and built.points(0, 1).shape == (4, 3)
+    else:
+        with pytest.raises(CaptureStoreError, match="keeps no points"):
+            built.points(1, 0)
     (store / "chunk-00001.npz").unlink()  # the build was killed before the second chunk landed
     with pytest.raises(CaptureStoreError, match="run the build again"):
         load_captures(store)
     calls.clear()
-    resumed = build_captures(frames, store, CaptureSettings(), "sha", workers=1, progress=False)
+    resumed = build_captures(frames, store, CaptureSettings(), "sha", workers=1, progress=False, keep_points=keep_points)
     assert calls == [(1.0, 0), (1.0, 1)]
     assert np.array_equal(resumed.bps, built.bps) and np.array_equal(resumed.shift_xy, built.shift_xy)
     with pytest.raises(CaptureStoreError, match="other frames or settings"):
-        build_captures(frames, store, CaptureSettings(cameras=1), "sha", workers=1, progress=False)
+        build_captures(frames, store, CaptureSettings(cameras=1), "sha", workers=1, progress=False, keep_points=keep_points)
+    with pytest.raises(CaptureStoreError, match="other frames or settings"):  # with points vs without
+        build_captures(frames, store, CaptureSettings(), "sha", workers=1, progress=False, keep_points=not keep_points)
     with pytest.raises(CaptureStoreError, match="no captures"):
         resumed.for_frames([Frame("proc-box-004", -1, 0.0)])
 

@@ -211,3 +211,82 @@ def test_critic_train_learns_from_several_data_directories_and_refuses_test_obje
                  "--val", str(tmp_path / "val"), "--out", str(tmp_path / "never.pt")]) == 2
     assert "test objects are for reporting only" in capsys.readouterr().err
     assert not (tmp_path / "never.pt").exists()
+
+
+def test_a_capture_view_carries_the_same_pushes_into_the_reconstructions_frame(tmp_path):
+    """Each record also comes as each of its reconstructed captures: the same outcomes, the poses moved by the
+    capture's shift, BPS and contact features read from the captured points; a failed capture adds nothing."""
+    from services.sampler.capture_bps import FrameCaptures
+    from services.sampler.critic_train import critic_frame, critic_frames, encode_records
+    from services.sampler.sampling import PoseSampler
+    from shared.world.perception.object_model import BPS_POINTS
+
+    sampler_id = checkpoint_id(default_checkpoint_path("allegro"))
+    _write_records(tmp_path / "data", ["proc-spatula-077", "rnd-957"], sampler_id, seed=0)
+    from services.sampler.critic_train import read_records
+
+    records = read_records(tmp_path / "data")
+    shift = np.array([0.004, -0.003], np.float32)
+    with PoseSampler(default_checkpoint_path("allegro")) as sampler:
+        # A stand-in capture of the first object: its mesh points seen from a frame `shift` away, exactly.
+        mesh_points, _, _ = sampler.points_in_d("proc-spatula-077", critic_frame("proc-spatula-077", records[0]["yaw_deg"]))
+        seen = (mesh_points + np.array([*shift, 0.0]))[:BPS_POINTS].astype(np.float32)
+        points = np.zeros((2, 2, BPS_POINTS, 3), np.float32)
+        points[0, 0, :len(seen)] = seen
+        captures = FrameCaptures(critic_frames(records), bps=np.zeros((2, 2, 4), np.float32),
+                                 shift_xy=np.tile(shift, (2, 2, 1)), ok=np.array([[True, False], [False, False]]),
+                                 points_d=points, point_counts=np.array([[len(seen), 0], [0, 0]]))
+        plain = encode_records(records, sampler)
+        data = encode_records(records, sampler, captures=captures)
+    assert plain.captured is None and len(plain.bps) == 2
+    assert len(data.bps) == 3 and data.object_ids == ["proc-spatula-077", "proc-spatula-077", "rnd-957"]
+    mesh, capture = data.group == 0, data.group == 1
+    assert data.captured.tolist() == capture.tolist() and int(capture.sum()) == 16
+    assert torch.equal(data.success[capture], data.success[mesh])  # the same physical pushes, the same outcomes
+    assert torch.allclose(data.poses[capture][:, :2], data.poses[mesh][:, :2] + torch.as_tensor(shift))
+    assert torch.equal(data.poses[capture][:, 2:], data.poses[mesh][:, 2:])
+    # Hand and object moved together: the same distances, the contact centroid moved with them.
+    assert torch.allclose(data.contact[capture][:, 3:6], data.contact[mesh][:, 3:6], atol=1e-5)
+    assert torch.allclose(data.contact[capture][:, :2], data.contact[mesh][:, :2] + torch.as_tensor(shift), atol=1e-5)
+    assert not torch.allclose(data.bps[1], data.bps[0])  # the BPS is read in the capture's frame
+
+
+def test_a_capture_fraction_sets_each_batchs_share_of_capture_views():
+    from services.sampler.critic_train import _batch_rows
+
+    data = synthetic_data(6, seed=0)
+    captured = data.group >= 4  # two of the six views are captures
+    data = CriticData(data.poses, data.group, data.bps, data.success, data.error_m, data.object_ids, data.contact, captured)
+    generator = torch.Generator().manual_seed(0)
+    rows = _batch_rows(data, CriticTraining(batch_size=100, capture_fraction=0.25), generator)()
+    assert int(captured[rows].sum()) == 25 and len(rows) == 100
+    rows = _batch_rows(data, CriticTraining(batch_size=100), generator)()  # 0: uniform over every row
+    assert 10 < int(captured[rows].sum()) < 60
+    metrics = evaluate(SuccessCritic(TINY), data)
+    assert metrics["mesh"]["objects"] == 4 and metrics["captures"]["objects"] == 2
+
+
+def test_critic_train_on_captures_builds_them_resumably_beside_the_data(tmp_path, capsys):
+    import json
+
+    from cli.main import main
+
+    sampler_id = checkpoint_id(default_checkpoint_path("allegro"))
+    _write_records(tmp_path / "train", ["proc-box-003"], sampler_id, seed=0)
+    _write_records(tmp_path / "val", ["proc-bottle-076"], sampler_id, seed=2)
+    assert main(["critic", "train", "--data", str(tmp_path / "train"), "--val", str(tmp_path / "val"), "--steps", "10",
+                 "--capture-fraction", "0.5", "--workers", "1", "--out", str(tmp_path / "critic.pt")]) == 0
+    manifest = json.loads((tmp_path / "critic.pt.manifest.json").read_text())
+    assert manifest["settings"]["capture_fraction"] == 0.5
+    assert manifest["train_poses"] == 16 * 3  # the mesh view and both captures of the box
+    assert set(manifest["best_val"]) >= {"mesh", "captures"}
+    assert (tmp_path / "train" / "captures" / "settings.json").is_file()
+    capsys.readouterr()
+    assert main(["critic", "eval", "--data", str(tmp_path / "val"), "--critic", str(tmp_path / "critic.pt"),
+                 "--captures", "--workers", "1"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["mesh"]["poses"] == 16 and report["captures"]["poses"] == 32
+    with pytest.raises(SystemExit):
+        main(["critic", "train", "--data", str(tmp_path / "train"), "--val", str(tmp_path / "val"),
+              "--capture-fraction", "1.5", "--out", str(tmp_path / "never.pt")])
+    assert "--capture-fraction: must be in [0, 1]" in capsys.readouterr().err

@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from services.sampler.dataset import DEFAULT_POSE_INDEX, DatasetError, Frame
 from shared.atomic import atomic_write_bytes, atomic_write_text
-from shared.frames import direction_frame
+from shared.frames import direction_frame, points_world_to_d
 from shared.world.bps import BasisPointSet
 
 CAPTURE_VERSION = 1  # bump when the same settings give different captures
@@ -77,6 +77,10 @@ class FrameCaptures:
     bps: np.ndarray  # [F, V, n] float32; a failed capture's row is zeros
     shift_xy: np.ndarray  # [F, V, 2] float32: a pose's offset from the true D to the reconstruction's D
     ok: np.ndarray  # [F, V] bool: the capture was reconstructed
+    # Kept only by a store built with `keep_points` (the critic's: its contact features read them):
+    # the points each BPS encodes, in the reconstruction's D, zero-padded to BPS_POINTS, and their counts.
+    points_d: np.ndarray | None = None  # [F, V, BPS_POINTS, 3] float32
+    point_counts: np.ndarray | None = None  # [F, V] int
 
     def for_frames(self, frames: list[Frame]) -> FrameCaptures:
         """The captures of `frames`, in their order (CaptureStoreError if one was not captured)."""
@@ -86,7 +90,14 @@ class FrameCaptures:
             raise CaptureStoreError(f"{len(missing)} training frames have no captures (e.g. {missing[0]}); "
                                     "rebuild the captures for this dataset")
         rows = np.array([row[f] for f in frames], dtype=np.int64)
-        return FrameCaptures(list(frames), self.bps[rows], self.shift_xy[rows], self.ok[rows])
+        kept = None if self.points_d is None or self.point_counts is None else (self.points_d[rows], self.point_counts[rows])
+        return FrameCaptures(list(frames), self.bps[rows], self.shift_xy[rows], self.ok[rows], *(kept or (None, None)))
+
+    def points(self, frame_row: int, variant: int) -> np.ndarray:
+        """[M, 3] the points capture `variant` of frame `frame_row` encodes, in the reconstruction's D."""
+        if self.points_d is None or self.point_counts is None:
+            raise CaptureStoreError("this capture store keeps no points (built without keep_points)")
+        return self.points_d[frame_row, variant, :self.point_counts[frame_row, variant]]
 
     def summary(self) -> dict[str, Any]:
         shift = np.linalg.norm(self.shift_xy[self.ok], axis=-1)
@@ -103,12 +114,23 @@ def _frame_seed(frame: Frame, settings: CaptureSettings, variant: int) -> np.ran
 def capture_frame(frame: Frame, variant: int, settings: CaptureSettings, bps: BasisPointSet,
                   cache_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(BPS [n], shift [2]) of one capture of `frame`, or None when the capture cannot be reconstructed."""
+    captured = capture_points(frame, variant, settings, cache_dir)
+    if captured is None:
+        return None
+    points_d, shift = captured
+    return bps.encode(points_d).astype(np.float32), shift
+
+
+def capture_points(frame: Frame, variant: int, settings: CaptureSettings,
+                   cache_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the points [M, 3] a capture's BPS encodes, in the reconstruction's D; shift [2]) of one capture of
+    `frame`, or None when the capture cannot be reconstructed."""
     # Imported here: PyBullet's renderer and the reconstruction pipeline are needed only by the capture
     # workers, not by every process that reads a finished store.
     from shared.world.objects import ObjectLoadError, load_object
     from shared.world.perception import PerceptionError
     from shared.world.perception.cloud import cloud_for_request
-    from shared.world.perception.object_model import bps_from_cloud, object_from_cloud
+    from shared.world.perception.object_model import bps_points, object_from_cloud
     from shared.world.sim.camera import capture_object
 
     rng = _frame_seed(frame, settings, variant)
@@ -124,27 +146,37 @@ def capture_frame(frame: Frame, variant: int, settings: CaptureSettings, bps: Ba
     except (PerceptionError, ObjectLoadError):
         return None
     T_world_Dp = direction_frame(captured.T_world_O[:3, 3], direction_deg)
-    features = bps_from_cloud(captured.object_points, T_world_Dp, bps)
+    # As `bps_from_cloud` encodes a request's cloud: the same thinning and draw, then into D.
+    points_d = points_world_to_d(bps_points(captured.object_points), T_world_Dp)
     shift = (np.linalg.inv(T_world_Dp) @ T_world_D)[:2, 3]
-    return features.astype(np.float32), shift.astype(np.float32)
+    return points_d.astype(np.float32), shift.astype(np.float32)
 
 
-def _capture_chunk(job: tuple[int, list[Frame], CaptureSettings, str]) -> int:
+def _capture_chunk(job: tuple[int, list[Frame], CaptureSettings, str, bool]) -> int:
     """Capture every frame of a chunk and write it (in a spawned worker); returns the chunk index."""
-    index, frames, settings, directory = job
+    from shared.world.perception.object_model import BPS_POINTS
+
+    index, frames, settings, directory, keep_points = job
     bps = BasisPointSet()
-    out_bps = np.zeros((len(frames), settings.per_frame, bps.n), dtype=np.float32)
-    out_shift = np.zeros((len(frames), settings.per_frame, 2), dtype=np.float32)
-    ok = np.zeros((len(frames), settings.per_frame), dtype=bool)
+    shape = (len(frames), settings.per_frame)
+    out_bps = np.zeros((*shape, bps.n), dtype=np.float32)
+    out_shift = np.zeros((*shape, 2), dtype=np.float32)
+    ok = np.zeros(shape, dtype=bool)
+    points = np.zeros((*shape, BPS_POINTS, 3), dtype=np.float32) if keep_points else None
+    counts = np.zeros(shape, dtype=np.int64)
     with tempfile.TemporaryDirectory(prefix="gd2p-captures-") as cache:
         for i, frame in enumerate(frames):
             for v in range(settings.per_frame):
-                result = capture_frame(frame, v, settings, bps, Path(cache))
-                if result is not None:
-                    out_bps[i, v], out_shift[i, v] = result
-                    ok[i, v] = True
+                result = capture_points(frame, v, settings, Path(cache))
+                if result is None:
+                    continue
+                points_d, out_shift[i, v] = result
+                out_bps[i, v], ok[i, v] = bps.encode(points_d), True
+                if points is not None:
+                    points[i, v, :len(points_d)], counts[i, v] = points_d, len(points_d)
     buffer = io.BytesIO()
-    np.savez(buffer, bps=out_bps, shift_xy=out_shift, ok=ok)
+    np.savez(buffer, bps=out_bps, shift_xy=out_shift, ok=ok,
+             **({"points_d": points, "point_counts": counts} if points is not None else {}))
     atomic_write_bytes(_chunk_path(Path(directory), index), buffer.getvalue())
     return index
 
@@ -158,22 +190,24 @@ def _frame_dicts(frames: list[Frame]) -> list[dict[str, Any]]:
 
 
 def build_captures(frames: list[Frame], directory: str | Path, settings: CaptureSettings, dataset_fingerprint: str,
-                   workers: int = 2, progress: bool = True) -> FrameCaptures:
-    """Capture `frames` into `directory` (resuming a partial build of the same frames and settings)."""
+                   workers: int = 2, progress: bool = True, keep_points: bool = False,
+                   desc: str = "captures of training frames") -> FrameCaptures:
+    """Capture `frames` into `directory` (resuming a partial build of the same frames and settings);
+    `keep_points` also stores the points each BPS encodes (FrameCaptures.points)."""
     directory = Path(directory)
     spec = json.loads(json.dumps({"settings": settings.to_dict(), "dataset_sha256": dataset_fingerprint,
-                                  "frames": _frame_dicts(frames)}))  # as it reads back (tuples as lists)
+                                  "frames": _frame_dicts(frames), "keep_points": keep_points}))  # as it reads back
     settings_path = directory / "settings.json"
     if settings_path.is_file():
         saved = json.loads(settings_path.read_text())
-        if saved != spec:
+        if {"keep_points": False, **saved} != spec:  # stores from before keep_points kept none
             raise CaptureStoreError(f"{directory} holds captures of other frames or settings; choose another directory")
     else:
         atomic_write_text(settings_path, json.dumps(spec))
-    chunks = [(i, frames[start:start + CHUNK_FRAMES], settings, str(directory))
+    chunks = [(i, frames[start:start + CHUNK_FRAMES], settings, str(directory), keep_points)
               for i, start in enumerate(range(0, len(frames), CHUNK_FRAMES))]
     todo = [c for c in chunks if not _chunk_path(directory, c[0]).is_file()]
-    with tqdm(total=len(frames), initial=len(frames) - sum(len(c[1]) for c in todo), desc="captures of training frames",
+    with tqdm(total=len(frames), initial=len(frames) - sum(len(c[1]) for c in todo), desc=desc,
               unit="frame", disable=not progress, dynamic_ncols=True) as bar:
         if workers <= 1:
             for job in todo:
@@ -201,8 +235,10 @@ def load_captures(directory: str | Path) -> FrameCaptures:
         raise CaptureStoreError(f"{directory}: {len(missing)} of {n_chunks} chunks not captured yet; "
                                 "run the build again to finish it")
     parts = [np.load(_chunk_path(directory, i)) for i in range(n_chunks)]
+    kept = (np.concatenate([p["points_d"] for p in parts]), np.concatenate([p["point_counts"] for p in parts])) \
+        if spec.get("keep_points") else (None, None)
     return FrameCaptures(frames, np.concatenate([p["bps"] for p in parts]), np.concatenate([p["shift_xy"] for p in parts]),
-                         np.concatenate([p["ok"] for p in parts]))
+                         np.concatenate([p["ok"] for p in parts]), *kept)
 
 
 def capture_store_spec(directory: str | Path) -> dict[str, Any]:

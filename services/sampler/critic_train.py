@@ -27,15 +27,18 @@ import torch
 from scipy.stats import rankdata
 from torch.nn import functional as F
 
+from services.sampler.capture_bps import CaptureSettings, FrameCaptures, build_captures
 from services.sampler.checkpoint import SHIPPED_DIR, atomic_torch_save, manifest_path
 from services.sampler.critic import ERROR_FLOOR_M, CriticConfig, SuccessCritic
 from services.sampler.critic_features import CONTACT_FEATURES, contact_features
+from services.sampler.dataset import DEFAULT_POSE_INDEX, Frame
 from services.sampler.sampling import PoseSampler
 from shared.atomic import atomic_write_text
 from shared.contracts.messages import DirectionFrame
 
 CRITIC_FORMAT = "gd2p-critic-v1"
 CRITIC_ENV = "GD2P_CRITIC_CHECKPOINT_{hand}"  # e.g. GD2P_CRITIC_CHECKPOINT_ALLEGRO=/path/to.pt; "none": no critic
+CAPTURES_DIR = "captures"  # a critic data directory's camera captures (`record_captures`)
 TOP_K = 6  # the plans a request rolls out (PipelineSettings.max_plans): the precision that matters
 
 
@@ -55,18 +58,42 @@ def critic_frame(object_id: str, yaw_deg: float) -> DirectionFrame:
 @dataclass(frozen=True)
 class CriticData:
     """Labelled poses of many objects: poses [N, 25] and their contact features [N, CONTACT_FEATURES],
-    `group` [N] into bps [R, n_basis], outcomes [N]."""
+    `group` [N] into bps [R, n_basis] (one row per object view: its mesh, or one camera capture of it),
+    outcomes [N]; `captured` [N] marks the rows whose view is a capture."""
 
     poses: torch.Tensor
     group: torch.Tensor
     bps: torch.Tensor
     success: torch.Tensor
     error_m: torch.Tensor
-    object_ids: list[str]
+    object_ids: list[str]  # per BPS row
     contact: torch.Tensor
+    captured: torch.Tensor | None = None  # None: mesh views only
 
     def __len__(self) -> int:
         return len(self.poses)
+
+    def captured_rows(self) -> torch.Tensor:
+        return torch.zeros(len(self), dtype=torch.bool) if self.captured is None else self.captured
+
+    @staticmethod
+    def concat(parts: list[CriticData]) -> CriticData:
+        """One data set of several (each part's groups renumbered past the previous parts' BPS rows)."""
+        if len(parts) == 1:
+            return parts[0]
+        offsets = np.cumsum([0] + [len(p.bps) for p in parts[:-1]]).tolist()
+        return CriticData(torch.cat([p.poses for p in parts]),
+                          torch.cat([p.group + offset for p, offset in zip(parts, offsets, strict=True)]),
+                          torch.cat([p.bps for p in parts]), torch.cat([p.success for p in parts]),
+                          torch.cat([p.error_m for p in parts]), [i for p in parts for i in p.object_ids],
+                          torch.cat([p.contact for p in parts]),
+                          torch.cat([p.captured_rows() for p in parts]) if any(p.captured is not None for p in parts)
+                          else None)
+
+    def subset(self, rows: torch.Tensor) -> CriticData:
+        """The poses `rows` (a bool mask or indices), keeping every BPS row."""
+        return CriticData(self.poses[rows], self.group[rows], self.bps, self.success[rows], self.error_m[rows],
+                          self.object_ids, self.contact[rows], self.captured_rows()[rows])
 
 
 def read_records(directory: str | Path) -> list[dict[str, Any]]:
@@ -86,28 +113,57 @@ def read_records(directory: str | Path) -> list[dict[str, Any]]:
     return list(records.values())
 
 
-def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress=None) -> CriticData:
+def critic_frames(records: list[dict[str, Any]]) -> list[Frame]:
+    """The training frames of records (as the sampler's data knows them): default resting pose, the record's yaw."""
+    return [Frame(r["object_id"], DEFAULT_POSE_INDEX, math.radians(r["yaw_deg"])) for r in records]
+
+
+def record_captures(directory: str | Path, records: list[dict[str, Any]], workers: int = 2,
+                    progress: bool = True) -> FrameCaptures:
+    """Camera captures of each record's object in its frame (`capture_bps`, the sampler's training captures:
+    3 cameras, 2 captures per frame), stored with their points in `directory`/captures (resumable)."""
+    fingerprint = "critic:" + ",".join(sorted({r["checkpoint_id"] for r in records}))
+    return build_captures(critic_frames(records), Path(directory) / CAPTURES_DIR, CaptureSettings(), fingerprint,
+                          workers=workers, progress=progress, keep_points=True, desc="captures of critic objects")
+
+
+def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress=None,
+                   captures: FrameCaptures | None = None) -> CriticData:
     """The records as tensors, each object's BPS computed by `sampler`'s encoder and the poses' contact
-    features from the same surface points."""
+    features from the same surface points. With `captures` (of `records`' frames, in order) each record also
+    comes as each of its reconstructed captures: BPS and contact features from the captured points in the
+    reconstruction's D, the poses moved into that frame (p + shift), the outcomes the same physical pushes'."""
     from shared.robots.hands import load_hand
 
-    bps, poses, group, success, error, ids, contact = [], [], [], [], [], [], []
-    for index, record in enumerate(records):
-        frame = critic_frame(record["object_id"], record["yaw_deg"])
-        points_d, _, _ = sampler.points_in_d(record["object_id"], frame)
+    bps, poses, group, success, error, ids, contact, captured = [], [], [], [], [], [], [], []
+
+    def add_view(points_d: np.ndarray, poses_d: np.ndarray, record: dict[str, Any], is_capture: bool) -> None:
+        group.append(np.full(len(poses_d), len(bps)))
         bps.append(sampler.encode_points(points_d, record["object_id"]))
-        poses.append(np.asarray(record["poses_d"], dtype=np.float32))
-        contact.append(contact_features(load_hand(record["hand"]), torch.as_tensor(poses[-1]),
+        poses.append(poses_d)
+        contact.append(contact_features(load_hand(record["hand"]), torch.as_tensor(poses_d),
                                         torch.as_tensor(points_d, dtype=torch.float32)))
-        group.append(np.full(len(record["success"]), index))
         success.append(np.asarray(record["success"], dtype=np.float32))
         error.append(np.asarray(record["position_error_m"], dtype=np.float32))
         ids.append(record["object_id"])
+        captured.append(np.full(len(poses_d), is_capture))
+
+    for index, record in enumerate(records):
+        frame = critic_frame(record["object_id"], record["yaw_deg"])
+        points_d, _, _ = sampler.points_in_d(record["object_id"], frame)
+        poses_d = np.asarray(record["poses_d"], dtype=np.float32)
+        add_view(points_d, poses_d, record, False)
+        for variant in range(0 if captures is None else captures.ok.shape[1]):
+            if captures is not None and captures.ok[index, variant]:
+                moved = poses_d.copy()
+                moved[:, :2] += captures.shift_xy[index, variant]
+                add_view(captures.points(index, variant), moved, record, True)
         if progress is not None:
             progress()
     return CriticData(torch.as_tensor(np.concatenate(poses)), torch.as_tensor(np.concatenate(group)),
                       torch.as_tensor(np.stack(bps)), torch.as_tensor(np.concatenate(success)),
-                      torch.as_tensor(np.concatenate(error)), ids, torch.cat(contact))
+                      torch.as_tensor(np.concatenate(error)), ids, torch.cat(contact),
+                      torch.as_tensor(np.concatenate(captured)) if captures is not None else None)
 
 
 @dataclass(frozen=True)
@@ -119,6 +175,9 @@ class CriticTraining:
     error_weight: float = 0.5  # the position-error head's share of the loss
     eval_every: int = 250
     seed: int = 0
+    # The share of each batch drawn from camera-capture views (`encode_records(captures=...)`), the rest from
+    # mesh views: the planner meets both (a mesh when told one, captures under the default perception).
+    capture_fraction: float = 0.0
     config: CriticConfig = field(default_factory=lambda: CriticConfig(contact_dim=CONTACT_FEATURES))
 
 
@@ -133,8 +192,18 @@ def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
 
 
 @torch.no_grad()
-def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, float]:
-    """ROC AUC, and the success rate of each object's TOP_K best-scored poses against all its poses."""
+def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, Any]:
+    """ROC AUC, and the success rate of each view's TOP_K best-scored poses against all its poses; with
+    capture views, the same for the mesh and the capture views apart ("mesh", "captures")."""
+    metrics = _metrics(model, data)
+    captured = data.captured_rows()
+    if captured.any():
+        metrics["mesh"] = _metrics(model, data.subset(~captured))
+        metrics["captures"] = _metrics(model, data.subset(captured))
+    return metrics
+
+
+def _metrics(model: SuccessCritic, data: CriticData) -> dict[str, Any]:
     model.eval()
     logits, _ = model(data.poses, data.bps, data.group, data.contact)
     scores, labels, groups = logits.numpy(), data.success.numpy() > 0.5, data.group.numpy()
@@ -163,9 +232,10 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
     target_error = torch.log(train.error_m + ERROR_FLOOR_M)
     best: tuple[float, dict[str, torch.Tensor], int] = (-1.0, {}, 0)
     history = []
+    draw = _batch_rows(train, settings, generator)
     for step in range(1, settings.steps + 1):
         model.train()
-        rows = torch.randint(len(train), (settings.batch_size,), generator=generator)
+        rows = draw()
         logits, log_error = model(train.poses[rows], train.bps, train.group[rows], train.contact[rows])
         loss = (F.binary_cross_entropy_with_logits(logits, train.success[rows])
                 + settings.error_weight * F.smooth_l1_loss(log_error, target_error[rows]))
@@ -181,6 +251,26 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
                 progress(metrics)
     model.load_state_dict(best[1])
     return model.eval(), {"best_step": best[2], "history": history}
+
+
+def _batch_rows(train: CriticData, settings: CriticTraining, generator: torch.Generator):
+    """A function drawing a batch's rows: `capture_fraction` of them from the capture views, the rest from the
+    mesh views (uniform over all rows without captures)."""
+    captured = train.captured_rows()
+    if settings.capture_fraction <= 0 or not captured.any():
+        return lambda: torch.randint(len(train), (settings.batch_size,), generator=generator)
+    if not 0 < settings.capture_fraction <= 1:
+        raise CriticError(f"capture_fraction must be in [0, 1], got {settings.capture_fraction}")
+    from_captures = round(settings.batch_size * settings.capture_fraction)
+    capture_rows, mesh_rows = torch.nonzero(captured).squeeze(1), torch.nonzero(~captured).squeeze(1)
+    if not len(mesh_rows):
+        mesh_rows = capture_rows
+
+    def draw() -> torch.Tensor:
+        picked = [capture_rows[torch.randint(len(capture_rows), (from_captures,), generator=generator)],
+                  mesh_rows[torch.randint(len(mesh_rows), (settings.batch_size - from_captures,), generator=generator)]]
+        return torch.cat(picked)
+    return draw
 
 
 def save_critic(model: SuccessCritic, path: str | Path, hand: str, sampler_checkpoint_id: str,
