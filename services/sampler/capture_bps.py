@@ -45,7 +45,7 @@ from shared.atomic import atomic_write_bytes, atomic_write_text
 from shared.frames import direction_frame, points_world_to_d
 from shared.world.bps import BasisPointSet
 
-CAPTURE_VERSION = 1  # bump when the same settings give different captures
+CAPTURE_VERSION = 2  # bump when the same settings give different captures (2: objects of 50-199 points reconstructed)
 CHUNK_FRAMES = 16
 
 

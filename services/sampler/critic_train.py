@@ -193,7 +193,8 @@ def roc_auc(scores: np.ndarray, labels: np.ndarray) -> float:
 
 @torch.no_grad()
 def evaluate(model: SuccessCritic, data: CriticData) -> dict[str, Any]:
-    """ROC AUC, and the success rate of each view's TOP_K best-scored poses against all its poses; with
+    """ROC AUC, and the success rate of each view's TOP_K best-scored poses against all its poses (a view: an
+    object seen as its mesh or as one capture, so "views" counts objects × views); with
     capture views, the same for the mesh and the capture views apart ("mesh", "captures")."""
     metrics = _metrics(model, data)
     captured = data.captured_rows()
@@ -209,7 +210,8 @@ def _metrics(model: SuccessCritic, data: CriticData) -> dict[str, Any]:
     scores, labels, groups = logits.numpy(), data.success.numpy() > 0.5, data.group.numpy()
     overall = [labels[groups == g].mean() for g in np.unique(groups)]
     return {"roc_auc": round(roc_auc(scores, labels), 4), f"top{TOP_K}_success": round(top_k_success(scores, labels, groups), 4),
-            "all_success": round(float(np.mean(overall)), 4), "poses": len(labels), "objects": len(np.unique(groups))}
+            "all_success": round(float(np.mean(overall)), 4), "poses": len(labels),
+            "objects": len({data.object_ids[g] for g in np.unique(groups)}), "views": len(np.unique(groups))}
 
 
 def top_k_success(scores: np.ndarray, labels: np.ndarray, groups: np.ndarray, k: int = TOP_K) -> float:

@@ -24,7 +24,7 @@ Steps
    to edge dropouts) and kept a sparse duck's neck off its body; with 6 spacings, and the density
    rule scaling with it, each of the 14 evaluation objects seen by the head camera alone at (0.40, 0)
    or (0.55, 0) is one cluster, at 424 x 240 as at 848 x 480 (at 424 x 240 the duck, the teddy and
-   proc-hull-001 still have under 200 points: hence the camera's 848 x 480 default). The 2.8 cm
+   proc-hull-001 had under 200 points, the minimum then: hence the camera's 848 x 480 default). The 2.8 cm
    bound keeps two objects 5 cm apart two: voxels of gap / 2 join points at most
    gap * sqrt(3) = 4.85 cm apart.
 3. Close the unseen underside and far side, and build the solid: method "extrude" (default),
@@ -102,7 +102,9 @@ class ReconstructionSettings:
     gap_spacings: float = 6.0
     min_voxel_points: int = 3  # a (gap/2)-voxel with fewer points is noise (see euclidean_clusters)
     table_quantile: float = 0.99  # of the table noise below its level: the cut above it (see remove_table)
-    min_object_points: int = 200
+    # A 1.5 cm die seen by the 3 evaluation cameras leaves 50-90 points, a 3-4 cm cap or eraser 70-260; table
+    # noise that passes the cut forms clusters of at most 9 (bench/results/perception_small.md).
+    min_object_points: int = 50
     ambiguous_ratio: float = 0.5  # a second cluster this large (vs the largest) with no region: refused
     hole_fill_m: float = 0.015  # holes in the seen top surface up to this size are closed
     max_concavity: float = 0.01  # convex pieces: stop when a piece's hull exceeds it by this fraction of
@@ -290,16 +292,19 @@ def object_cluster(points: np.ndarray, region: Region | None, settings: Reconstr
         raise PerceptionError(f"only {len(points)} points above the table: too few for an object (need {settings.min_object_points})")
     gap = cluster_gap(points, settings)[0] if gap_m is None else gap_m
     clusters = euclidean_clusters(points, gap, settings.min_voxel_points, sparse_min_z=table_tolerance_m + gap / 2.0)
+    if not clusters:
+        raise PerceptionError(f"no object above the table: its {len(points)} points above the cut are sparse table noise")
     candidates = clusters if region is None else [c for c in clusters if _reaches(points[c], region)]
     if not candidates:
         assert region is not None  # without a region every cluster is a candidate, and there is at least one
         raise PerceptionError(f"no points above the table within {region.radius_m} m of {tuple(region.center_xy)}")
     chosen = candidates[0]
+    # Too few before ambiguous: an empty table's noise clusters are refused as no object, not as two objects.
+    if len(chosen) < settings.min_object_points:
+        raise PerceptionError(f"the object has only {len(chosen)} points: too few to reconstruct (need {settings.min_object_points})")
     if region is None and len(clusters) > 1 and len(clusters[1]) >= settings.ambiguous_ratio * len(chosen):
         where = ", ".join(f"{len(c)} points around ({points[c, 0].mean():.2f}, {points[c, 1].mean():.2f})" for c in clusters[:2])
         raise PerceptionError(f"two separate objects in view ({where}); give the region of the one to push")
-    if len(chosen) < settings.min_object_points:
-        raise PerceptionError(f"the object has only {len(chosen)} points: too few to reconstruct (need {settings.min_object_points})")
     others = [points[c].mean(axis=0) for c in clusters if c is not chosen]
     return points[chosen], others
 

@@ -52,7 +52,7 @@ NEAR_M, FAR_M = 0.05, 5.0  # render clip planes (the sensor's own range is appli
 TABLE_HALF_EXTENTS_M = (0.9, 0.9, 0.02)  # a 1.8 m square table top around the object
 D435_HFOV_DEG = 87.0
 # The D435's own depth mode. A 5 cm cube 1 m from the head camera gets 736 pixels, 632 points after
-# table removal (424 x 240: 176 pixels, 130 points, under reconstruct's minimum of 200; the
+# table removal (424 x 240: 176 pixels, 130 points, under reconstruct's minimum of 200 then; the
 # evaluation's pb-duck, pb-teddy and proc-hull-001 failed for that with the head camera alone).
 # Render + noise + back-projection, CPU seconds on one core: 0.09 for one camera, 0.39 for three
 # at 848 x 480 (424 x 240: 0.04 / 0.08; 1280 x 720: 0.24 / 0.99).
