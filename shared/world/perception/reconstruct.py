@@ -103,7 +103,7 @@ class ReconstructionSettings:
     min_voxel_points: int = 3  # a (gap/2)-voxel with fewer points is noise (see euclidean_clusters)
     table_quantile: float = 0.99  # of the table noise below its level: the cut above it (see remove_table)
     # A 1.5 cm die seen by the 3 evaluation cameras leaves 50-90 points, a 3-4 cm cap or eraser 70-260; table
-    # noise that passes the cut forms clusters of at most 9 (bench/results/perception_small.md).
+    # noise that passes the cut forms clusters of a few points (bench/results/perception_small.md).
     min_object_points: int = 50
     ambiguous_ratio: float = 0.5  # a second cluster this large (vs the largest) with no region: refused
     hole_fill_m: float = 0.015  # holes in the seen top surface up to this size are closed
