@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
 def register_compare(subparsers: argparse._SubParsersAction) -> None:
     from evaluation import compare
 
-    parser = subparsers.add_parser("compare", help="two evaluation runs of one protocol, trial by trial",
+    parser = subparsers.add_parser("compare", help="two evaluation runs of one protocol, trial by trial (or object by object: sampler-quality)",
                                    description=compare.__doc__ + "\n    gd2p compare results/closed-loop-real:gd2p "
                                    "results/methods-real-v2:gd2p --out cmp.md",
                                    formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -10,6 +10,11 @@ other ranking weights or new code changed the outcome of the same trials.
 With `--across-worlds` trials are matched by the request alone (object, direction, trial index and episode
 seed: the same told start pose), whatever world executed them: a `real` run against the `exact` run of the
 same protocol then says what the world the planner does not know costs each method, paired by object.
+
+`gd2p eval sampler-quality` runs compare the same way, object by object (`DIR:ddpm100-critic`): an object is the
+same episode in both runs when its execution world is the same draw, and each of its pushed poses counts as a
+trial of the validated fraction (`evaluation.coverage.pose_trials`). So the same source under two success
+critics, or two checkpoints, pair up on the objects both measured in the same worlds.
 """
 from __future__ import annotations
 
@@ -54,13 +59,22 @@ def load_run(directory: Path, method: str) -> RunRecords:
     """The finished trials of `method` in `directory`, read as the result store reads them."""
     path = directory / RECORDS_FILE
     if not path.is_file():
-        raise CompareError(f"{directory}: no {RECORDS_FILE} (not a `gd2p eval methods|leap|closed-loop` run)")
+        raise CompareError(f"{directory}: no {RECORDS_FILE} (not a `gd2p eval` run)")
     everything = read_records(path).values()
-    records = [r for r in everything if r.get("method") == method]
+    records = [r for r in everything if _method(r) == method]
     if not records:
-        methods = sorted({str(r.get("method")) for r in everything})
+        methods = sorted({_method(r) for r in everything})
         raise CompareError(f"{directory}: no trials of method {method!r}; it has: {', '.join(methods) or 'none'}")
     return RunRecords(directory, method, tuple(records))
+
+
+def _method(record: dict[str, Any]) -> str:
+    """A trial's method; a sampler-quality record names its source in its key ("ddpm100-critic/proc-box-003")."""
+    return str(record["method"]) if "method" in record else str(record.get("key", "")).split("/")[0]
+
+
+def _is_coverage(run: RunRecords) -> bool:
+    return all("fraction_pushed" in r for r in run.records)
 
 
 def request_key(record: dict[str, Any]) -> tuple:
@@ -92,6 +106,8 @@ def _described(records: list[dict[str, Any]], field: str) -> str:
 def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False, command: str | None = None) -> str:
     """A markdown report: each run on the shared episodes (requests, if `across_worlds`), B − A paired by
     object, and where they differ; headed by the `command` that made it, when given."""
+    if _is_coverage(a) or _is_coverage(b):
+        return compare_coverage(a, b, across_worlds, command)
     shared_a, shared_b = matched(a, b, across_worlds)
     if not shared_a:
         what = "request (object, direction, trial and seed)" if across_worlds else \
@@ -112,3 +128,41 @@ def compare(a: RunRecords, b: RunRecords, across_worlds: bool = False, command: 
             f"| both succeed | only A | only B | both fail |\n|---|---|---|---|\n"
             f"| {outcomes[(True, True)]} | {outcomes[(True, False)]} | {outcomes[(False, True)]} | "
             f"{outcomes[(False, False)]} |\n")
+
+
+def _world_of(record: dict[str, Any]) -> str:
+    world = record.get("world") or {}
+    return f"{world.get('level', 'exact')}, {world.get('cameras', 0)} cameras"
+
+
+def compare_coverage(a: RunRecords, b: RunRecords, across_worlds: bool = False, command: str | None = None) -> str:
+    """`compare` for two sampler-quality sources: the objects measured in the same drawn world by both (the same
+    object alone, if `across_worlds`), each pushed pose a trial, B − A paired by object."""
+    from evaluation.coverage import pose_trials
+
+    if not (_is_coverage(a) and _is_coverage(b)):
+        raise CompareError(f"{a.label} and {b.label}: a sampler-quality run compares only with another")
+
+    def key(record: dict[str, Any]) -> tuple:
+        return (record["object"],) if across_worlds else (record["object"], (record.get("world") or {}).get("seed"))
+
+    by_key = {key(r): r for r in b.records}
+    pairs = [(r, by_key[key(r)]) for r in a.records if key(r) in by_key]
+    if not pairs:
+        raise CompareError(f"{a.label} and {b.label} share no object measured in the same world")
+    shared = {"A": [p[0] for p in pairs], "B": [p[1] for p in pairs]}
+    trials = {side: pose_trials(records) for side, records in shared.items()}
+    rows = [[run.label, len(shared[side]), str(success_interval(trials[side])), _described(shared[side], "code"),
+             ", ".join(f"{w} ({n})" for w, n in Counter(_world_of(r) for r in shared[side]).items())]
+            for side, run in (("A", a), ("B", b))]
+    table = markdown_table(["run:source", "shared objects", "validated fraction [95% CI]", "code", "world"], rows)
+    rates = [(x["fraction_successes"] / max(x["fraction_pushed"], 1), y["fraction_successes"] / max(y["fraction_pushed"], 1))
+             for x, y in pairs]
+    same = "object" if across_worlds else "object in the same drawn world"
+    return (f"# {b.label} against {a.label}\n\n" + (f"- command: `{command}`\n\n" if command else "")
+            + f"{len(pairs)} objects are the same {same} in both runs (of {len(a.records)} and {len(b.records)}); "
+            f"each pushed pose of the validated-fraction window is a trial. Intervals: 95%, bootstrap clustered by "
+            f"object.\n\n{table}\n"
+            f"**B − A, paired by object: {difference_interval(trials['B'], trials['A']).points()} points.**\n\n"
+            f"| objects where B validates more | where A does | equal |\n|---|---|---|\n"
+            f"| {sum(y > x for x, y in rates)} | {sum(x > y for x, y in rates)} | {sum(x == y for x, y in rates)} |\n")

@@ -61,3 +61,29 @@ def test_across_worlds_the_same_request_is_paired_whatever_world_executed_it(tmp
     out = tmp_path / "cmp.md"
     assert main(["compare", f"{exact}:gd2p", str(real), "--across-worlds", "--out", str(out)]) == 0
     assert "-25.0" in out.read_text() and "- command: `" in out.read_text()
+
+
+def _coverage_record(source: str, obj: str, successes: int, world_seed: int = 1, pushed: int = 10) -> dict:
+    return {"key": f"{source}/{obj}", "object": obj, "fraction_pushed": pushed, "fraction_successes": successes,
+            "code": "abc", "world": {"level": "real", "cameras": 3, "seed": world_seed}}
+
+
+def test_sampler_quality_runs_pair_a_source_object_by_object_in_the_same_drawn_world(tmp_path, capsys):
+    """The same source under two critics: objects pair only when measured in the same world, each pose a trial."""
+    a = _run(tmp_path / "sq-mesh-critic", [_coverage_record("ddpm100-critic", "box", 5), _coverage_record("ddpm100-critic", "mug", 8),
+                                           _coverage_record("nn", "box", 9), _coverage_record("ddpm100-critic", "cone", 1)])
+    b = _run(tmp_path / "sq-capture-critic", [_coverage_record("ddpm100-critic", "box", 9), _coverage_record("ddpm100-critic", "mug", 8),
+                                              _coverage_record("ddpm100-critic", "cone", 10, world_seed=2)])
+    report = compare(load_run(a, "ddpm100-critic"), load_run(b, "ddpm100-critic"))
+    assert "2 objects are the same object in the same drawn world in both runs (of 3 and 3)" in report
+    assert "| sq-mesh-critic:ddpm100-critic | 2 | 65.0%" in report and "| sq-capture-critic:ddpm100-critic | 2 | 85.0%" in report
+    assert "B − A, paired by object: +20.0" in report and "| 1 | 0 | 1 |" in report and "real, 3 cameras (2)" in report
+    assert "3 objects are the same object in both runs" in compare(load_run(a, "ddpm100-critic"),
+                                                                   load_run(b, "ddpm100-critic"), across_worlds=True)
+    with pytest.raises(CompareError, match="no trials of method 'gd2p'; it has: ddpm100-critic, nn"):
+        load_run(a, "gd2p")
+    trials = _run(tmp_path / "methods", [_record("box", 0, True)])
+    with pytest.raises(CompareError, match="compares only with another"):
+        compare(load_run(trials, "gd2p"), load_run(b, "ddpm100-critic"))
+    assert main(["compare", f"{a}:nn", f"{b}:ddpm100-critic"]) == 0
+    assert "B − A, paired by object: +0.0" in capsys.readouterr().out  # box: 9 of 10 each
