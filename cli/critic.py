@@ -2,11 +2,11 @@
 
     gd2p critic data --split train --exclude-dataset datasets/allegro-v2 --objects 400 --out data/critic-allegro-train
     gd2p critic data --split val --objects 60 --out data/critic-allegro-val
-    gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val \\
+    gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val --capture-fraction 0.5 \\
         --out services/sampler/checkpoints/allegro_critic.pt
     gd2p critic data --split test --objects 60 --out data/critic-allegro-test   # for reporting only
     gd2p critic data --split test --family mug --objects 30 --out data/critic-allegro-test-mug   # unseen family
-    gd2p critic eval --data data/critic-allegro-test
+    gd2p critic eval --data data/critic-allegro-test --captures
 
 `data` labels diffusion samples: per object, one push frame at a yaw drawn from the object's seed, K = 200
 samples from the installed sampler checkpoint, `--per-object` of them pushed 20 cm by the validator's

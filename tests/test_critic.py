@@ -278,6 +278,7 @@ def test_critic_train_on_captures_builds_them_resumably_beside_the_data(tmp_path
                  "--capture-fraction", "0.5", "--workers", "1", "--out", str(tmp_path / "critic.pt")]) == 0
     manifest = json.loads((tmp_path / "critic.pt.manifest.json").read_text())
     assert manifest["settings"]["capture_fraction"] == 0.5
+    assert manifest["captures"][str(tmp_path / "train")]["settings"]["cameras"] == 3  # what the captures were
     assert manifest["train_poses"] == 16 * 3  # the mesh view and both captures of the box
     assert set(manifest["best_val"]) >= {"mesh", "captures"}
     assert (tmp_path / "train" / "captures" / "settings.json").is_file()

@@ -27,7 +27,7 @@ import torch
 from scipy.stats import rankdata
 from torch.nn import functional as F
 
-from services.sampler.capture_bps import CaptureSettings, FrameCaptures, build_captures
+from services.sampler.capture_bps import CaptureSettings, FrameCaptures, build_captures, capture_store_spec
 from services.sampler.checkpoint import SHIPPED_DIR, atomic_torch_save, manifest_path
 from services.sampler.critic import ERROR_FLOOR_M, CriticConfig, SuccessCritic
 from services.sampler.critic_features import CONTACT_FEATURES, contact_features
@@ -333,7 +333,9 @@ def load_critic(path: str | Path) -> LoadedCritic:
 def manifest_for(train_dirs: list[str], val_dir: str | Path, settings: CriticTraining, train: CriticData,
                  val: CriticData, result: dict[str, Any], started: float, command: str) -> dict[str, Any]:
     train_data = train_dirs[0] if len(train_dirs) == 1 else train_dirs  # a single one as before
-    return {"command": command, "train_data": train_data, "val_data": str(val_dir),
+    captures = ({"captures": {str(d): capture_store_spec(Path(d) / CAPTURES_DIR) for d in [*train_dirs, str(val_dir)]}}
+                if train.captured is not None else {})
+    return {"command": command, "train_data": train_data, "val_data": str(val_dir), **captures,
             "train_poses": len(train), "train_objects": len(set(train.object_ids)), "val_poses": len(val),
             "val_objects": len(set(val.object_ids)), "settings": {**asdict(settings), "config": settings.config.to_dict()},
             "best_step": result["best_step"], "val": result["history"][-1]["val"] if result["history"] else None,
