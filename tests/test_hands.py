@@ -283,3 +283,23 @@ def test_cli_hands_info_json(capsys):
     assert {p["kind"] for p in info["collision_primitives"]} == {"box", "sphere"}
     assert _run_cli(["hands", "info", "leap"]) == 0
     assert "contact candidates" in capsys.readouterr().out
+
+
+def test_two_installs_sharing_one_cache_each_load_their_own_meshes(tmp_path, monkeypatch):
+    """A resolved URDF holds absolute mesh paths: a second install (another clone's virtualenv) must get its own
+    copy, not one pointing into the first install, whose files vanish when it is deleted."""
+    from shared.robots.hands import urdf
+
+    real_share = urdf.package_share_dir()
+    source = urdf.example_robot_data_file("allegro_hand_description/urdf/allegro_right_hand.urdf")
+    other_share = tmp_path / "other-install" / "share"
+    other_share.mkdir(parents=True)
+    (other_share / "example-robot-data").symlink_to(real_share / "example-robot-data")
+    monkeypatch.setenv("GD2P_CACHE_DIR", str(tmp_path / "cache"))
+    first = urdf.resolved_urdf(source, "allegro_right")
+    monkeypatch.setattr(urdf, "package_share_dir", lambda: other_share)
+    second = urdf.resolved_urdf(source, "allegro_right")
+    assert first != second
+    meshes = [m.get("filename") for m in ET.parse(second).getroot().iter("mesh")]
+    assert meshes and all(m.startswith(str(other_share)) for m in meshes)
+    assert str(other_share) not in first.read_text()

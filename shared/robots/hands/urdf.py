@@ -78,13 +78,16 @@ def resolved_urdf(source: Path, name: str, prune_below_link: str | None = None) 
     `prune_below_link`: drop every joint and link below this link (it is kept), e.g. an arm's gripper.
     """
     text = Path(source).read_text()
-    key = content_key(text, name, prune_below_link or "")
+    # The copy holds absolute mesh paths, so where the assets are installed is one of its inputs: two installs
+    # (two clones' virtualenvs) sharing one cache must not load each other's meshes, which vanish with them.
+    share = package_share_dir()
+    key = content_key(text, name, prune_below_link or "", str(share), str(Path(source).resolve().parent))
     target = cache_dir() / f"{name}-{key}.urdf"
     if target.is_file():
         return target
     root = _parse_xml(text, str(source))
     _strip_ros_tags(root)
-    _resolve_mesh_uris(root, package_share_dir(), Path(source).parent)
+    _resolve_mesh_uris(root, share, Path(source).parent)
     if prune_below_link is not None:
         _prune_below(root, prune_below_link)
     atomic_write_text(target, _to_text(root))
