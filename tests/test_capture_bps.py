@@ -16,7 +16,7 @@ from services.sampler.capture_bps import (
     CaptureSettings,
     CaptureStoreError,
     build_captures,
-    capture_frame,
+    capture_points,
     load_captures,
 )
 from services.sampler.checkpoint import load_checkpoint
@@ -26,6 +26,12 @@ from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.train import CaptureTensors, TrainingError, train
 from shared.world.bps import BasisPointSet
 from test_sampler import HAND, quiet, synthetic_objects, tiny_config, write_store
+
+
+def capture_frame(frame, variant, settings, bps, cache_dir):
+    """(BPS, shift) of one capture, as the store encodes it."""
+    points_d, shift = capture_points(frame, variant, settings, cache_dir)
+    return bps.encode(points_d).astype(np.float32), shift
 
 
 def test_a_capture_is_the_frames_object_seen_by_three_cameras_in_the_reconstructions_frame(tmp_path):
@@ -107,7 +113,7 @@ def test_a_batch_swaps_the_asked_share_of_rows_to_captures_and_moves_their_poses
 
 
 def test_training_on_captures_records_them_and_needs_both_settings(tmp_path, monkeypatch):
-    monkeypatch.setattr(capture_bps, "capture_frame", fake_capture)
+    monkeypatch.setattr(capture_bps, "capture_points", fake_capture)
     store = write_store(tmp_path / "store", synthetic_objects()[:3])
     config = tiny_config(steps=30, capture_fraction=0.5, captures=str(tmp_path / "captures"))
     result = train(store, HAND, tmp_path / "a.pt", config, quiet(capture_workers=1))

@@ -42,7 +42,7 @@ from tqdm import tqdm
 
 from services.sampler.dataset import DEFAULT_POSE_INDEX, DatasetError, Frame
 from shared.atomic import atomic_write_bytes, atomic_write_text
-from shared.frames import direction_frame, points_world_to_d
+from shared.frames import direction_frame
 from shared.world.bps import BasisPointSet
 
 CAPTURE_VERSION = 2  # bump when the same settings give different captures (2: objects of 50-199 points reconstructed)
@@ -90,8 +90,9 @@ class FrameCaptures:
             raise CaptureStoreError(f"{len(missing)} training frames have no captures (e.g. {missing[0]}); "
                                     "rebuild the captures for this dataset")
         rows = np.array([row[f] for f in frames], dtype=np.int64)
-        kept = None if self.points_d is None or self.point_counts is None else (self.points_d[rows], self.point_counts[rows])
-        return FrameCaptures(list(frames), self.bps[rows], self.shift_xy[rows], self.ok[rows], *(kept or (None, None)))
+        return FrameCaptures(list(frames), self.bps[rows], self.shift_xy[rows], self.ok[rows],
+                             None if self.points_d is None else self.points_d[rows],
+                             None if self.point_counts is None else self.point_counts[rows])
 
     def points(self, frame_row: int, variant: int) -> np.ndarray:
         """[M, 3] the points capture `variant` of frame `frame_row` encodes, in the reconstruction's D."""
@@ -111,16 +112,6 @@ def _frame_seed(frame: Frame, settings: CaptureSettings, variant: int) -> np.ran
     return np.random.default_rng(int.from_bytes(hashlib.sha256(key.encode()).digest()[:8], "little"))
 
 
-def capture_frame(frame: Frame, variant: int, settings: CaptureSettings, bps: BasisPointSet,
-                  cache_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(BPS [n], shift [2]) of one capture of `frame`, or None when the capture cannot be reconstructed."""
-    captured = capture_points(frame, variant, settings, cache_dir)
-    if captured is None:
-        return None
-    points_d, shift = captured
-    return bps.encode(points_d).astype(np.float32), shift
-
-
 def capture_points(frame: Frame, variant: int, settings: CaptureSettings,
                    cache_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(the points [M, 3] a capture's BPS encodes, in the reconstruction's D; shift [2]) of one capture of
@@ -130,7 +121,7 @@ def capture_points(frame: Frame, variant: int, settings: CaptureSettings,
     from shared.world.objects import ObjectLoadError, load_object
     from shared.world.perception import PerceptionError
     from shared.world.perception.cloud import cloud_for_request
-    from shared.world.perception.object_model import bps_points, object_from_cloud
+    from shared.world.perception.object_model import bps_points_in_d, object_from_cloud
     from shared.world.sim.camera import capture_object
 
     rng = _frame_seed(frame, settings, variant)
@@ -146,8 +137,7 @@ def capture_points(frame: Frame, variant: int, settings: CaptureSettings,
     except (PerceptionError, ObjectLoadError):
         return None
     T_world_Dp = direction_frame(captured.T_world_O[:3, 3], direction_deg)
-    # As `bps_from_cloud` encodes a request's cloud: the same thinning and draw, then into D.
-    points_d = points_world_to_d(bps_points(captured.object_points), T_world_Dp)
+    points_d = bps_points_in_d(captured.object_points, T_world_Dp)  # what `bps_from_cloud` encodes for a request
     shift = (np.linalg.inv(T_world_Dp) @ T_world_D)[:2, 3]
     return points_d.astype(np.float32), shift.astype(np.float32)
 

@@ -147,9 +147,13 @@ def bps_from_cloud(
     did not see (the underside, a far side) is missing from the cloud, so basis points near it read
     larger distances than on the mesh: the paper's BPS of a captured cloud has the same limit.
     """
-    bps = bps or BasisPointSet()
-    points = bps_points(points_world, n_points, seed)
-    return bps.encode(points_world_to_d(points, np.asarray(T_world_D, dtype=np.float64)))
+    return (bps or BasisPointSet()).encode(bps_points_in_d(points_world, T_world_D, n_points, seed))
+
+
+def bps_points_in_d(points_world: npt.ArrayLike, T_world_D: np.ndarray, n_points: int = BPS_POINTS,
+                    seed: int = 0) -> np.ndarray:
+    """`bps_points` of a cloud, in the direction frame D: exactly the points `bps_from_cloud` encodes."""
+    return points_world_to_d(bps_points(points_world, n_points, seed), np.asarray(T_world_D, dtype=np.float64))
 
 
 def bps_points(points_world: npt.ArrayLike, n_points: int = BPS_POINTS, seed: int = 0) -> np.ndarray:
