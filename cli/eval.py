@@ -88,7 +88,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
                              "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn (default), "
                              "nn-fill (the nearest frames up to K = 200 poses), ddpm100-critic, nn-fill-critic (in the success "
-                             "critic's order: $GD2P_CRITIC_CHECKPOINT_<HAND>, else the shipped critic)")
+                             "critic's order: $GD2P_CRITIC_CHECKPOINT_<HAND>, else the shipped critic), and with --critic-guidance "
+                             "ddpm100-guided, ddpm100-guided-critic, nn-fill-climbed-critic (steered up that critic's gradient)")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="sampler-quality: the diffusion checkpoint to measure (default the shipped Allegro one; its poses "
                              "are pushed with the hand it was trained for); name its results with --tag. Refused elsewhere: methods / "
@@ -103,6 +104,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--noise-scale", type=float, default=None,
                         help="sampler-quality: the diffusion sampling temperature in (0, 1] (initial and DDPM step noise "
                              "multiplied by it; default $GD2P_SAMPLER_NOISE_SCALE, else 1, the plain reverse process); name its results with --tag")
+    parser.add_argument("--critic-guidance", type=float, default=None, metavar="SCALE",
+                        help="sampler-quality: steer the methods ddpm100-guided, ddpm100-guided-critic and "
+                             "nn-fill-climbed-critic up the success critic's log P(success): each guided step moves a pose by "
+                             "SCALE x the gradient in normalised pose units (at most 0.2); name its results with --tag")
+    parser.add_argument("--guided-steps", type=int, default=None, metavar="N",
+                        help="sampler-quality, with --critic-guidance: guide the last N of the 100 denoising steps (default "
+                             "10); retrieval's poses climb the gradient N times")
     parser.add_argument("--objects", type=int, default=None,
                         help="sampler-quality: only this many objects of the split, one shape family after another "
                              "(default: all of them); data-size: this many test objects (default 40)")
@@ -170,11 +178,31 @@ def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) ->
     return None
 
 
+def _guidance_refusal(args: argparse.Namespace) -> str | None:
+    """Why the critic guidance flags cannot be used as given, or None."""
+    from services.sampler.diffusion import DiffusionConfigError, GradientGuidance
+
+    if args.guided_steps is not None and args.critic_guidance is None:
+        return "--guided-steps needs --critic-guidance"
+    if args.critic_guidance is None:
+        return None
+    try:
+        GradientGuidance(args.critic_guidance, **({} if args.guided_steps is None else {"steps": args.guided_steps}))
+    except DiffusionConfigError as exc:
+        return f"--critic-guidance / --guided-steps: {exc}"
+    return None
+
+
 def _sampler_quality_options(args: argparse.Namespace) -> dict:
     options = {"split": args.split, "checkpoint": args.checkpoint, "nn_index": args.nn_index, "yaw": args.yaw,
                "tag": args.tag, "objects": args.objects}
     if args.noise_scale is not None:
         options["noise_scale"] = args.noise_scale
+    if args.critic_guidance is not None:
+        from services.sampler.diffusion import GradientGuidance
+
+        steps = {} if args.guided_steps is None else {"steps": args.guided_steps}
+        options["guidance"] = GradientGuidance(args.critic_guidance, **steps)
     if args.methods is not None:
         options["methods_to_run"] = args.methods
     return options
@@ -219,7 +247,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"gd2p eval: {', '.join(data_size_only)} apply to data-size only", file=sys.stderr)
         return 2
     model_flags = [flag for flag, value in (("--checkpoint", args.checkpoint), ("--nn-index", args.nn_index),
-                                            ("--noise-scale", args.noise_scale)) if value is not None]
+                                            ("--noise-scale", args.noise_scale), ("--critic-guidance", args.critic_guidance),
+                                            ("--guided-steps", args.guided_steps)) if value is not None]
+    if (refusal := _guidance_refusal(args)) is not None:
+        print(f"gd2p eval: {refusal}", file=sys.stderr)
+        return 2
     if args.noise_scale is not None and not 0.0 < args.noise_scale <= 1.0:
         print(f"gd2p eval: --noise-scale must be in (0, 1], got {args.noise_scale}", file=sys.stderr)
         return 2

@@ -174,17 +174,21 @@ def _cached(key: tuple, load: Callable[[], Any], close: Callable[[Any], None] | 
 
 @dataclass(frozen=True)
 class DiffusionSource:
-    """Poses from a sampler checkpoint (`PoseSampler.sample`), DDPM or DDIM."""
+    """Poses from a sampler checkpoint (`PoseSampler.sample`), DDPM or DDIM; with `critic` and `guidance`, the
+    last denoising steps steered up the critic's log P(success) (`services.sampler.guidance`)."""
 
     checkpoint: str
     sampler: str = "ddpm"
     steps: int | None = None  # None: the sampler's default (DDPM 100, DDIM 10)
     noise_scale: float | None = None  # the sampling temperature (sample_normalized); None: the sampler's default
+    critic: str | None = None  # a `gd2p critic train` checkpoint trained for `checkpoint`, guiding the samples
+    guidance: Any = None  # its `GradientGuidance`
 
     def label(self) -> str:
         steps = self.steps if self.steps is not None else (100 if self.sampler == "ddpm" else 10)
         temperature = "" if self.noise_scale in (None, 1.0) else f", noise x{self.noise_scale:g}"
-        return f"{self.sampler.upper()}-{steps}{temperature}"
+        guided = "" if self.guidance is None else f", critic-guided ({guidance_text(self.guidance)})"
+        return f"{self.sampler.upper()}-{steps}{temperature}{guided}"
 
     def pose_sampler(self) -> Any:
         """The checkpoint's `PoseSampler`, loaded once per process."""
@@ -193,8 +197,30 @@ class DiffusionSource:
         return _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        critic = None if self.critic is None else critic_for(self.critic, self.checkpoint).model
         return self.pose_sampler().sample(obj, frame, k=k, sampler=self.sampler, steps=self.steps, seed=seed,
-                                          noise_scale=self.noise_scale).poses_d
+                                          noise_scale=self.noise_scale, critic=critic, guidance=self.guidance).poses_d
+
+
+def guidance_text(guidance: Any) -> str:
+    """'step x0.02, last 10 steps, <= 0.2' for a GradientGuidance."""
+    return f"step x{guidance.scale:g}, last {guidance.steps} steps, <= {guidance.max_step:g}"
+
+
+def critic_for(critic: str, checkpoint: str) -> Any:
+    """The critic (`LoadedCritic`) at `critic`, loaded once per process; CoverageError for a critic trained for
+    another sampler checkpoint than `checkpoint` (it encodes objects with that checkpoint's BPS)."""
+    from services.sampler.checkpoint import checkpoint_id
+    from services.sampler.critic_train import load_critic
+
+    def load() -> Any:
+        loaded = load_critic(critic)
+        if loaded.sampler_checkpoint_id != checkpoint_id(checkpoint):
+            raise CoverageError(f"the critic {critic} was trained for the sampler checkpoint "
+                                f"{loaded.sampler_checkpoint_id}, not {checkpoint} ({checkpoint_id(checkpoint)})")
+        return loaded
+
+    return _cached(("critic", critic, _file_stamp(critic), checkpoint), load)
 
 
 @dataclass(frozen=True)
@@ -234,7 +260,7 @@ class CriticOrderedSource:
     trained on), whatever the poses came from.
     """
 
-    inner: DiffusionSource | NearestNeighborSource
+    inner: DiffusionSource | NearestNeighborSource | CriticClimbedSource
     checkpoint: str  # the sampler checkpoint the critic was trained for
     critic: str  # a `gd2p critic train` checkpoint
 
@@ -243,17 +269,7 @@ class CriticOrderedSource:
 
     def scorer(self) -> Any:
         """The critic (`LoadedCritic`), loaded once per process; CoverageError for a critic of another checkpoint."""
-        from services.sampler.checkpoint import checkpoint_id
-        from services.sampler.critic_train import load_critic
-
-        def load() -> Any:
-            loaded = load_critic(self.critic)
-            if loaded.sampler_checkpoint_id != checkpoint_id(self.checkpoint):
-                raise CoverageError(f"the critic {self.critic} was trained for the sampler checkpoint "
-                                    f"{loaded.sampler_checkpoint_id}, not {self.checkpoint} ({checkpoint_id(self.checkpoint)})")
-            return loaded
-
-        return _cached(("critic", self.critic, _file_stamp(self.critic), self.checkpoint), load)
+        return critic_for(self.critic, self.checkpoint)
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
         from services.sampler.critic_train import success_probabilities
@@ -264,6 +280,39 @@ class CriticOrderedSource:
         critic = self.scorer()
         scores = success_probabilities(critic.model, critic.hand, sampler.encode_points(points_d, label), points_d, poses)
         return poses[np.argsort(-scores, kind="stable")]
+
+
+@dataclass(frozen=True)
+class CriticClimbedSource:
+    """Another source's poses moved up the critic's log P(success) as critic-guided sampling moves the model's:
+    `guidance.steps` steps of the same size and cap in the sampler's normalised pose space, without denoising
+    between them (retrieval has no reverse process). Retrieval's counterpart of guided sampling, so the two
+    compare with the same critic and the same number of its gradients."""
+
+    inner: NearestNeighborSource
+    checkpoint: str  # the sampler checkpoint whose normalisation and BPS the critic was trained with
+    critic: str
+    guidance: Any  # a `GradientGuidance`
+
+    def label(self) -> str:
+        return f"{self.inner.label()}, climbed the critic ({guidance_text(self.guidance)})"
+
+    def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
+        import torch
+
+        from services.sampler.guidance import CriticGuide
+        from shared.robots.hands import load_hand
+
+        poses = self.inner.poses(obj, frame, k, seed)
+        sampler = DiffusionSource(self.checkpoint).pose_sampler()
+        points_d, _, label = sampler.points_in_d(obj, frame)
+        critic = critic_for(self.critic, self.checkpoint)
+        guide = CriticGuide(critic.model, load_hand(critic.hand), sampler.encode_points(points_d, label), points_d,
+                            sampler.normalizer)
+        normalized = sampler.normalizer.normalize(torch.as_tensor(poses, dtype=torch.float32)).clamp(-1.0, 1.0)
+        for _ in range(self.guidance.steps):
+            normalized = self.guidance.move(normalized, guide)
+        return sampler.clean_poses(normalized)
 
 
 def _file_stamp(path: str) -> tuple[int, int]:

@@ -22,8 +22,9 @@ import hashlib
 import json
 import time
 from collections.abc import Sequence
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -35,6 +36,7 @@ from evaluation.coverage import (
     CoverageError,
     CoveragePool,
     CoverageSettings,
+    CriticClimbedSource,
     CriticOrderedSource,
     DiffusionSource,
     NearestNeighborSource,
@@ -49,6 +51,9 @@ from evaluation.report import markdown_table, write_experiment
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, SETTINGS_FILE, ResultStore, read_records
 
+if TYPE_CHECKING:
+    from services.sampler.diffusion import GradientGuidance
+
 NAME = "sampler-quality"
 QUICK_OBJECTS = 8
 PAPER_COVERED, PAPER_OBJECTS = 169.33, 300
@@ -57,7 +62,11 @@ DEFAULT_METHOD_KEYS = ("ddpm100", "ddim10", "nn")  # what a run measures unless 
 # order the planner's critic path tries them in; "nn-fill": retrieval given the model's K candidates (the
 # nearest frames' poses up to K), so that the critic has as many poses to choose from as it has of the model's.
 CRITIC_METHOD_KEYS = ("ddpm100-critic", "nn-fill-critic")
-METHOD_KEYS = (*DEFAULT_METHOD_KEYS, "nn-fill", *CRITIC_METHOD_KEYS)
+# With critic guidance (`--critic-guidance`): the model's samples steered up the critic's gradient while they are
+# denoised, in the order drawn and in the critic's; retrieval's poses moved up the same gradient as many times
+# ("climbed"), in the critic's order: the same critic, the same number of its gradients.
+GUIDED_METHOD_KEYS = ("ddpm100-guided", "ddpm100-guided-critic", "nn-fill-climbed-critic")
+METHOD_KEYS = (*DEFAULT_METHOD_KEYS, "nn-fill", *CRITIC_METHOD_KEYS, *GUIDED_METHOD_KEYS)
 SPLITS = ("test", "val")
 
 
@@ -130,9 +139,11 @@ def quality_objects(quick: bool = False, split: str = "test", count: int | None 
 
 
 def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = DEFAULT_METHOD_KEYS,
-            noise_scale: float | None = None, critic: Path | None = None) -> dict[str, PoseSource]:
+            noise_scale: float | None = None, critic: Path | None = None,
+            guidance: GradientGuidance | None = None) -> dict[str, PoseSource]:
     """Record-key prefix -> pose source, in table order; `noise_scale`: the diffusion sources' temperature;
-    `critic`: the success critic ordering the "-critic" methods (trained for `checkpoint`)."""
+    `critic`: the success critic ordering the "-critic" methods (trained for `checkpoint`) and, with `guidance`,
+    guiding the "-guided" / "-climbed" ones."""
     unknown = [k for k in keys if k not in METHOD_KEYS]
     if unknown or not keys:
         raise CoverageError(f"unknown sampler-quality method(s) {unknown or '(none)'}; known: {', '.join(METHOD_KEYS)}")
@@ -142,17 +153,27 @@ def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = DEFAULT_METH
         "nn": NearestNeighborSource(str(nn_index)),
         "nn-fill": NearestNeighborSource(str(nn_index), fill=True),
     }
-    if any(k in CRITIC_METHOD_KEYS for k in keys):
+    if any(k in CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS for k in keys):
         if critic is None or not Path(critic).is_file():
             raise CoverageError(f"the methods {', '.join(CRITIC_METHOD_KEYS)} need a success critic for {checkpoint.name}; "
                                 f"none at {critic} (set $GD2P_CRITIC_CHECKPOINT_<HAND>)")
         every["ddpm100-critic"] = CriticOrderedSource(every["ddpm100"], str(checkpoint), str(critic))
         every["nn-fill-critic"] = CriticOrderedSource(every["nn-fill"], str(checkpoint), str(critic))
+    if any(k in GUIDED_METHOD_KEYS for k in keys):
+        if guidance is None:
+            raise CoverageError(f"the methods {', '.join(GUIDED_METHOD_KEYS)} need the critic guidance's settings "
+                                "(--critic-guidance SCALE [--guided-steps N])")
+        guided = DiffusionSource(str(checkpoint), "ddpm", noise_scale=noise_scale, critic=str(critic), guidance=guidance)
+        climbed = CriticClimbedSource(NearestNeighborSource(str(nn_index), fill=True), str(checkpoint), str(critic), guidance)
+        every["ddpm100-guided"] = guided
+        every["ddpm100-guided-critic"] = CriticOrderedSource(guided, str(checkpoint), str(critic))
+        every["nn-fill-climbed-critic"] = CriticOrderedSource(climbed, str(checkpoint), str(critic))
     return {k: every[k] for k in METHOD_KEYS if k in keys}
 
 
 def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, coverage: CoverageSettings,
-                noise_scale: float = 1.0, critic: Path | None = None) -> dict[str, Any]:
+                noise_scale: float = 1.0, critic: Path | None = None,
+                guidance: GradientGuidance | None = None) -> dict[str, Any]:
     """What the store pins: the objects, the exact weights and index, the sampling temperature and the protocol.
 
     The methods are not pinned: a run can be extended with another method later (each method's
@@ -166,6 +187,8 @@ def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, cov
         settings["noise_scale"] = float(noise_scale)
     if critic is not None:  # likewise: pinned by the runs that order poses by a critic
         settings["critic_id"] = checkpoint_id(critic)
+    if guidance is not None:  # and by those it guides
+        settings["critic_guidance"] = asdict(guidance)
     return settings
 
 
@@ -202,7 +225,7 @@ def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: di
             stored = json.loads((directory / SETTINGS_FILE).read_text())
         except (OSError, ValueError):
             continue
-        if any(stored.get(k) != settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale")):
+        if any(stored.get(k) != settings.get(k) for k in ("checkpoint_id", "nn_index", "noise_scale", "critic_guidance")):
             continue
         coverage = stored.get("coverage", {})
         if (coverage.get("yaw", "zero") != yaw or "world" in coverage or "cameras" in coverage
@@ -213,7 +236,8 @@ def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: di
         except OSError:
             continue
         for key, source in sources.items():
-            if source.label() in found or (key in CRITIC_METHOD_KEYS and stored.get("critic_id") != settings.get("critic_id")):
+            if source.label() in found or (key in CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS
+                                           and stored.get("critic_id") != settings.get("critic_id")):
                 continue
             rows = [r for k, r in records.items() if k.startswith(f"{key}/")]
             if rows:
@@ -226,14 +250,14 @@ def exact_records(out: Path, split: str, yaw: str, tag: str | None, settings: di
 def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", checkpoint: Path | None = None,
         nn_index: Path | None = None, yaw: str = "zero", methods_to_run: Sequence[str] = DEFAULT_METHOD_KEYS,
         tag: str | None = None, objects: int | None = None, noise_scale: float | None = None, world: str = "exact",
-        cameras: int = 0) -> Path:
+        cameras: int = 0, guidance: GradientGuidance | None = None) -> Path:
     """Measure the pose sources on a split into `result_directory(...)`; returns the report path.
 
     `checkpoint` / `nn_index`: the model and index to measure (default the shipped ones); a run of
     another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val);
     `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`);
     the "-critic" methods order poses by the hand's critic (`default_critic_path`: $GD2P_CRITIC_CHECKPOINT_<HAND>,
-    else the shipped one); `world` / `cameras`: where the poses are pushed and what the sources are given
+    else the shipped one), and with `guidance` (`GradientGuidance`) guide the "-guided" / "-climbed" ones; `world` / `cameras`: where the poses are pushed and what the sources are given
     (`CoverageSettings`; a run of another world than exact-told-the-mesh puts the exact run of the same name beside it).
     """
     from services.sampler.critic_train import default_critic_path
@@ -252,9 +276,9 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
         raise CoverageError(f"no nearest-neighbour index at {nn_index}")
     object_ids = quality_objects(quick, split, objects)
     coverage = CoverageSettings(hand=hand, yaw=yaw, world=world, cameras=cameras)
-    critic = default_critic_path(hand) if any(k in CRITIC_METHOD_KEYS for k in methods_to_run) else None
-    sources = methods(checkpoint, nn_index, methods_to_run, noise_scale, critic)
-    pinned = settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale, critic)
+    critic = default_critic_path(hand) if any(k in CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS for k in methods_to_run) else None
+    sources = methods(checkpoint, nn_index, methods_to_run, noise_scale, critic, guidance)
+    pinned = settings_of(object_ids, checkpoint, nn_index, coverage, noise_scale, critic, guidance)
     store = ResultStore(directory, pinned)
     results: dict[str, list[dict[str, Any]]] = {}
     with CoveragePool(workers) as pool:

@@ -35,16 +35,20 @@ def thin_points(points_d: torch.Tensor, count: int = CONTACT_POINTS) -> torch.Te
     return points_d[::stride]
 
 
-@torch.no_grad()
-def contact_features(hand: HandModel, poses_d: torch.Tensor, points_d: torch.Tensor) -> torch.Tensor:
-    """[B, CONTACT_FEATURES] for poses [B, 25] in D against the object's surface points [N, 3] in D."""
+def contact_features(hand: HandModel, poses_d: torch.Tensor, points_d: torch.Tensor,
+                     differentiable: bool = False) -> torch.Tensor:
+    """[B, CONTACT_FEATURES] for poses [B, 25] in D against the object's surface points [N, 3] in D.
+
+    `differentiable`: keep the autograd graph back to the poses (critic guidance differentiates the critic
+    through them; the two share-within-distance features are step functions and pass no gradient)."""
     if points_d.ndim != 2 or points_d.shape[1] != 3 or len(points_d) == 0:
         raise ValueError(f"object points must have shape [N > 0, 3], got {tuple(points_d.shape)}")
-    points = thin_points(points_d.to(torch.float32))
-    extent = torch.cat([points.min(0).values, points.max(0).values])
-    rows = [_pose_rows(hand, chunk, points) for chunk in torch.split(poses_d.to(torch.float32), _CHUNK)]
-    per_pose = torch.cat(rows) if rows else torch.zeros(0, CONTACT_FEATURES - 6)
-    return torch.cat([per_pose, extent.expand(len(per_pose), -1)], dim=1)
+    with torch.set_grad_enabled(differentiable):
+        points = thin_points(points_d.to(torch.float32))
+        extent = torch.cat([points.min(0).values, points.max(0).values])
+        rows = [_pose_rows(hand, chunk, points) for chunk in torch.split(poses_d.to(torch.float32), _CHUNK)]
+        per_pose = torch.cat(rows) if rows else torch.zeros(0, CONTACT_FEATURES - 6)
+        return torch.cat([per_pose, extent.expand(len(per_pose), -1)], dim=1)
 
 
 def _pose_rows(hand: HandModel, poses: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

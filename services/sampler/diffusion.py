@@ -12,7 +12,7 @@ LinearNormalizer) — any other normalisation would make the clip cut valid pose
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -38,6 +38,38 @@ NOISE_SCALE_ENV = "GD2P_SAMPLER_NOISE_SCALE"  # overrides DEFAULT_NOISE_SCALE, a
 
 class DiffusionConfigError(ValueError):
     """A sampler name or step count that cannot be used."""
+
+
+Guide = Callable[[torch.Tensor], torch.Tensor]  # normalised clean poses [n, 25] -> the direction to move them [n, 25]
+
+
+@dataclass(frozen=True)
+class GradientGuidance:
+    """How a `Guide` steers the reverse process: in each of the last `steps` denoising steps the predicted clean
+    poses move by `scale` x the guide's gradient (normalised pose units; each row's move capped at `max_step`),
+    and the step continues from the moved prediction (universal guidance's forward step, Bansal et al. 2023)."""
+
+    scale: float
+    steps: int = 10
+    max_step: float = 0.2
+
+    def __post_init__(self) -> None:
+        if not float(self.scale) > 0.0:
+            raise DiffusionConfigError(f"the guidance step scale must be > 0, got {self.scale}")
+        if not 1 <= int(self.steps) <= TRAIN_TIMESTEPS:
+            raise DiffusionConfigError(f"guided steps must be in 1..{TRAIN_TIMESTEPS}, got {self.steps}")
+        if not float(self.max_step) > 0.0:
+            raise DiffusionConfigError(f"the largest guided move must be > 0, got {self.max_step}")
+
+    def applies_at(self, timestep: int) -> bool:
+        """True for the last `steps` of the training schedule's timesteps (whatever the sampler's stride)."""
+        return int(timestep) < self.steps
+
+    def move(self, normalized: torch.Tensor, guide: Guide) -> torch.Tensor:
+        """The normalised poses [n, 25] moved one guided step along `guide`, kept inside [-1, 1]."""
+        move = self.scale * guide(normalized)
+        move = move * (self.max_step / move.norm(dim=1, keepdim=True).clamp_min(self.max_step))  # long moves shortened
+        return (normalized + move).clamp(-1.0, 1.0)
 
 
 def make_noise_scheduler() -> DDPMScheduler:
@@ -142,6 +174,8 @@ def sample_normalized(
     steps: int | None = None,
     noise_scale: float = 1.0,
     guidance_scale: float = 1.0,
+    guides: Sequence[Guide | None] | None = None,
+    gradient_guidance: GradientGuidance | None = None,
 ) -> list[torch.Tensor]:
     """Reverse diffusion for R requests at once: R BPS rows, `counts[r]` poses each, one generator each.
 
@@ -155,6 +189,9 @@ def sample_normalized(
     an `outcome` model (pushing them away from what failed on it, a negative prompt); each step runs the
     network on twice as many rows.
 
+    `guides` (one per request, or None) with `gradient_guidance` steer the last denoising steps of those
+    requests up a gradient (`GradientGuidance`; e.g. the success critic's, `guidance.CriticGuide`).
+
     The object embedding is computed once per request and the FiLM parameters once per step per
     request; the network runs on all rows together. Each request draws its initial noise and its
     DDPM step noise from its own generator, so its samples do not depend on what it was batched with.
@@ -162,6 +199,8 @@ def sample_normalized(
     """
     if len(counts) != bps.shape[0] or len(generators) != bps.shape[0]:
         raise ValueError(f"{bps.shape[0]} BPS rows need as many counts and generators, got {len(counts)} and {len(generators)}")
+    if guides is not None and (gradient_guidance is None or len(guides) != len(counts)):
+        raise ValueError("guides need one entry per request and a GradientGuidance")
     check_noise_scale(noise_scale)
     check_guidance_scale(guidance_scale, model.config)
     scheduler = make_sampling_scheduler(kind, steps)
@@ -184,6 +223,8 @@ def sample_normalized(
             epsilon = base_epsilon + guidance_scale * (conditional - base_epsilon)
         else:
             epsilon = model.denoise(x, film, group)
+        if guides is not None and gradient_guidance is not None and gradient_guidance.applies_at(int(t)):
+            epsilon = _steered(scheduler, int(t), x, epsilon, bounds, guides, gradient_guidance)
         x = torch.cat([_step(scheduler, epsilon[a:b], t, x[a:b], g, noise_scale)
                        for (a, b), g in zip(bounds, generators, strict=True)])
     return [x[a:b] for a, b in bounds]
@@ -230,6 +271,18 @@ def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, ge
                     device=epsilon.device, dtype=epsilon.dtype)
     sigma = scheduler._get_variance(t) ** 0.5  # the step's "fixed_small" posterior standard deviation
     return prev_sample - (1.0 - noise_scale) * sigma * z
+
+
+def _steered(scheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: list[tuple[int, int]],
+             guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
+    """The noise prediction whose clean pose is the predicted one moved along each request's guide."""
+    alpha_bar = scheduler.alphas_cumprod[t].to(x)
+    clean = ((x - (1 - alpha_bar).sqrt() * epsilon) / alpha_bar.sqrt()).clamp(-1.0, 1.0)  # the scheduler's clip_sample
+    moved = clean.clone()
+    for (a, b), guide in zip(bounds, guides, strict=True):
+        if guide is not None:
+            moved[a:b] = guidance.move(clean[a:b], guide)
+    return (x - alpha_bar.sqrt() * moved) / (1 - alpha_bar).sqrt()
 
 
 def _row_bounds(counts: Iterable[int]) -> list[tuple[int, int]]:

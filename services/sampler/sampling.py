@@ -34,14 +34,18 @@ import numpy as np
 import torch
 
 from services.sampler.checkpoint import SamplerCheckpoint, checkpoint_id, load_checkpoint
+from services.sampler.critic import SuccessCritic
 from services.sampler.diffusion import (
     DiffusionConfigError,
+    GradientGuidance,
+    Guide,
     check_guidance_scale,
     check_noise_scale,
     default_noise_scale,
     resolve_steps,
     sample_normalized,
 )
+from services.sampler.guidance import CriticGuide
 from shared.contracts.messages import DirectionFrame, ObjectPose
 from shared.frames import (
     JOINTS,
@@ -56,6 +60,7 @@ from shared.frames import (
     r6_to_matrix,
     transform_points,
 )
+from shared.robots.hands import load_hand
 from shared.world.bps import BPSError
 from shared.world.objects import ObjectLoadError, ObjectModel, load_object
 
@@ -94,6 +99,8 @@ class _Job:
     steps: int
     noise_scale: float
     future: Future
+    guide: Guide | None = None
+    guidance: GradientGuidance | None = None
 
 
 # ----------------------------------------------------------------------------- object placement
@@ -218,27 +225,35 @@ class PoseSampler:
             raise SamplerInputError(f"{label}: {exc}") from exc
 
     def sample(self, obj: ObjectInput, frame: DirectionFrame | None = None, k: int = 200, sampler: str = "ddpm",
-               steps: int | None = None, seed: int = 0, noise_scale: float | None = None) -> SampleResult:
+               steps: int | None = None, seed: int = 0, noise_scale: float | None = None,
+               critic: SuccessCritic | None = None, guidance: GradientGuidance | None = None) -> SampleResult:
         """K push poses for `obj` placed by `frame` (see the module docstring for defaults); `noise_scale`
-        is the sampling temperature (`sample_normalized`; None: `default_noise_scale()`)."""
+        is the sampling temperature (`sample_normalized`; None: `default_noise_scale()`); `critic` with
+        `guidance` steers the last denoising steps up the critic's log P(success) (`guidance.CriticGuide`)."""
         started = time.perf_counter()
         noise_scale = _resolve_noise_scale(noise_scale)
         step_count = _check_request(k, sampler, steps, seed, noise_scale)
+        if (critic is None) != (guidance is None):
+            raise SamplerInputError("critic guidance needs both a critic and its GradientGuidance settings")
         points_d, T_world_D, label = self.points_in_d(obj, frame)
         bps = self.encode_points(points_d, label)
-        poses_d = self.sample_from_bps(bps, k, sampler, steps, seed, noise_scale)
+        guide = None if critic is None else CriticGuide(critic, load_hand(self.hand), bps, points_d, self.normalizer)
+        poses_d = self.sample_from_bps(bps, k, sampler, steps, seed, noise_scale, guide, guidance)
         return SampleResult(poses_d, poses_d_to_world(poses_d, T_world_D), T_world_D, time.perf_counter() - started,
                             sampler, step_count, label, bps, noise_scale, points_d)
 
     def sample_from_bps(self, bps: np.ndarray, k: int, sampler: str = "ddpm", steps: int | None = None, seed: int = 0,
-                        noise_scale: float | None = None) -> np.ndarray:
-        """[k, 25] poses in D for an already encoded object; joins the current batch."""
+                        noise_scale: float | None = None, guide: Guide | None = None,
+                        guidance: GradientGuidance | None = None) -> np.ndarray:
+        """[k, 25] poses in D for an already encoded object (steered by `guide` under `guidance`, when given);
+        joins the current batch."""
         noise_scale = _resolve_noise_scale(noise_scale)
         step_count = _check_request(k, sampler, steps, seed, noise_scale)
         bps_tensor = torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(-1)
         if bps_tensor.numel() != self.bps.n:
             raise SamplerInputError(f"BPS must have {self.bps.n} values (this checkpoint's basis), got {bps_tensor.numel()}")
-        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, float(noise_scale), Future())
+        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, float(noise_scale), Future(),
+                   guide if guidance is not None else None, guidance if guide is not None else None)
         self._ensure_thread()
         self._queue.put(job)
         return job.future.result()
@@ -273,10 +288,10 @@ class PoseSampler:
                 return
 
     def _batches(self, jobs: list[_Job]) -> list[list[_Job]]:
-        """Jobs grouped by (sampler, steps, noise scale), each group cut to at most max_batch_poses rows."""
-        groups: dict[tuple[str, int, float], list[list[_Job]]] = {}
+        """Jobs grouped by (sampler, steps, noise scale, gradient guidance), each group cut to at most max_batch_poses rows."""
+        groups: dict[tuple[str, int, float, GradientGuidance | None], list[list[_Job]]] = {}
         for job in jobs:
-            chunks = groups.setdefault((job.sampler, job.steps, job.noise_scale), [[]])
+            chunks = groups.setdefault((job.sampler, job.steps, job.noise_scale, job.guidance), [[]])
             if chunks[-1] and sum(j.k for j in chunks[-1]) + job.k > self.max_batch_poses:
                 chunks.append([])
             chunks[-1].append(job)
@@ -286,16 +301,19 @@ class PoseSampler:
         try:
             bps = torch.stack([job.bps for job in jobs]).to(self.device)
             generators = [torch.Generator(device=self.device).manual_seed(job.seed) for job in jobs]
+            guidance = jobs[0].guidance
             outputs = sample_normalized(self.model, bps, [job.k for job in jobs], generators, jobs[0].sampler, jobs[0].steps,
-                                        jobs[0].noise_scale, self.guidance_scale)
+                                        jobs[0].noise_scale, self.guidance_scale,
+                                        [job.guide for job in jobs] if guidance is not None else None, guidance)
             for job, output in zip(jobs, outputs, strict=True):
-                job.future.set_result(self._to_poses(output))
+                job.future.set_result(self.clean_poses(output))
         except Exception as exc:  # deliver the failure to every waiting caller, keep serving
             for job in jobs:
                 if not job.future.done():
                     job.future.set_exception(exc)
 
-    def _to_poses(self, normalized: torch.Tensor) -> np.ndarray:
+    def clean_poses(self, normalized: torch.Tensor) -> np.ndarray:
+        """Normalised poses [n, 25] -> poses in D for the robot: an orthonormal rotation block, joints within limits."""
         poses = self.normalizer.unnormalize(normalized.float().cpu()).double()
         rotation = r6_to_matrix(poses[:, ROTATION_6D])
         poses[:, ROTATION_6D] = matrix_to_r6(rotation)
