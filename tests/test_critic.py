@@ -23,6 +23,8 @@ from services.sampler.critic_train import (
     save_critic,
     train_critic,
 )
+from services.sampler.diffusion import GradientGuidance, PoseNormalizer
+from services.sampler.guidance import CriticGuide
 from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
 from shared.robots.hands import load_hand
 
@@ -99,6 +101,30 @@ def test_contact_features_say_where_the_hand_meets_the_object():
     assert float(moved_away[3]) > 0.5 and float(moved_away[4]) == 0.0  # nothing within a centimetre
     with pytest.raises(ValueError, match="object points"):
         contact_features(hand, pose, torch.zeros(0, 3))
+
+
+def test_critic_guidance_climbs_the_critics_success_probability_from_inside_the_samplers_inference_mode():
+    torch.manual_seed(0)
+    hand = load_hand("allegro")
+    critic = SuccessCritic(CriticConfig(bps_dim=32, contact_dim=CONTACT_FEATURES)).eval()
+    rng = np.random.default_rng(0)
+    box = rng.uniform([-0.03, -0.03, 0.0], [0.03, 0.03, 0.08], size=(600, 3))
+    normalizer = PoseNormalizer(torch.full((25,), -2.0), torch.full((25,), 2.0))  # wide: no pose is clamped
+    guide = CriticGuide(critic, hand, rng.normal(size=32), box, normalizer)
+    poses = hand.open_pose(16)
+    poses[:, :3] = torch.as_tensor(rng.uniform([-0.12, -0.03, 0.02], [-0.06, 0.03, 0.08], size=(16, 3)), dtype=torch.float32)
+
+    def log_success(normalized: torch.Tensor) -> torch.Tensor:
+        raw = normalizer.unnormalize(normalized)
+        logits, _ = critic(raw, guide.bps, None, contact_features(hand, raw, guide.points))
+        return torch.nn.functional.logsigmoid(logits)
+
+    start = normalizer.normalize(poses)
+    with torch.inference_mode():  # where the sampler calls it
+        climbed = GradientGuidance(scale=0.05, max_step=0.05).move(start, guide)
+    assert climbed.shape == start.shape
+    assert float(log_success(climbed).sum()) > float(log_success(start).sum())
+    assert ((climbed - start).norm(dim=1) <= 0.05 + 1e-6).all()  # no pose moves further than the cap
 
 
 @pytest.mark.parametrize("contact_dim", [0, CONTACT_FEATURES])  # 0: critics trained before contact features

@@ -300,6 +300,25 @@ def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(caps
         assert "--noise-scale must be in (0, 1]" in capsys.readouterr().err
 
 
+def test_eval_passes_critic_guidance_to_sampler_quality_and_refuses_it_elsewhere_or_malformed(monkeypatch, capsys):
+    import cli.eval
+    from cli.main import main
+    from services.sampler.diffusion import GradientGuidance
+
+    calls = []
+    monkeypatch.setattr(cli.eval, "experiment_function", lambda name: lambda out, quick, workers, **o: calls.append(o) or out)
+    monkeypatch.setattr("evaluation.report.write_index", lambda out: out / "README.md")
+    assert main(["eval", "sampler-quality", "--critic-guidance", "0.02", "--guided-steps", "20", "--tag", "g",
+                 "--out", "/tmp/never-written"]) == 0
+    assert calls[0]["guidance"] == GradientGuidance(0.02, steps=20)
+    for argv, message in ((["methods", "--critic-guidance", "0.02"], "apply to sampler-quality only"),
+                          (["sampler-quality", "--guided-steps", "5"], "--guided-steps needs --critic-guidance"),
+                          (["sampler-quality", "--critic-guidance", "0"], "step scale must be > 0"),
+                          (["sampler-quality", "--critic-guidance", "0.1", "--guided-steps", "101"], "guided steps")):
+        assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 2, argv
+        assert message in capsys.readouterr().err, argv
+
+
 def test_eval_refuses_data_size_flags_elsewhere_and_bad_seeds(capsys):
     from cli.main import main
 
@@ -345,11 +364,43 @@ def test_critic_order_puts_the_samples_the_critic_likes_first_and_refuses_anothe
         wrong.poses(obj, frame, 4, seed=0)
 
 
+def test_critic_guidance_raises_what_the_critic_expects_of_the_samples_and_of_retrieved_poses():
+    """Guided samples and climbed retrieved poses score higher by the critic that steered them than the same
+    seed's plain samples and the plain retrieved poses."""
+    from evaluation.coverage import CriticClimbedSource, DiffusionSource, NearestNeighborSource, coverage_frame
+    from evaluation.sampler_quality import shipped_checkpoint, shipped_nn_index
+    from services.sampler.critic_train import load_critic, success_probabilities
+    from services.sampler.diffusion import GradientGuidance
+
+    checkpoint, critic = str(shipped_checkpoint()), str(shipped_checkpoint().with_name("allegro_critic.pt"))
+    obj = load_object("proc-box-000")
+    frame = coverage_frame(obj, CoverageSettings(yaw="random"), "proc-box-000")
+    guidance = GradientGuidance(0.02, steps=5)
+    plain = DiffusionSource(checkpoint)
+    guided = DiffusionSource(checkpoint, critic=critic, guidance=guidance)
+    retrieved = NearestNeighborSource(str(shipped_nn_index()), fill=True)
+    climbed = CriticClimbedSource(retrieved, checkpoint, critic, guidance)
+    sampler = plain.pose_sampler()
+    points_d, _, _ = sampler.points_in_d(obj, frame)
+    bps = sampler.encode_points(points_d, "box")
+
+    def mean_score(source) -> float:
+        poses = source.poses(obj, frame, 40, seed=3)
+        return float(success_probabilities(load_critic(critic).model, "allegro", bps, points_d, poses).mean())
+
+    assert mean_score(guided) > mean_score(plain) + 0.02
+    assert mean_score(climbed) > mean_score(retrieved) + 0.02
+    assert "critic-guided (step x0.02, last 5 steps" in guided.label() and "climbed the critic" in climbed.label()
+
+
 def test_sampler_quality_refuses_critic_methods_without_a_critic(tmp_path):
     from evaluation.sampler_quality import methods, shipped_checkpoint, shipped_nn_index
 
     with pytest.raises(CoverageError, match="need a success critic"):
         methods(shipped_checkpoint(), shipped_nn_index(), ("ddpm100-critic",), critic=tmp_path / "none.pt")
+    critic = shipped_checkpoint().with_name("allegro_critic.pt")
+    with pytest.raises(CoverageError, match="need the critic guidance's settings"):
+        methods(shipped_checkpoint(), shipped_nn_index(), ("ddpm100-guided",), critic=critic)
     assert list(methods(shipped_checkpoint(), shipped_nn_index(), ("nn", "nn-fill"))) == ["nn", "nn-fill"]
 
 

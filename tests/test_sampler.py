@@ -30,7 +30,7 @@ from services.sampler.dataset import (
     load_pose_dataset,
     split_objects,
 )
-from services.sampler.diffusion import TRAIN_TIMESTEPS, DiffusionConfigError
+from services.sampler.diffusion import TRAIN_TIMESTEPS, DiffusionConfigError, GradientGuidance, sample_normalized
 from services.sampler.model import DenoiserConfig, PoseDenoiser
 from services.sampler.nearest_neighbor import NearestNeighborBaseline
 from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
@@ -363,6 +363,32 @@ def test_a_model_that_learns_failures_samples_guided_away_from_them(tmp_path):
     assert left["guided"] > left["plain"] + 0.2, left  # away from the failures
     with pytest.raises(ValueError, match="not both"):
         dataclasses.replace(TINY_MODEL, outcome=True, unconditional=True)
+
+
+def test_gradient_guidance_steers_the_last_steps_of_the_guided_requests_only(sampler):
+    """A guide pulling the palm's x to the top of its range moves the guided samples there; a request batched
+    beside them without a guide draws what it draws alone."""
+    def toward_target(normalized: torch.Tensor) -> torch.Tensor:
+        gradient = torch.zeros_like(normalized)
+        gradient[:, 0] = 0.9 - normalized[:, 0]  # the gradient of -(x_0 - 0.9)^2 / 2
+        return gradient
+
+    bps = torch.as_tensor(np.stack([sampler.encode(o)[0] for o in synthetic_objects()[:2]]))
+    generators = lambda: [torch.Generator().manual_seed(s) for s in (3, 4)]  # noqa: E731
+    plain = sample_normalized(sampler.model, bps, [100, 100], generators())
+    guided = sample_normalized(sampler.model, bps, [100, 100], generators(), guides=[toward_target, None],
+                               gradient_guidance=GradientGuidance(scale=0.5, steps=20))
+    assert float(guided[0][:, 0].mean()) > float(plain[0][:, 0].mean()) + 0.2
+    assert (guided[0][:, 0] - 0.9).abs().median() < (plain[0][:, 0] - 0.9).abs().median() / 2
+    torch.testing.assert_close(guided[1], plain[1], atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="one entry per request"):
+        sample_normalized(sampler.model, bps, [10, 10], generators(), guides=[toward_target])
+    for bad in ({"scale": 0.0}, {"scale": 0.1, "steps": 0}, {"scale": 0.1, "steps": TRAIN_TIMESTEPS + 1},
+                {"scale": 0.1, "max_step": 0.0}):
+        with pytest.raises(DiffusionConfigError):
+            GradientGuidance(**bad)
+    with pytest.raises(SamplerInputError, match="both a critic"):
+        sampler.sample(synthetic_objects()[0], k=10, guidance=GradientGuidance(scale=0.1))
 
 
 def test_concurrent_requests_are_batched_without_changing_their_samples(sampler):
