@@ -537,6 +537,21 @@ def test_cli_sample_validate_counts_successes_in_simulation(trained, capsys):
     assert report["validated_success"] == sum(p["success"] for p in report["poses"])
 
 
+def test_cli_sample_with_critic_guidance_uses_the_hands_critic_only_for_its_own_checkpoint(trained, capsys):
+    from cli.main import main
+
+    base = ["sample", "--object", "proc-box-000", "--hand", HAND, "--n", "4", "--json"]
+    assert main([*base, "--critic-guidance", "0.02", "--guided-steps", "2"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["critic_guidance"] == {"scale": 0.02, "steps": 2} and report["n"] == 4
+    for extra, message in ((["--checkpoint", str(trained.checkpoint_path), "--critic-guidance", "0.02"], "made for the sampler checkpoint"),
+                           (["--guided-steps", "3"], "--guided-steps needs --critic-guidance"),
+                           (["--critic-guidance", "0.02", "--guided-steps", "500"], "guided steps must be in"),
+                           (["--sampler", "nearest", "--critic-guidance", "0.02"], "apply to the diffusion samplers")):
+        assert main([*base, *extra]) == 2, extra
+        assert message in capsys.readouterr().err, extra
+
+
 def test_denoiser_film_is_shared_across_a_requests_samples():
     """One FiLM row broadcast over a request gives the same output as one row per sample."""
     model = PoseDenoiser(TINY_MODEL).eval()
