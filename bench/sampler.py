@@ -14,6 +14,10 @@ Critic: the success critic's scores for the 200 poses (`success_probabilities`, 
 each reply), with and without the contact features (where the hand meets the object); the cost does not depend
 on the weights, so the default critic architecture is timed with random weights.
 
+Critic guidance: DDPM-100 with the last 10 (and 30) denoising steps steered up the critic's gradient
+(`--critic-guidance 0.02`, the setting chosen on val objects), end to end as the latency above; random critic
+weights, as the cost does not depend on them.
+
 Batching: 4 concurrent requests of 200 poses vs the same 4 one after the other.
 Training: samples/s of one optimiser step (loss, backward, clip, fused Adam, foreach EMA) at batch
 256 on random data, for the default network.
@@ -47,7 +51,13 @@ from services.sampler.critic import CriticConfig, SuccessCritic  # noqa: E402
 from services.sampler.critic_features import CONTACT_FEATURES  # noqa: E402
 from services.sampler.critic_train import success_probabilities  # noqa: E402
 from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED  # noqa: E402
-from services.sampler.diffusion import PoseNormalizer, denoising_loss, make_ema, make_noise_scheduler  # noqa: E402
+from services.sampler.diffusion import (  # noqa: E402
+    GradientGuidance,
+    PoseNormalizer,
+    denoising_loss,
+    make_ema,
+    make_noise_scheduler,
+)
 from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count  # noqa: E402
 from services.sampler.sampling import PoseSampler, default_frame  # noqa: E402
 from services.sampler.train import hand_joint_limits  # noqa: E402
@@ -102,6 +112,20 @@ def measure_critic_ms(sampler: PoseSampler, hand: str, repeats: int = 10) -> dic
             success_probabilities(critic, hand, result.bps, result.points_d, result.poses_d)
             times.append(time.perf_counter() - started)
         timings[name] = round(1000 * statistics.median(times[1:]), 2)
+    return timings
+
+
+def measure_guided_s(sampler: PoseSampler, repeats: int = 3) -> dict:
+    critic = SuccessCritic(CriticConfig(bps_dim=sampler.bps.n, contact_dim=CONTACT_FEATURES)).eval()
+    timings = {}
+    for steps in (10, 30):
+        guidance = GradientGuidance(0.02, steps=steps)
+        times = []
+        for _ in range(repeats + 1):
+            started = time.perf_counter()
+            sampler.sample(LATENCY_OBJECT, k=K, sampler="ddpm", critic=critic, guidance=guidance)
+            times.append(time.perf_counter() - started)
+        timings[f"ddpm_100_guided_last_{steps}"] = round(statistics.median(times[1:]), 4)
     return timings
 
 
@@ -201,6 +225,7 @@ def run(args: argparse.Namespace) -> dict:
                 "ddim_10": measure_latency(sampler, "ddim", 10, args.repeats),
                 "bps_encode_ms": measure_bps_ms(sampler),
                 "critic_scores_ms": measure_critic_ms(sampler, args.hand),
+                "critic_guided_s": measure_guided_s(sampler),
                 "cold_first_call_s": round(cold, 4),
             }
     torch.set_num_threads(args.threads[0])
