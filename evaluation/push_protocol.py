@@ -93,6 +93,7 @@ class Method:
     # keep meaning what their committed trials ran: L_dir's order); on in the methods named for it.
     critic: bool = False
     prescreen: bool = True  # PushRequest.prescreen: false is the fast path (no floating-hand pushes before planning)
+    critic_guidance: float | None = None  # PushRequest.critic_guidance: the samples steered up the critic's gradient
 
 
 ROBUST_DRAWS = 4  # the robust ranking's draws per plan
@@ -126,6 +127,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     # The planner's default since stop 42 (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
     Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
+    # The samples steered up the critic's gradient too (services/sampler/guidance.py, the scale chosen on val objects
+    # by sampler-quality, README "Stop 45").
+    Method("gd2p-closed-critic-guided", "GD2P closed loop, critic-guided samples in the critic's order (val candidate)",
+           "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm",
+           critic_guidance=0.02),
     Method("gd2p-closed-critic-p8", "GD2P closed loop, critic order, prescreen 8 (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0", "GD2P closed loop, critic order, no prescreen (val candidate)", "gd2p", "ranked",
@@ -155,7 +161,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
 TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
                             "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
-                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p8",
+                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p8", "gd2p-closed-critic-guided",
                             "gd2p-closed-critic-p0", "gd2p-closed-critic-p0x4", "gd2p-closed-critic-p0-ddim"})
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
@@ -241,7 +247,7 @@ def push_request(episode: Episode, k: int = 200) -> PushRequest:
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
                   physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
-                  critic=method.critic, prescreen=method.prescreen,
+                  critic=method.critic, prescreen=method.prescreen, critic_guidance=method.critic_guidance,
                   **({} if method.sampler is None else {"sampler": method.sampler}))
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)

@@ -155,6 +155,30 @@ def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoi
         service.close()
 
 
+def test_the_sampler_service_guides_samples_with_its_critic_when_asked_and_refuses_when_it_cannot(monkeypatch):
+    from services.sampler.service import SamplerService
+    from shared.contracts.errors import ServiceError
+
+    request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=40, frame=_frame_at_origin(),
+                            seed=3)
+    service = SamplerService()
+    try:
+        plain = service.handle(request).success_probability.to_numpy()
+        guided = service.handle(request.model_copy(update={"critic_guidance": 0.02, "guided_steps": 5}))
+        assert guided.success_probability.to_numpy().mean() > plain.mean() + 0.02  # the shipped critic's own view
+        with pytest.raises(ServiceError, match="apply to the diffusion samplers"):
+            service.handle(request.model_copy(update={"sampler": "nearest", "critic_guidance": 0.02}))
+    finally:
+        service.close()
+    monkeypatch.setenv("GD2P_CRITIC_CHECKPOINT_ALLEGRO", "none")
+    service = SamplerService()
+    try:
+        with pytest.raises(ServiceError, match="critic guidance needs"):
+            service.handle(request.model_copy(update={"critic_guidance": 0.02}))
+    finally:
+        service.close()
+
+
 def _frame_at_origin():
     from shared.contracts.messages import DirectionFrame, ObjectPose
 

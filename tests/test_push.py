@@ -497,6 +497,32 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
     assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked])
 
 
+def test_a_request_for_critic_guided_samples_reaches_the_sampler_and_only_for_diffusion_samples():
+    from evaluation.local_system import LocalRobot, validate_here
+    from services.planner.pipeline import PushPipeline, PushServices
+
+    asked = []
+
+    def sample(request):
+        asked.append(request)
+        return _spatula_poses(request)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=sample, validate=validate_here, execute=robot.execute), _one_plan_settings())
+    try:
+        for guidance in (None, 0.02):
+            pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                     direction_deg=90.0, k=8, critic_guidance=guidance))
+    finally:
+        pipeline.close()
+        robot.close()
+    assert [r.critic_guidance for r in asked] == [None, 0.02] and asked[1].guided_steps == 10
+    with pytest.raises(ValueError, match="steers the diffusion samples"):
+        PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="nearest", critic_guidance=0.02)
+    with pytest.raises(ValueError):
+        SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", frame=asked[0].frame, critic_guidance=0.0)
+
+
 def _one_plan_settings():
     from services.planner.stages import PipelineSettings
 

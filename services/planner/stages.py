@@ -190,7 +190,8 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
             seed = (state.seed + DRAW_SEED_STRIDE * draw) % 2**31
             reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=sampling_frame(state, push),
                                          k=request.k, sampler=sampler, seed=seed,
-                                         score=request.critic and rolls_out(request)))  # only an order uses scores
+                                         score=request.critic and rolls_out(request),  # only an order uses scores
+                                         critic_guidance=None if sampler == "nearest" else request.critic_guidance))
             poses_d = reply.poses_d.to_numpy().astype(np.float64)
             p_success = None if reply.success_probability is None else reply.success_probability.to_numpy()
             state.sampled = (R_D_O, poses_d, p_success)

@@ -24,6 +24,7 @@ from pathlib import Path
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.critic import SuccessCritic
 from services.sampler.critic_train import CriticError, default_critic_path, load_critic, success_probabilities
+from services.sampler.diffusion import GradientGuidance
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
 from shared.contracts.errors import ServiceError
@@ -101,9 +102,11 @@ class SamplerService:
         if request.sampler == "nearest":
             return self._handle_nearest(request)
         sampler = self.sampler(request.hand)
+        guide_critic, guidance = self._guidance(request, sampler)
         try:
             result = sampler.sample(object_input(request.object), request.frame, k=request.k, sampler=request.sampler,
-                                    steps=request.steps, seed=request.seed, noise_scale=request.noise_scale)
+                                    steps=request.steps, seed=request.seed, noise_scale=request.noise_scale,
+                                    critic=guide_critic, guidance=guidance)
         except SamplerInputError as exc:
             raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
         critic = self.critic(request.hand, sampler) if request.score else None
@@ -115,10 +118,21 @@ class SamplerService:
             checkpoint_id=sampler.checkpoint_id, sampler=request.sampler, noise_scale=result.noise_scale,
             success_probability=scores)
 
+    def _guidance(self, request: SampleRequest, sampler: PoseSampler) -> tuple[SuccessCritic | None, GradientGuidance | None]:
+        """The critic and settings that steer the request's samples (`critic_guidance`), or (None, None)."""
+        if request.critic_guidance is None:
+            return None, None
+        critic = self.critic(request.hand, sampler)
+        if critic is None:
+            raise ServiceError("not_implemented", f"sampler: critic guidance needs a {request.hand} success critic made for "
+                                                  f"the checkpoint {sampler.checkpoint_id}; none is installed")
+        return critic, GradientGuidance(request.critic_guidance, steps=request.guided_steps)
+
     def _handle_nearest(self, request: SampleRequest) -> SampleResponse:
         """The nearest training frame's poses: `request.k` of them, seeded, or all when it has fewer."""
-        if request.steps is not None or request.noise_scale is not None:
-            raise ServiceError("bad_request", "sampler: `steps` and `noise_scale` apply to the diffusion samplers, not 'nearest'")
+        if request.steps is not None or request.noise_scale is not None or request.critic_guidance is not None:
+            raise ServiceError("bad_request", "sampler: `steps`, `noise_scale` and `critic_guidance` apply to the diffusion "
+                                              "samplers, not 'nearest'")
         nearest = self.nearest(request.hand)
         try:
             reply = nearest.sample(object_input(request.object), request.frame, k=request.k, seed=request.seed)
