@@ -213,7 +213,7 @@ def _register_sample(subparsers: argparse._SubParsersAction) -> None:
                         help="steer the last denoising steps up the hand's success critic's log P(success) "
                              "($GD2P_CRITIC_CHECKPOINT_<HAND> or the shipped one; it must be made for the checkpoint): each "
                              "guided step moves a pose by SCALE x the gradient in normalised units, at most 0.2 (0.02 "
-                             "was chosen on val objects); about 0.14 s per guided step per 200 poses on one thread")
+                             "was chosen on val objects); about 0.2 s per guided step per 200 poses on one thread")
     parser.add_argument("--guided-steps", type=positive_int, default=None, metavar="N",
                         help="with --critic-guidance: the last N of the denoising steps are guided (default 10)")
     parser.add_argument("--checkpoint", type=Path, default=None,

@@ -662,7 +662,7 @@ class SampleRequest(Message):
     score: bool = True
     # Steer the diffusion samples up the success critic's log P(success) in their last `guided_steps` denoising
     # steps, each moving a pose by this scale x the gradient in normalised units (services/sampler/guidance.py);
-    # None: plain samples. 0.02 was chosen on val objects (README "Stop 45"); ~0.14 s per guided step per 200
+    # None: plain samples. 0.02 was chosen on val objects (README "Stop 45"); ~0.2 s per guided step per 200
     # poses on one thread. Needs a critic made for the sampler's checkpoint; not for "nearest".
     critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
     guided_steps: int = Field(default=10, ge=1, le=100)
