@@ -187,7 +187,7 @@ def _guidance_refusal(args: argparse.Namespace) -> str | None:
     if args.critic_guidance is None:
         return None
     try:
-        GradientGuidance(args.critic_guidance, **({} if args.guided_steps is None else {"steps": args.guided_steps}))
+        GradientGuidance.of(args.critic_guidance, args.guided_steps)
     except DiffusionConfigError as exc:
         return f"--critic-guidance / --guided-steps: {exc}"
     return None
@@ -201,8 +201,7 @@ def _sampler_quality_options(args: argparse.Namespace) -> dict:
     if args.critic_guidance is not None:
         from services.sampler.diffusion import GradientGuidance
 
-        steps = {} if args.guided_steps is None else {"steps": args.guided_steps}
-        options["guidance"] = GradientGuidance(args.critic_guidance, **steps)
+        options["guidance"] = GradientGuidance.of(args.critic_guidance, args.guided_steps)
     if args.methods is not None:
         options["methods_to_run"] = args.methods
     return options

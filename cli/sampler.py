@@ -339,7 +339,7 @@ def _critic_guidance(args: argparse.Namespace, sampler) -> tuple:
     if path is None:
         raise SamplerCliError(f"--critic-guidance needs a critic; $GD2P_CRITIC_CHECKPOINT_{args.hand.upper()} says none")
     try:
-        guidance = GradientGuidance(args.critic_guidance, **({} if args.guided_steps is None else {"steps": args.guided_steps}))
+        guidance = GradientGuidance.of(args.critic_guidance, args.guided_steps)
         critic = load_critic(path)
     except (DiffusionConfigError, CriticError) as exc:
         raise SamplerCliError(f"--critic-guidance: {exc}") from exc

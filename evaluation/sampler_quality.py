@@ -155,7 +155,8 @@ def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = DEFAULT_METH
     }
     if any(k in CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS for k in keys):
         if critic is None or not Path(critic).is_file():
-            raise CoverageError(f"the methods {', '.join(CRITIC_METHOD_KEYS)} need a success critic for {checkpoint.name}; "
+            raise CoverageError(f"the methods {', '.join(CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS)} need a success critic "
+                                f"for {checkpoint.name}; "
                                 f"none at {critic} (set $GD2P_CRITIC_CHECKPOINT_<HAND>)")
         every["ddpm100-critic"] = CriticOrderedSource(every["ddpm100"], str(checkpoint), str(critic))
         every["nn-fill-critic"] = CriticOrderedSource(every["nn-fill"], str(checkpoint), str(critic))
@@ -257,8 +258,8 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     another model names its directory with `tag` (e.g. the candidate checkpoints chosen on val);
     `noise_scale`: the diffusion sampling temperature (default: the sampler's, `default_noise_scale()`);
     the "-critic" methods order poses by the hand's critic (`default_critic_path`: $GD2P_CRITIC_CHECKPOINT_<HAND>,
-    else the shipped one), and with `guidance` (`GradientGuidance`) guide the "-guided" / "-climbed" ones; `world` / `cameras`: where the poses are pushed and what the sources are given
-    (`CoverageSettings`; a run of another world than exact-told-the-mesh puts the exact run of the same name beside it).
+    else the shipped one), and with `guidance` (`GradientGuidance`) guide the "-guided" / "-climbed" ones; `world` /
+    `cameras`: where the poses are pushed and what the sources are given (`CoverageSettings`; a run of another world than exact-told-the-mesh puts the exact run of the same name beside it).
     """
     from services.sampler.critic_train import default_critic_path
     from services.sampler.diffusion import default_noise_scale

@@ -61,6 +61,11 @@ class GradientGuidance:
         if not float(self.max_step) > 0.0:
             raise DiffusionConfigError(f"the largest guided move must be > 0, got {self.max_step}")
 
+    @classmethod
+    def of(cls, scale: float, steps: int | None = None) -> GradientGuidance:
+        """The guidance a command line asks for: `steps` None is the default number of guided steps."""
+        return cls(scale) if steps is None else cls(scale, steps=steps)
+
     def applies_at(self, timestep: int) -> bool:
         """True for the last `steps` of the training schedule's timesteps (whatever the sampler's stride)."""
         return int(timestep) < self.steps
