@@ -114,6 +114,7 @@ def test_critic_guidance_climbs_the_critics_success_probability_from_inside_the_
     poses = hand.open_pose(16)
     poses[:, :3] = torch.as_tensor(rng.uniform([-0.12, -0.03, 0.02], [-0.06, 0.03, 0.08], size=(16, 3)), dtype=torch.float32)
 
+    @torch.no_grad()
     def log_success(normalized: torch.Tensor) -> torch.Tensor:
         raw = normalizer.unnormalize(normalized)
         logits, _ = critic(raw, guide.bps, None, contact_features(hand, raw, guide.points))
