@@ -875,13 +875,15 @@ def _push_cancelled_when(system, drop_when, lease: str):
 
     cfg, _ = system
     states: list = []
-    drop = threading.Event()
+    drop, settled = threading.Event(), threading.Event()
     with open_session(cfg) as session:
         token = session.liveliness().declare_token(lease)
 
         def on_state(sample):
             state = decode(sample.payload.to_bytes(), str(sample.encoding))
             states.append((time.monotonic(), state))
+            if drop.is_set() and state.status != "executing":
+                settled.set()
             if drop_when(state):
                 drop.set()
 
@@ -894,6 +896,8 @@ def _push_cancelled_when(system, drop_when, lease: str):
                 token.undeclare()  # what Ctrl-C, a crash or a lost connection does to the client's token
                 dropped_at = time.monotonic()
             reply = future.result(240.0)
+            if dropped_at is not None:  # the robot's state after the stop may arrive just after the planner's reply
+                settled.wait(5.0)
         subscriber.undeclare()
     return reply, states, dropped_at
 
