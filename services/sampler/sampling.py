@@ -252,8 +252,9 @@ class PoseSampler:
         bps_tensor = torch.as_tensor(np.asarray(bps, dtype=np.float32)).reshape(-1)
         if bps_tensor.numel() != self.bps.n:
             raise SamplerInputError(f"BPS must have {self.bps.n} values (this checkpoint's basis), got {bps_tensor.numel()}")
-        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, float(noise_scale), Future(),
-                   guide if guidance is not None else None, guidance if guide is not None else None)
+        if (guide is None) != (guidance is None):
+            raise SamplerInputError("a guide needs its GradientGuidance settings, and settings need a guide")
+        job = _Job(bps_tensor, int(k), int(seed), sampler, step_count, float(noise_scale), Future(), guide, guidance)
         self._ensure_thread()
         self._queue.put(job)
         return job.future.result()
