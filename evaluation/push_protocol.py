@@ -149,6 +149,10 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-a10", "GD2P, α=10 (the weights before val tuning)", "gd2p", "ranked", weights=(10.0, 1.0, 0.1)),
     Method("nearest", "Nearest Neighbor", "nearest", "random"),
     Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
+    # Retrieval through every stage of the planner's default (closed loop, corrections, the critic's order, the same
+    # physics budget): the baseline the default is measured against with equal budgets and stages.
+    Method("nearest-closed-critic", "Nearest Neighbor closed loop, critic order (the default's stages)", "nearest",
+           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True),
     Method("fixed", "Fixed spatula", "fixed", "random"),
     # The baselines with the same corrective pushes as GD2P + corrective pushes (the same pipeline stages).
     Method("nearest-corrected", "Nearest Neighbor + corrective pushes", "nearest", "random", corrections=CORRECTIONS),
@@ -386,7 +390,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
     record["sampler"] = request.sampler if method.source == "gd2p" else None
     record["pose_model"] = _pose_model(episode.hand, method.source)
-    record["critic"] = method.critic and method.source == "gd2p" and _has_critic(episode.hand)
+    record["critic"] = method.critic and method.source in ("gd2p", "nearest") and _has_critic(episode.hand)
     if record["critic"]:  # which critic ordered the poses (the sampler loads it from the same path)
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings

@@ -180,6 +180,35 @@ def test_the_sampler_service_guides_samples_with_its_critic_when_asked_and_refus
         service.close()
 
 
+def test_retrieved_poses_are_scored_by_the_same_critic_so_a_planner_orders_them_alike(monkeypatch):
+    """The Nearest Neighbor baseline gets the critic's order too (PushRequest.critic), scored from the object as the
+    diffusion sampler encodes it, the encoding the critic was trained on."""
+    from services.sampler.critic_train import success_probabilities
+    from services.sampler.service import SamplerService, object_input
+
+    request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=30, frame=_frame_at_origin(),
+                            sampler="nearest", seed=2)
+    service = SamplerService()
+    try:
+        reply = service.handle(request)
+        poses = reply.poses_d.to_numpy()
+        sampler = service.sampler("allegro")
+        points_d, _, label = sampler.points_in_d(object_input(request.object), request.frame)
+        expected = success_probabilities(service.critic("allegro", sampler), "allegro",
+                                         sampler.encode_points(points_d, label), points_d, poses)
+        np.testing.assert_allclose(reply.success_probability.to_numpy(), expected, rtol=1e-6)
+        assert np.ptp(expected) > 0.05  # the scores tell the retrieved poses apart
+        assert service.handle(request.model_copy(update={"score": False})).success_probability is None
+    finally:
+        service.close()
+    monkeypatch.setenv("GD2P_CRITIC_CHECKPOINT_ALLEGRO", "none")
+    service = SamplerService()
+    try:
+        assert service.handle(request).success_probability is None  # no critic: retrieval's own order
+    finally:
+        service.close()
+
+
 def _frame_at_origin():
     from shared.contracts.messages import DirectionFrame, ObjectPose
 

@@ -21,6 +21,8 @@ import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+import numpy as np
+
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.critic import SuccessCritic
 from services.sampler.critic_train import CriticError, default_critic_path, load_critic, success_probabilities
@@ -141,7 +143,26 @@ class SamplerService:
         return SampleResponse(
             request_id=request.id, hand=request.hand, poses_d=reply.result.poses_d,
             poses_world=reply.result.poses_world, latency_s=reply.result.latency_s,
-            checkpoint_id=reply.source_id, sampler="nearest")
+            checkpoint_id=reply.source_id, sampler="nearest",
+            success_probability=self._score_retrieved(request, reply.result.poses_d) if request.score else None)
+
+    def _score_retrieved(self, request: SampleRequest, poses_d: np.ndarray) -> np.ndarray | None:
+        """The critic's P(success) of retrieved poses, from the object as the diffusion sampler encodes it (the
+        encoding the critic was trained on), so a planner orders retrieval's candidates as it orders the model's:
+        the same pipeline stages for the baseline. None when the hand has no checkpoint or no critic for it."""
+        try:
+            sampler = self.sampler(request.hand)
+        except ServiceError:
+            return None  # no diffusion checkpoint: no critic either
+        critic = self.critic(request.hand, sampler)
+        if critic is None:
+            return None
+        try:
+            points_d, _, label = sampler.points_in_d(object_input(request.object), request.frame)
+            bps = sampler.encode_points(points_d, label)
+        except SamplerInputError as exc:
+            raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
+        return success_probabilities(critic, request.hand, bps, points_d, poses_d)
 
 
 def _load_critic(hand: str, sampler: PoseSampler) -> SuccessCritic | None:

@@ -682,8 +682,9 @@ class SampleResponse(Message):
     checkpoint_id: str
     sampler: Sampler = "ddpm"
     noise_scale: float | None = None  # the diffusion samplers' temperature the poses were drawn with
-    # Per pose: the success critic's P(a floating-hand push from it succeeds); None when the sampler has no
-    # critic for the hand (or the poses are a nearest-neighbour match).
+    # Per pose: the success critic's P(a floating-hand push from it succeeds), for a nearest-neighbour match too
+    # (scored from the object as the diffusion sampler encodes it); None when the service has no critic for the
+    # hand's checkpoint or the request did not ask for scores.
     success_probability: FloatVector | None = None
 
     @model_validator(mode="after")
@@ -742,8 +743,9 @@ class PushRequest(Message):
     # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (0.3 s less per
     # push here; its poses validate as often: results/sampler-quality).
     sampler: DiffusionSampler = "ddpm"
-    # Consider the samples in the order of the sampler's success critic (when it has one for its checkpoint and
-    # scored them) instead of the best-aligned palms first (L_dir, the paper's order). On by default since
+    # Consider the samples (the model's, or for method "nearest" the retrieved ones) in the order of the sampler's
+    # success critic (when it has one for its checkpoint and scored them) instead of the best-aligned palms first
+    # (L_dir, the paper's order). On by default since
     # stop 42: under the evaluation's `real` world, closed loop, 3 cameras, with the same 24 prescreen pushes,
     # LEAP 81.0% -> 86.9% on val (where it was chosen) and 90.0% -> 91.4% on 210 test trials; Allegro 95.2% -> 95.2%
     # on val and 96.2% -> 95.2% on test (results/*-contact-critic*, README "The critic's order by default").
