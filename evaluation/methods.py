@@ -133,7 +133,9 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
                              spec.cameras, spec.split)
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
-    records = [store.records[e.key] for e in todo]
+    spec = with_stored_methods(spec, store)
+    records = [store.records[e.key] for e in protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions,
+                                                               spec.trials, spec.world, spec.cameras, spec.split)]
     summary = summarise(records, spec)
     body = report_body(records, spec, summary, exact_rates(Path(out), spec, settings["pose_models"]))
     _plot(records, spec, directory / "success_by_direction.png")
@@ -141,6 +143,17 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
     return write_experiment(directory, spec.title, body, {"settings": {**settings, "trials": spec.trials,
                                                                        "methods": list(spec.methods)},
                                                           **summary}, time.perf_counter() - started, quick, records)
+
+
+def with_stored_methods(spec: Protocol, store: ResultStore) -> Protocol:
+    """`spec` reporting every method the run's store holds all of `spec`'s trials of, not only those asked this
+    time: a run extended by another method (`--methods nearest` into a finished run) keeps the others in its report."""
+    def complete(method: str) -> bool:
+        return all(store.done(e.key) for e in protocol.episodes((method,), spec.hand, spec.objects, spec.directions,
+                                                                 spec.trials, spec.world, spec.cameras, spec.split))
+    stored = {record["method"] for record in store.records.values()}
+    extra = [m for m in protocol.METHODS if m in stored and m not in spec.methods and complete(m)]
+    return replace(spec, methods=(*spec.methods, *extra))
 
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,

@@ -347,3 +347,18 @@ def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_model
     monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_ALLEGRO", str(SHIPPED_DIR / "allegro_v1.pt"))
     with pytest.raises(ResultStoreError, match="pose_models"):
         ResultStore(tmp_path / spec.directory_name, spec.settings())
+
+
+def test_a_run_extended_by_another_method_keeps_the_methods_it_ran_before_in_its_report(tmp_path):
+    from evaluation.methods import protocol_for, with_stored_methods
+
+    first = protocol_for("methods", True, 1, "real", ("gd2p", "fixed"))
+    store = ResultStore(tmp_path, {"trials": 1})
+    for episode in protocol.episodes(first.methods, first.hand, first.objects, first.directions, 1):
+        store.add(episode.key, {"method": episode.method, "success": True})
+    partial = protocol.episodes(("nearest-ranked",), first.hand, first.objects, first.directions, 1)[:1]
+    store.add(partial[0].key, {"method": "nearest-ranked", "success": True})  # a method killed after one trial
+    extended = with_stored_methods(protocol_for("methods", True, 1, "real", ("nearest",)), store)
+    assert extended.methods == ("nearest", "gd2p", "fixed")  # asked first; an incomplete method is not reported
+    more_trials = with_stored_methods(protocol_for("methods", True, 2, "real", ("nearest",)), store)
+    assert more_trials.methods == ("nearest",)  # the earlier methods lack trial 1 of the longer run
