@@ -63,8 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
     parser.add_argument("--no-critic", dest="critic", action="store_false",
-                        help="consider the samples best-aligned palm first (the paper's L_dir order) instead of in the "
-                             "success critic's order (the default when the sampler has a critic)")
+                        help="consider the candidates (sampled, or retrieved with --method nearest) best-aligned palm "
+                             "first (the paper's L_dir order) instead of in the success critic's order (the default "
+                             "when the sampler has a critic)")
     parser.add_argument("--no-prescreen", dest="prescreen", action="store_false",
                         help="push no floating hand before planning: with --sampler ddim the fast path (about 1.2 s "
                              "less to plan; see PushRequest.prescreen for what it costs in success)")
