@@ -149,7 +149,8 @@ class SamplerService:
     def _score_retrieved(self, request: SampleRequest, poses_d: np.ndarray) -> np.ndarray | None:
         """The critic's P(success) of retrieved poses, from the object as the diffusion sampler encodes it (the
         encoding the critic was trained on), so a planner orders retrieval's candidates as it orders the model's:
-        the same pipeline stages for the baseline. None when the hand has no checkpoint or no critic for it."""
+        the same pipeline stages for the baseline. None (retrieval's poses go out unscored, in their own order) when
+        the hand has no checkpoint or no critic for it, or the object cannot be encoded as the critic reads it."""
         try:
             sampler = self.sampler(request.hand)
         except ServiceError:
@@ -160,8 +161,9 @@ class SamplerService:
         try:
             points_d, _, label = sampler.points_in_d(object_input(request.object), request.frame)
             bps = sampler.encode_points(points_d, label)
-        except SamplerInputError as exc:
-            raise ServiceError("bad_request", f"sampler: object {request.object.object_id}: {exc}") from exc
+        except SamplerInputError as exc:  # the match itself is good: keep it, without the critic's order
+            log.warning("sampler: retrieved poses left unscored: %s", exc)
+            return None
         return success_probabilities(critic, request.hand, bps, points_d, poses_d)
 
 
