@@ -285,8 +285,13 @@ def test_recorder_process_records_everything_published_before_sigterm(zenoh_rout
     try:
         with _session(zenoh_router) as session:
             _wait_for(lambda: _token_alive(session, f"gd2p/alive/recorder/{worker_id}"), 30, "the recorder's liveliness token")
+            import zenoh
+
             msgs = _messages(400)
-            publishers = {key: session.declare_publisher(key) for key in {k for k, _ in msgs} | {"gd2p/test/raw"}}
+            # BLOCK, not the default DROP: under a loaded suite DROP lost messages before they reached the recorder
+            # (one file, short of the 0.05 MB rotation); what is under test is that the recorder keeps all it gets.
+            publishers = {key: session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                          for key in {k for k, _ in msgs} | {"gd2p/test/raw"}}
             _wait_for(lambda: all(p.matching_status.matching for p in publishers.values()), 10, "the recorder's subscription")
             for key, msg in msgs:
                 payload, encoding = encode(msg)
