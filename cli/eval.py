@@ -82,11 +82,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "multistep: test (default) or 3 val objects of the test objects' footprints "
                              "(<out>/multistep-<world>[-closed][-cameraN]-val/); sampler-quality: the whole test or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
-                        help="methods / leap / closed-loop: comma-separated methods to run (default: every method but the tuning "
-                             "candidates gd2p-robust, gd2p-a30, gd2p-a10, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser); "
-                             "known: gd2p, gd2p-unranked, gd2p-random, gd2p-robust, gd2p-corrected, gd2p-closed, "
-                             "gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, gd2p-closed-looser, gd2p-a30, gd2p-a10, nearest, nearest-corrected, "
-                             "fixed-corrected, nearest-ranked, fixed, grasp, grasp-ranked; sampler-quality: ddpm100, ddim10, nn (default), "
+                        help="methods / leap / closed-loop: comma-separated methods to run (methods' default: every "
+                             "method but the tuning candidates; closed-loop's: gd2p, gd2p-corrected, gd2p-closed, "
+                             "gd2p-closed-critic-p24; leap's: gd2p): gd2p, gd2p-unranked, gd2p-random, gd2p-corrected, "
+                             "gd2p-closed, gd2p-closed-critic-p24, gd2p-closed-fast, nearest, nearest-ranked, "
+                             "nearest-closed-critic, fixed, nearest-corrected, fixed-corrected, grasp, grasp-ranked; tuning "
+                             "candidates (val): gd2p-robust, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, "
+                             "gd2p-closed-looser, gd2p-closed-b24x6, gd2p-closed-b12x4, gd2p-closed-b12x4-ddim, "
+                             "gd2p-closed-critic-guided, gd2p-closed-critic-p8, gd2p-closed-critic-p0, gd2p-closed-critic-p0x4, "
+                             "gd2p-closed-critic-p0-ddim, gd2p-a30, gd2p-a10; sampler-quality: ddpm100, ddim10, nn (default), "
                              "nn-fill (the nearest frames up to K = 200 poses), ddpm100-critic, nn-fill-critic (in the success "
                              "critic's order: $GD2P_CRITIC_CHECKPOINT_<HAND>, else the shipped critic), and with --critic-guidance "
                              "ddpm100-guided, ddpm100-guided-critic, nn-fill-climbed-critic (steered up that critic's gradient)")

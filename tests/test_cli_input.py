@@ -157,3 +157,18 @@ def test_push_and_sample_refuse_a_bad_cloud_before_anything_runs(capsys, tmp_pat
         gd2p(["push", "--cloud", str(good), "--object", "proc-box-001", "--direction-deg", "0"])
     assert gd2p(["sample", "--cloud", str(tmp_path / "missing.pcd"), "--hand", "allegro"]) == 2
     assert "missing.pcd: no such file" in capsys.readouterr().err
+
+
+def test_eval_help_names_every_trial_method_and_which_are_tuning_candidates():
+    """`gd2p eval --help` lists the methods by hand (importing the evaluation would slow every command by seconds);
+    this keeps the list true as methods are added."""
+    import re
+
+    from cli.main import build_parser
+    from evaluation.push_protocol import METHODS, TUNING_METHODS
+
+    subparsers = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    help_text = next(a.help for a in subparsers.choices["eval"]._actions if a.dest == "methods")
+    everyday, tuning = re.match(r".*\): (.*); tuning candidates \(val\): (.*); sampler-quality", help_text).groups()
+    assert everyday.split(", ") == [m for m in METHODS if m not in TUNING_METHODS]
+    assert set(tuning.split(", ")) == TUNING_METHODS
