@@ -129,7 +129,9 @@ def test_a_job_past_its_deadline_is_answered_once_not_redispatched(session, two_
     with Dispatcher(session, tw.SERVICE, timeout_s=2.0, max_attempts=3) as dispatcher:
         dispatcher.wait_for_workers(2, timeout=10)
         started = time.monotonic()
-        with pytest.raises(RemoteError, match=r"did not finish within its deadline of 1\.8 s") as info:
+        # The worker's deadline watcher or the handler's own check_deadline, whichever comes first (a loaded CI
+        # machine lets the handler win): either way one "timeout" answer naming the deadline.
+        with pytest.raises(RemoteError, match=r"(did not finish within|ran past) its deadline of 1\.8 s") as info:
             dispatcher.call(tw.BusTestJob(text="endless", spin_s=30), timeout=10)
         assert info.value.code == "timeout"
         assert time.monotonic() - started < 3.0  # the worker answered before the query timed out
