@@ -272,13 +272,12 @@ class CriticOrderedSource:
         return critic_for(self.critic, self.checkpoint)
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.critic_train import success_probabilities
+        from services.sampler.critic_train import success_probabilities_for
 
         poses = self.inner.poses(obj, frame, k, seed)
-        sampler = DiffusionSource(self.checkpoint).pose_sampler()
-        points_d, _, label = sampler.points_in_d(obj, frame)
         critic = self.scorer()
-        scores = success_probabilities(critic.model, critic.hand, sampler.encode_points(points_d, label), points_d, poses)
+        scores = success_probabilities_for(critic.model, critic.hand, DiffusionSource(self.checkpoint).pose_sampler(),
+                                           obj, frame, poses)
         return poses[np.argsort(-scores, kind="stable")]
 
 

@@ -317,6 +317,14 @@ def success_probabilities(critic: SuccessCritic, hand: str, bps: np.ndarray, poi
     return torch.sigmoid(logits).double().numpy()
 
 
+def success_probabilities_for(critic: SuccessCritic, hand: str, sampler: PoseSampler, obj: Any,
+                              frame: DirectionFrame | None, poses_d: np.ndarray) -> np.ndarray:
+    """[K] P(success) of poses [K, 25] in `frame`'s D, whatever they came from, read from `obj` as `sampler` encodes
+    it (the encoding the critic was trained on); SamplerInputError when the object cannot be encoded."""
+    points_d, _, label = sampler.points_in_d(obj, frame)
+    return success_probabilities(critic, hand, sampler.encode_points(points_d, label), points_d, poses_d)
+
+
 def load_critic(path: str | Path) -> LoadedCritic:
     path = Path(path)
     try:

@@ -25,7 +25,13 @@ import numpy as np
 
 from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
 from services.sampler.critic import SuccessCritic
-from services.sampler.critic_train import CriticError, default_critic_path, load_critic, success_probabilities
+from services.sampler.critic_train import (
+    CriticError,
+    default_critic_path,
+    load_critic,
+    success_probabilities,
+    success_probabilities_for,
+)
 from services.sampler.diffusion import GradientGuidance
 from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 from services.sampler.sampling import ObjectInput, PoseSampler, SamplerInputError
@@ -159,12 +165,11 @@ class SamplerService:
         if critic is None:
             return None
         try:
-            points_d, _, label = sampler.points_in_d(object_input(request.object), request.frame)
-            bps = sampler.encode_points(points_d, label)
+            return success_probabilities_for(critic, request.hand, sampler, object_input(request.object), request.frame,
+                                             poses_d)
         except SamplerInputError as exc:  # the match itself is good: keep it, without the critic's order
             log.warning("sampler: retrieved poses left unscored: %s", exc)
             return None
-        return success_probabilities(critic, request.hand, bps, points_d, poses_d)
 
 
 def _load_critic(hand: str, sampler: PoseSampler) -> SuccessCritic | None:
