@@ -395,6 +395,19 @@ def test_only_a_planner_lease_may_command_motion(bus_bridge, key_kind):
     assert abs(bus_bridge.travel(state)) < 1e-3
 
 
+def test_a_command_heard_again_is_refused_and_nothing_moves(bus_bridge):
+    """A replayed command (the same id) runs at most once, even after the arm went back to where it started."""
+    key, _token = bus_bridge.lease("planner-1.cmd-replay")
+    command = bus_bridge.move(key, duration_s=1.0)
+    first = bus_bridge.bridge.execute(command)
+    assert first.status == "done", first.message
+    bus_bridge.backend.reset()  # the arm is back at the plan's start: only the id can tell the replay apart
+    again = bus_bridge.bridge.execute(command)
+    assert again.status == "refused" and again.message.startswith("replay:"), again.message
+    assert command.id in again.message
+    assert abs(bus_bridge.travel(again)) < 1e-3
+
+
 def test_a_lease_lost_during_the_world_reset_refuses_the_command(bus_bridge, monkeypatch):
     key, token = bus_bridge.lease("planner-1.cmd-2")
     reset_world = SimRobot.reset_world

@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
@@ -42,6 +43,7 @@ import zenoh
 from services.robot_bridge.bus_safety import COMMAND_KEY, EStopSubscriber, LeasedExecutor
 from services.robot_bridge.executor import EStopLatch, Executor, StatePublisher
 from services.robot_bridge.hardware import HardwareSpec, connect_all
+from services.robot_bridge.limits import SafetyRefusal
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.bus import BusConfig, OpenCancelled, Worker, open_session
@@ -62,6 +64,7 @@ SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
 TRACK_KEY = OBJECT_TRACK_KEY
 TRACK_FRESH_S = 0.5  # an external tracker's pose older than this is not folded into the states
+REMEMBERED_COMMANDS = 65_536  # command ids kept to refuse a replay (ids are uuid4: 2.5 MB at most)
 
 log = logging.getLogger("gd2p.robot_bridge")
 
@@ -113,6 +116,9 @@ class Bridge:
         self._executors: dict[tuple[str, str], LeasedExecutor] = {}
         self._lock = threading.Lock()
         self.hardware: LeasedExecutor | None = None  # set by `attach_hardware`; then no simulated robot is used
+        # Command ids this bridge has been asked to run: a command heard again (a replayed query, a
+        # retry after a lost reply) is refused, whatever the arm has done since.
+        self._seen_commands: OrderedDict[str, None] = OrderedDict()
 
     def _leased(self, executor: Executor) -> LeasedExecutor:
         return LeasedExecutor(self.session, executor, watchdog=self.watchdog, lease_timeout_s=self.lease_timeout_s)
@@ -138,9 +144,22 @@ class Bridge:
             return self._executors[(arm, hand)]
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
-        """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal)."""
+        """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal).
+        A command id heard before is refused: a command runs at most once."""
         executor = self.hardware or self.executor(command.plan.arm, command.plan.hand)
+        if not self._first_time(command.id):
+            return executor.executor.refuse(command, SafetyRefusal(
+                "replay", f"command {command.id} was received before; a command runs at most once (send a new id)"))
         return executor.execute(command)
+
+    def _first_time(self, command_id: str) -> bool:
+        with self._lock:
+            if command_id in self._seen_commands:
+                return False
+            self._seen_commands[command_id] = None
+            while len(self._seen_commands) > REMEMBERED_COMMANDS:
+                self._seen_commands.popitem(last=False)
+            return True
 
     def estop(self, request: EStop) -> ExecutionState:
         """Stop every robot now and latch; the reply is the state of the first robot (if any)."""
