@@ -1,8 +1,10 @@
 """Push a box through a running GD2P system with nothing but zenoh and msgpack.
 
 Written from docs/interfaces.md alone (it imports nothing of the project): find a live planner by its
-liveliness token, build a PushRequest as a msgpack map, query that planner's own job key, decode the
-reply (a PushResponse, or an ErrorReply).
+liveliness token, hold a client lease (a liveliness token the planner watches: without one it refuses a
+request that would move the robot, and when it goes the request is cancelled), build a PushRequest as a
+msgpack map naming that lease, query that planner's own job key, decode the reply (a PushResponse, or an
+ErrorReply).
 
     gd2p up &                                                     # or any running system
     python examples/raw_zenoh_push.py --connect tcp/127.0.0.1:7447
@@ -51,17 +53,21 @@ def main() -> int:
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the router (default %(default)s)")
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the push (default %(default)s)")
     args = parser.parse_args()
+    lease = f"gd2p/lease/client/{uuid.uuid4().hex[:16]}"  # held while we wait: closing the session cancels the push
     request = {  # a PushRequest: every field left out takes its default
         "schema_version": 1,
         "id": uuid.uuid4().hex,
         "object": {"library_id": "proc-box-013"},
         "direction_deg": 90.0,
         "method": "fixed",
+        "client_lease": lease,
     }
     with open_session(args.connect) as session:
+        token = session.liveliness().declare_token(lease)
         planner = find_planner(session)
         print(f"planner: {planner}")
         reply_type, reply = ask(session, f"gd2p/planner/worker/{planner}/job", "PushRequest", request, args.timeout)
+        token.undeclare()
     if reply_type == "ErrorReply":
         print(f"error {reply['code']}: {reply['message']}")
         return 1

@@ -70,6 +70,8 @@ def test_every_key_of_keys_py_has_its_row():
         "STATUS_PREFIX": lambda: interface(f"{keys.STATUS_PREFIX}/planner/w-1"),
         "LEASE_PREFIX": lambda: interface(f"{keys.LEASE_PREFIX}/client/h-1"),
         "WATCHDOG_PREFIX": lambda: interface(f"{keys.WATCHDOG_PREFIX}/robot_bridge-1"),
+        "CALLER_PREFIX": lambda: interface(f"{keys.CALLER_PREFIX}/c-1"),
+        "caller_key": lambda: interface(keys.caller_key("c-1")),
         "ROBOT_COMMAND_KEY": lambda: interface(keys.ROBOT_COMMAND_KEY),
         "ROBOT_STATE_KEY": lambda: interface(keys.ROBOT_STATE_KEY),
         "ROBOT_ESTOP_KEY": lambda: interface(keys.ROBOT_ESTOP_KEY),

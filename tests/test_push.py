@@ -946,6 +946,27 @@ def test_a_request_whose_client_is_already_gone_never_moves_the_robot(system):
     assert not moved, f"the bridge published {len(moved)} states for a request whose client was gone"
 
 
+def test_a_request_without_a_client_lease_is_refused_and_never_moves_the_robot(system):
+    """Every push moves the robot: without a lease nobody could stop it once its client has gone."""
+    from shared.bus import Dispatcher
+    from shared.bus.errors import RemoteError
+    from shared.bus.keys import ROBOT_STATE_KEY
+
+    cfg, _ = system
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed")
+    with open_session(cfg) as session:
+        states: list[float] = []
+        subscriber = session.declare_subscriber(ROBOT_STATE_KEY, lambda sample: states.append(time.monotonic()))
+        time.sleep(1.0)  # a state an earlier test's command published late is not this request's
+        sent = time.monotonic()
+        with Dispatcher(session, "planner", timeout_s=60.0, max_attempts=1) as planner:
+            with pytest.raises(RemoteError) as failure:
+                planner.call(request, timeout=60.0)
+        subscriber.undeclare()
+    assert failure.value.code == "bad_request" and "client_lease is required" in failure.value.message
+    assert not [t for t in states if t >= sent], "the robot moved for a request without a lease"
+
+
 def test_a_client_lease_of_another_role_is_a_bad_request(system):
     from shared.bus.errors import RemoteError
 

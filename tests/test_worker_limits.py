@@ -150,3 +150,85 @@ def test_a_generation_job_past_its_deadline_stops_between_iterations(client, ser
     answer = send(client, key, endless, timeout_s=1.5)()
     assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
     wait_until(lambda: worker.status().in_flight == 0, 3.0 - (time.monotonic() - started), "the optimisation to stop")
+
+
+# ---------------------------------------------------------------------------------------- queue bound
+def test_a_full_queue_answers_busy_at_once_and_queues_nothing(client, serve):
+    worker, key = serve("queue-1", concurrency=1, max_queued=1)
+    running = send(client, key, tw.BusTestJob(text="running", sleep_s=1.0))
+    wait_until(lambda: worker.status().in_flight == 1, 2, "the first job to start")
+    queued = send(client, key, tw.BusTestJob(text="queued"))
+    wait_until(lambda: worker.status().in_flight == 2, 2, "the second job to queue")
+    started = time.monotonic()
+    refused = send(client, key, tw.BusTestJob(text="one too many"))()
+    assert time.monotonic() - started < 0.5, "a full queue must answer at once"
+    assert isinstance(refused, ErrorReply) and refused.code == "busy", refused
+    assert "2 jobs running or queued (its limit)" in refused.message
+    assert running().text == "running" and queued().text == "queued"
+    assert send(client, key, tw.BusTestJob(text="later"))().text == "later"  # room again: served
+
+
+def test_a_flood_of_jobs_leaves_the_worker_answering_and_its_queue_bounded(client, serve):
+    worker, key = serve("flood-1", concurrency=1, max_queued=2)
+    answers = [send(client, key, tw.BusTestJob(text=f"job-{i}", sleep_s=0.05)) for i in range(200)]
+    peak = 0
+    replies = []
+    for answer in answers:
+        peak = max(peak, worker.status().in_flight)
+        replies.append(answer())
+    busy = [r for r in replies if isinstance(r, ErrorReply)]
+    assert all(r.code == "busy" for r in busy) and len(busy) >= 150, [r.code for r in busy][:5]
+    assert peak <= 3
+    assert send(client, key, tw.BusTestJob(text="after the flood"))().text == "after the flood"
+
+
+# ---------------------------------------------------------------------------------------- callers
+def test_the_jobs_of_a_caller_that_went_away_are_cancelled(module_router, serve):
+    """A Dispatcher whose session closes (Ctrl-C, a crash) takes its jobs with it: the running one stops at its next
+    check, the queued one never starts, and the worker is free for the next caller at once."""
+    from shared.bus import Dispatcher
+
+    worker, key = serve("callers-1", concurrency=1)
+    cfg = BusConfig(connect=[module_router], connect_timeout_ms=5000)
+    session = open_session(cfg)
+    dispatcher = Dispatcher(session, tw.SERVICE, timeout_s=60.0, max_in_flight_per_worker=2)
+    dispatcher.wait_for_workers(1, timeout=10)
+    dispatcher.submit(tw.BusTestJob(text="long", spin_s=30))
+    dispatcher.submit(tw.BusTestJob(text="queued behind it", spin_s=30))
+    wait_until(lambda: worker.status().in_flight == 2, 5, "both jobs to reach the worker")
+    gone_at = time.monotonic()
+    session.close()  # the caller leaves without a word
+    wait_until(lambda: worker.status().in_flight == 0, 5, "the caller's jobs to be cancelled")
+    freed_after = time.monotonic() - gone_at
+    with open_session(cfg) as other:
+        assert send(other, key, tw.BusTestJob(text="next caller"))().text == "next caller"
+    assert worker.status().jobs_done == 1  # the next caller's only: the cancelled jobs count as failed
+    assert freed_after < 2.0, f"the worker was held {freed_after:.2f} s after its caller left"
+
+
+def test_a_raw_query_without_a_caller_key_is_bounded_by_its_deadline_alone(client, serve):
+    worker, key = serve("callers-2", job_deadline_s=0.5)
+    answer = send(client, key, tw.BusTestJob(spin_s=30))()
+    assert isinstance(answer, ErrorReply) and answer.code == "timeout", answer
+
+
+# ---------------------------------------------------------------------------------------- sized budgets
+def test_each_job_gets_the_budget_its_size_asks_for_within_the_worker_cap(client, serve):
+    worker, key = serve("budget-1", job_budget=lambda job: 0.3 if job.text == "small" else 99.0, job_deadline_s=0.8)
+    started = time.monotonic()
+    small = send(client, key, tw.BusTestJob(text="small", spin_s=30))()
+    assert isinstance(small, ErrorReply) and small.code == "timeout" and "deadline of 0.3 s" in small.message
+    big = send(client, key, tw.BusTestJob(text="big", spin_s=30))()
+    assert isinstance(big, ErrorReply) and big.code == "timeout" and "deadline of 0.8 s" in big.message  # capped
+    assert time.monotonic() - started < 3.0
+
+
+def test_a_small_job_runs_beside_a_big_one_on_the_express_thread(client, serve):
+    worker, key = serve("express-1", concurrency=1, express=lambda job: job.text.startswith("small"))
+    big = send(client, key, tw.BusTestJob(text="big", sleep_s=3.0))
+    wait_until(lambda: worker.status().in_flight == 1, 2, "the big job to start")
+    started = time.monotonic()
+    small = send(client, key, tw.BusTestJob(text="small"))()
+    assert small.text == "small" and time.monotonic() - started < 1.0, "the small job waited for the big one"
+    other_big = send(client, key, tw.BusTestJob(text="second big"))  # not express: it waits its turn
+    assert big().text == "big" and other_big().text == "second big"

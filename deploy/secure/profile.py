@@ -73,6 +73,9 @@ LEASE_HOLDERS: dict[str, str] = dict(interfaces.LEASE_HOLDERS)
 # gd2p/watchdog/<name> to itself; a beat only shows that the router forwards to the subscriber, which
 # a beat from anyone else shows just as truly, so the key needs no owner).
 OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop, gd2p/watchdog/*
+# Tokens every identity may declare: a Dispatcher's presence (gd2p/caller/*), whose only power is to keep
+# its own jobs from being cancelled before their deadline.
+OPEN_TOKEN_KEYS: tuple[str, ...] = interfaces.open_token_keys()
 
 MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                              "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
@@ -99,6 +102,7 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("discover", "egress", ["put", "delete", "declare_subscriber", "declare_queryable", "liveliness_token",
                                      "declare_liveliness_subscriber", "liveliness_query"], [ALL_KEYS]),
         _rule("open-puts", "ingress", ["put"], list(OPEN_PUT_KEYS)),
+        _rule("open-tokens", "ingress", ["liveliness_token"], list(OPEN_TOKEN_KEYS)),
     ]}
     for identity in IDENTITIES:
         by_subject[identity] = []

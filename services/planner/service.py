@@ -7,11 +7,14 @@ The algorithm is `pipeline.PushPipeline`; this module gives it its services over
 - execution: an `ExecutionCommand` queried on the robot bridge's command key under a lease of its
   own (a liveliness token `gd2p/lease/planner/<worker id>.<command id>`, declared for that command
   only), while the robot's `ExecutionState` stream is collected for the recording;
-- cancellation: a request that names its client's lease (`PushRequest.client_lease`) is watched
-  (`shared.bus.lease.LeaseMonitor`); when the lease is lost (Ctrl-C, a crashed client, a lost
-  router) the request is cancelled: sampling and planning stop at their next check, and a running
-  command's lease is dropped, which stops the robot (the bridge notices within its lease bound).
-  The reply is ErrorReply "cancelled".
+- cancellation: every request must name its client's lease (`PushRequest.client_lease`; without one
+  it is refused, ErrorReply "bad_request"), watched (`shared.bus.lease.LeaseMonitor`) from when the
+  request starts; when the lease is lost (Ctrl-C, a crashed client, a lost router) the request is
+  cancelled: sampling and planning stop at their next check, and a running command's lease is
+  dropped, which stops the robot (the bridge notices within its lease bound). The reply is ErrorReply
+  "cancelled". A request whose client left while it was queued is cancelled before it starts (its
+  Dispatcher's caller token is gone, or its lease is not found when the request starts).
+- queue: one request runs (one robot) and at most MAX_QUEUED wait; more are answered "busy" at once.
 
 Each request is recorded (`recording.py`): an MCAP with Foxglove channels and the bus messages
 (written before the answer), and a PNG storyboard beside it (rendered just after), in `record_dir` (`--record-dir`, env GD2P_PUSH_RECORD_DIR, default
@@ -61,6 +64,7 @@ DEFAULT_RECORD_DIR = "recordings/pushes"
 SAMPLE_TIMEOUT_S = 60.0
 ROLLOUT_TIMEOUT_S = 120.0
 EXECUTION_TIMEOUT_S = 300.0
+MAX_QUEUED = 4  # push requests waiting behind the running one; more are answered "busy" at once
 REALTIME_FACTOR = 1000.0  # the simulated robot runs as fast as it can (physics keeps the plan's timing)
 
 log = logging.getLogger("gd2p.planner")
@@ -151,10 +155,13 @@ class BusServices:
 
     @contextlib.contextmanager
     def watch_client(self, request: PushRequest, cancel: Cancellation) -> Iterator[None]:
-        """Cancel the request when its client's lease is lost (nothing to watch without one)."""
+        """Cancel the request when its client's lease is lost. Every push request moves the robot, so a
+        request without a lease is refused: nobody could stop a motion whose client has gone."""
         if request.client_lease is None:
-            yield
-            return
+            raise ServiceError("bad_request", "client_lease is required: a push request moves the robot, so its "
+                               f"client must hold a lease ({lease_key('client', '<id>')}, a liveliness token held "
+                               "while it waits) and name it in PushRequest.client_lease; the request is cancelled "
+                               "when the token goes (client/push_client.py does this)")
         try:
             role, _ = parse_lease_key(request.client_lease)
         except LeaseError as exc:
@@ -286,7 +293,7 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     try:
         bus = BusServices(session, worker_id)
         service = PlannerService(bus.services(), record_dir, watch_client=bus.watch_client)
-        Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session).run()
+        Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session, max_queued=MAX_QUEUED).run()
     finally:
         if service is not None:
             service.close()

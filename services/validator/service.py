@@ -12,9 +12,13 @@ GenerationJob with the same `pose_index` and `yaw_rad` optimised against (`place
 Arm rollouts (`with_arm=True`: a planned push played with the arm, for the planner's
 ranking) go to `rollout.rollout`.
 
-Deadline: a worker gives each job at most JOB_DEADLINE_S (less when its caller waits less); the
-floating-hand episode loop checks it between episodes (`shared.bus.worker.check_deadline`), so a job
-too big for its budget ends with ErrorReply "timeout" and frees its worker within one episode.
+Deadline: a worker gives each job a budget proportional to its size (`job_budget`: its pushes or
+rollouts times their measured cost, with a margin), never more than JOB_DEADLINE_S and less when its
+caller waits less; the floating-hand episode loop checks it between episodes
+(`shared.bus.worker.check_deadline`), so a job too big for its budget ends with ErrorReply "timeout"
+and frees its worker within one episode. Small jobs (`is_express`: the planner's prescreen pushes and
+rollouts) get a thread of their own when the worker is busy with a big one, so a push is not held up
+behind a data-engine job.
 """
 from __future__ import annotations
 
@@ -26,6 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from services.validator.augment import COPIES_PER_SUCCESS
 from services.validator.push import PushInputError, PushOutcome, table_object
 from services.validator.rollout import rollout
 from services.validator.validator import ValidationRun, Validator
@@ -47,10 +52,17 @@ from shared.world.sim import PhysicsParams, SimError
 
 SERVICE = "validator"
 DEFAULT_PARAMS = PhysicsParams()
-# A data-engine job (32 candidates + 10 augmented copies of each success, about 0.1 s of CPU an
-# episode) takes under a minute, a planner job (1-6 poses) seconds: ten minutes is ample for any
-# legitimate job and bounds how long one job can hold a worker.
+# The longest any one job may hold a worker, whatever its size: a default data-engine job (32 candidates
+# + 10 augmented copies of each success) runs in under a minute and gets about 6 min by `job_budget`.
 JOB_DEADLINE_S = 600.0
+# Measured costs (bench/validator.py: 4.4 validated pushes/s on one process; bench/push.py: up to 6
+# rollouts of a push in about 0.5 s on 2 validators). The margin covers a loaded machine (2-3x slower
+# while the test suite runs) and a cold worker's scene set-up.
+SECONDS_PER_PUSH = 0.25
+SECONDS_PER_ROLLOUT = 0.5
+BUDGET_MARGIN = 4.0
+BUDGET_BASE_S = 20.0  # loading the object and hand, building the scene on a worker that has not seen them
+EXPRESS_MAX_S = 60.0  # jobs whose budget is at most this may take the express thread
 # With an explicit resting pose, the frame's object may lean this far from it (numerical noise of a
 # quaternion round trip is ~1e-7 deg); a frame of another resting pose is refused, not silently turned.
 MAX_RESTING_TILT_DEG = 1.0
@@ -70,6 +82,24 @@ def _validator() -> Validator:
     if validator is None:
         validator = _local.validator = Validator(DEFAULT_PARAMS)
     return validator
+
+
+def job_budget(job: Message) -> float:
+    """Seconds a job may take: its pushes (every augmented copy counted as if each pose succeeded) or its
+    rollouts (each physics draw one more) times their measured cost, with a margin, capped at JOB_DEADLINE_S."""
+    if not isinstance(job, ValidationJob):
+        return JOB_DEADLINE_S
+    poses = len(job.poses.to_numpy())
+    if job.with_arm:
+        work = poses * (1 + job.physics_draws) * SECONDS_PER_ROLLOUT
+    else:
+        work = poses * (1 + (COPIES_PER_SUCCESS if job.augment else 0)) * SECONDS_PER_PUSH
+    return min(JOB_DEADLINE_S, BUDGET_BASE_S + BUDGET_MARGIN * work)
+
+
+def is_express(job: Message) -> bool:
+    """A small job (a few pushes or rollouts): it may run beside a big one instead of waiting for it."""
+    return isinstance(job, ValidationJob) and job_budget(job) <= EXPRESS_MAX_S
 
 
 def params_for(settings: PhysicsSettings | None) -> PhysicsParams:

@@ -6,10 +6,14 @@ Zenoh has no work queue, so the caller balances explicitly:
   (`gd2p/<service>/worker/<id>/job`), never more than `max_in_flight_per_worker` at once; the rest
   wait in the dispatcher (back-pressure: `submit` blocks while `max_queued` jobs are unfinished);
 - each query tells the worker how long the dispatcher waits (`timeout_s`, as the query attachment):
-  the worker answers ErrorReply "timeout" just before that instead of working on for nobody;
+  the worker answers ErrorReply "timeout" just before that instead of working on for nobody; and
+  where to see that the dispatcher is still there: it holds a liveliness token `gd2p/caller/<id>`
+  until `close()`, and a worker cancels the jobs of a caller whose token is gone;
 - every reply is final, ErrorReply included ("timeout" and "bad_request" too: a job too slow or too
   big for one worker is so for all), except "unavailable" (the worker is shutting down), which is
-  re-dispatched without counting as an attempt;
+  re-dispatched without counting as an attempt, and "busy" (the worker's queue is full), which is
+  re-dispatched as an attempt after a short cool-down of that worker (the last attempt's "busy" is
+  the answer);
 - a job whose worker's token is DELETEd, whose query ends without a reply, or that gets no reply
   within `timeout_s` (a hung or unreachable worker) is re-dispatched (preferably to another worker) up
   to `max_attempts`; then its future fails with `DispatchError` naming the job, the service and the
@@ -31,6 +35,7 @@ import logging
 import queue
 import threading
 import time
+import uuid
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, as_completed
@@ -40,7 +45,7 @@ from typing import Any
 import zenoh
 
 from shared.bus.errors import BusError, DispatchError, RemoteError
-from shared.bus.keys import alive_pattern, check_chunk, job_key, parse_alive_key
+from shared.bus.keys import alive_pattern, caller_key, check_chunk, job_key, parse_alive_key
 from shared.bus.worker import payload_digest, timeout_attachment
 from shared.contracts.codec import CodecError, decode, encode
 from shared.contracts.messages import ErrorReply, Message
@@ -124,6 +129,9 @@ class Dispatcher:
         self._pending: deque[_Job] = deque()
         self._jobs: dict[str, _Job] = {}
         self._next_deadline_check = 0.0
+        self.caller = caller_key(f"{session.zid()}.{uuid.uuid4().hex[:12]}")
+        self._caller_token = session.liveliness().declare_token(self.caller)
+        self._attachment = timeout_attachment(self.timeout_s, self.caller)
         self._thread = threading.Thread(target=self._run, name=f"dispatcher-{service}", daemon=True)
         self._thread.start()
         self._liveliness = session.liveliness().declare_subscriber(
@@ -227,10 +235,11 @@ class Dispatcher:
                 return
             self._closed = True
             self._space.notify_all()
-        try:
-            self._liveliness.undeclare()
-        except zenoh.ZError:  # the session was closed first
-            pass
+        for declared in (self._liveliness, self._caller_token):  # the token last: workers cancel this caller's jobs
+            try:
+                declared.undeclare()
+            except zenoh.ZError:  # the session was closed first
+                pass
         self._events.put(("close", None))
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=10.0)
@@ -317,6 +326,10 @@ class Dispatcher:
         except CodecError as exc:
             reply = ErrorReply(id=job.msg.id, code="internal", service=self.service, request_type=type(job.msg).__name__,
                                message=f"worker {attempt.worker.worker_id} sent an undecodable reply: {exc}")
+        if isinstance(reply, ErrorReply) and reply.code == "busy" and job.failures + 1 < self.max_attempts:
+            attempt.worker.cooldown_until = time.monotonic() + _COOLDOWN_S
+            self._attempt_failed(attempt, f"worker {attempt.worker.worker_id} is busy ({reply.message})")
+            return
         if isinstance(reply, ErrorReply) and reply.code == "unavailable":
             # The worker is shutting down; not the job's fault, so it does not count as an attempt.
             attempt.worker.draining = True
@@ -392,7 +405,7 @@ class Dispatcher:
             self._session.get(
                 worker.key, self._reply_handler(attempt), payload=job.payload, encoding=job.encoding,
                 timeout=self.timeout_s, consolidation=zenoh.ConsolidationMode.NONE,
-                attachment=timeout_attachment(self.timeout_s),
+                attachment=self._attachment,
             )
         except zenoh.ZError as exc:
             self._settle(attempt)

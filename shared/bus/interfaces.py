@@ -290,6 +290,17 @@ _ROBOT = (
               code=("services/robot_bridge/bus_safety.py: EStopSubscriber", "cli/bridge.py: _estop")),
 )
 _INFRASTRUCTURE = (
+    Interface("caller presence", keys.caller_key("<id>"), "liveliness",
+              "A Dispatcher's token, held while it is open; its jobs name it in their query attachment.",
+              EVERYONE, EVERYONE, payload="none (a token)",
+              used_by="Every worker (shared/bus/worker.py, Callers): when the token is deleted (the caller closed,"
+                      " crashed or lost its router) the caller's queued jobs never start and its running jobs stop"
+                      " at their next deadline check, answered ErrorReply \"cancelled\".",
+              liveliness="Declared by `Dispatcher(...)` (`<id>` = its session id and a random part), undeclared by"
+                         " `close()`.",
+              qos="Open to every identity: a token only keeps a caller's jobs from being cancelled early; their"
+                  " deadline still bounds them.",
+              code=("shared/bus/dispatcher.py: Dispatcher", "shared/bus/worker.py: Worker._on_caller")),
     Interface("router watchdog", f"{keys.WATCHDOG_PREFIX}/<name>", "publication",
               "Beats a process sends itself through the router: a beat can only come back through it, so their"
               " silence shows a router that stopped forwarding, however the link looks.",
@@ -339,6 +350,11 @@ def calls() -> dict[str, tuple[str, ...]]:
         for caller in sorted(svc.callers - {svc.name}):
             called.setdefault(caller, []).append(svc.name)
     return {caller: tuple(services) for caller, services in called.items()}
+
+
+def open_token_keys() -> tuple[str, ...]:
+    """The key expressions where every identity may declare a liveliness token (a Dispatcher's presence)."""
+    return tuple(row.pattern for row in INTERFACES if row.kind == "liveliness" and row.declarers == EVERYONE)
 
 
 def open_put_keys() -> tuple[str, ...]:

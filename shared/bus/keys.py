@@ -9,6 +9,7 @@
     gd2p/robot_bridge/object_track               ObjectTrack stream                  OBJECT_TRACK_KEY
     gd2p/lease/<role>/<holder>                   a lease token (lease.py)            LEASE_PREFIX
     gd2p/watchdog/<name>                         router watchdog beats (lease.py)    WATCHDOG_PREFIX
+    gd2p/caller/<id>                             a Dispatcher's presence (jobs)      CALLER_PREFIX, caller_key
 
 Which message travels on each key, who declares it and who calls it: the interface registry,
 shared/bus/interfaces.py, which builds its table from these. The one key outside the runtime, the
@@ -29,6 +30,7 @@ ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
 OBJECT_TRACK_KEY = f"{PREFIX}/robot_bridge/object_track"
 LEASE_PREFIX = f"{PREFIX}/lease"
 WATCHDOG_PREFIX = f"{PREFIX}/watchdog"
+CALLER_PREFIX = f"{PREFIX}/caller"
 _FORBIDDEN = set("/*$?#")
 
 
@@ -66,3 +68,8 @@ def status_key(service: str, worker_id: str) -> str:
 
 def status_pattern(service: str | None = None) -> str:
     return f"{STATUS_PREFIX}/{check_chunk(service, 'service') if service else '*'}/*"
+
+
+def caller_key(caller_id: str) -> str:
+    """`gd2p/caller/<id>`: the liveliness token a Dispatcher holds while its jobs may run (worker.py Callers)."""
+    return f"{CALLER_PREFIX}/{check_chunk(caller_id, 'caller id')}"

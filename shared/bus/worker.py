@@ -12,6 +12,8 @@ failure into an `ErrorReply` instead of dying:
 - handler raises ServiceError(code, msg)        -> ErrorReply(code, msg)
 - handler raises anything else                  -> ErrorReply("internal", repr(exc)); worker keeps going
 - the job's deadline passes                     -> ErrorReply("timeout", ...) (see Deadlines)
+- `max_queued` jobs already wait for a thread    -> ErrorReply("busy", ...) at once, nothing queued
+- the caller that sent the job went away        -> the job is cancelled (see Callers)
 - HealthQuery                                   -> WorkerStatus, answered by the runtime itself
 
 Results are stamped with the job's id (so callers correlate them) and cached by job id together
@@ -20,12 +22,24 @@ worker went quiet — gets the cached reply without recomputation, and a duplica
 the original still runs is answered when it finishes. A different job reusing a known id is refused.
 
 Deadlines: every job has a time budget from the moment it is received: the worker's
-`job_deadline_s`, shortened to just under the caller's own query timeout when the caller says it
-(the dispatcher sends it as the query attachment, `timeout_attachment`). When it passes, the worker
+`job_budget(job)` when the service sizes its jobs (e.g. poses x the measured cost of one), else
+`job_deadline_s`, never more than `job_deadline_s`, and shortened to just under the caller's own query
+timeout when the caller says it (the dispatcher sends it as the query attachment, `timeout_attachment`). When it passes, the worker
 answers the waiting callers with ErrorReply "timeout" (not cached: it says nothing about the job)
 and the job stops at its next `check_deadline()` — handlers of long jobs call it between steps
 (`current_deadline()` gives the deadline itself). A job still queued when its deadline passes never
 starts. A handler that never checks keeps its thread until it returns, and its result is dropped.
+
+Queue: up to `concurrency` jobs run and `max_queued` more wait; past that a job is answered "busy"
+at once, so a flood of requests costs neither memory nor hours of queued work. A service whose small
+jobs must not wait behind big ones names them (`express(job)`): one more thread runs such a job when
+every regular thread is taken (a 1-pose rollout beside two maximal validation jobs).
+
+Callers: a Dispatcher holds a liveliness token `gd2p/caller/<id>` while it is open and names it in the
+query attachment (`attached_caller`). The worker watches those tokens; when one is deleted (the caller
+closed, crashed or lost its router), its jobs still queued never start and its running jobs stop at
+their next `check_deadline()`, which raises ServiceError("cancelled"). A raw query without a caller
+key is bounded by its deadline alone.
 
 SIGTERM / SIGINT (or the `stop` event): stop accepting (the liveliness token goes first; a query
 that still arrives gets ErrorReply "unavailable", which a dispatcher re-dispatches elsewhere), finish
@@ -54,7 +68,7 @@ import zenoh
 
 from shared.bus.config import BusConfig, open_session
 from shared.bus.errors import OpenCancelled
-from shared.bus.keys import alive_key, check_chunk, job_key, status_key
+from shared.bus.keys import CALLER_PREFIX, alive_key, check_chunk, job_key, status_key
 from shared.contracts.codec import CodecError, check_payload_size, decode, encode
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import ErrorReply, HealthQuery, Message, WorkerStatus
@@ -67,10 +81,14 @@ _CACHEABLE_ERRORS = frozenset({"bad_request", "not_implemented", "infeasible"})
 # A job's budget when neither the service nor the caller says less: the longest legitimate job of the
 # system (a data-engine GenerationJob of a few hundred candidates, cli/dataset.py) takes up to an hour.
 DEFAULT_JOB_DEADLINE_S = 3600.0
+# Jobs that may wait for a thread beyond the running ones. A Dispatcher sends at most
+# `max_in_flight_per_worker` (4 by default) per worker and caller, so 16 leave room for four callers.
+DEFAULT_MAX_QUEUED = 16
 # The worker answers "timeout" this long (at most a tenth of the budget) before the caller's query
 # times out, so the caller gets a final answer instead of re-dispatching the job to another worker.
 _REPLY_MARGIN_S = 0.5
 _TIMEOUT_KEY = "timeout_s"
+_CALLER_KEY = "caller"
 
 _current = threading.local()  # .run: the _Run the calling job thread executes
 
@@ -84,7 +102,10 @@ class _Run:
     budget_s: float
     deadline: float  # time.monotonic()
     queries: list[zenoh.Query] = field(default_factory=list)
-    expired: bool = False  # the deadline passed and its callers were answered "timeout"
+    expired: bool = False  # the deadline passed (or the caller left) and its callers were answered
+    caller: str | None = None  # the caller's liveliness key, when it named one
+    cancelled: str = ""  # why the job was cancelled (its caller left); empty while it is not
+    express: bool = False  # runs on the express thread when the regular ones are taken
 
 
 def current_deadline() -> float | None:
@@ -99,24 +120,49 @@ def check_deadline() -> None:
     Handlers of long jobs call it between steps; outside a worker job it does nothing.
     """
     run = getattr(_current, "run", None)
-    if run is not None and (run.expired or time.monotonic() >= run.deadline):
+    if run is None:
+        return
+    if run.cancelled:
+        raise ServiceError("cancelled", run.cancelled)
+    if run.expired or time.monotonic() >= run.deadline:
         raise ServiceError("timeout", f"the job ran past its deadline of {run.budget_s:g} s")
 
 
-def timeout_attachment(timeout_s: float) -> bytes:
-    """The query attachment telling a worker how long the caller waits for the answer."""
-    packed: bytes = msgpack.packb({_TIMEOUT_KEY: float(timeout_s)})
+def timeout_attachment(timeout_s: float, caller: str | None = None) -> bytes:
+    """The query attachment telling a worker how long the caller waits for the answer, and (`caller`) the
+    liveliness key it holds while it waits."""
+    fields: dict[str, object] = {_TIMEOUT_KEY: float(timeout_s)}
+    if caller is not None:
+        fields[_CALLER_KEY] = caller
+    packed: bytes = msgpack.packb(fields)
     return packed
+
+
+def _attachment_fields(attachment: bytes | None) -> dict[str, object]:
+    try:
+        fields = msgpack.unpackb(attachment, raw=False) if attachment else {}
+    except Exception:  # not ours: ignore it
+        return {}
+    return fields if isinstance(fields, dict) else {}
 
 
 def caller_timeout_s(attachment: bytes | None) -> float | None:
     """The caller's timeout from a query attachment; None when absent or malformed."""
-    try:
-        value = msgpack.unpackb(attachment, raw=False)[_TIMEOUT_KEY] if attachment else None
-    except Exception:  # not ours: ignore it
-        return None
+    value = _attachment_fields(attachment).get(_TIMEOUT_KEY)
     if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
         return float(value)
+    return None
+
+
+def attached_caller(attachment: bytes | None) -> str | None:
+    """The caller's liveliness key from a query attachment (`gd2p/caller/<id>`); None when absent or not one."""
+    value = _attachment_fields(attachment).get(_CALLER_KEY)
+    if isinstance(value, str) and value.startswith(f"{CALLER_PREFIX}/") and value.count("/") == 2:
+        try:
+            check_chunk(value.rsplit("/", 1)[1], "caller id")
+        except Exception:
+            return None
+        return value
     return None
 
 
@@ -128,24 +174,36 @@ def payload_digest(payload: bytes, encoding: str | None) -> str:
 
 
 class _JobPool:
-    """`concurrency` daemon threads running jobs from a queue.
+    """`size` daemon threads running jobs from a queue, plus (`express`) one thread that takes the small
+    jobs arriving while every regular thread is taken.
 
     Daemon threads, unlike ThreadPoolExecutor's, do not hold the process at exit: a worker that
     gives up waiting for a long job on shutdown (see `drain_timeout_s`) can still exit promptly.
     """
 
-    def __init__(self, size: int, name: str):
+    def __init__(self, size: int, name: str, express: bool = False):
+        self._size = size
         self._jobs: queue.Queue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.Queue()
+        self._express: queue.Queue[tuple[Callable[..., object], tuple[object, ...]] | None] = queue.Queue()
         self._idle = threading.Condition()
-        self._busy = 0
-        self._threads = [threading.Thread(target=self._loop, name=f"{name}-{i}", daemon=True) for i in range(size)]
+        self._busy = 0  # submitted and not finished
+        self._regular_running = 0
+        self._threads = [threading.Thread(target=self._loop, args=(self._jobs, True), name=f"{name}-{i}", daemon=True)
+                         for i in range(size)]
+        if express:
+            self._threads.append(threading.Thread(target=self._loop, args=(self._express, False),
+                                                  name=f"{name}-express", daemon=True))
+        self._has_express = express
         for thread in self._threads:
             thread.start()
 
-    def submit(self, fn: Callable[..., object], *args: object) -> None:
+    def submit(self, fn: Callable[..., object], *args: object, express: bool = False) -> None:
         with self._idle:
             self._busy += 1
-        self._jobs.put((fn, args))
+            # Past the regular threads' free capacity (running plus already queued) a small job takes the
+            # express lane instead of waiting behind the big ones.
+            taken = self._regular_running + self._jobs.qsize() >= self._size
+        (self._express if express and self._has_express and taken else self._jobs).put((fn, args))
 
     def drain(self, timeout: float) -> bool:
         """Wait until every submitted job has finished; False if `timeout` expired first."""
@@ -153,18 +211,23 @@ class _JobPool:
             return self._idle.wait_for(lambda: self._busy == 0, timeout)
 
     def close(self) -> None:
-        for _ in self._threads:
+        for _ in range(self._size):
             self._jobs.put(None)
+        if self._has_express:
+            self._express.put(None)
 
-    def _loop(self) -> None:
-        while (item := self._jobs.get()) is not None:
+    def _loop(self, jobs: queue.Queue[tuple[Callable[..., object], tuple[object, ...]] | None], regular: bool) -> None:
+        while (item := jobs.get()) is not None:
             fn, args = item
+            with self._idle:
+                self._regular_running += regular
             try:
                 fn(*args)
             except Exception:  # fn reports its own errors; this only keeps the thread alive
                 log.exception("job thread error")
             finally:
                 with self._idle:
+                    self._regular_running -= regular
                     self._busy -= 1
                     self._idle.notify_all()
 
@@ -181,7 +244,9 @@ class Worker:
     `handlers` maps each accepted message type to a function returning the reply message; it may
     raise `ServiceError(code, message)`. Up to `concurrency` jobs run at once (in threads: handlers
     that release the GIL — torch, numpy, pybullet — overlap; others should scale with processes).
-    `job_deadline_s` bounds every job (see Deadlines in the module docstring).
+    `job_deadline_s` bounds every job, `job_budget(job)` sizes each job's deadline within it (see Deadlines
+    in the module docstring); `max_queued` jobs may wait for a thread, more are answered "busy";
+    `express(job)` names the small jobs that get a thread of their own when the others are taken.
     `session` lets a worker share an already open session (it is then not closed by the worker).
     """
 
@@ -200,11 +265,16 @@ class Worker:
         result_cache_size: int = 1024,
         drain_timeout_s: float = 8.0,
         job_deadline_s: float = DEFAULT_JOB_DEADLINE_S,
+        job_budget: Callable[[Message], float] | None = None,
+        max_queued: int = DEFAULT_MAX_QUEUED,
+        express: Callable[[Message], bool] | None = None,
     ):
         if concurrency < 1:
             raise ValueError(f"concurrency must be >= 1, got {concurrency}")
         if not job_deadline_s > 0:
             raise ValueError(f"job_deadline_s must be positive, got {job_deadline_s}")
+        if max_queued < 0:
+            raise ValueError(f"max_queued must be >= 0, got {max_queued}")
         for msg_type in handlers:
             if not (isinstance(msg_type, type) and issubclass(msg_type, Message)):
                 raise TypeError(f"handler keys must be Message subclasses, got {msg_type!r}")
@@ -218,6 +288,9 @@ class Worker:
         self.status_period_s = status_period_s
         self.drain_timeout_s = drain_timeout_s
         self.job_deadline_s = job_deadline_s
+        self.job_budget = job_budget
+        self.max_queued = max_queued
+        self.express = express
         self._session = session
         self._lock = threading.Lock()
         self._deadline_changed = threading.Condition(self._lock)
@@ -256,7 +329,7 @@ class Worker:
             restore()
             log.info("%s worker %s stopped before a router was reachable", self.service, self.worker_id)
             return
-        pool = _JobPool(self.concurrency, name=f"{self.service}-job")
+        pool = _JobPool(self.concurrency, name=f"{self.service}-job", express=self.express is not None)
         self._closed = False
         watcher = threading.Thread(target=self._watch_deadlines, name=f"{self.service}-deadlines", daemon=True)
         watcher.start()
@@ -274,6 +347,7 @@ class Worker:
     def _serve(self, session: zenoh.Session, pool: _JobPool) -> None:
         # Queryable before token: whoever sees the token may query at once (https://github.com/eclipse-zenoh/zenoh/issues/588).
         queryable = session.declare_queryable(self._reply_key, complete=True)
+        callers = session.liveliness().declare_subscriber(f"{CALLER_PREFIX}/*", self._on_caller)
         publisher = session.declare_publisher(status_key(self.service, self.worker_id))
         token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
         receiver = threading.Thread(
@@ -289,6 +363,7 @@ class Worker:
             self._stopping = True
             token.undeclare()  # dispatchers stop choosing this worker
             queryable.undeclare()  # ends the receiver loop
+            callers.undeclare()
             receiver.join(timeout=5.0)
             # In-flight jobs still reply after the queryable is gone; give them drain_timeout_s.
             if not pool.drain(self.drain_timeout_s):
@@ -342,9 +417,11 @@ class Worker:
                 job=msg,
             )
             return
-        run = _Run(msg, payload_digest(payload, encoding), *self._budget(query), queries=[query])
+        attachment = query.attachment.to_bytes() if query.attachment is not None else None
+        run = _Run(msg, payload_digest(payload, encoding), *self._budget(msg, attachment), queries=[query],
+                   caller=attached_caller(attachment), express=self.express is not None and self.express(msg))
         if self._admit(msg, run):
-            pool.submit(self._execute, handler, run)
+            pool.submit(self._execute, handler, run, express=run.express)
 
     @staticmethod
     def _decode(query: zenoh.Query, encoding: str | None) -> tuple[Message, bytes]:
@@ -353,10 +430,13 @@ class Worker:
         payload = query.payload.to_bytes() if query.payload is not None else b""
         return decode(payload, encoding), payload
 
-    def _budget(self, query: zenoh.Query) -> tuple[float, float]:
-        """(budget_s, deadline) of a job received now: `job_deadline_s`, or less if the caller waits less."""
+    def _budget(self, job: Message, attachment: bytes | None) -> tuple[float, float]:
+        """(budget_s, deadline) of a job received now: its size's budget within `job_deadline_s`, or less if
+        the caller waits less."""
         budget = self.job_deadline_s
-        caller = caller_timeout_s(query.attachment.to_bytes() if query.attachment is not None else None)
+        if self.job_budget is not None:
+            budget = min(budget, self.job_budget(job))
+        caller = caller_timeout_s(attachment)
         if caller is not None:
             budget = min(budget, caller - min(_REPLY_MARGIN_S, 0.1 * caller))
         return budget, time.monotonic() + budget
@@ -366,7 +446,8 @@ class Worker:
         [query] = run.queries
         with self._lock:
             cached, running = self._cache.get(job.id), self._running.get(job.id)
-            if cached is None and running is None:
+            full = self._in_flight >= self._capacity()
+            if cached is None and running is None and not full:
                 self._running[job.id] = run
                 self._in_flight += 1
                 self._deadline_changed.notify()  # the deadline watcher may have to wake up sooner
@@ -378,12 +459,32 @@ class Worker:
                 if same:  # same job already running: answer this query too when it ends
                     running.queries.append(query)
                     return False
-        if cached is not None and same:
+        if cached is None and running is None:  # full: nothing queued, the caller hears it at once
+            self._reply_error(query, "busy", f"{self.service} worker {self.worker_id} has {self._capacity()} jobs "
+                              "running or queued (its limit); try again later or another worker", job=job)
+        elif cached is not None and same:
             self._reply(query, *cached[1:])
         else:
             self._reply_error(query, "bad_request", f"job id {job.id} was reused for a different job: this "
                               f"{self.service} worker already has a job {job.id} with other content", job=job)
         return False
+
+    def _capacity(self) -> int:
+        """How many jobs may be running or queued at once."""
+        return self.concurrency + (self.express is not None) + self.max_queued
+
+    def _on_caller(self, sample: zenoh.Sample) -> None:  # zenoh callback: quick, never blocks
+        """A caller's token went away: cancel its jobs (queued ones never start, running ones stop at their next
+        check) and finalise their queries."""
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        key, now = str(sample.key_expr), time.monotonic()
+        with self._lock:
+            for run in self._running.values():
+                if run.caller == key:
+                    run.cancelled = f"its caller went away ({key} was deleted)"
+                    run.deadline = now  # the deadline watcher takes it out and answers its queries
+            self._deadline_changed.notify()
 
     def _execute(self, handler: Handler, run: _Run) -> None:
         if run.expired:  # its deadline passed while it was queued: the callers have their answer
@@ -435,10 +536,14 @@ class Worker:
         """Answer "timeout" for every job whose deadline passed, as soon as it passes."""
         while (expired := self._next_expired()) is not None:
             for job_id, run, queries in expired:
-                log.warning("%s job %s passed its %.3g s deadline", self.service, job_id, run.budget_s)
+                if run.cancelled:
+                    log.warning("%s job %s cancelled: %s", self.service, job_id, run.cancelled)
+                    code, why = "cancelled", f"job {job_id} was cancelled: {run.cancelled}"
+                else:
+                    log.warning("%s job %s passed its %.3g s deadline", self.service, job_id, run.budget_s)
+                    code, why = "timeout", f"job {job_id} did not finish within its deadline of {run.budget_s:g} s"
                 for query in queries:
-                    self._reply_error(query, "timeout", f"{self.service} worker {self.worker_id}: job {job_id} "
-                                      f"did not finish within its deadline of {run.budget_s:g} s", job=run.job)
+                    self._reply_error(query, code, f"{self.service} worker {self.worker_id}: {why}", job=run.job)
 
     def _next_expired(self) -> list[tuple[str, _Run, list[zenoh.Query]]] | None:
         """Wait until jobs pass their deadline and take them out; None once the worker has closed."""

@@ -244,7 +244,8 @@ class ErrorReply(Message):
     """What a service answers instead of a result when a request cannot be served.
 
     `code` is machine-readable: bad_request (malformed / unknown payload), not_implemented,
-    infeasible, internal, timeout, unavailable, cancelled (the caller gave up: its lease was lost).
+    infeasible, internal, timeout, unavailable, cancelled (the caller gave up: its lease was lost), busy (the
+    worker's queue is full: nothing was queued, try again later).
     """
 
     code: str
@@ -253,7 +254,7 @@ class ErrorReply(Message):
     service: str | None = None
 
     CODES: ClassVar[tuple[str, ...]] = ("bad_request", "not_implemented", "infeasible", "internal", "timeout", "unavailable",
-                                         "cancelled")
+                                         "cancelled", "busy")
 
 
 class HealthQuery(Message):
