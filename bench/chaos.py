@@ -363,9 +363,236 @@ def estop_garbage(quick: bool) -> Figure:
     return Figure("estop_garbage", figures, targets)
 
 
+# ------------------------------------------------------------------------------------ careless clients
+@contextlib.contextmanager
+def services_running(endpoint: str, *services: str, record_dir: str | None = None) -> Iterator[list[subprocess.Popen]]:
+    """Real service processes (`python -m services.<name>`) on `endpoint`, registered before the block runs."""
+    from shared.bus import live_workers
+
+    procs = []
+    for name in services:
+        extra = ["--record-dir", record_dir] if name == "planner" and record_dir else []
+        procs.append(subprocess.Popen([sys.executable, "-m", f"services.{name}", "--mode", "client", "--connect", endpoint,
+                                       "--worker-id", f"chaos-{name}-{len(procs)}", *extra], cwd=REPO_DIR,
+                                      stdout=subprocess.DEVNULL, stderr=open(f"/tmp/chaos-{name}-{len(procs)}.log", "w")))
+    try:
+        with client(endpoint) as session:
+            deadline = time.monotonic() + 120.0
+            while not all(live_workers(session).get(name) for name in services):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"services did not register: {live_workers(session)}")
+                time.sleep(0.2)
+        yield procs
+    finally:
+        for proc in procs:
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+
+def _raw_push(session, planner_key: str, request: Message):
+    """Send a PushRequest as a raw query (no Dispatcher, no caller key); the reply handler's receiver."""
+    from shared.contracts.codec import encode
+
+    payload, encoding = encode(request)
+    return session.get(planner_key, payload=payload, encoding=encoding, timeout=120.0)
+
+
+def _planner_key(session) -> str:
+    from shared.bus import job_key, live_workers
+
+    return job_key("planner", live_workers(session)["planner"][0])
+
+
+def _rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("VmRSS:")) / 1024.0
+
+
+def client_gone(quick: bool) -> Figure:
+    """A raw client sends a leased push request and closes its session 0-6 s later; robot motion after it left
+    (beyond the stop bound) counts as a miss. Plus requests without a lease: refused, nothing moves."""
+    from shared.bus.keys import ROBOT_STATE_KEY
+    from shared.bus.lease import lease_key
+    from shared.contracts.codec import decode
+    from shared.contracts.messages import ObjectRef, PushRequest
+
+    tries = 4 if quick else 20
+    rng = np.random.default_rng(53)
+    moved_after, moving_when_left, refused_without_lease, latest_motion = 0, 0, 0, 0.0
+    with router_process() as (endpoint, _router), services_running(endpoint, "robot_bridge", "validator", "planner",
+                                                                   record_dir=os.path.join("/tmp", "chaos-pushes")):
+        with client(endpoint) as observer:
+            moving: list[float] = []
+            subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, lambda sample: (
+                decode(sample.payload.to_bytes(), str(sample.encoding)).status == "executing"
+                and moving.append(time.monotonic())))
+            planner_key = _planner_key(observer)
+            for i in range(tries):
+                lease = lease_key("client", f"chaos-gone-{i}")
+                request = PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0 if i % 2 else -90.0,
+                                      method="fixed", client_lease=lease)
+                session = client(endpoint)
+                session.liveliness().declare_token(lease)
+                replies = _raw_push(session, planner_key, request)
+                time.sleep(float(rng.uniform(0.0, 6.0)))  # before, while or after the robot moves
+                session.close()  # the client is gone: its lease token with it
+                gone_at = time.monotonic()
+                del replies
+                _wait_idle(observer, planner_key)
+                late = [t - gone_at for t in moving if t > gone_at + STOP_TARGET_S + 0.3]
+                moved_after += bool(late)
+                moving_when_left += any(t < gone_at for t in moving)
+                latest_motion = max([latest_motion, *(t - gone_at for t in moving if t > gone_at)])
+                moving.clear()
+            for _ in range(2 if quick else 5):
+                reply = _ask(observer, planner_key, PushRequest(object=ObjectRef(library_id="proc-box-013"),
+                                                                direction_deg=90.0, method="fixed"))
+                refused_without_lease += getattr(reply, "code", "") == "bad_request"
+            time.sleep(0.5)
+            motions_without_lease = len(moving)
+            subscriber.undeclare()
+    return Figure("client_gone", {"tries": tries, "robot_moving_when_client_left": moving_when_left,
+                                  "moved_after_client_left": moved_after,
+                                  "latest_motion_after_leaving_s": round(latest_motion, 3),
+                                  "refused_without_lease": refused_without_lease,
+                                  "states_without_lease": motions_without_lease},
+                  {"no motion after the client left": moved_after == 0,
+                   "a request without a lease is refused": refused_without_lease == (2 if quick else 5)
+                   and motions_without_lease == 0})
+
+
+def _ask(session, key: str, request: Message) -> Message:
+    from shared.contracts.codec import decode
+
+    for reply in _raw_push(session, key, request):
+        if reply.ok is not None:
+            return decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding))
+    return ErrorReply(code="timeout", message="no reply")
+
+
+def _wait_idle(session, planner_key: str, timeout_s: float = 120.0) -> None:
+    """Until the planner's status says no request is running or queued."""
+    from shared.contracts.messages import HealthQuery
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        status = _ask(session, planner_key, HealthQuery())
+        if getattr(status, "in_flight", 1) == 0:
+            return
+        time.sleep(0.2)
+    raise RuntimeError("the planner did not become idle")
+
+
+def request_flood(quick: bool) -> Figure:
+    """1,000 leased push requests at once from one raw client, whose lease then goes; the planner's memory and
+    whether it still answers, and whether any motion followed."""
+    from shared.bus.keys import ROBOT_STATE_KEY
+    from shared.contracts.messages import HealthQuery
+
+    count = 200 if quick else 1000
+    with router_process() as (endpoint, _router), services_running(endpoint, "robot_bridge", "validator", "planner",
+                                                                   record_dir=os.path.join("/tmp", "chaos-pushes")) as procs:
+        planner_pid = procs[-1].pid
+        with client(endpoint) as observer:
+            states: list[float] = []
+            subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, lambda sample: states.append(time.monotonic()))
+            planner_key = _planner_key(observer)
+            _flood(endpoint, planner_key, 100, "warm-up")  # the first requests' one-off costs (buffers, imports)
+            rss_before = _rss_mb(planner_pid)
+            codes, gone_at = _flood(endpoint, planner_key, count, "flood")
+            drained_s = time.monotonic() - gone_at
+            asked = time.monotonic()
+            answered = isinstance(_ask(observer, planner_key, HealthQuery()), Message)
+            health_s = time.monotonic() - asked
+            rss_after = _rss_mb(planner_pid)
+            moved = [t for t in states if t > gone_at + STOP_TARGET_S + 0.3]
+            subscriber.undeclare()
+    return Figure("request_flood", {"requests": count, **{f"answered_{c}": n for c, n in sorted(codes.items())},
+                                    "all_answered_s": round(drained_s, 2), "health_after_s": round(health_s, 3),
+                                    "planner_rss_before_mb": round(rss_before, 1), "planner_rss_after_mb": round(rss_after, 1),
+                                    "states_after_client_left": len(moved)},
+                  {"every request answered": sum(codes.values()) == count,
+                   "the planner answers after the flood": answered and health_s < 5.0,
+                   "memory flat (< 30 MB more)": rss_after - rss_before < 30.0,
+                   "no motion for the gone client": not moved})
+
+
+def _flood(endpoint: str, planner_key: str, count: int, name: str) -> tuple[Counter[str], float]:
+    """`count` leased push requests at once from one raw client that then drops its lease; (reply codes, when it left)."""
+    from shared.bus.lease import lease_key
+    from shared.contracts.codec import decode
+    from shared.contracts.messages import ObjectRef, PushRequest
+
+    codes: Counter[str] = Counter()
+    with client(endpoint) as flooder:
+        lease = lease_key("client", f"chaos-{name}")
+        token = flooder.liveliness().declare_token(lease)
+        pending = [_raw_push(flooder, planner_key, PushRequest(
+            object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed", client_lease=lease))
+            for _ in range(count)]
+        token.undeclare()  # the flooding client gives up on all of them
+        gone_at = time.monotonic()
+        for replies in pending:
+            for reply in replies:
+                if reply.ok is not None:
+                    codes[getattr(decode(reply.ok.payload.to_bytes(), str(reply.ok.encoding)), "code", "ok")] += 1
+    return codes, gone_at
+
+
+def validator_held(quick: bool) -> Figure:
+    """Two validators each get a maximal ValidationJob (4,096 poses, augmented) from a caller that then leaves; a
+    1-pose job sent beside them is answered, and the validators are freed when the maximal jobs' caller left."""
+    from services.validator.service import job_budget
+    from shared.contracts.messages import HealthQuery, ObjectRef, ValidationJob
+    from shared.frames import POSE_DIM
+    from shared.robots.hands import load_hand
+    from shared.world.fixed_poses import spatula_pose
+    from shared.world.object_refs import load_object_ref
+
+    box = ObjectRef(library_id="proc-box-013")
+    obj = load_object_ref(box)
+    T_D_O = obj.T_D_O()
+    spatula = spatula_pose(load_hand("allegro"), obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3])
+    maximal = [ValidationJob(object=box, hand="allegro", poses=np.tile(spatula, (4096, 1)).reshape(-1, POSE_DIM),
+                             augment=True) for _ in range(2)]
+    small = ValidationJob(object=box, hand="allegro", poses=spatula[None, :])
+    with router_process() as (endpoint, _router), services_running(endpoint, "validator", "validator"):
+        big_caller = client(endpoint)
+        with Dispatcher(big_caller, "validator", timeout_s=900.0, max_in_flight_per_worker=1) as held:
+            held.wait_for_workers(2, timeout=30)
+            futures = [held.submit(job) for job in maximal]
+            time.sleep(3.0)  # both validators are deep in their maximal jobs
+            with client(endpoint) as session, Dispatcher(session, "validator", timeout_s=60.0) as planner:
+                asked = time.monotonic()
+                reply = planner.call(small, timeout=60.0)
+                small_s = time.monotonic() - asked
+                big_caller.close()  # the maximal jobs' caller leaves
+                left_at = time.monotonic()
+                from shared.bus import job_key
+
+                keys = [job_key("validator", w) for w in held.live()]
+                freed_s = None
+                while time.monotonic() - left_at < 30.0:
+                    statuses = [_ask(session, key, HealthQuery()) for key in keys]
+                    if all(getattr(st, "in_flight", 1) == 0 for st in statuses):
+                        freed_s = time.monotonic() - left_at
+                        break
+                    time.sleep(0.1)
+        del futures
+    return Figure("validator_held", {"small_job_s": round(small_s, 2), "small_job_answer": type(reply).__name__,
+                                     "maximal_job_budget_s": job_budget(maximal[0]),
+                                     "freed_after_caller_left_s": -1.0 if freed_s is None else round(freed_s, 2)},
+                  {"1-pose job answered within 5 s": small_s <= 5.0 and type(reply).__name__ == "ValidationResult",
+                   "validators freed within 5 s of the caller leaving": freed_s is not None and freed_s <= 5.0})
+
+
 SCENARIOS: dict[str, Callable[[bool], Figure]] = {
     f.__name__: f for f in (worker_killed, worker_stalled, router_restarted, oversized_job, lease_dropped, router_killed, router_hung,
-                            estop_garbage)
+                            estop_garbage, client_gone, request_flood, validator_held)
 }
 
 

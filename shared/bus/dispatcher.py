@@ -31,6 +31,7 @@ must be quick (do not call the blocking `submit`/`call` from them).
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -235,11 +236,10 @@ class Dispatcher:
                 return
             self._closed = True
             self._space.notify_all()
-        for declared in (self._liveliness, self._caller_token):  # the token last: workers cancel this caller's jobs
-            try:
-                declared.undeclare()
-            except zenoh.ZError:  # the session was closed first
-                pass
+        with contextlib.suppress(zenoh.ZError):  # the session was closed first
+            self._liveliness.undeclare()
+        with contextlib.suppress(zenoh.ZError):  # last: workers cancel this caller's unfinished jobs
+            self._caller_token.undeclare()
         self._events.put(("close", None))
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=10.0)
