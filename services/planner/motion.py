@@ -89,7 +89,7 @@ class MotionSettings:
     retreat_m: float = 0.05  # back off against the push direction, lift, then RRTConnect back to the start
     retreat_lift_m: float = 0.05
     cartesian_step_m: float = 0.01  # IK waypoint spacing along straight-line segments
-    push_speed_mps: float = 0.10  # the validator's push speed (DESIGN.md §6)
+    push_speed_mps: float = 0.10  # the validator's push speed (docs/architecture.md §Simulation)
     velocity_scale: float = 0.5  # joint-space motion at this fraction of the velocity limits
     hand_shaping_s: float = 1.0  # time to move the fingers to the pose's joint angles
     max_joint_step_rad: float = 0.25  # larger jumps between 1 cm Cartesian waypoints = an IK branch switch

@@ -11,7 +11,7 @@ Conventions
 - Each message type has `MAX_PAYLOAD_BYTES` (16 MiB by default, 64 MiB for batch results): the
   codec refuses a bigger payload before decoding it. A job's pose batch holds at most MAX_BATCH_POSES.
 - Hand poses are 25-d vectors `[p(3), r6(6), q(16)]` of the hand base in the direction frame D
-  (DESIGN.md §2) unless a field name says `_world`. Units: metres, seconds, degrees where the
+  (docs/architecture.md §Frames) unless a field name says `_world`. Units: metres, seconds, degrees where the
   field name says `_deg`.
 """
 from __future__ import annotations

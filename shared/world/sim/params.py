@@ -31,7 +31,7 @@ class PhysicsParams:
     # The shipped datasets were built at 30 it (their manifests record the physics settings).
     solver_iterations: int = 40
     time_step_s: float = 1.0 / 240.0
-    # Push speed 0.10 m/s (what DESIGN.md's spike and the robot use). Measured against 0.05 m/s
+    # Push speed 0.10 m/s (the validator's, the rollouts' and the robot's: docs/architecture.md §Simulation). Measured against 0.05 m/s
     # (quasi-static): 94.4% agreement; against 0.2 m/s: 96.9% (perturbed set, reference solver).
     push_speed_mps: float = 0.10
     # Hold after the push so a tipping object finishes falling: 0.1, 0.25 and 1.0 s gave identical
@@ -48,7 +48,7 @@ class PhysicsParams:
     object_friction: float = 1.0
     object_rolling_friction: float = 0.0
     hand_friction: float = 0.8
-    # The Allegro URDF's joint damping (3-10) makes a floating hand explode with no contact (DESIGN.md §6).
+    # The Allegro URDF's joint damping (3-10) makes a floating hand explode with no contact (docs/architecture.md §Simulation).
     hand_joint_damping: float = 0.01
     # Hand link masses x10. The hand is driven kinematically, so its masses only matter to the solver:
     # light fingers against a 0.1-1 kg object converge badly. On the 384 generator episodes x10 raised
