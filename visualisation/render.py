@@ -68,7 +68,7 @@ WORLD_Y_RGBA: RGBA = (0.10, 0.65, 0.10, 1.0)
 AXES_LENGTH_M = 0.04
 LIGHT_DIRECTION = (0.4, -0.6, 1.0)  # from the upper right of the side view: shadows fall behind, to the left
 LIGHT_AMBIENT, LIGHT_DIFFUSE, LIGHT_SPECULAR = 0.5, 0.55, 0.05  # soft, matte: no glare spots on flat faces
-_FRAMING_MARGIN = 1.10  # items fill ~90% of the tighter image dimension
+_FRAMING_MARGIN = 1.10  # items fill about nine tenths of the tighter image dimension
 _MIN_DEPTH_M = 0.02
 _HIDDEN_Z_M = -1000.0  # where translucent bodies go while the scene behind them is rendered
 
