@@ -124,7 +124,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
     # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
-    # The planner's default since stop 42 (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
+    # The planner's default (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
     Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
     # The samples steered up the critic's gradient too (services/sampler/guidance.py, the scale chosen on val objects
