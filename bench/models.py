@@ -5,7 +5,7 @@
 Targets on 2 cores: BPS of a 2048-point cloud <= 5 ms, SDF lookup of 1e5 points
 <= 20 ms, FK of a 1024 batch <= 10 ms. Loading a 10k-vertex mesh is reported cold (geometry +
 64³ SDF computed) and warm (both from the on-disk cache). Torch runs single-threaded, as every
-worker process does (DESIGN.md §6).
+worker process does (docs/architecture.md §Compute).
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@
   part, simplification included), in the box scene with collision checking, measured inside the full
   `plan_push` (IK, Cartesian approach / push / back-off, two RRTConnect plans, timing), which is
   timed too; sideways pushes of a box 0.55 m in front of the base.
-Torch runs single-threaded, as every worker process does (DESIGN.md §6).
+Torch runs single-threaded, as every worker process does (docs/architecture.md §Compute).
 """
 from __future__ import annotations
 

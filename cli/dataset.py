@@ -41,7 +41,7 @@ GENERATION_FLAGS = {"batch_size": "--per-object", "iterations": "--iterations", 
 def _half_the_cores() -> int:
     """Generators and validators each get half the cores by default: with failures kept and 1,000 generator
     iterations a round's generation and validation cost about the same CPU (measured: 3.9 s to generate 8
-    candidates, ~5 s to push them and the Halton copies of their successes; README "Dataset v2")."""
+    candidates, ~5 s to push them and the Halton copies of their successes; CHANGELOG.md "Dataset v2")."""
     return max(1, (os.cpu_count() or 1) // 2)
 
 

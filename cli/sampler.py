@@ -108,7 +108,7 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--half", action="store_true", help="ship fp16 weights (half the file size)")
     parser.add_argument("--device", default="auto", help="auto (GPU if present), cpu, cuda, cuda:N")
     parser.add_argument("--threads", type=positive_int, default=1,
-                        help="torch CPU threads (default 1: extra threads stall on a shared machine, DESIGN.md §6)")
+                        help="torch CPU threads (default 1: extra threads stall on a shared machine, docs/architecture.md §Compute)")
     parser.add_argument("--restart", action="store_true", help="ignore a saved training state and start over")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print a JSON summary on stdout")

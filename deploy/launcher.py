@@ -401,7 +401,7 @@ class Launcher:
 
     def _environment(self) -> dict[str, str]:
         env = dict(os.environ)
-        env.setdefault("OMP_NUM_THREADS", "1")  # several busy processes share the cores (DESIGN §6)
+        env.setdefault("OMP_NUM_THREADS", "1")  # several busy processes share the cores (docs/architecture.md §Compute)
         env["PYTHONUNBUFFERED"] = "1"  # a crash's last words reach the log before it dies
         # The children import the project the same way this process did, installed or not.
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_PROJECT_ROOT), env.get("PYTHONPATH")) if p)

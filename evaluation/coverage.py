@@ -536,7 +536,7 @@ def coverage_record(object_id: str, tally: PushTally, seconds: float, spread_cm:
 def _init_worker() -> None:
     import torch
 
-    torch.set_num_threads(1)  # one busy process per core (DESIGN.md §6)
+    torch.set_num_threads(1)  # one busy process per core (docs/architecture.md §Compute)
     os.dup2(2, 1)  # PyBullet prints on fd 1; keep the parent's stdout clean
 
 

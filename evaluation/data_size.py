@@ -161,7 +161,7 @@ def training_threads(workers: int) -> int:
     """`workers` torch threads when that many cores are idle, else 1.
 
     Training is the parallel part here, but torch threads on a busy machine stall at their OpenMP
-    barriers whenever one is pre-empted (DESIGN.md §6; measured here with other jobs running:
+    barriers whenever one is pre-empted (docs/architecture.md §Compute; measured here with other jobs running:
     200 steps 21/s at 1 thread, 2.6/s at 2), so extra threads are used only on idle cores.
     """
     spare = idle_cores()

@@ -116,7 +116,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-closed-looser", "GD2P closed loop, 6 cm / 35° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.06, 35.0, 40.0)),
     # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
-    # The pipeline before the time-to-plan work (README "Time to plan"): no critic, 24 prescreen pushes, DDPM-100.
+    # The pipeline before the time-to-plan work (docs/evaluation.md §Tuned settings): no critic, 24 prescreen pushes, DDPM-100.
     Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans, no critic, DDPM", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), sampler="ddpm"),
     Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
@@ -124,11 +124,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
     # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
-    # The planner's default since stop 42 (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
+    # The planner's default (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
     Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
     # The samples steered up the critic's gradient too (services/sampler/guidance.py, the scale chosen on val objects
-    # by sampler-quality, README "Stop 45").
+    # by sampler-quality, docs/evaluation.md §Tuned settings).
     Method("gd2p-closed-critic-guided", "GD2P closed loop, critic-guided samples in the critic's order (val candidate)",
            "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm",
            critic_guidance=0.02),
@@ -140,7 +140,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True, sampler="ddpm"),
     Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
-    # The fast path (README "Time to plan") as a request asks for it: critic, no prescreen pushes, sampler "ddim".
+    # The fast path (docs/evaluation.md §Tuned settings) as a request asks for it: critic, no prescreen pushes, sampler "ddim".
     Method("gd2p-closed-fast", "GD2P closed loop, fast path (critic order, no prescreen, DDIM)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, critic=True, prescreen=False, sampler="ddim"),
     # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a

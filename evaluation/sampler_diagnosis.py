@@ -1,8 +1,8 @@
 """Sampler diagnosis on training objects: `gd2p eval sampler-diagnosis`.
 
-Before scaling the data, three questions decide how much of the gap between diffusion samples
-(35% validated on test objects) and Nearest Neighbor's stored poses (73%) is the model and how
-much the data:
+Before scaling the data, three questions decide how much of the gap between diffusion samples and
+Nearest Neighbor's stored poses (version 1: the stored poses validated about twice as often on test
+objects) is the model and how much the data:
 
 1. **Does the model reproduce its own training data?** On objects of the shipped checkpoint's
    training set: the validated fraction of 200 diffusion samples (the version-1 Allegro checkpoint
@@ -15,8 +15,8 @@ much the data:
    their max abs difference, the encoding settings (basis, surface samples) each path uses, and
    the BPS the planner's frames give (the evaluation's push directions).
 
-Where the stored poses come from: the training dataset (`data/allegro-train`, built by the README's
-`gd2p dataset build` command) is not in the repository, but the shipped Nearest-Neighbor index
+Where the stored poses come from: the training dataset (`data/allegro-train`, built by the
+`gd2p dataset build` command of docs/usage.md) is not in the repository, but the shipped Nearest-Neighbor index
 `services/sampler/checkpoints/allegro_v1_nn.npz` is built from the same store (the manifests' dataset
 SHA-256 agree; checked on every run) and holds, per training frame (222 objects, each in its
 default resting pose at yaw 0), the frame's BPS (float16) and every stored pose (9,683). A

@@ -1,4 +1,4 @@
-"""Frames and the 25-d hand pose vector: one convention for the whole system (DESIGN.md §2).
+"""Frames and the 25-d hand pose vector: one convention for the whole system (docs/architecture.md §Frames).
 
 World: z up, table top at z = 0.
 Direction frame D: origin at the object's centroid projected onto the table, +x along the push

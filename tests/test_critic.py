@@ -235,7 +235,7 @@ def test_the_planner_tries_the_poses_the_critic_likes_best_first():
 @pytest.mark.parametrize("hand", ["allegro", "leap"])
 def test_each_hand_ships_a_critic_for_its_default_sampler(hand, monkeypatch):
     # The sampler service ignores a critic made for another checkpoint: a retrained default without its
-    # critic retrained would silently lose the fast path's order (README "The success critic").
+    # critic retrained would silently lose the fast path's order (CHANGELOG.md "The success critic").
     from services.sampler.critic_train import default_critic_path
 
     monkeypatch.delenv(f"GD2P_CRITIC_CHECKPOINT_{hand.upper()}", raising=False)

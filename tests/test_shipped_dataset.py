@@ -74,7 +74,7 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, inde
 @pytest.mark.parametrize("hand", ["allegro", "leap"])
 def test_shipped_default_model_was_trained_on_this_store_and_its_camera_captures(hand):
     # The planner sees objects through cameras by default, so each hand's default sampler was trained with half
-    # its batches on captures of its own store's frames (README "Trained on what the cameras see").
+    # its batches on captures of its own store's frames (CHANGELOG.md "Trained on what the cameras see").
     from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
 
     fingerprint = store_fingerprint(hand)

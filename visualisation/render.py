@@ -10,7 +10,7 @@ no display or GPU. Items are plain data (a mesh, a URDF with joint angles, point
 the same function draws `gd2p show`'s pose pictures and the planner's storyboard frames.
 
 Conventions and choices:
-- World z is up and the table top is z = 0 (DESIGN.md §2). The table is drawn as a finite slab sized
+- World z is up and the table top is z = 0 (docs/architecture.md §Frames). The table is drawn as a finite slab sized
   to the scene, with a grid (`GRID_M`) for scale.
 - Views are defined relative to a *heading* (the push direction's yaw): "side" looks at the push from
   its right so the push always reads left to right, whatever the direction in the world. A small world
@@ -68,7 +68,7 @@ WORLD_Y_RGBA: RGBA = (0.10, 0.65, 0.10, 1.0)
 AXES_LENGTH_M = 0.04
 LIGHT_DIRECTION = (0.4, -0.6, 1.0)  # from the upper right of the side view: shadows fall behind, to the left
 LIGHT_AMBIENT, LIGHT_DIFFUSE, LIGHT_SPECULAR = 0.5, 0.55, 0.05  # soft, matte: no glare spots on flat faces
-_FRAMING_MARGIN = 1.10  # items fill ~90% of the tighter image dimension
+_FRAMING_MARGIN = 1.10  # items fill about nine tenths of the tighter image dimension
 _MIN_DEPTH_M = 0.02
 _HIDDEN_Z_M = -1000.0  # where translucent bodies go while the scene behind them is rendered
 
@@ -413,7 +413,7 @@ class RenderWorld:
                 body: int = pb.loadURDF(str(path), physicsClientId=self.client)
         except pb.error as exc:
             raise RenderError(f"{item.name}: PyBullet cannot load {path}: {exc}") from exc
-        # PyBullet's base pose is the base's centre-of-mass frame (DESIGN.md §6).
+        # PyBullet's base pose is the base's centre-of-mass frame (docs/architecture.md §Simulation).
         local_position, local_orientation = pb.getDynamicsInfo(body, -1, physicsClientId=self.client)[3:5]
         com = np.asarray(item.base_transform, dtype=np.float64) @ pos_quat_to_transform(local_position, local_orientation)
         pb.resetBasePositionAndOrientation(body, *_pos_quat(com), physicsClientId=self.client)

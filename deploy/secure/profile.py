@@ -26,7 +26,7 @@ rules are default-deny, and each key space has an owner:
   tells every session which subscribers, queryables and tokens exist and delivers every publication.
 
 `allowed(identity, flow, message, key)` evaluates the same rules the way Zenoh does (a rule applies
-when one of its key expressions includes the message's), for tests and for the README's table.
+when one of its key expressions includes the message's), for tests and for docs/safety.md.
 A key outside every rule is dropped for everyone: a new key (shared/bus/keys.py) needs an owner here.
 The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS) come from the interface registry,
 shared/bus/interfaces.py; tests/test_interfaces.py checks every registry entry against these rules.

@@ -24,9 +24,9 @@ validator's PyBullet episode, services/validator/push.py, with its physics setti
 - init.push_side_min_cos = 0.5: starting only on the back of the object (inward hull normal within
   60 deg of +x) instead of the whole +x half-space (0.0, which includes the top) raised validator
   success on proc-box-010 from 0.36 to 0.84: hands started on top stay on top and slide over.
-- contacts_per_pose = 4: DESIGN.md §6's measured setting, as DexGraspNet for Allegro.
+- contacts_per_pose = 4: docs/architecture.md §Compute's measured setting, as DexGraspNet for Allegro.
 - contact_offset_m = 0.005: E_dis pulls contacts 5 mm *outside* the surface so the push starts
-  without hand-object penetration; a gap costs its size in final position error (DESIGN.md §6:
+  without hand-object penetration; a gap costs its size in final position error (docs/architecture.md §Simulation:
   1 cm of gap = 1 cm of the 3 cm budget), so 5 mm spends a sixth of it.
 - penetration_margin_m = 0.003: object points within 3 mm of the hand count in E_pen (get_a_grip
   uses 5 mm). PyBullet's collision margins make it see ~3 mm more penetration than the exact
@@ -112,7 +112,7 @@ class GenerationConfig:
     init: InitSettings = field(default_factory=InitSettings)
     iterations: int = 1500
     contacts_per_pose: int = 4
-    batch_size: int = 256  # poses optimised together (DESIGN.md §6: ~256 is cheapest per pose on CPU)
+    batch_size: int = 256  # poses optimised together (docs/architecture.md §Compute: ~256 is cheapest per pose on CPU)
     grasp_only: bool = False  # drop E_dir and E_arm: the grasp-pose baseline
     contact_offset_m: float = 0.005  # E_dis target: contacts this far outside the surface
     penetration_margin_m: float = 0.003  # E_pen counts hand-object pairs closer than this

@@ -3,7 +3,7 @@
     E = w_fc E_fc + w_dis E_dis + w_pen E_pen + w_spen E_spen + w_joints E_j + w_ff E_ff + w_fp E_fp
         + w_tpen E_tpen + w_dir E_dir + w_arm E_arm
 
-Everything is expressed in the direction frame D (DESIGN.md §2): table z = 0, push along +x.
+Everything is expressed in the direction frame D (docs/architecture.md §Frames): table z = 0, push along +x.
 Notation: B poses, K selected contacts per pose with points x_i and the object's outward surface
 normal n_i at x_i (the unit gradient of the object SDF d), object surface points o_j, hand surface
 samples h_s, the hand's signed distance sd_hand (negative inside), palm normal v (unit, in D),
@@ -73,7 +73,7 @@ def object_penetration(geometry: HandGeometry, state: HandState, scene: ObjectFi
 
     DexGraspNet's penetration term, the first half of E_pen (see `hand_in_object`).
 
-    Sparse gradient (DESIGN.md §6): a no-grad pass finds the (pose, point) pairs with sd_hand < m
+    Sparse gradient (docs/architecture.md §Compute): a no-grad pass finds the (pose, point) pairs with sd_hand < m
     (`HandGeometry.signed_distance_upper_bound`); only those pairs are evaluated again with
     gradients. Every other pair contributes exactly 0, so energy and gradient equal the dense sum's.
     Uses the scene's `surface_points` o_j [N,3]; `clearance` = `HandGeometry.primitive_clearance`

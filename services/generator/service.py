@@ -4,7 +4,7 @@ Placement on the bus: the object rests in the job's resting pose (`pose_index`, 
 object's default pose) turned by `yaw_rad` about D's z (default 0) - a ValidationJob with the same
 `pose_index` and a frame turned by that yaw places it the same way, so poses validate as generated.
 Each job is deterministic for its seed (torch.Generator everywhere; one torch thread per worker
-process, DESIGN.md §6), so a re-dispatched job gives the same poses on any worker. The optimisation
+process, docs/architecture.md §Compute), so a re-dispatched job gives the same poses on any worker. The optimisation
 checks the job's deadline after every iteration (`shared.bus.worker.check_deadline`): a job past it
 ends with ErrorReply "timeout" and frees its worker.
 """
@@ -36,7 +36,7 @@ _MAX_CACHED_SCENES = 16
 
 
 def _limit_torch_threads() -> None:
-    """Busy worker processes share the cores: one torch thread each (DESIGN.md §6)."""
+    """Busy worker processes share the cores: one torch thread each (docs/architecture.md §Compute)."""
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)

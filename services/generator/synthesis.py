@@ -3,7 +3,7 @@
 Poses are optimised in batches of `config.batch_size`; batch c of a run draws all its randomness
 from a `torch.Generator` seeded by (seed, c), so a seed fixes the result, and the first batches of
 a larger run equal a smaller run with the same seed. Set `torch.set_num_threads(1)` in worker
-processes (DESIGN.md §6); results are bitwise reproducible for a given thread count.
+processes (docs/architecture.md §Compute); results are bitwise reproducible for a given thread count.
 """
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class GenerationOutput:
              contact_tolerance_m: float = 0.005) -> np.ndarray:
         """[n] bool: palm faces +x, penetration is small, every contact within tolerance of the offset.
 
-        The quick pre-physics filter of DESIGN.md §6 ("face +x, penetrate <= 5 mm, all contacts
+        The quick pre-physics filter of docs/architecture.md §Compute ("face +x, penetrate <= 5 mm, all contacts
         within 5 mm"); the validator decides what really pushes.
         """
         gap = np.abs(self.contact_distances_m - self.contact_offset_m)

@@ -92,7 +92,7 @@ class ArmIK:
     def _seed_configs(self, num_seeds: int, seed: int) -> torch.Tensor:
         generator = torch.Generator().manual_seed(seed)
         lower, upper = self.arm.joint_lower, self.arm.joint_upper
-        # Random seeds stay 5% inside the limits: DLS steps from a seed on a stop are mostly clipped away.
+        # Random seeds stay a twentieth of each joint's range inside the limits: DLS steps from a seed on a stop are mostly clipped away.
         margin = 0.05 * (upper - lower)
         unit = torch.rand(num_seeds - 1, self.arm.dof, generator=generator)
         random = lower + margin + unit * (upper - lower - 2 * margin)

@@ -26,10 +26,9 @@ from shared.world.push_outcome import pose_matrix
 class MonitorThresholds:
     """How far the tracked object may stray from the predicted path before the push is stopped.
 
-    Chosen on the val objects under the `real` world (results/closed-loop-real-val/): of 2 cm / 10° / 15°,
-    3 cm / 15° / 20°, 4 cm / 25° / 30° and 6 cm / 35° / 40°, the third succeeded most (86.9% of 84 trials,
-    against 76.2%, 82.1% and 83.3%; corrective pushes alone 81.0%): tighter ones stop pushes that would
-    have ended well."""
+    Chosen on the val objects under the `real` world: of 2 cm / 10° / 15°, 3 cm / 15° / 20°,
+    4 cm / 25° / 30° and 6 cm / 35° / 40°, the third succeeded most, and above corrective pushes alone;
+    tighter ones stop pushes that would have ended well (docs/evaluation.md §Tuned settings)."""
 
     position_m: float = 0.04  # the displacement's gap
     rotation_deg: float = 25.0  # turned this much further than predicted (in magnitude, either way)

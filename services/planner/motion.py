@@ -82,14 +82,14 @@ class MotionSettings:
     # 5 cm / 5 cm first. Fingers reaching around the object still overlap it 5 cm behind: 12 cm behind
     # clears them. Pulls on the far side of the object can leave the arm no reach further out: then
     # straight down; from 12 cm when the hand 6 cm above the pose is still within `clearance_m` of the object
-    # (LEAP's pulls toward the xArm7 on low boxes: README "A way in from higher above"). As on every straight
+    # (LEAP's pulls toward the xArm7 on low boxes: CHANGELOG.md "A way in from higher above"). As on every straight
     # line, the hand may touch the object on the way down (the rollouts simulate it); the arm may not, nor
     # may anything touch an obstacle.
     approaches: tuple[tuple[float, float], ...] = ((0.05, 0.05), (0.12, 0.05), (0.0, 0.06), (0.0, 0.12))
     retreat_m: float = 0.05  # back off against the push direction, lift, then RRTConnect back to the start
     retreat_lift_m: float = 0.05
     cartesian_step_m: float = 0.01  # IK waypoint spacing along straight-line segments
-    push_speed_mps: float = 0.10  # the validator's push speed (DESIGN.md §6)
+    push_speed_mps: float = 0.10  # the validator's push speed (docs/architecture.md §Simulation)
     velocity_scale: float = 0.5  # joint-space motion at this fraction of the velocity limits
     hand_shaping_s: float = 1.0  # time to move the fingers to the pose's joint angles
     max_joint_step_rad: float = 0.25  # larger jumps between 1 cm Cartesian waypoints = an IK branch switch

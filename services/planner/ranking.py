@@ -22,18 +22,13 @@ Weights. The terms have different units, so the weights say what trades for what
 - γ = 0.1: the palm's alignment only separates plans whose rollouts are about equally good (a palm
   60° off the push direction costs 0.05, i.e. a 1.7 mm miss).
 Chosen on val objects (`bench/ranking_weights.py`: each request's plans from the energy optimiser,
-planned and rolled out as the planner does, each plan judged by the fraction of 8 execution worlds —
-`real` draws the ranking never saw — in which it succeeds; 6 val objects x 2 directions, 72 plans,
-`bench/results/ranking_weights.json`, commit dd90717): the picks of α = 30, β = 1 succeed in 82.3% of
-the worlds (58.3% of them collide); the earlier α = 10, β = 1 66.7% (41.7%): a collision worth a
-10 cm miss made the ranking prefer clean plans that miss; β = 0 80-83% (67-75% collide); a random
-plan 51.2%; the best plan of each request 84.4%. End to end on the 14 val objects under `real`
-(`results/methods-real-val`, 84 trials each): α = 30 72.6% against α = 10 71.4% (+1.2 [+0.0, +3.6]
-paired by object): with diffusion samples and the prescreen most requests pick the same plan.
-(α = 10 had been tuned on 3 objects, two of them test objects; the committed test-object results up
-to commit 1ace1a0 ran with it.) Robust ranking (mean L_goal over 4 drawn worlds) picked no better than
-the nominal rollout at equal weights (63.5% at α = 10, 83.3% at β = 0 in the bench; end to end
-72.6% against 71.4%, at 2.3x the time per trial).
+planned and rolled out as the planner does, each plan judged by the share of 8 execution worlds —
+`real` draws the ranking never saw — in which it succeeds; `bench/results/ranking_weights.json`): the
+picks of α = 30, β = 1 succeed in more of those worlds than those of the earlier α = 10 (a collision
+worth a 10 cm miss made the ranking prefer clean plans that miss), of β = 0 or of a random plan. End to
+end on the val objects the gain is small: with diffusion samples and the prescreen most requests pick the
+same plan. Robust ranking (mean L_goal over drawn worlds) picked no better than the nominal rollout at
+more than twice the time per trial, so it is off by default (docs/evaluation.md §Tuned settings).
 """
 from __future__ import annotations
 

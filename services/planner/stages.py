@@ -76,9 +76,8 @@ class PipelineSettings:
     # hand pushing beside it (at 0.02 and 0.05 m the fingers of every pose sweeping past the obstacle hit it).
     obstacle_margin_m: float = 0.08
     # Feasible poses pushed by a floating hand before planning (0: off; a request with `prescreen` false, the fast
-    # path, pushes none); see `prescreen`. In the critic's order, val closed loop (84 trials, real world): Allegro
-    # with the critic before stop 41 24 pushes 84.5%, 8 83.3%, none 83.3%; LEAP with the contact critic 24 pushes
-    # 86.9%, none (DDIM) 83.3% (README "Time to plan", "The critic's order by default"); 24 kept for success.
+    # path, pushes none); see `prescreen`. Fewer pushes plan sooner but lost success on the val objects, even in
+    # the critic's order, so 24 are kept (docs/evaluation.md §Tuned settings).
     prescreen: int = 24
     max_plan_attempts: int = 10  # poses planned per round before giving up
     # A round in which none of its `max_plan_attempts` poses has an arm plan (the approach or the way out
@@ -86,18 +85,18 @@ class PipelineSettings:
     # needed, up to this many rounds: a hand pose that screens feasible can still fail there.
     max_planless_rounds: int = 3
     # A diffusion request none of whose K samples is kinematically feasible (the pose family the model favours
-    # is out of the arm's reach there) draws K more with another seed, up to this many draws in all. On the 84
-    # LEAP val trials with the v2 model, the 6 such requests found no feasible pose in a second draw either
-    # (README): off (1), as measured.
+    # is out of the arm's reach there) draws K more with another seed, up to this many draws in all. On the LEAP
+    # val trials where it happens, a second draw found no feasible pose either: off (1), as measured
+    # (docs/evaluation.md §Tuned settings).
     sample_draws: int = 1
     # When no rolled-out plan of a round is predicted to succeed, another round plans and rolls out
     # `max_plans` more (the next poses of the prescreened order); all rounds are ranked together.
     max_plan_rounds: int = 2
     limit_retries: int = 2  # re-plans of a pose whose random path broke a robot limit
     # Rolled-out requests try poses whose hands stand at least this far apart first (`spread_out`; 0: off).
-    # The best-aligned samples are often near-copies (median 0.5-1 cm apart); at 1.5 cm, val GD2P went from
-    # 79.0 to 80.5% (+1.4 [-4.8, +9.0], README): fewer failures predicted by the rollouts, as many world-gap
-    # ones. Off, as measured.
+    # The best-aligned samples are often near-copies (median 0.5-1 cm apart); at 1.5 cm the val trials had fewer
+    # failures the rollouts predicted and as many world-gap ones, a gain within the interval's noise. Off, as
+    # measured (docs/evaluation.md §Tuned settings).
     min_separation_m: float = 0.0
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()

@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="checkpoint of a hand (repeatable), e.g. allegro=ckpt/allegro.pt")
     parser.add_argument("--nn-index", action="append", type=_hand_path_arg, default=[], metavar="HAND=PATH",
                         help="nearest-neighbour index of a hand (repeatable), e.g. allegro=ckpt/allegro_nn.npz")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: cores are shared, DESIGN.md §6)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: cores are shared, docs/architecture.md §Compute)")
     args = parser.parse_args(argv)
     configure_service_logging()
     torch.set_num_threads(max(1, args.threads))

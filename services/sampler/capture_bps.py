@@ -5,8 +5,8 @@ captures, reconstructs the object (shared.world.perception) and conditions the s
 of the captured points, in the direction frame of the *reconstruction* (its centre of mass, not the
 true one). A model trained only on mesh BPS sees an input it never trained on (the unseen underside
 and far side read as far away, the centre is off by millimetres), and with 3 cameras its samples
-were the plan's weak part (results/methods-real-camera3-v2: 15 "pose quality" failures for GD2P, 2 for
-ranked retrieval). So each training frame is also captured, the planner's own way:
+were the plan's weak part (far more "pose quality" failures than ranked retrieval's; CHANGELOG.md,
+"Trained on what the cameras see"). So each training frame is also captured, the planner's own way:
 
   1. the object, in the frame's resting pose and yaw in D, is put on the table at a random spot of the
      workspace (`CaptureSettings`), with D turned to a random push direction (the cameras stand in

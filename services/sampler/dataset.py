@@ -14,7 +14,7 @@ that learns from failures asks for them too (`load_pose_dataset(with_failures=Tr
 
 Other columns (metrics, provenance) are ignored.
 
-Frame convention (the choice this module makes, DESIGN.md §2): a stored pose is in the direction
+Frame convention (the choice this module makes, docs/architecture.md §Frames): a stored pose is in the direction
 frame D of its push — origin at the object's centre of mass projected onto the table, +x the
 push direction — with the object resting in `pose_index`, turned by `yaw_rad` about z, exactly as
 the generator and validator placed it (`ObjectModel.T_D_O(pose_index, yaw_rad)`). So the BPS a

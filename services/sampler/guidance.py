@@ -1,7 +1,7 @@
 """Critic guidance: the success critic's gradient steers the diffusion sampler's last denoising steps.
 
 Ordering samples by the critic (the planner's default) only chooses among what the model drew; the model
-itself places poses less precisely than retrieval does (README, "Why the samples fail"), while the critic
+itself places poses less precisely than retrieval does (CHANGELOG.md, "Why the samples fail"), while the critic
 reads exactly what the denoiser sees only through its BPS: where the hand meets the object
 (`critic_features`). Guidance hands that knowledge to the draws: in the last denoising steps each
 predicted clean pose climbs log P(success) by the critic (`diffusion.GradientGuidance`), and the

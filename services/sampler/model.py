@@ -10,7 +10,7 @@ at horizon 1 is its residual blocks with FiLM conditioning, which is what this m
     [time, object] -> SiLU -> Linear -> FiLM scale and bias of every block
 
 Each block mirrors diffusion_policy's ConditionalResidualBlock1D with Linear for Conv1d(k=1)
-(30-40% faster at horizon 1, DESIGN.md §6), LayerNorm for GroupNorm and SiLU for Mish (Mish
+(30-40% faster at horizon 1, docs/architecture.md §Compute), LayerNorm for GroupNorm and SiLU for Mish (Mish
 measured ~20x slower than SiLU on this CPU for a [200, 256] activation: it was the largest cost
 of a denoising step):
     h = SiLU(LN(W1 x)); h = scale * h + bias; h = SiLU(LN(W2 h)); out = x + h
@@ -19,7 +19,7 @@ Size (the default `DenoiserConfig`): 1.51 M parameters, chosen for CPU. The BPS 
 128-d before FiLM (feeding the 4096-d condition straight into FiLM is what makes the paper-scale
 U-Net 76 M parameters); hidden width 256, 4 blocks. A model of this size trains at ~8-9k
 samples/s on one thread (batch 256) and converges in minutes, where a 76 M U-Net is far from
-converged after the same time (DESIGN.md §6); 200 poses take ~0.3 s with DDPM-100 and ~30 ms with
+converged after the same time (docs/architecture.md §Compute); 200 poses take ~0.3 s with DDPM-100 and ~30 ms with
 DDIM-10 on one core (bench/sampler.py).
 
 Sampling cost: the object embedding depends only on the request and the FiLM parameters only on

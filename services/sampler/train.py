@@ -4,7 +4,7 @@ Hyper-parameters are the paper's (appendix table): Adam, lr 1e-4, weight decay 1
 eps 1e-8, gradient clipping at 1.0, cosine learning-rate schedule with 500 warm-up steps, EMA with
 power 0.75, DDPM-100 epsilon loss. Two CPU-driven departures, both configurable: batch 256
 instead of 16 (per-step overhead dominates a small model on CPU; 256 is where throughput was
-measured, DESIGN.md §6) and a budget counted in optimiser steps (`--steps`, or `--epochs` over the
+measured, docs/architecture.md §Compute) and a budget counted in optimiser steps (`--steps`, or `--epochs` over the
 training poses) instead of 200 epochs of 1.3 M poses.
 
 Data: poses of one hand; objects are split, not poses — a seeded ~10% of the objects is held out

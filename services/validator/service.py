@@ -1,8 +1,8 @@
 """Bus adapter of the validator service: a ValidationJob in, a ValidationResult out.
 
 Each worker process runs one PyBullet client per job thread (the simulators are thread-local, so a
-worker started with concurrency > 1 stays correct; one process per core is what scales, DESIGN.md
-§6). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
+worker started with concurrency > 1 stays correct; one process per core is what scales,
+docs/architecture.md §Compute). Jobs on the same object and hand reuse the scene. The push physics is deterministic, and the
 job seed fixes the augmentation copies, so a job gives the same result on any worker.
 
 Placement of a floating-hand job: the object rests in `job.pose_index` (its default resting pose
@@ -71,7 +71,7 @@ _local = threading.local()
 
 
 def _limit_torch_threads() -> None:
-    """Busy worker processes share the cores: one torch thread each (DESIGN.md §6)."""
+    """Busy worker processes share the cores: one torch thread each (docs/architecture.md §Compute)."""
     torch = sys.modules.get("torch")
     if torch is not None:
         torch.set_num_threads(1)

@@ -11,7 +11,7 @@ Conventions
 - Each message type has `MAX_PAYLOAD_BYTES` (16 MiB by default, 64 MiB for batch results): the
   codec refuses a bigger payload before decoding it. A job's pose batch holds at most MAX_BATCH_POSES.
 - Hand poses are 25-d vectors `[p(3), r6(6), q(16)]` of the hand base in the direction frame D
-  (DESIGN.md §2) unless a field name says `_world`. Units: metres, seconds, degrees where the
+  (docs/architecture.md §Frames) unless a field name says `_world`. Units: metres, seconds, degrees where the
   field name says `_deg`.
 """
 from __future__ import annotations
@@ -663,8 +663,8 @@ class SampleRequest(Message):
     score: bool = True
     # Steer the diffusion samples up the success critic's log P(success) in their last `guided_steps` denoising
     # steps, each moving a pose by this scale x the gradient in normalised units (services/sampler/guidance.py);
-    # None: plain samples. 0.02 was chosen on val objects (README "Stop 45"); ~0.2 s per guided step per 200
-    # poses on one thread. Needs a critic made for the sampler's checkpoint; not for "nearest".
+    # None: plain samples. 0.02 was chosen on val objects (docs/evaluation.md §Tuned settings); ~0.2 s per guided
+    # step per 200 poses on one thread. Needs a critic made for the sampler's checkpoint; not for "nearest".
     critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
     guided_steps: int = Field(default=10, ge=1, le=100)
 
@@ -724,8 +724,8 @@ class PushRequest(Message):
     # push leaves the object more than the success tolerance from the target but upright and turned no
     # more than the success bound allows, push again from where the robot bridge observed it, up to this
     # many times.
-    # On by default: under the evaluation's `real` world, 2 corrections raised GD2P from 71.4% to 82.1% on
-    # the val objects (where it was chosen) and from 82.5% to 88.9% on the test objects (results/). Needs
+    # On by default: pushing again from where the object was seen mends misses that a world the planner does
+    # not know causes (chosen on val objects: docs/evaluation.md §Tuned settings). Needs
     # the object's pose after each push: the simulated robot's tracker sees it; on hardware a tracker must
     # publish it on gd2p/robot_bridge/object_track (docs/interfaces.md).
     corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
@@ -733,30 +733,28 @@ class PushRequest(Message):
     # strays from the path the chosen plan's rollout predicted (services/planner/monitor.py); the push is
     # backed out and, within `corrections`, pushed again from where the object was seen. Plans chosen
     # with choice "random" have no rollout to follow and run open loop.
-    # On by default: under the evaluation's `real` world it raised GD2P + corrective pushes from 81.0% to
-    # 86.9% on the val objects (where its thresholds were chosen) and from 90.5% to 92.1% on the test
-    # objects (results/closed-loop-real*), at 1.13x open loop's median time per trial.
+    # On by default: stopping a push that strays and correcting it beat corrective pushes alone on the val
+    # objects, where its thresholds were chosen, at a small cost in time per request (docs/evaluation.md
+    # §Tuned settings; figures in docs/results.md).
     closed_loop: bool = True
     seed: Seed = 0
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
     # service) or the fixed spatula pose (the paper's baselines, for comparisons).
     method: PoseMethod = "gd2p"
-    # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (0.3 s less per
-    # push here; its poses validate as often: results/sampler-quality).
+    # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (about 0.3 s less
+    # per push; its poses validate about as often: docs/results.md).
     sampler: DiffusionSampler = "ddpm"
     # Consider the samples (the model's, or for method "nearest" the retrieved ones) in the order of the sampler's
     # success critic (when it has one for its checkpoint and scored them) instead of the best-aligned palms first
-    # (L_dir, the paper's order). On by default since
-    # stop 42: under the evaluation's `real` world, closed loop, 3 cameras, with the same 24 prescreen pushes,
-    # LEAP 81.0% -> 86.9% on val (where it was chosen) and 90.0% -> 91.4% on 210 test trials; Allegro 95.2% -> 95.2%
-    # on val and 96.2% -> 95.2% on test (results/*-contact-critic*, README "The critic's order by default").
+    # (L_dir, the paper's order). On by default: with the same prescreen pushes it helped LEAP and left Allegro
+    # level on the val objects, where it was chosen (docs/evaluation.md §Tuned settings).
     critic: bool = True
     # SampleRequest.critic_guidance for the diffusion samples (None: plain samples, the default; guidance has not
     # been measured in the trial experiments as the default).
     critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
     # Push `PipelineSettings.prescreen` of the first feasible poses with a floating hand before planning (the
-    # prescreen). False is the fast path (with sampler "ddim"): 1.2 s less to plan (bench/push.py), some success
-    # lost (README "Time to plan").
+    # prescreen). False is the fast path (with sampler "ddim"): about 1.2 s less to plan (bench/push.py), some
+    # success lost, so not the default (docs/evaluation.md §Tuned settings).
     prescreen: bool = True
     # The client's lease (`gd2p/lease/client/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
     # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.

@@ -11,7 +11,7 @@ the corners of 25 cm flat boxes (~18 cm); 0.30 m contains every library object w
 spare while keeping the basis as dense as possible around the object. Points beyond the ball
 are refused rather than silently encoded with clipped geometry.
 
-Speed: a scipy cKDTree over the cloud, queried by the basis (2048 points: ~2–3 ms, DESIGN.md §6).
+Speed: a scipy cKDTree over the cloud, queried by the basis (2048 points: ~2–3 ms, docs/architecture.md §Compute).
 """
 from __future__ import annotations
 

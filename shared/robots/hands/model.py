@@ -1,12 +1,12 @@
 """`HandModel`: batched torch kinematics, collision geometry and contact candidates of a dexterous hand.
 
-Pose vector (DESIGN.md §2): `[p(3), r6(6), q(16)]` - position and rotation of the hand's base link in some
+Pose vector (docs/architecture.md §Frames): `[p(3), r6(6), q(16)]` - position and rotation of the hand's base link in some
 frame (the direction frame D during generation, the world at serve time), r6 = the first two columns of
 the rotation matrix, q = joint angles in `joint_names` order. Everything a `HandState` holds is in that
 same frame. Kinematics use pytorch_kinematics (chain built once, float32, CPU) and are differentiable with
 respect to the whole pose.
 
-PyBullet's base pose is the base link's centre of mass, not its URDF frame (DESIGN.md §6);
+PyBullet's base pose is the base link's centre of mass, not its URDF frame (docs/architecture.md §Simulation);
 `urdf_base_to_pybullet` / `pybullet_to_urdf_base` convert between the two.
 """
 from __future__ import annotations

@@ -86,8 +86,8 @@ SMALL_MASS_KG = (0.001, 0.05)
 # (HDPE) (https://www.glasscraftbottle.com/glass-insights/sizeguides/1683.html); a 4 oz bottle is
 # 100 mm x 46 mm (https://harrisspice.com/collections/packaging/products/bottle-4-oz-round); neck
 # calibres 25-35 mm (marutoys, above). Water 1 kg/L. Chosen, not cited: a plastic bottle (10-30 g)
-# filled 25-100% of a capacity of 85% of its outer volume (a can's share, below), the body
-# 50-70% and the shoulder 10-20% of the height.
+# filled from a quarter to full, its capacity 0.85 of its outer volume (a can's share, below), the body
+# 0.5-0.7 and the shoulder 0.1-0.2 of the height.
 BOTTLE_DIAMETER_M = (0.045, 0.085)
 BOTTLE_HEIGHT_M = (0.10, 0.265)
 BOTTLE_NECK_DIAMETER_M = (0.025, 0.035)
@@ -112,8 +112,8 @@ BANANA_MASS_KG = (0.125, 0.245)
 # a 12 oz (355 ml) can 4.83 inches (123 mm) tall (https://thefoodiesite.com/?p=32740) and 15 g empty
 # (https://www.cgcreativeshop.com/chi-sono/digital-graphics/2462-drink-aluminum-cans-3d-objects-download.html):
 # 500 ml in 66.1 x 168 mm, and 355 ml in 123 mm of the same diameter (assumed: the page gives the lid's),
-# are 87% and 85% of the outer volume. Bottles as above. Chosen, not cited: cans and jars 5-8.5 cm across, 1.2-3.5 diameters and at most 24 cm long,
-# filled 25-100%.
+# are 0.87 and 0.85 of the outer volume. Bottles as above. Chosen, not cited: cans and jars 5-8.5 cm across, 1.2-3.5 diameters and at most 24 cm long,
+# filled from a quarter to full.
 CAN_DIAMETER_M = (0.05, 0.085)
 CAN_LENGTH_MAX_M = 0.24
 CAN_CAPACITY_SHARE = 0.85

@@ -8,7 +8,7 @@ is the full tensor.
 
 Resting pose: a rotation R (O -> table frame, up to yaw) and the height h of the centre of mass
 when the lowest point touches z = 0. Placing O at T_D_O = [Rz(yaw) R | (0, 0, h)] puts the object
-on the table with its centre of mass above D's origin, as DESIGN.md §2 requires.
+on the table with its centre of mass above D's origin, as docs/architecture.md §Frames requires.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """Voxel signed distance field of an object: precompute once (numpy/scipy), look up in torch.
 
 Why a grid: exact mesh SDF (trimesh) costs seconds per few thousand points, and the energy
-optimiser needs hundreds of thousands of lookups per second (DESIGN.md §6). A 64³ grid with the
+optimiser needs hundreds of thousands of lookups per second (docs/architecture.md §Compute). A 64³ grid with the
 gradient stored beside the distance is looked up with one `grid_sample` call.
 
 Precompute, per grid node:

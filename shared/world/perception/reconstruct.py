@@ -8,7 +8,7 @@
 Steps
 1. Check the input (shape, NaN/inf, millimetres) and keep points above the table.
    Table: the known plane z = 0 with a tolerance, not a RANSAC fit. The world frame is defined by
-   the table (DESIGN.md §2) and the cameras are calibrated to it, so the plane is known; a RANSAC
+   the table (docs/architecture.md §Frames) and the cameras are calibrated to it, so the plane is known; a RANSAC
    fit would instead find the *largest* plane, which for a big flat box seen from above is the
    box's top. The tolerance adapts to the sensor: the tail of the table's noise below its level
    (5 mm .. 2 cm), so a far, noisier camera still loses its table points. A table band not centred

@@ -8,8 +8,9 @@ push.py): a floating hand driven 0.20 m along +x. Episode sets:
 - "perturbed": spatula poses and perturbations of them on the same objects (160 episodes).
 "Agreement" is the fraction of episodes whose success outcome equals the reference settings'
 (50 solver iterations, 1/240 s, same physics otherwise). The reference is not perfectly stable
-itself: moving every hand pose 0.1 mm sideways changes 2.0% of its outcomes on the 256 generator
-episodes (noise floor 98.0%), so no setting can be expected to agree better than that.
+itself: moving every hand pose 0.1 mm sideways changes about 2 in 100 of its outcomes, so no setting
+can be expected to agree better than that. The figures behind each choice: docs/architecture.md
+§Simulation.
 """
 from __future__ import annotations
 
@@ -20,19 +21,17 @@ from dataclasses import dataclass, replace
 class PhysicsParams:
     """Simulation settings of the push scene; the defaults are the measured choices below."""
 
-    # Solver: the fastest setting with >= 95% agreement with the reference (50 it / 1/240 s) on the
-    # largest episode set, 384 generator candidates (8 objects x 2 hands x 24, bench/validator.py
-    # --per-object 24): 40 it / 1/240 s 96.4% (chosen); 30 it 94.5%; 50 it / 1/480 s 93.5%; the
-    # reference's own noise floor (every hand pose moved 0.1 mm) 98.2%. Smaller sets had put 30 it at
-    # 96.1% (256 episodes) and 93.8% (128), so 30 it sits on the 95% line and 40 it clears it. Earlier
-    # sets: 20 it / 1/240 s 93.8%; 10 it 88.7%; 50 it / 1/120 s 93.0%; 20 it / 1/120 s 88.3% (at 1/120 s
+    # Solver: the fastest setting whose outcomes agree with the reference (50 it / 1/240 s) in at least 95 of
+    # 100 episodes on the largest episode set, 384 generator candidates (8 objects x 2 hands x 24,
+    # bench/validator.py --per-object 24). 40 it clears that bar; 30 it sits on it, and fewer iterations or
+    # a coarser step fall below it (at 1/120 s
     # the hand moves 0.83 mm per step and fingertip contacts with thin objects change character).
     # CPU per push, scene builds included: 40 it ~80 ms, 30 it ~75 ms, reference ~99 ms.
     # The shipped datasets were built at 30 it (their manifests record the physics settings).
     solver_iterations: int = 40
     time_step_s: float = 1.0 / 240.0
-    # Push speed 0.10 m/s (what DESIGN.md's spike and the robot use). Measured against 0.05 m/s
-    # (quasi-static): 94.4% agreement; against 0.2 m/s: 96.9% (perturbed set, reference solver).
+    # Push speed 0.10 m/s, the validator's, the rollouts' and the robot's: its outcomes agree closely with a
+    # quasi-static 0.05 m/s and with 0.2 m/s (perturbed set, reference solver; docs/architecture.md §Simulation).
     push_speed_mps: float = 0.10
     # Hold after the push so a tipping object finishes falling: 0.1, 0.25 and 1.0 s gave identical
     # outcomes on all 160 perturbed episodes; 0.25 s keeps a margin for slower topples.
@@ -41,22 +40,21 @@ class PhysicsParams:
     # Friction. PyBullet multiplies the two bodies' coefficients, so the effective values are
     # object-table 0.5 (wood / plastic on a table) and hand-object 0.8 (rubber-padded fingertips and
     # palm on plastic); the object's own coefficient is 1 so that the pair values are set here. These
-    # are modelling choices, not fitted to real pushes, and the labels depend on them: on 192 generator
-    # episodes, table 0.3 / 0.8 changes 13.5% / 15.1% of the outcomes (success 69% / 57% vs 65%),
-    # hand 0.5 / 1.2 changes 13.5% / 8.9% (60% / 64%).
+    # are modelling choices, not fitted to real pushes, and the labels depend on them: other table or hand
+    # friction changes about one outcome in seven to ten (docs/architecture.md §Simulation).
     table_friction: float = 0.5
     object_friction: float = 1.0
     object_rolling_friction: float = 0.0
     hand_friction: float = 0.8
-    # The Allegro URDF's joint damping (3-10) makes a floating hand explode with no contact (DESIGN.md §6).
+    # The Allegro URDF's joint damping (3-10) makes a floating hand explode with no contact (docs/architecture.md §Simulation).
     hand_joint_damping: float = 0.01
     # Hand link masses x10. The hand is driven kinematically, so its masses only matter to the solver:
-    # light fingers against a 0.1-1 kg object converge badly. On the 384 generator episodes x10 raised
-    # the agreement of 30 it / 1/240 s from 91.7% to 94.8% and the noise floor from 95.7% to 96.9%;
-    # x30 lowered agreement again (92.2%). Fingers do not sag under the extra weight (< 1e-4 rad).
+    # light fingers against a 0.1-1 kg object converge badly. On the 384 generator episodes x10 raised the
+    # agreement of 30 it / 1/240 s and lowered the reference's own noise; x30 lowered agreement again
+    # (docs/architecture.md §Simulation). Fingers do not sag under the extra weight (< 1e-4 rad).
     hand_mass_scale: float = 10.0
-    # Joint motors: the URDF effort limit (Allegro 15 N m, LEAP 0.95 N m); 3x that did not raise
-    # agreement (91.7% vs 94.4% at 20 it / 1/120 s on an early set).
+    # Joint motors: the URDF effort limit (Allegro 15 N m, LEAP 0.95 N m); 3x that lowered agreement on an
+    # early set (20 it / 1/120 s).
     hand_joint_force_scale: float = 1.0
     # Position gain 1.0 (PyBullet's default is 0.1): at 0.1, fingers deflected 0.1-0.9 rad during a
     # push at coarse solver settings (<= 0.36 rad at the reference); at 1.0, 0.02-0.2 rad.

@@ -119,7 +119,7 @@ def robot_efforts(scene: RobotScene) -> np.ndarray:
 
 
 def prepare_robot(scene: RobotScene, hand_joint_damping: float) -> None:
-    """Lower the hand's URDF joint damping, which fights the motors and explodes (DESIGN.md §6)."""
+    """Lower the hand's URDF joint damping, which fights the motors and explodes (docs/architecture.md §Simulation)."""
     for link in scene.hand_links:
         pb.changeDynamics(scene.robot_id, link, jointDamping=hand_joint_damping, physicsClientId=scene.client)
 

@@ -2,7 +2,7 @@
 
 One `SimScene` owns one PyBullet DIRECT client: a table plane at z = 0, objects loaded from their
 URDFs, floating hands and fixed-base robots. Conventions that PyBullet gets wrong by default are
-handled here once (DESIGN.md §6):
+handled here once (docs/architecture.md §Simulation):
 
 - PyBullet's base pose is the base's centre of mass, not the URDF link frame. Every pose this
   module accepts or returns is the *URDF base frame* as a 4x4 transform; conversion happens inside.
