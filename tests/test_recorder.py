@@ -554,8 +554,7 @@ def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_ro
     process, with two busy processes on the 2 cores: the metadata counts every sample published, none missing."""
     import zenoh
 
-    from services.robot_bridge.service import PUBLISH_QUEUE
-    from shared.bus import RecordedPublisher
+    from shared.bus import STREAM_QUEUE, RecordedPublisher
 
     seconds = 10.0
     cloud = encode(m.PushRequest(object=m.ObjectRef(point_cloud=np.random.default_rng(0).normal(
@@ -571,7 +570,7 @@ def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_ro
             _wait_for(lambda: _token_alive(session, "gd2p/alive/recorder/rec-load"), 30, "the recorder's liveliness token")
             # The clouds as a bulk publisher would send them (blocking, low priority); the states as the bridge does.
             clouds = RecordedPublisher(session, "gd2p/test/cloud", priority=zenoh.Priority.DATA_LOW)
-            states = RecordedPublisher(session, "gd2p/test/state", queue_size=PUBLISH_QUEUE)
+            states = RecordedPublisher(session, "gd2p/test/state", queue_size=STREAM_QUEUE)
             _wait_for(lambda: clouds.matching and states.matching, 10, "the recorder's subscription")
             load = _busy(2, seconds + 2.0)
             threads = [threading.Thread(target=_publish_paced, args=(clouds, *cloud, 10.0, seconds)),

@@ -47,7 +47,7 @@ from services.robot_bridge.executor import EStopLatch, Executor, StatePublisher
 from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot
-from shared.bus import BusConfig, OpenCancelled, RecordedPublisher, Worker, open_session
+from shared.bus import STREAM_QUEUE, BusConfig, OpenCancelled, RecordedPublisher, Worker, open_session
 from shared.bus.keys import OBJECT_TRACK_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.contracts.codec import CodecError, decode, encode
@@ -65,7 +65,7 @@ SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
 TRACK_KEY = OBJECT_TRACK_KEY
 TRACK_FRESH_S = 0.5  # an external tracker's pose older than this is not folded into the states
-PUBLISH_QUEUE = 1000  # states (and track frames) waiting to be sent: 2 s at 500 Hz
+PUBLISH_QUEUE = STREAM_QUEUE  # states (and track frames) waiting to be sent: 2 s at 500 Hz
 
 log = logging.getLogger("gd2p.robot_bridge")
 

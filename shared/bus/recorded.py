@@ -33,6 +33,8 @@ import zenoh
 
 log = logging.getLogger("gd2p.bus.recorded")
 
+STREAM_QUEUE = 1000  # the send queue of a stream published from a control loop: 2 s of robot states at 500 Hz
+
 _PUBLISHER = "publisher"
 _SEQ = "seq"
 
