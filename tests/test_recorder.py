@@ -617,3 +617,72 @@ def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_ro
     assert counts[-1].recording["commit"] == (commit or "unknown") and counts[-1].recording["seeds"] == "load-7"
     assert json.loads(counts[-1].recording["config"])["max_file_mb"] == 32.0
     assert _recording_info(*map(str, files)) == 0
+
+
+class _StuckPublisher:
+    """A zenoh publisher whose puts wait until `go` is set (a congested bus), recording what they sent."""
+
+    def __init__(self) -> None:
+        self.go = threading.Event()
+        self.sent: list[tuple[bytes, bytes]] = []
+
+    def put(self, payload, *, encoding=None, attachment=None) -> None:
+        self.go.wait(10)
+        self.sent.append((payload, attachment))
+
+    def undeclare(self) -> None:
+        pass
+
+
+class _FakeSession:
+    def __init__(self) -> None:
+        self.publisher = _StuckPublisher()
+        self.options: dict = {}
+
+    def zid(self) -> str:
+        return "zid"
+
+    def declare_publisher(self, key, **options):
+        self.options = options
+        return self.publisher
+
+
+def test_a_queued_publisher_never_waits_and_numbers_what_it_drops():
+    """A control loop's publisher: a full send queue drops the sample with its number, so the recorder
+    counts it missing; the numbers of what was sent are in order."""
+    import zenoh
+
+    from services.recorder.recorder import SequenceCounts
+    from shared.bus import RecordedPublisher, sequence_of
+
+    session = _FakeSession()
+    publisher = RecordedPublisher(session, "gd2p/test/state", queue_size=2)
+    assert session.options["congestion_control"] == zenoh.CongestionControl.BLOCK
+    started = time.monotonic()
+    seqs = [publisher.put(f"s{i}".encode()) for i in range(6)]  # one in the stuck put, two queued, three dropped
+    assert time.monotonic() - started < 0.5 and seqs == [1, 2, 3, 4, 5, 6]
+    session.publisher.go.set()
+    publisher.close()
+    sent = [sequence_of(attachment) for _payload, attachment in session.publisher.sent]
+    assert publisher.dropped == 6 - len(sent) >= 3
+    assert all(item is not None and item[0] == publisher.publisher_id for item in sent)
+    numbers = [item[1] for item in sent if item is not None]
+    assert numbers == sorted(numbers)
+    counter = SequenceCounts()
+    for item in [*sent, (publisher.publisher_id, 7)]:  # and the next one that gets through
+        counter.count("gd2p/test/state", item)
+    stream = counter.total[("gd2p/test/state", publisher.publisher_id)]
+    assert stream.missing == publisher.dropped and stream.received == len(sent) + 1
+
+
+@pytest.mark.parametrize("attachment", [None, b"", b"\xff\xfe", b"\x93\x01\x02\x03"])
+def test_a_foreign_attachment_is_an_unnumbered_sample(attachment):
+    import msgpack
+
+    from shared.bus import sequence_attachment, sequence_of
+
+    assert sequence_of(attachment) is None
+    for foreign in ({"publisher": "p", "seq": 0}, {"publisher": "", "seq": 3}, {"publisher": "p", "seq": True},
+                    {"timeout_s": 3.0}):
+        assert sequence_of(msgpack.packb(foreign)) is None
+    assert sequence_of(sequence_attachment("p", 3)) == ("p", 3)
