@@ -14,6 +14,9 @@ robot bridge with its simulated robot, breaks something mid-work, and prints its
 - `router_hung`:    the router SIGSTOPped mid-motion           -> stop latency (the bridge's router watchdog;
                     its target is the watchdog's own bound, 0.41 s: see RouterWatchdog)
 - `estop_garbage`:  malformed messages on the e-stop key       -> stop latency of each
+- `recording_complete`: the recorder process beside two busy processes, 1 MB clouds at 10 Hz and robot
+                    states at 500 Hz for a few seconds      -> samples missing per the MCAP metadata (target 0),
+                                                               samples received (target: every one published)
 Targets (issue "a robot that stops when it should"): 0 jobs lost or duplicated; motion stops <= 0.2 s
 after the lease or the router is lost; no worker starved longer than its deadline. `--quick` (what
 CI runs through tests/test_chaos.py) uses smaller batches; CI also passes `--stop-target 0.5`, slack for a
@@ -590,9 +593,79 @@ def validator_held(quick: bool) -> Figure:
                    "validators freed within 5 s of the caller leaving": freed_s is not None and freed_s <= 5.0})
 
 
+# ------------------------------------------------------------------------------------------ recording
+def _paced(publisher, payload: bytes, encoding: str, hz: float, seconds: float) -> None:
+    """Publish at `hz` for `seconds`: whatever is due each tick (a late tick catches up)."""
+    started = time.monotonic()
+    while (elapsed := time.monotonic() - started) < seconds:
+        for _ in range(int(elapsed * hz) + 1 - publisher.seq):
+            publisher.put(payload, encoding=encoding)
+        time.sleep(min(0.002, 1.0 / hz))
+
+
+def recording_complete(quick: bool) -> Figure:
+    import glob
+    import tempfile
+
+    import zenoh
+
+    from services.recorder.recorder import FILE_GLOB, StreamCount, read_counts
+    from shared.bus import STREAM_QUEUE, RecordedPublisher, live_workers
+    from shared.contracts import messages as m
+    from shared.contracts.codec import encode
+
+    seconds = 3.0 if quick else 5.0
+    cloud = encode(m.PushRequest(object=m.ObjectRef(point_cloud=np.random.default_rng(0).normal(
+        size=((1 << 20) // 12, 3)).astype(np.float32)), direction_deg=90.0))  # 1 MB
+    state = encode(m.ExecutionState(stamp=time.time(), joint_names=[f"j{i}" for i in range(23)], positions=np.zeros(23),
+                                    velocities=np.zeros(23), status="executing", command_id="c" * 32, plan_time_s=1.0))
+    spin = f"import time\nend = time.monotonic() + {seconds + 3.0}\nwhile time.monotonic() < end:\n    pass\n"
+    with tempfile.TemporaryDirectory(prefix="chaos-recording-") as record_dir, router_process() as (endpoint, _):
+        recorder = subprocess.Popen([sys.executable, "-m", "services.recorder", "--connect", endpoint, "--record-dir",
+                                     record_dir, "--max-file-mb", "32", "--worker-id", "chaos-recorder"],
+                                    cwd=REPO_DIR, env=os.environ | {"PYTHONPATH": REPO_DIR}, stderr=subprocess.DEVNULL)
+        load: list[subprocess.Popen] = []
+        try:
+            with client(endpoint) as session:
+                deadline = time.monotonic() + 30.0
+                while "chaos-recorder" not in live_workers(session, "recorder").get("recorder", []):
+                    if time.monotonic() > deadline:
+                        raise RuntimeError("the recorder did not register within 30 s")
+                    time.sleep(0.1)
+                clouds = RecordedPublisher(session, "gd2p/chaos/cloud", priority=zenoh.Priority.DATA_LOW)
+                states = RecordedPublisher(session, "gd2p/chaos/state", queue_size=STREAM_QUEUE)  # as the bridge
+                while not (clouds.matching and states.matching) and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                load = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
+                threads = [threading.Thread(target=_paced, args=(clouds, *cloud, 10.0, seconds)),
+                           threading.Thread(target=_paced, args=(states, *state, 500.0, seconds))]
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    t.join()
+                states.close()
+                clouds.close()
+                recorder.send_signal(signal.SIGTERM)
+                recorder.wait(timeout=60)
+        finally:
+            end([recorder, *load])
+        files = sorted(glob.glob(os.path.join(record_dir, FILE_GLOB)))
+        counts = [read_counts(f) for f in files]
+    total = (counts[-1].total if counts else None) or {}
+    got = {p.key: total.get((p.key, p.publisher_id), StreamCount()) for p in (clouds, states)}
+    missing = sum(c.missing for c in total.values())
+    received = {p.key: got[p.key].received for p in (clouds, states)}
+    published = {p.key: p.seq for p in (clouds, states)}
+    return Figure("recording_complete", {
+        "missing": missing, "received_clouds": received[clouds.key], "published_clouds": clouds.seq,
+        "received_states": received[states.key], "published_states": states.seq,
+        "dropped_by_the_state_queue": states.dropped, "files": len(files), "seconds": seconds},
+        {"0 missing": missing == 0 and states.dropped == 0, "every sample received": received == published})
+
+
 SCENARIOS: dict[str, Callable[[bool], Figure]] = {
     f.__name__: f for f in (worker_killed, worker_stalled, router_restarted, oversized_job, lease_dropped, router_killed, router_hung,
-                            estop_garbage, client_gone, request_flood, validator_held)
+                            estop_garbage, client_gone, request_flood, validator_held, recording_complete)
 }
 
 

@@ -1,8 +1,11 @@
-"""`gd2p replay FILE.mcap ...`: republish a recording on the bus, each sample on its key with its encoding."""
+"""`gd2p replay FILE.mcap ...`: republish a recording on the bus, each sample on its key with its encoding.
+`gd2p recording-info FILE.mcap ...`: what the recorder counted (received, missing) and the run it recorded.
+"""
 from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import os
 import sys
 import time
@@ -23,11 +26,63 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_replay)
 
+    info = subparsers.add_parser(
+        "recording-info", help="received / missing counts and run facts of MCAP recordings",
+        description="Print what the recorder wrote into each file's metadata: the commit, config and seeds of the "
+                    "run, and per key and publisher the samples received and missing (gaps in the publisher's "
+                    "sequence numbers). Exit code 1 if any file counts a missing sample.")
+    info.add_argument("files", nargs="+", metavar="FILE.mcap", help="recording(s)")
+    info.add_argument("--streams", action="store_true", help="one line per key and publisher, not only those missing some")
+    info.add_argument("--json", action="store_true", help="one JSON object per file")
+    info.set_defaults(func=run_info)
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from services.recorder.recorder import read_counts
+
+    missing_any = False
+    for path in args.files:
+        try:
+            counts = read_counts(path)
+        except RecordingError as exc:
+            print(f"gd2p recording-info: {exc}", file=sys.stderr)
+            return 2
+        streams = {"file": counts.file, **({"total": counts.total} if counts.total is not None else {})}
+        missing_any |= any(c.missing for c in counts.file.values())
+        if args.json:
+            print(json.dumps({"path": str(path), "recording": counts.recording,
+                              **{part: [{"key": k, "publisher": p, **asdict(c)} for (k, p), c in sorted(each.items())]
+                                 for part, each in streams.items()}}))
+            continue
+        if not counts.counted:
+            print(f"{path}: no counts in its metadata (an older recording, or recovered after its recorder died)")
+            continue
+        run = counts.recording
+        final = " (the run's last)" if run.get("final") == "true" else ""
+        print(f"{path}: file {run.get('file_index', '?')}{final}; commit {run.get('commit', 'unknown')}; "
+              f"seeds {run.get('seeds', 'not given')}")
+        for part, each in streams.items():
+            received = sum(c.received for c in each.values())
+            missing = sum(c.missing for c in each.values())
+            late = sum(c.late for c in each.values())
+            unnumbered = sum(c.received for (_k, p), c in each.items() if not p)
+            what = "this file" if part == "file" else "whole run"
+            print(f"  {what}: received {received}, missing {missing}" + (f", late {late}" if late else "")
+                  + f" ({unnumbered} without sequence numbers) on {len({k for k, _p in each})} keys")
+            for (key, publisher), c in sorted(each.items()):
+                if args.streams or c.missing or c.late:
+                    seqs = f", seq {c.first_seq}..{c.last_seq}" if c.first_seq is not None else ""
+                    print(f"    {key} [{publisher or 'unnumbered'}]: received {c.received}, missing {c.missing}"
+                          + (f", late {c.late}" if c.late else "") + seqs)
+    return 1 if missing_any else 0
+
 
 def run_replay(args: argparse.Namespace) -> int:
     import zenoh
 
-    from shared.bus import BusConfig, BusError, open_session
+    from shared.bus import BusConfig, BusError, RecordedPublisher, open_session
 
     if args.rate < 0:
         print(f"gd2p replay: --rate must be >= 0, got {args.rate}", file=sys.stderr)
@@ -46,18 +101,23 @@ def run_replay(args: argparse.Namespace) -> int:
         for record in itertools.chain.from_iterable(read_records(path) for path in args.files)
         if wanted.intersects(zenoh.KeyExpr(record.key))
     )
-    keys: set[str] = set()
+    publishers: dict[str, RecordedPublisher] = {}
     started = time.monotonic()
     try:
         with open_session(BusConfig.from_args(args, connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS)) as session:
 
             def publish(record: Record) -> None:
-                session.put(record.key, record.payload, encoding=record.encoding)
-                keys.add(record.key)
+                if record.key not in publishers:  # one numbered, blocking publisher per key (shared/bus/recorded.py)
+                    publishers[record.key] = RecordedPublisher(session, record.key)
+                publishers[record.key].put(record.payload, encoding=record.encoding)
 
-            count = replay(records, publish, args.rate)
+            try:
+                count = replay(records, publish, args.rate)
+            finally:
+                for publisher in publishers.values():
+                    publisher.close()
     except (RecordingError, BusError) as exc:
         print(f"gd2p replay: {exc}", file=sys.stderr)
         return 1
-    print(f"replayed {count} messages on {len(keys)} keys in {time.monotonic() - started:.2f} s")
+    print(f"replayed {count} messages on {len(publishers)} keys in {time.monotonic() - started:.2f} s")
     return 0

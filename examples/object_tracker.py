@@ -8,6 +8,8 @@ closed-loop monitor (`gd2p push --closed-loop`) and its corrective pushes read i
 This one reports a fixed pose (say, of an object you have measured, to try the path end to end);
 replace `read_pose` with your tracker (an RGB-D pose tracker, markers, motion capture). Under the
 secure profile, run it with the "tracker" certificate: that identity may publish on this key only.
+Like every recorded publisher it uses congestion control BLOCK and numbers its samples in the attachment
+(msgpack `{"publisher": <id>, "seq": <n from 1>}`), so the recorder can count any it never got.
 
     python examples/object_tracker.py --connect tcp/127.0.0.1:7447 --position 0.55 0.0 0.04 --yaw 10
 """
@@ -55,12 +57,14 @@ def main() -> int:
     config.insert_json5("scouting/multicast/enabled", "false")
     deadline = None if args.seconds is None else time.monotonic() + args.seconds
     with zenoh.open(config) as session:
-        publisher = session.declare_publisher(KEY)
+        publisher = session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
+        publisher_id, seq = f"{args.source}.{uuid.uuid4().hex[:8]}", 0
         try:
             while deadline is None or time.monotonic() < deadline:
                 position, quaternion = read_pose(args)
                 payload = msgpack.packb(track_message(position, quaternion, args.source), use_bin_type=True)
-                publisher.put(payload, encoding=ENCODING)
+                seq += 1
+                publisher.put(payload, encoding=ENCODING, attachment=msgpack.packb({"publisher": publisher_id, "seq": seq}))
                 time.sleep(1.0 / args.rate)
         except KeyboardInterrupt:
             pass

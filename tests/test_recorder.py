@@ -16,7 +16,16 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from services.recorder.recorder import RecorderError, RotatingRecorder, recover_unfinished
+from services.recorder.recorder import (
+    METADATA_COUNTS,
+    METADATA_RECORDING,
+    METADATA_TOTAL,
+    RecorderError,
+    RotatingRecorder,
+    StreamCount,
+    read_counts,
+    recover_unfinished,
+)
 from shared.contracts import messages as m
 from shared.contracts.codec import CodecError, decode, encode
 from visualisation.recording import (
@@ -25,6 +34,7 @@ from visualisation.recording import (
     Record,
     RecordingError,
     is_complete_mcap,
+    read_metadata,
     read_records,
     recover_mcap,
     replay,
@@ -325,10 +335,11 @@ def test_recorder_process_records_everything_published_before_sigterm(zenoh_rout
     assert any(r.key == f"gd2p/status/recorder/{worker_id}" for f in files for r in read_records(str(f)))
 
 
-def _start_recorder(endpoint: str, record_dir: Path, worker_id: str, *extra: str) -> subprocess.Popen:
+def _start_recorder(endpoint: str, record_dir: Path, worker_id: str, *extra: str,
+                    env: dict[str, str] | None = None) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "services.recorder", "--connect", endpoint, "--record-dir", str(record_dir),
            "--worker-id", worker_id, *extra]
-    return subprocess.Popen(cmd, cwd=REPO, env=os.environ | {"PYTHONPATH": str(REPO)},
+    return subprocess.Popen(cmd, cwd=REPO, env=os.environ | {"PYTHONPATH": str(REPO)} | (env or {}),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
@@ -428,3 +439,250 @@ def test_replay_of_missing_file_fails_clearly(capsys):
     args = parser.parse_args(["replay", "/nonexistent/x.mcap"])
     assert args.func(args) == 2
     assert "no such recording: /nonexistent/x.mcap" in capsys.readouterr().err
+
+
+# --- counts: what the recorder received and what it never got --------------------------------------
+
+
+def test_counts_per_file_and_run_totals_in_the_metadata(tmp_path):
+    payload = os.urandom(2048)  # incompressible: files rotate at a known pace
+    with RotatingRecorder(tmp_path, max_file_bytes=20_000, run_info={"commit": "abc", "seeds": "7"}) as rec:
+        seqs = [*range(1, 21), *range(23, 41)]  # 21 and 22 never arrive
+        for seq in seqs:
+            rec.record("gd2p/test/a", payload, RAW_ENCODING, sequence=("pub-a", seq))
+        rec.record("gd2p/test/a", payload, RAW_ENCODING, sequence=("pub-a", 30))  # a repeat: late, not missing
+        rec.record("gd2p/test/b", b"x", RAW_ENCODING)  # unnumbered
+        rec.record("gd2p/test/b", b"y", RAW_ENCODING, sequence=("pub-b", 5))  # joined at 5: nothing missing
+    files = _mcap_files(tmp_path)
+    assert len(files) >= 3
+    counts = [read_counts(f) for f in files]
+    assert [c.recording["file_index"] for c in counts] == [str(i) for i in range(len(files))]
+    assert [c.recording["final"] for c in counts] == ["false"] * (len(files) - 1) + ["true"]
+    assert all(c.recording["commit"] == "abc" and c.recording["seeds"] == "7" for c in counts)
+    assert [c.total is None for c in counts] == [True] * (len(files) - 1) + [False]
+    a = ("gd2p/test/a", "pub-a")
+    assert sum(c.file[a].received for c in counts if a in c.file) == len(seqs) + 1
+    assert sum(c.file[a].missing for c in counts if a in c.file) == 2
+    assert sum(int(c.recording["missing"]) for c in counts) == 2
+    total = counts[-1].total
+    assert total is not None
+    assert total[a] == StreamCount(received=len(seqs) + 1, missing=2, late=1, first_seq=1, last_seq=40)
+    assert total[("gd2p/test/b", "")] == StreamCount(received=1)
+    assert total[("gd2p/test/b", "pub-b")] == StreamCount(received=1, first_seq=5, last_seq=5)
+    assert counts[-1].recording["received_total"] == str(len(seqs) + 3)
+    assert counts[-1].recording["missing_total"] == "2"
+    # Each file's first and last numbers are those of the samples it holds, in order.
+    firsts = [c.file[a].first_seq for c in counts if a in c.file]
+    assert firsts == sorted(firsts) and firsts[0] == 1
+
+
+def test_a_run_whose_last_file_rotated_full_gets_a_file_for_its_totals(tmp_path):
+    rec = RotatingRecorder(tmp_path, max_file_bytes=4096)
+    rec.record("gd2p/test/a", os.urandom(8192), RAW_ENCODING, sequence=("p", 1))  # fills and closes file 0
+    assert len(rec.files) == 1
+    files = rec.close()
+    assert rec.close() == files and len(files) == 2
+    last = read_counts(files[1])
+    assert last.file == {} and last.total == {("gd2p/test/a", "p"): StreamCount(received=1, first_seq=1, last_seq=1)}
+    assert list(read_records(str(files[1]))) == []
+    assert set(read_metadata(str(files[1]))) == {METADATA_RECORDING, METADATA_COUNTS, METADATA_TOTAL}
+
+
+def _recording_info(*argv: str) -> int:
+    from cli.recording import register
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["recording-info", *argv])
+    return args.func(args)
+
+
+def test_a_skipped_sequence_number_is_counted_missing(zenoh_router, tmp_path, capsys):
+    """The counter can fail: a publisher that skips two numbers leaves two missing in the metadata."""
+    from services.recorder.service import RecorderService
+    from shared.bus import RecordedPublisher
+
+    recorder = RotatingRecorder(tmp_path, run_info={"commit": "test"})
+    stop = threading.Event()
+    with _session(zenoh_router) as recorder_session, _session(zenoh_router) as session:
+        service = RecorderService(recorder, "gd2p/test/**", drain_quiet_s=0.3)
+        thread = threading.Thread(target=service.run, args=(recorder_session,),
+                                  kwargs={"worker_id": "rec-gap", "stop": stop}, daemon=True)
+        thread.start()
+        publisher = RecordedPublisher(session, "gd2p/test/gap")
+        try:
+            _wait_for(lambda: publisher.matching, 10, "the recorder's subscription")
+            for i in range(10):
+                publisher.put(f"sample {i}".encode(), encoding=RAW_ENCODING)
+                if i == 4:
+                    publisher.skip(2)  # numbers 6 and 7 are never sent
+            _wait_for(lambda: recorder.message_count >= 10, 10, "ten samples recorded")
+        finally:
+            publisher.close()
+            stop.set()
+            thread.join(timeout=20)
+    assert not thread.is_alive()
+    [path] = recorder.files
+    counts = read_counts(path)
+    stream = ("gd2p/test/gap", publisher.publisher_id)
+    assert counts.file[stream] == StreamCount(received=10, missing=2, first_seq=1, last_seq=12)
+    assert counts.total is not None and counts.total[stream] == counts.file[stream]
+    assert counts.recording["missing_total"] == "2"
+    capsys.readouterr()
+    assert _recording_info(str(path)) == 1  # a file missing samples fails the command
+    out = capsys.readouterr().out
+    assert "this file: received 10, missing 2" in out and f"gd2p/test/gap [{publisher.publisher_id}]" in out
+
+
+def _busy(n: int, seconds: float) -> list[subprocess.Popen]:
+    """`n` processes spinning a core each for `seconds` (load beside the recorder)."""
+    code = f"import time\nend = time.monotonic() + {seconds}\nwhile time.monotonic() < end:\n    pass\n"
+    return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
+
+
+def _publish_paced(publisher, payload: bytes, encoding: str, hz: float, seconds: float) -> None:
+    """Publish at `hz` for `seconds`: whatever is due each tick (a late tick catches up)."""
+    started = time.monotonic()
+    while (elapsed := time.monotonic() - started) < seconds:
+        for _ in range(int(elapsed * hz) + 1 - publisher.seq):
+            publisher.put(payload, encoding=encoding)
+        time.sleep(min(0.002, 1.0 / hz))
+
+
+def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_router, tmp_path):
+    """10 s of 1 MB point clouds at 10 Hz and robot states at 500 Hz through a real router to the recorder
+    process, with two busy processes on the 2 cores: the metadata counts every sample published, none missing."""
+    import zenoh
+
+    from shared.bus import STREAM_QUEUE, RecordedPublisher
+
+    seconds = 10.0
+    cloud = encode(m.PushRequest(object=m.ObjectRef(point_cloud=np.random.default_rng(0).normal(
+        size=((1 << 20) // 12, 3)).astype(np.float32)), direction_deg=90.0))
+    joints = [f"j{i}" for i in range(23)]  # Panda + Allegro
+    state = encode(m.ExecutionState(stamp=time.time(), joint_names=joints, positions=np.zeros(23),
+                                    velocities=np.zeros(23), status="executing", command_id="c" * 32, plan_time_s=1.0))
+    assert len(cloud[0]) >= 1 << 20
+    proc = _start_recorder(zenoh_router, tmp_path, "rec-load", "--max-file-mb", "32", env={"GD2P_RUN_SEEDS": "load-7"})
+    load: list[subprocess.Popen] = []
+    try:
+        with _session(zenoh_router) as session:
+            _wait_for(lambda: _token_alive(session, "gd2p/alive/recorder/rec-load"), 30, "the recorder's liveliness token")
+            # The clouds as a bulk publisher would send them (blocking, low priority); the states as the bridge does.
+            clouds = RecordedPublisher(session, "gd2p/test/cloud", priority=zenoh.Priority.DATA_LOW)
+            states = RecordedPublisher(session, "gd2p/test/state", queue_size=STREAM_QUEUE)
+            _wait_for(lambda: clouds.matching and states.matching, 10, "the recorder's subscription")
+            load = _busy(2, seconds + 2.0)
+            threads = [threading.Thread(target=_publish_paced, args=(clouds, *cloud, 10.0, seconds)),
+                       threading.Thread(target=_publish_paced, args=(states, *state, 500.0, seconds))]
+            started = time.monotonic()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            published_s = time.monotonic() - started
+            states.close()
+            clouds.close()
+            proc.send_signal(signal.SIGTERM)
+            output, _ = proc.communicate(timeout=60)
+    finally:
+        for p in [proc, *load]:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    assert proc.returncode == 0, output.decode(errors="replace")
+    assert states.dropped == 0, "the state publisher's send queue overflowed"
+    assert clouds.seq >= 0.9 * 10 * seconds and states.seq >= 0.9 * 500 * seconds, (clouds.seq, states.seq, published_s)
+
+    files = _mcap_files(tmp_path)
+    assert len(files) >= 3, "about 100 MB in 32 MB files"
+    counts = [read_counts(f) for f in files]
+    total = counts[-1].total
+    assert total is not None
+    for publisher in (clouds, states):
+        stream = (publisher.key, publisher.publisher_id)
+        assert total[stream] == StreamCount(received=publisher.seq, missing=0, late=0, first_seq=1,
+                                            last_seq=publisher.seq), publisher.key
+        assert sum(c.file[stream].received for c in counts if stream in c.file) == publisher.seq
+    assert all(c.recording["missing"] == "0" for c in counts) and counts[-1].recording["missing_total"] == "0"
+    # What the files hold is what the counts say.
+    for path, c in zip(files, counts, strict=True):
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+        held = {summary.channels[i].topic: n for i, n in summary.statistics.channel_message_counts.items()}
+        for publisher in (clouds, states):
+            assert held.get(publisher.key, 0) == c.file.get((publisher.key, publisher.publisher_id), StreamCount()).received
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    assert counts[-1].recording["commit"] == (commit or "unknown") and counts[-1].recording["seeds"] == "load-7"
+    assert json.loads(counts[-1].recording["config"])["max_file_mb"] == 32.0
+    assert _recording_info(*map(str, files)) == 0
+
+
+class _StuckPublisher:
+    """A zenoh publisher whose puts wait until `go` is set (a congested bus), recording what they sent."""
+
+    def __init__(self) -> None:
+        self.go = threading.Event()
+        self.sent: list[tuple[bytes, bytes]] = []
+
+    def put(self, payload, *, encoding=None, attachment=None) -> None:
+        self.go.wait(10)
+        self.sent.append((payload, attachment))
+
+    def undeclare(self) -> None:
+        pass
+
+
+class _FakeSession:
+    def __init__(self) -> None:
+        self.publisher = _StuckPublisher()
+        self.options: dict = {}
+
+    def zid(self) -> str:
+        return "zid"
+
+    def declare_publisher(self, key, **options):
+        self.options = options
+        return self.publisher
+
+
+def test_a_queued_publisher_never_waits_and_numbers_what_it_drops():
+    """A control loop's publisher: a full send queue drops the sample with its number, so the recorder
+    counts it missing; the numbers of what was sent are in order."""
+    import zenoh
+
+    from services.recorder.recorder import SequenceCounts
+    from shared.bus import RecordedPublisher, sequence_of
+
+    session = _FakeSession()
+    publisher = RecordedPublisher(session, "gd2p/test/state", queue_size=2)
+    assert session.options["congestion_control"] == zenoh.CongestionControl.BLOCK
+    started = time.monotonic()
+    seqs = [publisher.put(f"s{i}".encode()) for i in range(6)]  # one in the stuck put, two queued, three dropped
+    assert time.monotonic() - started < 0.5 and seqs == [1, 2, 3, 4, 5, 6]
+    session.publisher.go.set()
+    publisher.close()
+    sent = [sequence_of(attachment) for _payload, attachment in session.publisher.sent]
+    assert publisher.dropped == 6 - len(sent) >= 3
+    assert all(item is not None and item[0] == publisher.publisher_id for item in sent)
+    numbers = [item[1] for item in sent if item is not None]
+    assert numbers == sorted(numbers)
+    counter = SequenceCounts()
+    for item in [*sent, (publisher.publisher_id, 7)]:  # and the next one that gets through
+        counter.count("gd2p/test/state", item)
+    stream = counter.total[("gd2p/test/state", publisher.publisher_id)]
+    assert stream.missing == publisher.dropped and stream.received == len(sent) + 1
+
+
+@pytest.mark.parametrize("attachment", [None, b"", b"\xff\xfe", b"\x93\x01\x02\x03"])
+def test_a_foreign_attachment_is_an_unnumbered_sample(attachment):
+    import msgpack
+
+    from shared.bus import sequence_attachment, sequence_of
+
+    assert sequence_of(attachment) is None
+    for foreign in ({"publisher": "p", "seq": 0}, {"publisher": "", "seq": 3}, {"publisher": "p", "seq": True},
+                    {"timeout_s": 3.0}):
+        assert sequence_of(msgpack.packb(foreign)) is None
+    assert sequence_of(sequence_attachment("p", 3)) == ("p", 3)

@@ -137,6 +137,12 @@ class McapWriter:
                                  publish_time=log_time_ns, sequence=sequence)
         self.message_count += 1
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Append an MCAP metadata record (a named map of strings, indexed in the summary)."""
+        if self._closed:
+            raise RecordingError("metadata on a closed MCAP writer")
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
+
     def bytes_on_disk(self) -> int:
         """Bytes flushed to the file so far (buffered chunk data not yet included)."""
         return self._stream.tell()
@@ -178,6 +184,21 @@ class McapWriter:
         if schema_id is None:
             schema_id = self._schemas[model] = self._writer.register_schema(name=model, encoding=SCHEMA_ENCODING, data=data)
         return schema_id
+
+
+def read_metadata(path: str) -> dict[str, dict[str, str]]:
+    """The metadata records of a recording by name (a name written twice: the last one)."""
+    try:
+        stream = open(path, "rb")
+    except OSError as exc:
+        raise RecordingError(f"cannot open recording {path}: {exc.strerror}") from None
+    with stream:
+        try:
+            return {record.name: dict(record.metadata) for record in make_reader(stream).iter_metadata()}
+        except RecordingError:
+            raise
+        except Exception as exc:
+            raise RecordingError(f"cannot read recording {path}: {exc}") from None
 
 
 def read_records(path: str) -> Iterator[Record]:

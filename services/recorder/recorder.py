@@ -11,21 +11,39 @@ every complete chunk is copied into `<name>.mcap` (see `visualisation.recording.
 `.part` is removed; the log says how many messages were recovered. The writer holds an exclusive
 `flock` on its `.part` while it writes, so a recorder starting beside a live one leaves that one's
 file alone. A `.part` that is not MCAP at all is renamed `<name>.unrecoverable` and kept.
+
+What is counted (`SequenceCounts`): publishers of recorded channels number their samples
+(shared/bus/recorded.py: `{"publisher": id, "seq": n}` in the Zenoh attachment). Per key and publisher
+id the recorder counts the samples it received and the numbers it never got (gaps: `missing`), and
+those that came with a number at or below one already seen (`late`: out of order or repeated). A
+publisher's first number sets where counting starts (`first_seq` > 1: the recorder heard it only from
+there on, e.g. it started later); samples lost after the last one received cannot be seen. Samples
+without numbers (the e-stop, the watchdog's beats, a foreign publisher) are counted as received under
+publisher "". When a file is closed, its MCAP metadata gets (`METADATA_*`):
+- `gd2p.recording`: the run (commit, recorder config, seeds: `run_info`), the file's index, whether it
+  is the run's final file, and its received/missing sums;
+- `gd2p.counts`: per `<key>#<publisher>` a JSON object {received, missing, late, first_seq, last_seq} of
+  the samples this file holds (a gap is counted in the file of the sample after it);
+- `gd2p.counts.total` (final file only): the same over the whole run, with the run's sums in
+  `gd2p.recording` (`received_total`, `missing_total`).
+A run whose last file was rotated full gets one more file holding only this metadata. A recovered
+file (its writer died) has no counts: they are written when a file is closed.
 """
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import logging
 import os
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping
+from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import IO
 
-from visualisation.recording import McapWriter, RecordingError, is_complete_mcap, recover_mcap
+from visualisation.recording import McapWriter, RecordingError, is_complete_mcap, read_metadata, recover_mcap
 
 log = logging.getLogger("gd2p.recorder")
 
@@ -36,8 +54,77 @@ UNRECOVERABLE_SUFFIX = ".unrecoverable"
 FILE_GLOB = "gd2p-*.mcap"
 
 
+METADATA_RECORDING = "gd2p.recording"
+METADATA_COUNTS = "gd2p.counts"
+METADATA_TOTAL = "gd2p.counts.total"
+
+
 class RecorderError(RuntimeError):
     """The recorder cannot write where or how it was asked to."""
+
+
+@dataclass
+class StreamCount:
+    """What the recorder got of one publisher's samples on one key (see the module docstring)."""
+
+    received: int = 0
+    missing: int = 0
+    late: int = 0
+    first_seq: int | None = None
+    last_seq: int | None = None
+
+
+def stream_name(key: str, publisher: str) -> str:
+    """`<key>#<publisher>` ('#' is never part of a key expression); publisher "" for unnumbered samples."""
+    return f"{key}#{publisher}"
+
+
+def parse_stream_name(name: str) -> tuple[str, str]:
+    key, _, publisher = name.rpartition("#")
+    return key, publisher
+
+
+class SequenceCounts:
+    """Received and missing samples per (key, publisher id): for the file being written and for the run."""
+
+    def __init__(self) -> None:
+        self.total: dict[tuple[str, str], StreamCount] = {}
+        self.file: dict[tuple[str, str], StreamCount] = {}
+        self._last: dict[tuple[str, str], int] = {}  # the highest number received per stream, over the run
+
+    def count(self, key: str, sequence: tuple[str, int] | None) -> None:
+        """One sample received on `key`, with its (publisher id, number) if it was numbered."""
+        publisher, seq = sequence if sequence is not None else ("", None)
+        stream = (key, publisher)
+        counts = (self.total.setdefault(stream, StreamCount()), self.file.setdefault(stream, StreamCount()))
+        gap = late = 0
+        if seq is not None:
+            last = self._last.get(stream)
+            if last is None or seq > last:
+                gap = 0 if last is None else seq - last - 1
+                self._last[stream] = seq
+            else:
+                late = 1
+        for c in counts:
+            c.received += 1
+            c.missing += gap
+            c.late += late
+            if seq is not None:
+                c.first_seq = seq if c.first_seq is None else c.first_seq
+                c.last_seq = seq if c.last_seq is None else max(c.last_seq, seq)
+
+    def next_file(self) -> None:
+        self.file = {}
+
+    @staticmethod
+    def as_metadata(counts: Mapping[tuple[str, str], StreamCount]) -> dict[str, str]:
+        return {stream_name(key, publisher): json.dumps(asdict(c), sort_keys=True)
+                for (key, publisher), c in sorted(counts.items())}
+
+    @staticmethod
+    def sums(counts: Mapping[tuple[str, str], StreamCount]) -> tuple[int, int]:
+        """(received, missing) over every stream."""
+        return sum(c.received for c in counts.values()), sum(c.missing for c in counts.values())
 
 
 @dataclass(frozen=True)
@@ -123,6 +210,33 @@ def _exclusive(path: Path) -> Iterator[bool]:
         yield same
 
 
+@dataclass(frozen=True)
+class RecordedCounts:
+    """What a recording's metadata says of itself (`read_counts`)."""
+
+    path: Path
+    recording: dict[str, str]  # `gd2p.recording`: commit, config, seeds, file_index, final, sums
+    file: dict[tuple[str, str], StreamCount]  # (key, publisher) -> counts of this file's samples
+    total: dict[tuple[str, str], StreamCount] | None  # the run's, in its final file only
+
+    @property
+    def counted(self) -> bool:
+        """False for a file without counts (written before counting existed, or recovered after a crash)."""
+        return bool(self.recording)
+
+
+def _streams(data: Mapping[str, str]) -> dict[tuple[str, str], StreamCount]:
+    return {parse_stream_name(name): StreamCount(**json.loads(value)) for name, value in data.items()}
+
+
+def read_counts(path: str | os.PathLike) -> RecordedCounts:
+    """The counts and run facts a recorder wrote into `path`'s metadata (RecordingError if unreadable)."""
+    metadata = read_metadata(str(path))
+    total = metadata.get(METADATA_TOTAL)
+    return RecordedCounts(Path(path), metadata.get(METADATA_RECORDING, {}), _streams(metadata.get(METADATA_COUNTS, {})),
+                          None if total is None else _streams(total))
+
+
 class RotatingRecorder:
     """Append samples to MCAP files in `record_dir`, starting a new file past `max_file_bytes`.
 
@@ -135,7 +249,7 @@ class RotatingRecorder:
     """
 
     def __init__(self, record_dir: str | os.PathLike, max_file_bytes: int = int(DEFAULT_MAX_FILE_MB * MIB), *,
-                 started_at: datetime | None = None, recover: bool = True):
+                 started_at: datetime | None = None, recover: bool = True, run_info: Mapping[str, str] | None = None):
         if max_file_bytes <= 0:
             raise RecorderError(f"max file size must be positive, got {max_file_bytes} bytes")
         self.record_dir = Path(record_dir)
@@ -155,6 +269,9 @@ class RotatingRecorder:
         self._current: Path | None = None
         self.files: list[Path] = []  # completed files, in order
         self.message_count = 0
+        self.counts = SequenceCounts()
+        self._closed = False
+        self.run_info = {"started_utc": stamp.isoformat(), **(run_info or {})}  # commit, config, seeds
         self.recovered: list[Recovered] = recover_unfinished(self.record_dir, chunk_bytes=self.chunk_bytes) if recover else []
 
     @property
@@ -162,17 +279,25 @@ class RotatingRecorder:
         """The final name of the file being written (it exists as `<name>.part` until complete)."""
         return self._current
 
-    def record(self, key: str, payload: bytes, encoding: str, log_time_ns: int | None = None, publish_time_ns: int | None = None) -> None:
-        """Write one sample; rotates to a new file when the current one is full."""
+    def record(self, key: str, payload: bytes, encoding: str, log_time_ns: int | None = None,
+               publish_time_ns: int | None = None, sequence: tuple[str, int] | None = None) -> None:
+        """Write one sample (with its publisher's (id, number), if numbered); rotates when the file is full."""
+        if self._closed:
+            raise RecorderError("record on a closed recorder")
         writer = self._writer or self._open_next()
         writer.write(key, payload, encoding, time.time_ns() if log_time_ns is None else log_time_ns, publish_time_ns)
         self.message_count += 1
+        self.counts.count(key, sequence)
         if writer.bytes_on_disk() >= self.max_file_bytes:
             self._finish_current()
 
     def close(self) -> list[Path]:
-        """Finish the current file; returns every completed file of this recorder."""
-        self._finish_current()
+        """Finish the current file with the run's totals (see the module docstring); every completed file."""
+        if not self._closed:
+            self._closed = True
+            if self._writer is None and self.files:  # the last file was rotated full: one more for the totals
+                self._open_next()
+            self._finish_current(final=True)
         return list(self.files)
 
     def __enter__(self) -> RotatingRecorder:
@@ -195,9 +320,10 @@ class RotatingRecorder:
         log.info("recording to %s", self._current)
         return self._writer
 
-    def _finish_current(self) -> None:
+    def _finish_current(self, final: bool = False) -> None:
         if self._writer is None or self._current is None:
             return
+        self._write_metadata(self._writer, final)
         self._writer.close()
         assert self._stream is not None
         try:
@@ -209,6 +335,22 @@ class RotatingRecorder:
         self._writer = None
         self._stream = None
         self._current = None
+
+    def _write_metadata(self, writer: McapWriter, final: bool) -> None:
+        counts = self.counts
+        received, missing = counts.sums(counts.file)
+        recording = {**self.run_info, "file_index": str(len(self.files)), "final": str(final).lower(),
+                     "received": str(received), "missing": str(missing)}
+        if final:
+            received_total, missing_total = counts.sums(counts.total)
+            recording |= {"received_total": str(received_total), "missing_total": str(missing_total)}
+        writer.add_metadata(METADATA_RECORDING, recording)
+        writer.add_metadata(METADATA_COUNTS, counts.as_metadata(counts.file))
+        if final:
+            writer.add_metadata(METADATA_TOTAL, counts.as_metadata(counts.total))
+        if missing:
+            log.warning("%s: %d sample(s) missing (gaps in their publishers' numbers)", self._current, missing)
+        counts.next_file()
 
     @staticmethod
     def _part(path: Path) -> Path:

@@ -8,6 +8,9 @@ Shutdown (SIGTERM / SIGINT) loses nothing that reached the recorder: the livelin
 first, the subscriber stays until the bus has been quiet for `drain_quiet_s` (samples still in
 flight arrive), then it is undeclared, the channel is drained to the end, and the file is closed
 with its MCAP footer.
+
+Each sample's sequence attachment (shared/bus/recorded.py) goes to the recorder, which counts per key
+and publisher what it received and what it never got, into each file's metadata (recorder.py).
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import time
 import zenoh
 
 from services.recorder.recorder import RotatingRecorder
-from shared.bus import ALL_KEYS, Worker
+from shared.bus import ALL_KEYS, Worker, sequence_of
 
 log = logging.getLogger("gd2p.recorder")
 
@@ -75,6 +78,7 @@ class RecorderService:
                     str(sample.encoding),
                     time.time_ns(),
                     _timestamp_ns(sample.timestamp),
+                    sequence_of(sample.attachment.to_bytes() if sample.attachment is not None else None),
                 )
             except Exception:  # one bad write (e.g. disk full) must not stop the recording thread
                 self.write_errors += 1

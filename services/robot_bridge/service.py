@@ -20,7 +20,10 @@
   without one the plan runs in the world the previous command left (multi-step pushes). A command
   whose lease is lost during the reset is refused before anything moves.
 - While a plan runs, `ExecutionState`s are published on `STATE_KEY` at the robot's state rate, with the
-  plan time and the object's tracked pose.
+  plan time and the object's tracked pose. States and track frames go out through `RecordedPublisher`s
+  (congestion control BLOCK, numbered for the recorder) with a send queue of their own
+  (`PUBLISH_QUEUE`): the control loop that publishes them never waits on the bus, and a state that finds
+  the queue full is dropped with its number, so the recorder counts it missing.
 - The object's pose while a plan runs comes from a tracker on `TRACK_KEY` (ObjectTrack): the simulated
   robot's own tracker publishes there; with hardware, a user's tracker does, and the bridge folds its
   latest pose (if under `TRACK_FRESH_S` old) into the states it publishes, where the planner's
@@ -46,7 +49,7 @@ from services.robot_bridge.hardware import HardwareSpec, connect_all
 from services.robot_bridge.limits import SafetyRefusal
 from services.robot_bridge.robots.sim.config import SimConfig
 from services.robot_bridge.robots.sim.robot import SimRobot
-from shared.bus import BusConfig, OpenCancelled, Worker, open_session
+from shared.bus import STREAM_QUEUE, BusConfig, OpenCancelled, RecordedPublisher, Worker, open_session
 from shared.bus.keys import OBJECT_TRACK_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
 from shared.contracts.codec import CodecError, decode, encode
@@ -65,6 +68,7 @@ STATE_KEY = ROBOT_STATE_KEY
 TRACK_KEY = OBJECT_TRACK_KEY
 TRACK_FRESH_S = 0.5  # an external tracker's pose older than this is not folded into the states
 REMEMBERED_COMMANDS = 65_536  # command ids kept to refuse a replay (ids are uuid4: 2.5 MB at most)
+PUBLISH_QUEUE = STREAM_QUEUE  # states (and track frames) waiting to be sent: 2 s at 500 Hz
 
 log = logging.getLogger("gd2p.robot_bridge")
 
@@ -233,8 +237,9 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     bridge = probe = None
     try:
         probe = open_session(cfg, stop=stop) if cfg.mode == "client" else None
-        publisher = session.declare_publisher(STATE_KEY)
-        track_publisher = session.declare_publisher(TRACK_KEY)
+        # Never a blocking put on the control loop (it stops the robot): a send queue of its own per key.
+        publisher = RecordedPublisher(session, STATE_KEY, queue_size=PUBLISH_QUEUE)
+        track_publisher = RecordedPublisher(session, TRACK_KEY, queue_size=PUBLISH_QUEUE)
 
         def publish(state: ExecutionState) -> None:
             payload, encoding = encode(state)
@@ -250,8 +255,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
         commands = bridge.serve_commands()
         Worker(SERVICE, bridge.handlers(), cfg, worker_id, stop=stop, session=session).run()
         commands.undeclare()
-        publisher.undeclare()
-        track_publisher.undeclare()
+        publisher.close()
+        track_publisher.close()
     except OpenCancelled:
         log.info("robot_bridge stopped while opening its watchdog session")
     finally:

@@ -1,4 +1,4 @@
-"""The Zenoh bus: session config, key expressions, worker runtime, discovery and dispatcher.
+"""The Zenoh bus: session config, key expressions, worker runtime, discovery, dispatcher, recorded publishers.
 
     from shared.bus import BusConfig, open_session, run_worker, Dispatcher, live_workers
 """
@@ -15,6 +15,7 @@ from shared.bus.keys import (
     status_key,
     status_pattern,
 )
+from shared.bus.recorded import STREAM_QUEUE, RecordedPublisher, sequence_attachment, sequence_of
 from shared.bus.worker import Worker, default_worker_id, run_worker
 
 __all__ = [
@@ -23,5 +24,6 @@ __all__ = [
     "BusError", "DispatchError", "OpenCancelled", "RemoteError", "RouterUnreachable",
     "alive_key", "alive_pattern", "job_key", "parse_alive_key", "status_key", "status_pattern",
     "Worker", "default_worker_id", "run_worker",
+    "STREAM_QUEUE", "RecordedPublisher", "sequence_attachment", "sequence_of",
     "health", "live_workers", "worker_counts", "Dispatcher",
 ]

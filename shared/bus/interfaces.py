@@ -148,8 +148,12 @@ _JOB_QOS = ("Declared complete=True. A caller addresses one worker's key with co
             " of working on for nobody; the reply comes back on the same key. `gd2p health` asks"
             " `gd2p/<service>/worker/*/job` with target ALL and consolidation NONE (5 s by default); a worker's own"
             " identity may query its key too (its container healthcheck, `gd2p health --this-host`).")
+_RECORDED_QOS = ("Congestion control BLOCK (a full queue makes the publisher wait; Zenoh's default drops) and a"
+                 " sequence attachment on every sample, msgpack `{\"publisher\": <id>, \"seq\": <n from 1>}`: the"
+                 " recorder counts per key and publisher what it received and the gaps (missing) into each MCAP's"
+                 " metadata (shared/bus/recorded.py: RecordedPublisher).")
 _STATUS_QOS = ("About every 2 s and once more when the worker stops; best effort (a heartbeat that cannot be sent,"
-               " without a router, is skipped).")
+               f" without a router, is skipped). {_RECORDED_QOS} Sent from a queue of 8, so the worker never waits.")
 WORKERS: tuple[Service, ...] = (
     Service("generator", "energy-based synthesis of pre-contact hand poses (paper Eq. 1)",
             (Exchange(GenerationJob, (GenerationResult, ErrorReply)),), frozenset({"cli"}), True,
@@ -263,8 +267,11 @@ _ROBOT = (
               frozenset({"robot_bridge"}), EVERYONE, message=ExecutionState,
               used_by="The planner (the states of its command, by command_id: the push recording, and the"
                       " closed-loop monitor, which compares their object poses with the rollout's); the recorder.",
-              qos="Published at the robot's state rate while a command executes.",
-              code=("services/robot_bridge/service.py: run", "services/planner/service.py: BusServices._on_state")),
+              qos=f"Published at the robot's state rate while a command executes. {_RECORDED_QOS} The bridge sends"
+                  " them from a queue of 1,000 states (2 s at 500 Hz) so its control loop never waits on the bus; a"
+                  " state that finds the queue full is dropped with its number, so the recorder counts it missing.",
+              code=("services/robot_bridge/service.py: run", "services/planner/service.py: BusServices._on_state",
+                    "shared/bus/recorded.py: RecordedPublisher")),
     Interface("object track", keys.OBJECT_TRACK_KEY, "publication",
               "The pushed object's pose as a tracker sees it while a plan runs (stamp, pose, and — when the"
               " publisher knows them — the command and its plan time).",
@@ -278,7 +285,8 @@ _ROBOT = (
                       " reconstruction's (centre of mass and principal axes of what was seen, where the cloud"
                       " showed it), which may differ from the library object's own by a half turn.",
               qos="Publish at the tracker's rate (10-30 Hz) while the robot moves; a pose older than 0.5 s is not"
-                  " folded into a state.",
+                  f" folded into a state. {_RECORDED_QOS} The simulated bridge sends its frames from a queue like"
+                  " its states; examples/object_tracker.py numbers its own.",
               code=("services/robot_bridge/robots/sim/robot.py: SimRobot._track_frame",
                     "services/robot_bridge/service.py: TrackSubscriber")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
@@ -286,7 +294,9 @@ _ROBOT = (
               " payload, garbage — and latches: later commands are refused until the bridge restarts.",
               EVERYONE, EVERYONE, message=EStop,
               used_by="`gd2p bridge estop` publishes; the robot bridge's EStopSubscriber subscribes.",
-              qos="Open to every identity on purpose: stopping must never need the planner.",
+              qos="Open to every identity on purpose: stopping must never need the planner. A plain put with its own"
+                  " settings (not a numbered, blocking publisher: nothing may hold a stop back); the recorder counts"
+                  " its samples as received, without sequence numbers.",
               code=("services/robot_bridge/bus_safety.py: EStopSubscriber", "cli/bridge.py: _estop")),
 )
 _INFRASTRUCTURE = (
@@ -307,7 +317,8 @@ _INFRASTRUCTURE = (
               EVERYONE, EVERYONE, payload="an 8-byte big-endian beat number (struct `!Q`), no encoding",
               used_by="The robot bridge's RouterWatchdog (`<name>` = `robot_bridge-<zid>`): its probe session"
                       " publishes, its main session subscribes. The recorder records the beats too.",
-              qos="A beat every 20 ms with congestion control DROP; the subscriber keeps the last 64 (ring channel).",
+              qos="A beat every 20 ms with congestion control DROP (a late beat is worthless, and the watchdog must"
+                  " never wait); the subscriber keeps the last 64 (ring channel). Not numbered for the recorder.",
               code=("shared/bus/lease.py: RouterWatchdog",)),
     Interface("launcher control", LAUNCHER_CONTROL_KEY, "queryable",
               "Bring a scalable service to exactly N workers; answered once the new workers have registered.",
@@ -323,8 +334,17 @@ _INFRASTRUCTURE = (
               " Nobody publishes on the whole space.",
               frozenset(), EVERYONE, payload="every publication under `gd2p/**`, as published",
               used_by="The recorder (a FIFO channel of 65,536 samples: back-pressure, not drops); `gd2p replay`"
-                      " republishes a recording on the keys it was recorded from.",
-              code=("services/recorder/service.py: RecorderService.run", "cli/recording.py")),
+                      " republishes a recording on the keys it was recorded from (numbered, blocking publishers"
+                      " of its own); `gd2p recording-info` prints what the recorder counted.",
+              qos="Every recorded publication of this code base (states, tracks, heartbeats, replays) comes from a"
+                  " RecordedPublisher: congestion control BLOCK and the sequence attachment. Per key and publisher"
+                  " the recorder counts samples received, missing (gaps in the numbers) and late (a number at or"
+                  " below one already seen); each MCAP file's metadata holds `gd2p.recording` (commit, recorder"
+                  " config, seeds: `--run-seeds` or $GD2P_RUN_SEEDS), `gd2p.counts` (the file's samples) and, in"
+                  " the run's final file, `gd2p.counts.total`. Samples without the attachment (e-stop, watchdog"
+                  " beats, a foreign publisher) are counted as received only.",
+              code=("services/recorder/service.py: RecorderService.run", "services/recorder/recorder.py: SequenceCounts",
+                    "shared/bus/recorded.py", "cli/recording.py")),
 )
 INTERFACES: tuple[Interface, ...] = (
     *(row for svc in WORKERS for row in _worker_interfaces(svc)),
@@ -653,7 +673,8 @@ examples/raw_zenoh_push.py does it with zenoh and msgpack alone, following this 
 * Requests are queries and answers are their replies; streams (robot state, heartbeats) and the
   e-stop are publications.
 * Only the planner commands the robot, under a lease (a liveliness token) whose loss stops the motion.
-* The recorder writes every publication under `gd2p/**` to MCAP.
+* The recorder writes every publication under `gd2p/**` to MCAP. Recorded publishers block rather than drop
+  and number their samples, so each file's metadata says what was received and what is missing.
 """
 
 

@@ -69,6 +69,7 @@ import zenoh
 from shared.bus.config import BusConfig, open_session
 from shared.bus.errors import OpenCancelled
 from shared.bus.keys import CALLER_PREFIX, alive_key, check_chunk, job_key, status_key
+from shared.bus.recorded import RecordedPublisher
 from shared.contracts.codec import CodecError, check_payload_size, decode, encode
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import ErrorReply, HealthQuery, Message, WorkerStatus
@@ -348,7 +349,8 @@ class Worker:
         # Queryable before token: whoever sees the token may query at once (https://github.com/eclipse-zenoh/zenoh/issues/588).
         queryable = session.declare_queryable(self._reply_key, complete=True)
         callers = session.liveliness().declare_subscriber(f"{CALLER_PREFIX}/*", self._on_caller)
-        publisher = session.declare_publisher(status_key(self.service, self.worker_id))
+        # Numbered for the recorder; a queue of its own, so a congested bus never holds up this loop.
+        publisher = RecordedPublisher(session, status_key(self.service, self.worker_id), queue_size=8)
         token = session.liveliness().declare_token(alive_key(self.service, self.worker_id))
         receiver = threading.Thread(
             target=self._receive, args=(queryable, pool), name=f"{self.service}-receiver", daemon=True
@@ -369,7 +371,7 @@ class Worker:
             if not pool.drain(self.drain_timeout_s):
                 self._abandon_running()
             self._publish_status(publisher)
-            publisher.undeclare()
+            publisher.close()
 
     def _abandon_running(self) -> None:
         """Answer the jobs still running with "unavailable", so dispatchers re-dispatch them now."""
@@ -382,7 +384,7 @@ class Worker:
                 self._reply_error(query, "unavailable", f"{self.service} worker {self.worker_id} stopped before "
                                   f"finishing job {job_id}", job=run.job)
 
-    def _publish_status(self, publisher: zenoh.Publisher) -> None:
+    def _publish_status(self, publisher: RecordedPublisher) -> None:
         payload, encoding = encode(self.status())
         try:
             publisher.put(payload, encoding=encoding)
