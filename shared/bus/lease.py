@@ -25,11 +25,14 @@ uses them only to confirm the token once.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import logging
+import secrets
 import struct
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 
 import zenoh
@@ -45,6 +48,9 @@ WATCHDOG_BOUND_S = 0.3  # see RouterWatchdog
 STARTUP_S = 1.0
 QUERY_TIMEOUT_S = 0.15
 LEASE_ROLES: tuple[str, ...] = ("planner", "client")  # who may hold a lease (the secure ACL binds each to an identity)
+ZID_BYTES = 16  # a Zenoh session id (ZenohId: 128 bits)
+BEAT_FORMAT = f"!Q{ZID_BYTES}s32s"  # a watchdog beat: number, the probe session's zid, HMAC-SHA256 (RouterWatchdog)
+BEAT_BYTES = struct.calcsize(BEAT_FORMAT)  # 56
 
 
 class LeaseError(BusError):
@@ -95,6 +101,11 @@ def has_router(session: zenoh.Session) -> bool:
     return any(True for _ in session.info.routers_zid())
 
 
+def zid_bytes(zid: zenoh.ZenohId) -> bytes:
+    """A session id as the `ZID_BYTES` bytes a watchdog beat carries (its text form is hex, leading zeros left out)."""
+    return int(str(zid), 16).to_bytes(ZID_BYTES, "big")
+
+
 class RouterWatchdog:
     """Is the router still forwarding? A probe session publishes a numbered beat every `period_s` on a key
     of its own; the watched session receives them. A beat can only arrive through the router, so
@@ -112,6 +123,16 @@ class RouterWatchdog:
     Python (a ring channel, drained by `silence_s()` and the beat thread), so the ones that came back
     while the process was busy count as heard, and none were sent meanwhile.
 
+    Only this watchdog's own beats count (issue 53: one beat numbered 2^64-1 from anyone else used to
+    mark every later beat as heard, so a frozen router went unnoticed). A beat is `BEAT_FORMAT`: the
+    beat number, the probe session's id (zid, 16 bytes) and an HMAC-SHA256 of both under a random secret
+    made for this watchdog, which never leaves the process. A beat of another length, another zid or a
+    wrong MAC is ignored, and so is a number ahead of the last beat sent; `ignored` counts them by
+    reason. What another session can still send is a copy of a beat it saw (a replay): it is numbered
+    at most the last one sent and it came through the router, so it shows nothing the real beat did
+    not. A flood of foreign beats can push real ones out of the ring channel: that looks like silence
+    and stops the robot (safe); the secure profile lets only the bridge's identity put on the key.
+
     The probe session must be a second session to the same router (a session delivers its own
     publications locally). `close()` undeclares both ends; the sessions stay the caller's.
     """
@@ -122,8 +143,12 @@ class RouterWatchdog:
             raise ValueError("period_s and bound_s must be positive")
         self.key = f"{WATCHDOG_PREFIX}/{check_chunk(name, 'watchdog name')}"
         self.period_s, self.bound_s = period_s, bound_s
+        self.probe_zid = zid_bytes(probe.zid())
+        self._secret = secrets.token_bytes(32)  # never sent, never logged: only this process can sign a beat
+        self.ignored: Counter[str] = Counter()  # beats not counted, by reason: "length", "zid", "mac", "ahead"
         self._unanswered: deque[tuple[int, float]] = deque()  # (number, time sent) of beats not heard back yet
         self._heard = 0  # the newest beat heard back
+        self._sent = 0  # the newest beat numbered for sending (no beat numbered higher is accepted)
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._subscriber = session.declare_subscriber(self.key, zenoh.handlers.RingChannel(64))
@@ -131,25 +156,52 @@ class RouterWatchdog:
         self._thread = threading.Thread(target=self._beat, name="router-watchdog", daemon=True)
         self._thread.start()
 
+    def _mac(self, number: int, zid: bytes) -> bytes:
+        return hmac.new(self._secret, struct.pack("!Q", number) + zid, hashlib.sha256).digest()
+
+    def _signed(self, number: int) -> bytes:
+        """The beat numbered `number`, as the probe publishes it."""
+        return struct.pack(BEAT_FORMAT, number, self.probe_zid, self._mac(number, self.probe_zid))
+
     def _beat(self) -> None:
         seq = 0
         while not self._closed.wait(self.period_s):
             seq += 1
+            with self._lock:  # numbered before the put: its echo may be drained before the put returns
+                self._sent = seq
             try:
-                self._publisher.put(struct.pack("!Q", seq))
+                self._publisher.put(self._signed(seq))
             except zenoh.ZError:  # no router: the silence says so
                 pass
             with self._lock:  # timed from after the put: a pause before it is this process's, not the router's
                 self._unanswered.append((seq, time.monotonic()))
                 self._drain()
 
+    def _accept(self, beat: bytes) -> int | None:
+        """The number of `beat` if it is one of this watchdog's own, sent already; None (counted) otherwise."""
+        if len(beat) != BEAT_BYTES:
+            reason = "length"
+        else:
+            number, zid, mac = struct.unpack(BEAT_FORMAT, beat)
+            if not hmac.compare_digest(zid, self.probe_zid):
+                reason = "zid"
+            elif not hmac.compare_digest(mac, self._mac(number, zid)):
+                reason = "mac"
+            elif number > self._sent:
+                reason = "ahead"
+            else:
+                return int(number)
+        if not self.ignored[reason]:
+            log.warning("router watchdog %s: ignoring a beat that is not its own (%s)", self.key, reason)
+        self.ignored[reason] += 1
+        return None
+
     def _drain(self) -> None:
         """Forget every beat up to the newest one heard back (beats overtaken or dropped included)."""
         while (sample := self._subscriber.try_recv()) is not None:
-            try:
-                self._heard = max(self._heard, struct.unpack("!Q", sample.payload.to_bytes())[0])
-            except struct.error:  # not one of our beats
-                continue
+            number = self._accept(sample.payload.to_bytes())
+            if number is not None:
+                self._heard = max(self._heard, number)
         while self._unanswered and self._unanswered[0][0] <= self._heard:
             self._unanswered.popleft()
 
