@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import stat
+import struct
 import threading
 import time
 
@@ -49,7 +50,7 @@ from shared.bus import (
     keys,
     live_workers,
 )
-from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key
+from shared.bus.lease import LEASE_ROLES, RouterWatchdog, lease_alive, lease_key
 from shared.contracts.codec import decode, encode
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
@@ -344,6 +345,34 @@ def test_robot_state_is_published_by_the_robot_bridge_only(secure):
     assert states.keys == [keys.ROBOT_STATE_KEY]
 
 
+def test_only_the_bridge_identity_beats_on_the_router_watchdog_key(secure):
+    """Issue 53: a beat numbered 2^64-1 on the watchdog's key once hid a frozen router. Under the secure
+    profile a cli or validator certificate cannot put there at all: the bridge's watchdog (both sessions
+    CN robot_bridge) hears its own beats and nothing of the forgers'; a put by the bridge's identity
+    gets through (and is ignored by the watchdog as not its own beat)."""
+    profile, _ = secure
+    with session_as(profile, "robot_bridge") as bridge_session, session_as(profile, "robot_bridge") as probe, \
+            session_as(profile, "cli") as operator, session_as(profile, "validator") as validator:
+        watchdog = RouterWatchdog(bridge_session, probe, f"robot_bridge-{bridge_session.zid()}")
+        try:
+            time.sleep(0.4)
+            forged = struct.pack("!Q", 2**64 - 1)
+            for forger in (operator, validator):
+                for _ in range(3):
+                    forger.put(watchdog.key, forged)
+            time.sleep(0.5)
+            assert watchdog.silence_s() < watchdog.bound_s  # the bridge's own beats pass the access rules
+            assert not watchdog.ignored, watchdog.ignored  # the forgers' never reached it
+            probe.put(watchdog.key, forged)  # the bridge's identity may put (and the watchdog still ignores it)
+            deadline = time.monotonic() + 2.0
+            while not watchdog.ignored and time.monotonic() < deadline:
+                watchdog.silence_s()
+                time.sleep(0.02)
+            assert watchdog.ignored == {"length": 1}
+        finally:
+            watchdog.close()
+
+
 def test_a_lease_token_is_declared_only_by_the_identity_of_its_role(secure):
     profile, _ = secure
     with session_as(profile, "planner") as planner, session_as(profile, "cli") as operator, \
@@ -483,8 +512,9 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                              ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
-        # Router watchdog beats (shared/bus/lease.py): open on purpose, see profile.OPEN_PUT_KEYS.
-        "WATCHDOG_PREFIX": [("ingress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
+        # Router watchdog beats (shared/bus/lease.py): the bridge's own (issue 53), see profile.WATCHDOG_BEATERS.
+        "WATCHDOG_PREFIX": [("ingress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset({"robot_bridge"})),
+                            ("egress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
                             ("ingress", "declare_subscriber", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
                             ("ingress", "declare_queryable", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset()),
                             ("ingress", "liveliness_token", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset())],

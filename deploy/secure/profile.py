@@ -19,8 +19,11 @@ rules are default-deny, and each key space has an owner:
   the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
 - `gd2p/robot_bridge/object_track`: besides the bridge (its namespace), CN "tracker" may put: a user's
   object tracker beside real hardware.
-- `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner);
-  so may it on `gd2p/watchdog/*` (router watchdog beats, see OPEN_PUT_KEYS).
+- `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner).
+- `gd2p/watchdog/*` (router watchdog beats, shared/bus/lease.py RouterWatchdog): only CN robot_bridge puts
+  (WATCHDOG_BEATERS: the bridge's probe session beats to its main session). A beat from anyone else is
+  ignored by the watchdog anyway (it carries the probe's zid and a MAC only the bridge can make), and the
+  router drops it before it reaches the bridge: it can neither hide a frozen router nor flood the ring.
 - every identity may subscribe, liveliness-subscribe and liveliness-query `gd2p/**` (observers: the
   recorder, `gd2p status`, a dispatcher watching workers, the bridge watching a lease); the router
   tells every session which subscribers, queryables and tokens exist and delivers every publication.
@@ -28,7 +31,7 @@ rules are default-deny, and each key space has an owner:
 `allowed(identity, flow, message, key)` evaluates the same rules the way Zenoh does (a rule applies
 when one of its key expressions includes the message's), for tests and for the README's table.
 A key outside every rule is dropped for everyone: a new key (shared/bus/keys.py) needs an owner here.
-The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS) come from the interface registry,
+The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS, WATCHDOG_BEATERS) come from the interface registry,
 shared/bus/interfaces.py; tests/test_interfaces.py checks every registry entry against these rules.
 """
 from __future__ import annotations
@@ -68,11 +71,14 @@ SERVING_IDENTITIES: tuple[str, ...] = (*WORKER_IDENTITIES, LAUNCHER_IDENTITY)
 CALLS: dict[str, tuple[str, ...]] = interfaces.calls()
 # Lease role (gd2p/lease/<role>/<holder>, shared/bus/lease.py) -> the one identity that may hold it.
 LEASE_HOLDERS: dict[str, str] = dict(interfaces.LEASE_HOLDERS)
-# Keys every authenticated identity may put on: the e-stop (stopping must never need the planner) and
-# the router watchdogs' beats (shared/bus/lease.py RouterWatchdog: a process's probe session beats on
-# gd2p/watchdog/<name> to itself; a beat only shows that the router forwards to the subscriber, which
-# a beat from anyone else shows just as truly, so the key needs no owner).
-OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop, gd2p/watchdog/*
+# Keys every authenticated identity may put on: the e-stop (stopping must never need the planner).
+OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop
+# The router watchdogs' beats (shared/bus/lease.py RouterWatchdog): the bridge's probe session beats on
+# gd2p/watchdog/<name> to its main session. Issue 53: a forged beat once hid a frozen router, so only the
+# identities of the registry row put there (robot_bridge).
+_WATCHDOG = interfaces.interface(interfaces.WATCHDOG_KEY, "publication")
+WATCHDOG_KEYS = _WATCHDOG.pattern  # gd2p/watchdog/*
+WATCHDOG_BEATERS: tuple[str, ...] = tuple(sorted(_WATCHDOG.declarers))  # robot_bridge
 
 MESSAGES: tuple[str, ...] = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                              "liveliness_token", "liveliness_query", "declare_liveliness_subscriber")
@@ -126,6 +132,8 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),
     ]
     by_subject[TRACKER_IDENTITY].append(_rule("object-track", "ingress", ["put"], [OBJECT_TRACK_KEY]))
+    for beater in WATCHDOG_BEATERS:
+        by_subject[beater].append(_rule(f"{beater}-watchdog-beats", "ingress", ["put"], [WATCHDOG_KEYS]))
     return by_subject
 
 

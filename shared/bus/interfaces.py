@@ -65,6 +65,7 @@ from shared.contracts.messages import (
 Kind = Literal["queryable", "publication", "liveliness"]
 LAUNCHER_CONTROL_KEY = f"{keys.PREFIX}/launcher/control"  # served by deploy/launcher.py
 WORKER_ID = "<worker_id>"
+WATCHDOG_KEY = f"{keys.WATCHDOG_PREFIX}/<name>"  # the router watchdog's beats (shared/bus/lease.py RouterWatchdog)
 GENERATED_BY = "python -m shared.bus.interfaces --markdown > docs/interfaces.md"
 
 
@@ -290,13 +291,19 @@ _ROBOT = (
               code=("services/robot_bridge/bus_safety.py: EStopSubscriber", "cli/bridge.py: _estop")),
 )
 _INFRASTRUCTURE = (
-    Interface("router watchdog", f"{keys.WATCHDOG_PREFIX}/<name>", "publication",
-              "Beats a process sends itself through the router: a beat can only come back through it, so their"
-              " silence shows a router that stopped forwarding, however the link looks.",
-              EVERYONE, EVERYONE, payload="an 8-byte big-endian beat number (struct `!Q`), no encoding",
+    Interface("router watchdog", WATCHDOG_KEY, "publication",
+              "Beats the robot bridge sends itself through the router: a beat can only come back through it, so"
+              " their silence shows a router that stopped forwarding, however the link looks. Only the bridge's"
+              " own beats count: a forged one is ignored, so it cannot hide a frozen router.",
+              frozenset({"robot_bridge"}), EVERYONE,
+              payload="56 bytes, no encoding (struct `!Q16s32s`): the beat number, the probe session's zid, an"
+                      " HMAC-SHA256 of both under a secret that never leaves the bridge's process",
               used_by="The robot bridge's RouterWatchdog (`<name>` = `robot_bridge-<zid>`): its probe session"
-                      " publishes, its main session subscribes. The recorder records the beats too.",
-              qos="A beat every 20 ms with congestion control DROP; the subscriber keeps the last 64 (ring channel).",
+                      " publishes, its main session subscribes and counts a beat only if it carries the probe's"
+                      " zid and a valid MAC and is numbered at most the last beat sent (others are ignored and"
+                      " counted). The recorder records the beats too.",
+              qos="A beat every 20 ms with congestion control DROP; the subscriber keeps the last 64 (ring channel)."
+                  " Put by the bridge's identity only in the secure profile.",
               code=("shared/bus/lease.py: RouterWatchdog",)),
     Interface("launcher control", LAUNCHER_CONTROL_KEY, "queryable",
               "Bring a scalable service to exactly N workers; answered once the new workers have registered.",
@@ -342,7 +349,7 @@ def calls() -> dict[str, tuple[str, ...]]:
 
 
 def open_put_keys() -> tuple[str, ...]:
-    """The key expressions every identity may publish on (the e-stop, the watchdog beats)."""
+    """The key expressions every identity may publish on (the e-stop)."""
     return tuple(row.pattern for row in INTERFACES if row.kind == "publication" and row.declarers == EVERYONE)
 
 
