@@ -14,6 +14,10 @@ robot bridge with its simulated robot, breaks something mid-work, and prints its
 - `router_hung`:    the router SIGSTOPped mid-motion           -> stop latency (the bridge's router watchdog;
                     its target is the watchdog's own bound, 0.41 s: see RouterWatchdog)
 - `estop_garbage`:  malformed messages on the e-stop key       -> stop latency of each
+- `forged_beats`:   another session forges the bridge watchdog's beats (numbered 2^64-1, the probe's zid
+                    with a wrong MAC, replays of the beats it saw), then the router is SIGSTOPped mid-motion
+                                                               -> stop latency (target 0.4 s, issue 53),
+                                                                  forged beats the watchdog ignored
 Targets (issue "a robot that stops when it should"): 0 jobs lost or duplicated; motion stops <= 0.2 s
 after the lease or the router is lost; no worker starved longer than its deadline. `--quick` (what
 CI runs through tests/test_chaos.py) uses smaller batches; CI also passes `--stop-target 0.5`, slack for a
@@ -363,9 +367,69 @@ def estop_garbage(quick: bool) -> Figure:
     return Figure("estop_garbage", figures, targets)
 
 
+class BeatForger:
+    """Forge the beats of the router watchdog on `key` from another session, every 10 ms until `stop()`:
+    a bare number 2^64-1 (the beat that once marked every later beat as heard), the probe's zid (read
+    from a beat it saw) with 2^64-1 and a MAC it cannot compute, and a replay of the last beat it saw."""
+
+    def __init__(self, session, key: str):
+        import zenoh
+
+        from shared.bus.lease import BEAT_FORMAT
+
+        self.key, self.sent = key, 0
+        self._format = BEAT_FORMAT
+        self._seen: list[bytes] = []
+        self._subscriber = session.declare_subscriber(key, lambda sample: self._seen.append(sample.payload.to_bytes()))
+        self._publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._forge, daemon=True)
+        self._thread.start()
+
+    def _forge(self) -> None:
+        import struct
+
+        beyond = 2**64 - 1
+        while not self._stop.wait(0.01):
+            beats = [struct.pack("!Q", beyond)]
+            if self._seen and len(seen := self._seen[-1]) == struct.calcsize(self._format):
+                _, zid, _ = struct.unpack(self._format, seen)
+                beats += [struct.pack(self._format, beyond, zid, os.urandom(32)), seen]
+            for beat in beats:
+                with contextlib.suppress(Exception):
+                    self._publisher.put(beat)
+                    self.sent += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        for each in (self._publisher, self._subscriber):
+            with contextlib.suppress(Exception):
+                each.undeclare()
+
+
+def forged_beats(quick: bool) -> Figure:
+    target = max(STOP_TARGET_S, 0.4)  # issue 53: the frozen-router stop stays <= 0.4 s whatever is forged
+    with router_process() as (endpoint, router), commander(endpoint) as holder, client(endpoint) as forger_session:
+        with moving_robot(endpoint, holder) as (bridge, motion, start):
+            watchdog = bridge.watchdog
+            forger = BeatForger(forger_session, watchdog.key)
+            start()
+            time.sleep(1.0)  # the motion runs under the forgeries
+            ignored = dict(watchdog.ignored)
+            fault_at = time.monotonic()
+            router.send_signal(signal.SIGSTOP)
+        forger.stop()
+        figure = _stop_figure("forged_beats", motion, fault_at, target)
+    figure.figures |= {"forged_beats_sent": forger.sent, "ignored_before_freeze": sum(ignored.values()),
+                       "ignored_by_reason": ", ".join(f"{k} {v}" for k, v in sorted(ignored.items()))}
+    figure.targets["forged beats reached the watchdog and were ignored"] = bool(ignored.get("length") and ignored.get("mac"))
+    return figure
+
+
 SCENARIOS: dict[str, Callable[[bool], Figure]] = {
     f.__name__: f for f in (worker_killed, worker_stalled, router_restarted, oversized_job, lease_dropped, router_killed, router_hung,
-                            estop_garbage)
+                            estop_garbage, forged_beats)
 }
 
 
