@@ -25,6 +25,7 @@ from shared.bus.lease import (
     LeaseMonitor,
     RouterWatchdog,
     lease_alive,
+    lease_identity,
     lease_key,
     parse_lease_key,
     zid_bytes,
@@ -52,16 +53,25 @@ def hold_the_gil(seconds: float) -> float:
     return time.perf_counter() - started
 
 
-def test_a_lease_key_is_a_role_and_one_holder():
-    assert KEY == "gd2p/lease/planner/w1.cmd1"
-    assert parse_lease_key("gd2p/lease/client/abc") == ("client", "abc")
-    for bad in ("gd2p/lease/planner", "gd2p/lease/planner/a/b", "gd2p/lease/robot/x", "gd2p/lease/planner/*",
-                "gd2p/lease/planner/**", "gd2p/alive/planner/x", "", "gd2p/lease/planner/$*", "gd2p/lease/planner-1"):
+def test_a_lease_key_is_a_role_an_identity_and_one_holder():
+    assert KEY == "gd2p/lease/planner/planner/w1.cmd1" == lease_key("planner", "w1.cmd1", "planner")
+    assert lease_key("client", "abc") == "gd2p/lease/client/cli/abc"  # each role's default identity
+    assert parse_lease_key("gd2p/lease/client/cli/abc") == ("client", "abc")
+    assert lease_identity("gd2p/lease/client/alice/abc") == "alice"
+    for bad in ("gd2p/lease/planner", "gd2p/lease/planner/w1", "gd2p/lease/planner/a/b/c", "gd2p/lease/robot/x/y",
+                "gd2p/lease/planner/planner/*", "gd2p/lease/planner/*/x", "gd2p/lease/planner/planner/**",
+                "gd2p/alive/planner/planner/x", "", "gd2p/lease/planner/planner/$*", "gd2p/lease/planner-1",
+                "gd2p/lease/planner//x"):
         with pytest.raises(LeaseError):
             parse_lease_key(bad)
+        with pytest.raises(LeaseError):
+            lease_identity(bad)
     for role, holder in (("operator", "x"), ("planner", "a/b"), ("planner", "*"), ("planner", "")):
         with pytest.raises(LeaseError):
             lease_key(role, holder)
+    for identity in ("", "a/b", "*", "$*"):
+        with pytest.raises(LeaseError):
+            lease_key("client", "x", identity)
 
 
 def test_a_held_lease_is_confirmed_and_lost_when_its_token_goes(zenoh_router):

@@ -397,6 +397,31 @@ def test_a_lease_token_is_declared_only_by_the_identity_of_its_role(secure):
             token.undeclare()
 
 
+def test_a_lease_key_names_its_holder_and_only_that_identity_may_hold_it(secure):
+    """Issue 53: a `cli` certificate could hold any client's lease. A lease key now names its holder's
+    identity (gd2p/lease/<role>/<identity>/<holder>) and an identity may declare tokens only under its
+    own part, for a role it may hold: cli holds gd2p/lease/client/cli/*, and neither another identity's
+    client lease nor a planner lease (under the planner's part or its own)."""
+    profile, _ = secure
+    for key in (lease_key("client", "x", "operator"), lease_key("client", "x", "validator"),
+                lease_key("planner", "x", "cli"), lease_key("planner", "x"), f"{lease_key('client', 'x')}/deeper"):
+        assert "cli" not in acl.who_may("ingress", "liveliness_token", key), key
+    assert acl.who_may("ingress", "liveliness_token", lease_key("client", "x", "operator")) == frozenset()
+    assert acl.who_may("ingress", "liveliness_token", lease_key("client", "x")) == {"cli"}
+    with session_as(profile, "cli") as operator, session_as(profile, "planner") as planner:
+        others = [lease_key("client", "cli-1", "operator"), lease_key("client", "cli-2", "validator"),
+                  lease_key("planner", "cli-3", "cli"), lease_key("planner", "cli-4")]
+        own = lease_key("client", "cli-5")
+        declared = [operator.liveliness().declare_token(key) for key in (*others, own)]
+        time.sleep(0.4)
+        assert lease_alive(planner, own)  # the planner watches the push client's lease
+        for key in others:  # (a session sees its own tokens without the router: ask another session)
+            assert not lease_alive(planner, key, timeout_s=0.5), key
+        assert tokens(planner, "gd2p/lease/**") == {own}
+        for token in declared:
+            token.undeclare()
+
+
 def test_the_estop_stays_open_to_every_identity(secure, bridge):
     profile, _ = secure
     _, executor, _ = bridge
@@ -518,7 +543,7 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                             ("ingress", "declare_subscriber", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
                             ("ingress", "declare_queryable", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset()),
                             ("ingress", "liveliness_token", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset())],
-        "LEASE_PREFIX": [("ingress", "liveliness_token", lease_key(role, "h-1"), frozenset({holder}))
+        "LEASE_PREFIX": [("ingress", "liveliness_token", lease_key(role, "h-1", holder), frozenset({holder}))
                          for role, holder in (("planner", "planner"), ("client", "cli"))]
                         + [("ingress", "liveliness_token", f"{keys.LEASE_PREFIX}/h-1", frozenset()),
                            ("ingress", "liveliness_query", lease_key("planner", "h-1"), ALL),

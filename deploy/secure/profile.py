@@ -13,8 +13,10 @@ rules are default-deny, and each key space has an owner:
   and validators; the operator's tools, CN "cli", call the planner, generator, validator and sampler
   and health-query everyone) and by S itself (its container healthcheck asks its own worker).
 - `gd2p/robot_bridge/command/**`: only the planner queries (or puts); the bridge serves it.
-- `gd2p/lease/<role>/**` (shared/bus/lease.py): only the identity of that role declares the token
-  (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli).
+- `gd2p/lease/<role>/<identity>/*` (shared/bus/lease.py): only that identity declares the token, and only
+  for a role it may hold (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli; one rule
+  per identity and role, as Zenoh's key expressions cannot say "the session's own CN"). So a lease key
+  names its holder's identity, and one identity cannot hold another's lease.
 - `gd2p/launcher/**`: only CN "operator" queries it (scaling is host administration, kept apart from
   the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
 - `gd2p/robot_bridge/object_track`: besides the bridge (its namespace), CN "tracker" may put: a user's
@@ -69,8 +71,8 @@ SERVING_IDENTITIES: tuple[str, ...] = (*WORKER_IDENTITIES, LAUNCHER_IDENTITY)
 # services/planner/service.py dispatches to sampler and validator; the operator's tools (gd2p push,
 # dataset build, health) reach the planner, generator and validator, and `gd2p health` every service.
 CALLS: dict[str, tuple[str, ...]] = interfaces.calls()
-# Lease role (gd2p/lease/<role>/<holder>, shared/bus/lease.py) -> the one identity that may hold it.
-LEASE_HOLDERS: dict[str, str] = dict(interfaces.LEASE_HOLDERS)
+# Lease role (gd2p/lease/<role>/<identity>/<holder>, shared/bus/lease.py) -> the identities that may hold it.
+LEASE_HOLDERS: dict[str, tuple[str, ...]] = dict(interfaces.LEASE_HOLDERS)
 # Keys every authenticated identity may put on: the e-stop (stopping must never need the planner).
 OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop
 # The router watchdogs' beats (shared/bus/lease.py RouterWatchdog): the bridge's probe session beats on
@@ -125,8 +127,10 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("command-issue", "ingress", ["query", "put"], [COMMAND_KEYS]),
         _rule("command-hear-replies", "egress", ["reply"], [COMMAND_KEYS]),
     ]
-    for role, holder in LEASE_HOLDERS.items():
-        by_subject[holder].append(_rule(f"lease-{role}", "ingress", ["liveliness_token"], [f"{LEASE_PREFIX}/{role}/**"]))
+    for role, holders in LEASE_HOLDERS.items():
+        for holder in holders:  # its own identity's part only: gd2p/lease/<role>/<holder>/*
+            by_subject[holder].append(_rule(f"lease-{role}-{holder}", "ingress", ["liveliness_token"],
+                                            [f"{LEASE_PREFIX}/{role}/{holder}/*"]))
     by_subject[OPERATOR_IDENTITY] += [
         _rule("launcher-control", "ingress", ["query"], [LAUNCHER_KEYS]),
         _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),

@@ -5,7 +5,7 @@ The algorithm is `pipeline.PushPipeline`; this module gives it its services over
 - arm rollouts: `ValidationJob(with_arm=True)` through a Dispatcher to the validator farm, all plans
   of a push at once (they run in parallel on as many validator processes as there are);
 - execution: an `ExecutionCommand` queried on the robot bridge's command key under a lease of its
-  own (a liveliness token `gd2p/lease/planner/<worker id>.<command id>`, declared for that command
+  own (a liveliness token `gd2p/lease/planner/planner/<worker id>.<command id>`, declared for that command
   only), while the robot's `ExecutionState` stream is collected for the recording;
 - cancellation: a request that names its client's lease (`PushRequest.client_lease`) is watched
   (`shared.bus.lease.LeaseMonitor`); when the lease is lost (Ctrl-C, a crashed client, a lost

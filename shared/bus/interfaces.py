@@ -197,8 +197,9 @@ TOOLS: dict[str, str] = {
 }
 PARTICIPANTS: dict[str, str] = {s.name: f"service: {s.summary}" for s in WORKERS} | TOOLS
 EVERYONE: frozenset[str] = frozenset(PARTICIPANTS)
-# Lease role (shared/bus/lease.py) -> the one identity that holds leases of that role.
-LEASE_HOLDERS: dict[str, str] = {"planner": "planner", "client": "cli"}
+# Lease role (shared/bus/lease.py) -> the identities that may hold leases of that role, each under its own
+# `gd2p/lease/<role>/<identity>/*` only (the first is the role's default, lease.LEASE_IDENTITIES).
+LEASE_HOLDERS: dict[str, tuple[str, ...]] = {"planner": ("planner",), "client": ("cli",)}
 
 
 # ------------------------------------------------------------------------------------------ the table
@@ -222,8 +223,7 @@ def _worker_interfaces(svc: Service) -> tuple[Interface, ...]:
     )
 
 
-def _lease_interface(role: str) -> Interface:
-    holder = LEASE_HOLDERS[role]
+def _lease_interface(role: str, identity: str) -> Interface:
     detail = {"planner": (("The lease of one robot command: the planner declares `<worker_id>.<command_id>` before"
                            " it sends the command and names it in ExecutionCommand.lease_token."),
                           ("The robot bridge (`CommandLease`: a LeaseMonitor from before its first check until"
@@ -235,12 +235,15 @@ def _lease_interface(role: str) -> Interface:
                           " request and stops the robot if it moves)."),
                          ("client/push_client.py: push", "services/planner/service.py: BusServices.watch_client"))}
     summary, used_by, code = detail[role]
-    return Interface(f"{role} lease", lease_key(role, "<holder>"), "liveliness", summary,
-                     frozenset({holder}), EVERYONE, payload="none (a token)", used_by=used_by,
+    title = f"{role} lease" if len(LEASE_HOLDERS[role]) == 1 else f"{role} lease of {identity}"
+    return Interface(title, lease_key(role, "<holder>", identity), "liveliness", summary,
+                     frozenset({identity}), EVERYONE, payload="none (a token)", used_by=used_by,
                      liveliness="The token is the lease: held while the holder's session lives; its DELETE (the"
                                 " holder undeclared it, closed its session or died) reaches the watcher at once.",
-                     qos="A random part in `<holder>` makes each lease key unique (Zenoh merges two tokens on one"
-                         " key). The watcher confirms it once with a liveliness query, then follows its subscriber.",
+                     qos=f"The key names its holder's identity (`{identity}`): only that identity may declare a token"
+                         " under it, so one identity cannot hold another's lease. A random part in `<holder>` makes"
+                         " each lease key unique (Zenoh merges two tokens on one key). The watcher confirms it once"
+                         " with a liveliness query, then follows its subscriber.",
                      code=("shared/bus/lease.py", *code))
 
 
@@ -325,7 +328,7 @@ _INFRASTRUCTURE = (
 INTERFACES: tuple[Interface, ...] = (
     *(row for svc in WORKERS for row in _worker_interfaces(svc)),
     *_ROBOT,
-    *(_lease_interface(role) for role in LEASE_ROLES),
+    *(_lease_interface(role, identity) for role in LEASE_ROLES for identity in LEASE_HOLDERS[role]),
     *_INFRASTRUCTURE,
 )
 

@@ -1,10 +1,14 @@
 """Leases: a holder's liveliness token that others watch, and lose within a bounded time.
 
-A lease is a Zenoh liveliness token on `gd2p/lease/<role>/<holder>` (`lease_key`). The role names who
-holds it (`planner` commands the robot; `client` is a push client waiting for its answer); the secure
-profile lets only the identity of that role declare tokens under its role, which binds a lease to
-an identity. Zenoh consolidates tokens declared twice on one key, so a second holder cannot be
-counted: a lease key carries a random part (per command, per client) so that nobody else holds it.
+A lease is a Zenoh liveliness token on `gd2p/lease/<role>/<identity>/<holder>` (`lease_key`). The role
+names what the holder does (`planner` commands the robot; `client` is a push client waiting for its
+answer); the identity is the holder's (its certificate's CN in the secure profile: LEASE_IDENTITIES
+gives each role's default, the only identity that holds it today); `<holder>` is a random part (per
+command, per client). The secure profile lets an identity declare tokens only under
+`gd2p/lease/<role>/<its own identity>/*`, and only for a role it may hold, which binds a lease to an
+identity: one `cli` cannot hold another client identity's lease, nor a planner's. Zenoh consolidates
+tokens declared twice on one key, so a second holder cannot be counted: the random part makes the key
+one nobody else holds.
 
 `LeaseMonitor` watches one lease and sets `lost` when
 - it is not confirmed within `startup_s` (a liveliness query that finds the token; a token just
@@ -48,34 +52,51 @@ WATCHDOG_BOUND_S = 0.3  # see RouterWatchdog
 STARTUP_S = 1.0
 QUERY_TIMEOUT_S = 0.15
 LEASE_ROLES: tuple[str, ...] = ("planner", "client")  # who may hold a lease (the secure ACL binds each to an identity)
+# Role -> the identity a lease of that role names when its holder gives none: the planner's certificate, and
+# the "cli" certificate every push client carries (the plain profile has no certificates: the same names).
+LEASE_IDENTITIES: dict[str, str] = {"planner": "planner", "client": "cli"}
 ZID_BYTES = 16  # a Zenoh session id (ZenohId: 128 bits)
 BEAT_FORMAT = f"!Q{ZID_BYTES}s32s"  # a watchdog beat: number, the probe session's zid, HMAC-SHA256 (RouterWatchdog)
 BEAT_BYTES = struct.calcsize(BEAT_FORMAT)  # 56
 
 
 class LeaseError(BusError):
-    """A lease key is malformed (not `gd2p/lease/<role>/<holder>`, or a wildcard)."""
+    """A lease key is malformed (not `gd2p/lease/<role>/<identity>/<holder>`, or a wildcard)."""
 
 
-def lease_key(role: str, holder: str) -> str:
-    """`gd2p/lease/<role>/<holder>`: where a holder of `role` declares its lease token."""
+def lease_key(role: str, holder: str, identity: str | None = None) -> str:
+    """`gd2p/lease/<role>/<identity>/<holder>`: where `identity`, holding a lease of `role`, declares its token
+    (`identity` defaults to the role's, LEASE_IDENTITIES)."""
     if role not in LEASE_ROLES:
         raise LeaseError(f"unknown lease role {role!r}; roles: {', '.join(LEASE_ROLES)}")
     try:
-        return f"{LEASE_PREFIX}/{role}/{check_chunk(holder, 'lease holder')}"
+        who = check_chunk(LEASE_IDENTITIES[role] if identity is None else identity, "lease identity")
+        return f"{LEASE_PREFIX}/{role}/{who}/{check_chunk(holder, 'lease holder')}"
     except BusError as exc:
         raise LeaseError(str(exc)) from None
 
 
 def parse_lease_key(key: str) -> tuple[str, str]:
-    """(role, holder) of a lease key; LeaseError unless it is exactly `gd2p/lease/<role>/<holder>`."""
+    """(role, holder) of a lease key; LeaseError unless it is exactly `gd2p/lease/<role>/<identity>/<holder>`
+    (`lease_identity` gives the identity)."""
+    role, _, holder = _lease_parts(key)
+    return role, holder
+
+
+def lease_identity(key: str) -> str:
+    """The identity a lease key names (LeaseError for a malformed key)."""
+    return _lease_parts(key)[1]
+
+
+def _lease_parts(key: str) -> tuple[str, str, str]:
     parts = str(key).split("/")
-    if len(parts) != 4 or "/".join(parts[:2]) != LEASE_PREFIX:
-        raise LeaseError(f"lease {key!r} is not a key of the form {LEASE_PREFIX}/<role>/<holder>")
+    if len(parts) != 5 or "/".join(parts[:2]) != LEASE_PREFIX:
+        raise LeaseError(f"lease {key!r} is not a key of the form {LEASE_PREFIX}/<role>/<identity>/<holder>")
     try:
-        return parts[2], lease_key(parts[2], parts[3]).split("/")[3]
+        lease_key(parts[2], parts[4], parts[3])
     except BusError as exc:
         raise LeaseError(f"lease {key!r}: {exc}") from None
+    return parts[2], parts[3], parts[4]
 
 
 def lease_present(session: zenoh.Session, key: str, timeout_s: float = QUERY_TIMEOUT_S) -> bool:
