@@ -37,7 +37,7 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
 from shared.bus import keys
-from shared.bus.lease import LEASE_ROLES, lease_key
+from shared.bus.lease import BEAT_BYTES, BEAT_FORMAT, LEASE_ROLES, lease_key
 from shared.contracts import messages
 from shared.contracts.codec import ENCODING_PREFIX
 from shared.contracts.messages import (
@@ -299,7 +299,7 @@ _INFRASTRUCTURE = (
               " their silence shows a router that stopped forwarding, however the link looks. Only the bridge's"
               " own beats count: a forged one is ignored, so it cannot hide a frozen router.",
               frozenset({"robot_bridge"}), EVERYONE,
-              payload="56 bytes, no encoding (struct `!Q16s32s`): the beat number, the probe session's zid, an"
+              payload=f"{BEAT_BYTES} bytes, no encoding (struct `{BEAT_FORMAT}`): the beat number, the probe session's zid, an"
                       " HMAC-SHA256 of both under a secret that never leaves the bridge's process",
               used_by="The robot bridge's RouterWatchdog (`<name>` = `robot_bridge-<zid>`): its probe session"
                       " publishes, its main session subscribes and counts a beat only if it carries the probe's"
