@@ -17,6 +17,10 @@ robot bridge with its simulated robot, breaks something mid-work, and prints its
 - `recording_complete`: the recorder process beside two busy processes, 1 MB clouds at 10 Hz and robot
                     states at 500 Hz for a few seconds      -> samples missing per the MCAP metadata (target 0),
                                                                samples received (target: every one published)
+- `forged_beats`:   another session forges the bridge watchdog's beats (numbered 2^64-1, the probe's zid
+                    with a wrong MAC, replays of the beats it saw), then the router is SIGSTOPped mid-motion
+                                                               -> stop latency (target 0.4 s, issue 53),
+                                                                  forged beats the watchdog ignored
 Targets (issue "a robot that stops when it should"): 0 jobs lost or duplicated; motion stops <= 0.2 s
 after the lease or the router is lost; no worker starved longer than its deadline. `--quick` (what
 CI runs through tests/test_chaos.py) uses smaller batches; CI also passes `--stop-target 0.5`, slack for a
@@ -494,7 +498,7 @@ def request_flood(quick: bool) -> Figure:
     """1,000 leased push requests at once from one raw client, whose lease then goes; the planner's memory and
     whether it still answers, and whether any motion followed."""
     from shared.bus.keys import ROBOT_STATE_KEY
-    from shared.contracts.messages import HealthQuery
+    from shared.contracts.messages import HealthQuery, ObjectRef, PushRequest
 
     count = 200 if quick else 1000
     with router_process() as (endpoint, _router), services_running(endpoint, "robot_bridge", "validator", "planner",
@@ -504,7 +508,13 @@ def request_flood(quick: bool) -> Figure:
             states: list[float] = []
             subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, lambda sample: states.append(time.monotonic()))
             planner_key = _planner_key(observer)
-            _flood(endpoint, planner_key, 100, "warm-up")  # the first requests' one-off costs (buffers, imports)
+            # One real push first: the planner loads its models and scenes on its first request, a one-off cost
+            # that is not the flood's (a flood request that starts before its lease goes would pay it).
+            from client.push_client import push
+
+            push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed"),
+                 BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000), timeout_s=120.0)
+            _flood(endpoint, planner_key, 100, "warm-up")
             rss_before = _rss_mb(planner_pid)
             codes, gone_at = _flood(endpoint, planner_key, count, "flood")
             drained_s = time.monotonic() - gone_at
@@ -512,7 +522,7 @@ def request_flood(quick: bool) -> Figure:
             answered = isinstance(_ask(observer, planner_key, HealthQuery()), Message)
             health_s = time.monotonic() - asked
             rss_after = _rss_mb(planner_pid)
-            moved = [t for t in states if t > gone_at + STOP_TARGET_S + 0.3]
+            moved = [t for t in states if t > gone_at + STOP_TARGET_S + 0.3]  # the warm-up push's states are older
             subscriber.undeclare()
     return Figure("request_flood", {"requests": count, **{f"answered_{c}": n for c, n in sorted(codes.items())},
                                     "all_answered_s": round(drained_s, 2), "health_after_s": round(health_s, 3),
@@ -661,11 +671,70 @@ def recording_complete(quick: bool) -> Figure:
         "received_states": received[states.key], "published_states": states.seq,
         "dropped_by_the_state_queue": states.dropped, "files": len(files), "seconds": seconds},
         {"0 missing": missing == 0 and states.dropped == 0, "every sample received": received == published})
+class BeatForger:
+    """Forge the beats of the router watchdog on `key` from another session, every 10 ms until `stop()`:
+    a bare number 2^64-1 (the beat that once marked every later beat as heard), the probe's zid (read
+    from a beat it saw) with 2^64-1 and a MAC it cannot compute, and a replay of the last beat it saw."""
+
+    def __init__(self, session, key: str):
+        import zenoh
+
+        from shared.bus.lease import BEAT_FORMAT
+
+        self.key, self.sent = key, 0
+        self._format = BEAT_FORMAT
+        self._seen: list[bytes] = []
+        self._subscriber = session.declare_subscriber(key, lambda sample: self._seen.append(sample.payload.to_bytes()))
+        self._publisher = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.DROP)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._forge, daemon=True)
+        self._thread.start()
+
+    def _forge(self) -> None:
+        import struct
+
+        beyond = 2**64 - 1
+        while not self._stop.wait(0.01):
+            beats = [struct.pack("!Q", beyond)]
+            if self._seen and len(seen := self._seen[-1]) == struct.calcsize(self._format):
+                _, zid, _ = struct.unpack(self._format, seen)
+                beats += [struct.pack(self._format, beyond, zid, os.urandom(32)), seen]
+            for beat in beats:
+                with contextlib.suppress(Exception):
+                    self._publisher.put(beat)
+                    self.sent += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        for each in (self._publisher, self._subscriber):
+            with contextlib.suppress(Exception):
+                each.undeclare()
+
+
+def forged_beats(quick: bool) -> Figure:
+    target = max(STOP_TARGET_S, 0.4)  # issue 53: the frozen-router stop stays <= 0.4 s whatever is forged
+    with router_process() as (endpoint, router), commander(endpoint) as holder, client(endpoint) as forger_session:
+        with moving_robot(endpoint, holder) as (bridge, motion, start):
+            watchdog = bridge.watchdog
+            forger = BeatForger(forger_session, watchdog.key)
+            start()
+            time.sleep(1.0)  # the motion runs under the forgeries
+            ignored = dict(watchdog.ignored)
+            fault_at = time.monotonic()
+            router.send_signal(signal.SIGSTOP)
+        forger.stop()
+        figure = _stop_figure("forged_beats", motion, fault_at, target)
+    figure.figures |= {"forged_beats_sent": forger.sent, "ignored_before_freeze": sum(ignored.values()),
+                       "ignored_by_reason": ", ".join(f"{k} {v}" for k, v in sorted(ignored.items()))}
+    figure.targets["forged beats reached the watchdog and were ignored"] = bool(ignored.get("length") and ignored.get("mac"))
+    return figure
 
 
 SCENARIOS: dict[str, Callable[[bool], Figure]] = {
     f.__name__: f for f in (worker_killed, worker_stalled, router_restarted, oversized_job, lease_dropped, router_killed, router_hung,
-                            estop_garbage, client_gone, request_flood, validator_held, recording_complete)
+                            estop_garbage, forged_beats, client_gone, request_flood, validator_held,
+                            recording_complete)
 }
 
 

@@ -92,6 +92,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--timeout", type=positive_float, default=600.0, help="seconds to wait for the planner")
     parser.add_argument("--json", action="store_true", help="print the PushResponse as JSON")
+    parser.add_argument("--identity", default=None, metavar="CN",
+                        help="the identity this client's lease names, gd2p/lease/client/CN/<id>: under the secure "
+                             "profile the CN of the certificate in --zenoh-config, the only identity that may hold "
+                             "it (default: cli, the identity of every push client today)")
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_push)
 
@@ -160,7 +164,8 @@ def run_push(args: argparse.Namespace) -> int:
         print(f"gd2p push: bad request: {exc}", file=sys.stderr)
         return 2
     try:
-        response = push(request, BusConfig.from_args(args, connect_timeout_ms=CONNECT_TIMEOUT_MS), args.timeout)
+        response = push(request, BusConfig.from_args(args, connect_timeout_ms=CONNECT_TIMEOUT_MS), args.timeout,
+                        identity=args.identity)
     except KeyboardInterrupt:
         return _failed(args, "cancelled", "interrupted: the request is cancelled and the robot stops if it was moving",
                        130)

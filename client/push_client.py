@@ -1,7 +1,9 @@
 """Python client of push requests: `push(request, cfg) -> PushResponse`.
 
 The request goes to a planner worker through a Dispatcher. While it is served the client holds its
-lease, a liveliness token `gd2p/lease/client/<id>` named in `PushRequest.client_lease`; the planner
+lease, a liveliness token `gd2p/lease/client/<identity>/<id>` named in `PushRequest.client_lease` (its
+identity: "cli" unless told, the CN of the certificate every push client carries in the secure
+profile, whose rules let it declare tokens only under its own identity's part); the planner
 watches it and cancels the request the moment it disappears: the client was interrupted (Ctrl-C
 leaves the session, and with it the token), crashed, or lost its connection. A cancelled request
 stops sampling and planning, and stops the robot if it moves.
@@ -43,13 +45,17 @@ class PushOutcomeUnknown(PushFailed):
         super().__init__("outcome_unknown", message)
 
 
-def push(request: PushRequest, cfg: BusConfig, timeout_s: float = DEFAULT_TIMEOUT_S) -> PushResponse:
+def push(request: PushRequest, cfg: BusConfig, timeout_s: float = DEFAULT_TIMEOUT_S,
+         identity: str | None = None) -> PushResponse:
     """Send `request` to the planner and wait for its response; PushFailed when it cannot be served.
 
-    Leaving early (KeyboardInterrupt, `timeout_s`) drops the lease, which cancels the request.
+    Leaving early (KeyboardInterrupt, `timeout_s`) drops the lease, which cancels the request. `identity`:
+    the one the lease key names (default "cli", LEASE_IDENTITIES); under the secure profile it must be the
+    CN of `cfg`'s certificate: the router drops any other token, so the lease is never confirmed and the
+    request is cancelled.
     """
+    key = lease_key("client", uuid.uuid4().hex[:16], identity)  # a malformed identity fails before connecting
     with open_session(cfg) as session:
-        key = lease_key("client", uuid.uuid4().hex[:16])
         token = session.liveliness().declare_token(key)
         try:
             with LeaseMonitor(session, key) as connection, \

@@ -53,7 +53,9 @@ def main() -> int:
     parser.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the router (default %(default)s)")
     parser.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the push (default %(default)s)")
     args = parser.parse_args()
-    lease = f"gd2p/lease/client/{uuid.uuid4().hex[:16]}"  # held while we wait: closing the session cancels the push
+    # Held while we wait (closing the session cancels the push); <identity>/<holder>: the secure profile lets
+    # the "cli" certificate hold only gd2p/lease/client/cli/*.
+    lease = f"gd2p/lease/client/cli/{uuid.uuid4().hex[:16]}"
     request = {  # a PushRequest: every field left out takes its default
         "schema_version": 1,
         "id": uuid.uuid4().hex,

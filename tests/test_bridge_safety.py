@@ -216,13 +216,14 @@ def test_a_measured_effort_over_its_limit_stops_every_device_and_latches(robot, 
 # ------------------------------------------------------------------------------------------ lease
 def test_a_command_lease_must_be_a_planner_lease_key():
     for bad in ("gd2p/lease/planner/*", "gd2p/lease/**", "", "gd2p/lease/planner//x", "gd2p/lease/planner/$*a",
-                "gd2p/lease/planner-test", "gd2p/lease/planner/a/b", "gd2p/lease/client/c-1", "gd2p/alive/recorder/r1"):
+                "gd2p/lease/planner-test", "gd2p/lease/planner/a/b/c", "gd2p/lease/planner/x-1", "gd2p/lease/client/c-1",
+                "gd2p/lease/client/cli/c-1", "gd2p/lease/planner/*/x", "gd2p/alive/recorder/r1"):
         with pytest.raises(SafetyRefusal, match="lease"):
             check_command_lease(bad)
-    assert check_command_lease(LEASE) == LEASE == "gd2p/lease/planner/planner-test.1"
+    assert check_command_lease(LEASE) == LEASE == "gd2p/lease/planner/planner/planner-test.1"
 
 
-@pytest.mark.parametrize("key", ["gd2p/lease/client/c-1", alive_key("recorder", "rec-1"), "gd2p/lease/planner-test"])
+@pytest.mark.parametrize("key", ["gd2p/lease/client/cli/c-1", alive_key("recorder", "rec-1"), "gd2p/lease/planner-test"])
 def test_a_live_token_that_is_not_a_planner_lease_commands_nothing(robot, zenoh_router, key):
     other = client(zenoh_router)  # e.g. the recorder's session, or a client's lease: alive, but no planner lease
     try:
@@ -235,7 +236,7 @@ def test_a_live_token_that_is_not_a_planner_lease_commands_nothing(robot, zenoh_
     finally:
         other.close()
     assert state.status == "refused" and state.message.startswith("lease:"), state.message
-    assert "gd2p/lease/planner/<holder>" in state.message
+    assert "gd2p/lease/planner/<identity>/<holder>" in state.message
     assert not robot.moved()
 
 

@@ -68,7 +68,7 @@ def test_every_key_of_keys_py_has_its_row():
         "ALL_KEYS": lambda: interface(keys.ALL_KEYS),
         "ALIVE_PREFIX": lambda: interface(f"{keys.ALIVE_PREFIX}/planner/w-1"),
         "STATUS_PREFIX": lambda: interface(f"{keys.STATUS_PREFIX}/planner/w-1"),
-        "LEASE_PREFIX": lambda: interface(f"{keys.LEASE_PREFIX}/client/h-1"),
+        "LEASE_PREFIX": lambda: interface(f"{keys.LEASE_PREFIX}/client/cli/h-1"),
         "WATCHDOG_PREFIX": lambda: interface(f"{keys.WATCHDOG_PREFIX}/robot_bridge-1"),
         "CALLER_PREFIX": lambda: interface(f"{keys.CALLER_PREFIX}/c-1"),
         "caller_key": lambda: interface(keys.caller_key("c-1")),
@@ -91,7 +91,11 @@ def test_every_key_of_keys_py_has_its_row():
         assert interface(keys.job_key(svc, "w-1")).exchanges == next(w for w in WORKERS if w.name == svc).exchanges
         assert interface(keys.alive_key(svc, "w-1")).declarers == {svc} == interface(keys.status_key(svc, "w-1")).declarers
     for role in LEASE_ROLES:
-        assert interface(lease_key(role, "h-1")).declarers == {registry.LEASE_HOLDERS[role]}
+        assert lease_key(role, "h-1") == lease_key(role, "h-1", registry.LEASE_HOLDERS[role][0])  # the default
+        for identity in registry.LEASE_HOLDERS[role]:  # each identity holds only leases naming it
+            assert interface(lease_key(role, "h-1", identity)).declarers == {identity}
+        with pytest.raises(LookupError):
+            interface(lease_key(role, "h-1", "validator"))
     assert interface(keys.ROBOT_COMMAND_KEY).callers == {"planner"}
     with pytest.raises(LookupError):
         interface("gd2p/unknown/key")

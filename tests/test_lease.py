@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -18,7 +19,17 @@ import zenoh
 
 from conftest import free_port, router_config
 from shared.bus import BusConfig, open_session
-from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, lease_alive, lease_key, parse_lease_key
+from shared.bus.lease import (
+    BEAT_FORMAT,
+    LeaseError,
+    LeaseMonitor,
+    RouterWatchdog,
+    lease_alive,
+    lease_identity,
+    lease_key,
+    parse_lease_key,
+    zid_bytes,
+)
 
 BOUND_S = 0.5
 KEY = lease_key("planner", "w1.cmd1")
@@ -42,16 +53,25 @@ def hold_the_gil(seconds: float) -> float:
     return time.perf_counter() - started
 
 
-def test_a_lease_key_is_a_role_and_one_holder():
-    assert KEY == "gd2p/lease/planner/w1.cmd1"
-    assert parse_lease_key("gd2p/lease/client/abc") == ("client", "abc")
-    for bad in ("gd2p/lease/planner", "gd2p/lease/planner/a/b", "gd2p/lease/robot/x", "gd2p/lease/planner/*",
-                "gd2p/lease/planner/**", "gd2p/alive/planner/x", "", "gd2p/lease/planner/$*", "gd2p/lease/planner-1"):
+def test_a_lease_key_is_a_role_an_identity_and_one_holder():
+    assert KEY == "gd2p/lease/planner/planner/w1.cmd1" == lease_key("planner", "w1.cmd1", "planner")
+    assert lease_key("client", "abc") == "gd2p/lease/client/cli/abc"  # each role's default identity
+    assert parse_lease_key("gd2p/lease/client/cli/abc") == ("client", "abc")
+    assert lease_identity("gd2p/lease/client/alice/abc") == "alice"
+    for bad in ("gd2p/lease/planner", "gd2p/lease/planner/w1", "gd2p/lease/planner/a/b/c", "gd2p/lease/robot/x/y",
+                "gd2p/lease/planner/planner/*", "gd2p/lease/planner/*/x", "gd2p/lease/planner/planner/**",
+                "gd2p/alive/planner/planner/x", "", "gd2p/lease/planner/planner/$*", "gd2p/lease/planner-1",
+                "gd2p/lease/planner//x"):
         with pytest.raises(LeaseError):
             parse_lease_key(bad)
+        with pytest.raises(LeaseError):
+            lease_identity(bad)
     for role, holder in (("operator", "x"), ("planner", "a/b"), ("planner", "*"), ("planner", "")):
         with pytest.raises(LeaseError):
             lease_key(role, holder)
+    for identity in ("", "a/b", "*", "$*"):
+        with pytest.raises(LeaseError):
+            lease_key("client", "x", identity)
 
 
 def test_a_held_lease_is_confirmed_and_lost_when_its_token_goes(zenoh_router):
@@ -147,6 +167,7 @@ def test_a_hung_router_loses_the_lease_within_the_watchdog_bound(router_process)
             watchdog.close()
     print(f"router hung -> lease lost: {latency * 1000:.0f} ms ({monitor.reason})")
     assert "router forwarded nothing" in monitor.reason
+    assert not watchdog.ignored  # every beat it heard was its own
     assert latency <= BOUND_S
 
 
@@ -167,4 +188,71 @@ def test_the_watchdog_does_not_blame_the_router_for_a_busy_process(zenoh_router)
         finally:
             watchdog.close()
     assert busy_s > 2 * watchdog.bound_s
-    assert silence < watchdog.bound_s
+    assert silence < watchdog.bound_s and not watchdog.ignored
+
+
+# ------------------------------------------------------------------------------ forged beats (issue 53)
+BEYOND = 2**64 - 1  # the beat number that once marked every later beat as heard
+
+
+def forged_beat(kind: str, watchdog: RouterWatchdog, forger: zenoh.Session) -> bytes:
+    if kind == "length":  # the old beat format: a bare number
+        return struct.pack("!Q", BEYOND)
+    if kind == "mac":  # the probe's own zid (it travels in every beat), a MAC the forger cannot compute
+        return struct.pack(BEAT_FORMAT, BEYOND, watchdog.probe_zid, os.urandom(32))
+    if kind == "zid":  # the forger's own session id
+        return struct.pack(BEAT_FORMAT, BEYOND, zid_bytes(forger.zid()), os.urandom(32))
+    assert kind == "ahead"  # correctly signed (as if the secret had leaked), but numbered past the last beat sent
+    return watchdog._signed(watchdog._sent + 1000)
+
+
+def test_a_session_id_of_any_length_fills_the_beats_zid_field():
+    class Zid:  # a ZenohId's text leaves its leading zeros out: odd lengths happen
+        def __init__(self, text: str):
+            self.text = text
+
+        def __str__(self) -> str:
+            return self.text
+
+    assert zid_bytes(Zid("abc")) == bytes(14) + b"\x0a\xbc"
+    assert zid_bytes(Zid("f" * 32)) == b"\xff" * 16
+
+
+@pytest.mark.parametrize("kind", ["length", "mac", "zid", "ahead"])
+def test_a_forged_beat_does_not_hide_a_hung_router(router_process, kind):
+    """Another session publishes on the watchdog's key a forged beat (and replays of the real beats it saw)
+    before the router hangs: the forgery is ignored and counted, and the silence still passes the bound."""
+    endpoint, router = router_process
+    with session(endpoint) as watcher, session(endpoint) as probe, session(endpoint) as forger:
+        watchdog = RouterWatchdog(watcher, probe, "lease-test")
+        seen: list[bytes] = []
+        tap = forger.declare_subscriber(watchdog.key, lambda sample: seen.append(sample.payload.to_bytes()))
+        try:
+            time.sleep(0.5)
+            assert watchdog.silence_s() < watchdog.bound_s
+            replays = seen[-20:]  # genuine beats, already sent and heard
+            assert len(replays) >= 10
+            for _ in range(3):
+                forger.put(watchdog.key, forged_beat(kind, watchdog, forger))
+            for beat in replays:
+                forger.put(watchdog.key, beat)
+            deadline = time.monotonic() + 2.0
+            while watchdog.ignored[kind] < 3 and time.monotonic() < deadline:
+                watchdog.silence_s()
+                time.sleep(0.02)
+            assert watchdog.ignored == {kind: 3}, watchdog.ignored
+            assert watchdog.silence_s() < watchdog.bound_s  # replays are harmless while the router forwards
+            hung_at = time.monotonic()
+            router.send_signal(signal.SIGSTOP)
+            silence = 0.0
+            while silence <= watchdog.bound_s and time.monotonic() - hung_at < 3.0:
+                silence = watchdog.silence_s()
+                time.sleep(0.01)
+            latency = time.monotonic() - hung_at
+        finally:
+            router.send_signal(signal.SIGCONT)
+            tap.undeclare()
+            watchdog.close()
+    print(f"forged beat ({kind}), router hung -> silence over the bound: {latency * 1000:.0f} ms")
+    assert silence > watchdog.bound_s, "a forged beat hid a hung router"
+    assert latency <= BOUND_S

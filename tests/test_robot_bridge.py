@@ -382,16 +382,16 @@ def test_a_command_with_a_world_runs_to_the_end_under_the_router_watchdog(zenoh_
 def test_only_a_planner_lease_may_command_motion(bus_bridge, key_kind):
     from shared.bus.keys import alive_key
 
-    key = {"client lease": "gd2p/lease/client/c-1", "a worker's liveliness token": alive_key("recorder", "rec-1"),
+    key = {"client lease": "gd2p/lease/client/cli/c-1", "a worker's liveliness token": alive_key("recorder", "rec-1"),
            "old-style lease": "gd2p/lease/planner-1", "wildcard": "gd2p/lease/planner/*",
-           "too deep": "gd2p/lease/planner/a/b"}[key_kind]
+           "too deep": "gd2p/lease/planner/planner/a/b"}[key_kind]
     token = bus_bridge.commander.liveliness().declare_token(key)  # a live token is there: still not a lease
     try:
         state = bus_bridge.bridge.execute(bus_bridge.move(key))
     finally:
         token.undeclare()
     assert state.status == "refused" and state.message.startswith("lease:"), state.message
-    assert "gd2p/lease/planner/<holder>" in state.message
+    assert "gd2p/lease/planner/<identity>/<holder>" in state.message
     assert abs(bus_bridge.travel(state)) < 1e-3
 
 

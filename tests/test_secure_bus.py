@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import stat
+import struct
 import threading
 import time
 
@@ -49,7 +50,7 @@ from shared.bus import (
     keys,
     live_workers,
 )
-from shared.bus.lease import LEASE_ROLES, lease_alive, lease_key
+from shared.bus.lease import LEASE_ROLES, RouterWatchdog, lease_alive, lease_key
 from shared.contracts.codec import decode, encode
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
@@ -344,6 +345,34 @@ def test_robot_state_is_published_by_the_robot_bridge_only(secure):
     assert states.keys == [keys.ROBOT_STATE_KEY]
 
 
+def test_only_the_bridge_identity_beats_on_the_router_watchdog_key(secure):
+    """Issue 53: a beat numbered 2^64-1 on the watchdog's key once hid a frozen router. Under the secure
+    profile a cli or validator certificate cannot put there at all: the bridge's watchdog (both sessions
+    CN robot_bridge) hears its own beats and nothing of the forgers'; a put by the bridge's identity
+    gets through (and is ignored by the watchdog as not its own beat)."""
+    profile, _ = secure
+    with session_as(profile, "robot_bridge") as bridge_session, session_as(profile, "robot_bridge") as probe, \
+            session_as(profile, "cli") as operator, session_as(profile, "validator") as validator:
+        watchdog = RouterWatchdog(bridge_session, probe, f"robot_bridge-{bridge_session.zid()}")
+        try:
+            time.sleep(0.4)
+            forged = struct.pack("!Q", 2**64 - 1)
+            for forger in (operator, validator):
+                for _ in range(3):
+                    forger.put(watchdog.key, forged)
+            time.sleep(0.5)
+            assert watchdog.silence_s() < watchdog.bound_s  # the bridge's own beats pass the access rules
+            assert not watchdog.ignored, watchdog.ignored  # the forgers' never reached it
+            probe.put(watchdog.key, forged)  # the bridge's identity may put (and the watchdog still ignores it)
+            deadline = time.monotonic() + 2.0
+            while not watchdog.ignored and time.monotonic() < deadline:
+                watchdog.silence_s()
+                time.sleep(0.02)
+            assert watchdog.ignored == {"length": 1}
+        finally:
+            watchdog.close()
+
+
 def test_a_lease_token_is_declared_only_by_the_identity_of_its_role(secure):
     profile, _ = secure
     with session_as(profile, "planner") as planner, session_as(profile, "cli") as operator, \
@@ -365,6 +394,31 @@ def test_a_lease_token_is_declared_only_by_the_identity_of_its_role(secure):
         assert not lease_alive(bridge_session, lease_key("client", "planner-1"), timeout_s=0.5)
         assert tokens(bridge_session, "gd2p/lease/**") == {lease_key("planner", "planner-1"), lease_key("client", "cli-1")}
         for token in forged + real:
+            token.undeclare()
+
+
+def test_a_lease_key_names_its_holder_and_only_that_identity_may_hold_it(secure):
+    """Issue 53: a `cli` certificate could hold any client's lease. A lease key now names its holder's
+    identity (gd2p/lease/<role>/<identity>/<holder>) and an identity may declare tokens only under its
+    own part, for a role it may hold: cli holds gd2p/lease/client/cli/*, and neither another identity's
+    client lease nor a planner lease (under the planner's part or its own)."""
+    profile, _ = secure
+    for key in (lease_key("client", "x", "operator"), lease_key("client", "x", "validator"),
+                lease_key("planner", "x", "cli"), lease_key("planner", "x"), f"{lease_key('client', 'x')}/deeper"):
+        assert "cli" not in acl.who_may("ingress", "liveliness_token", key), key
+    assert acl.who_may("ingress", "liveliness_token", lease_key("client", "x", "operator")) == frozenset()
+    assert acl.who_may("ingress", "liveliness_token", lease_key("client", "x")) == {"cli"}
+    with session_as(profile, "cli") as operator, session_as(profile, "planner") as planner:
+        others = [lease_key("client", "cli-1", "operator"), lease_key("client", "cli-2", "validator"),
+                  lease_key("planner", "cli-3", "cli"), lease_key("planner", "cli-4")]
+        own = lease_key("client", "cli-5")
+        declared = [operator.liveliness().declare_token(key) for key in (*others, own)]
+        time.sleep(0.4)
+        assert lease_alive(planner, own)  # the planner watches the push client's lease
+        for key in others:  # (a session sees its own tokens without the router: ask another session)
+            assert not lease_alive(planner, key, timeout_s=0.5), key
+        assert tokens(planner, "gd2p/lease/**") == {own}
+        for token in declared:
             token.undeclare()
 
 
@@ -483,12 +537,20 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                              ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
-        # Router watchdog beats (shared/bus/lease.py): open on purpose, see profile.OPEN_PUT_KEYS.
-        "WATCHDOG_PREFIX": [("ingress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
+        # Router watchdog beats (shared/bus/lease.py): the bridge's own (issue 53), see profile.WATCHDOG_BEATERS.
+        "WATCHDOG_PREFIX": [("ingress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset({"robot_bridge"})),
+                            ("egress", "put", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
                             ("ingress", "declare_subscriber", f"{keys.WATCHDOG_PREFIX}/w-1", ALL),
                             ("ingress", "declare_queryable", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset()),
                             ("ingress", "liveliness_token", f"{keys.WATCHDOG_PREFIX}/w-1", frozenset())],
-        "LEASE_PREFIX": [("ingress", "liveliness_token", lease_key(role, "h-1"), frozenset({holder}))
+        # A Dispatcher's presence (shared/bus/worker.py Callers): any identity may declare one (it only keeps its
+        # own jobs from being cancelled early), nobody may put or serve there.
+        "CALLER_PREFIX": [("ingress", "liveliness_token", f"{keys.CALLER_PREFIX}/c-1", ALL),
+                          ("ingress", "put", f"{keys.CALLER_PREFIX}/c-1", frozenset()),
+                          ("ingress", "declare_queryable", f"{keys.CALLER_PREFIX}/c-1", frozenset())],
+        "caller_key": [("ingress", "liveliness_token", keys.caller_key("c-1"), ALL),
+                       ("ingress", "declare_liveliness_subscriber", keys.caller_key("c-1"), ALL)],
+        "LEASE_PREFIX": [("ingress", "liveliness_token", lease_key(role, "h-1", holder), frozenset({holder}))
                          for role, holder in (("planner", "planner"), ("client", "cli"))]
                         + [("ingress", "liveliness_token", f"{keys.LEASE_PREFIX}/h-1", frozenset()),
                            ("ingress", "liveliness_query", lease_key("planner", "h-1"), ALL),
@@ -499,7 +561,8 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
 def test_every_key_of_the_bus_has_an_owner_in_the_access_rules():
     """Each key space of shared/bus/keys.py (plus the leases and the launcher's control key) is open
     exactly to its owners: a new key must be added here and to profile.py, or this test fails; no
-    key is writable by everyone but the e-stop, and every concrete key has someone who may write it."""
+    key is writable by everyone but the e-stop (and tokens by everyone only on the callers' presence key), and every
+    concrete key has someone who may write it."""
     from deploy.launcher import CONTROL_KEY
 
     expectations = key_space_expectations()
@@ -526,8 +589,9 @@ def test_every_key_of_the_bus_has_an_owner_in_the_access_rules():
         writers = set().union(*(acl.who_may("ingress", m, key) for m in producing))
         assert writers, f"{key}: nobody may write, serve or query it (silently denied)"
         open_put = any(zenoh.KeyExpr(o).includes(zenoh.KeyExpr(key)) for o in acl.OPEN_PUT_KEYS)
+        open_token = any(zenoh.KeyExpr(o).includes(zenoh.KeyExpr(key)) for o in acl.OPEN_TOKEN_KEYS)
         for message in producing:
-            if not (open_put and message == "put"):
+            if not (open_put and message == "put") and not (open_token and message == "liveliness_token"):
                 assert acl.who_may("ingress", message, key) != ALL, f"{key}: everyone may {message} (silently open)"
 
 

@@ -13,14 +13,19 @@ rules are default-deny, and each key space has an owner:
   and validators; the operator's tools, CN "cli", call the planner, generator, validator and sampler
   and health-query everyone) and by S itself (its container healthcheck asks its own worker).
 - `gd2p/robot_bridge/command/**`: only the planner queries (or puts); the bridge serves it.
-- `gd2p/lease/<role>/**` (shared/bus/lease.py): only the identity of that role declares the token
-  (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli).
+- `gd2p/lease/<role>/<identity>/*` (shared/bus/lease.py): only that identity declares the token, and only
+  for a role it may hold (LEASE_HOLDERS: role "planner" -> CN planner, role "client" -> CN cli; one rule
+  per identity and role, as Zenoh's key expressions cannot say "the session's own CN"). So a lease key
+  names its holder's identity, and one identity cannot hold another's lease.
 - `gd2p/launcher/**`: only CN "operator" queries it (scaling is host administration, kept apart from
   the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
 - `gd2p/robot_bridge/object_track`: besides the bridge (its namespace), CN "tracker" may put: a user's
   object tracker beside real hardware.
-- `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner);
-  so may it on `gd2p/watchdog/*` (router watchdog beats, see OPEN_PUT_KEYS).
+- `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner).
+- `gd2p/watchdog/*` (router watchdog beats, shared/bus/lease.py RouterWatchdog): only CN robot_bridge puts
+  (WATCHDOG_BEATERS: the bridge's probe session beats to its main session). A beat from anyone else is
+  ignored by the watchdog anyway (it carries the probe's zid and a MAC only the bridge can make), and the
+  router drops it before it reaches the bridge: it can neither hide a frozen router nor flood the ring.
 - every identity may subscribe, liveliness-subscribe and liveliness-query `gd2p/**` (observers: the
   recorder, `gd2p status`, a dispatcher watching workers, the bridge watching a lease); the router
   tells every session which subscribers, queryables and tokens exist and delivers every publication.
@@ -28,7 +33,7 @@ rules are default-deny, and each key space has an owner:
 `allowed(identity, flow, message, key)` evaluates the same rules the way Zenoh does (a rule applies
 when one of its key expressions includes the message's), for tests and for docs/safety.md.
 A key outside every rule is dropped for everyone: a new key (shared/bus/keys.py) needs an owner here.
-The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS) come from the interface registry,
+The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS, WATCHDOG_BEATERS) come from the interface registry,
 shared/bus/interfaces.py; tests/test_interfaces.py checks every registry entry against these rules.
 """
 from __future__ import annotations
@@ -66,13 +71,16 @@ SERVING_IDENTITIES: tuple[str, ...] = (*WORKER_IDENTITIES, LAUNCHER_IDENTITY)
 # services/planner/service.py dispatches to sampler and validator; the operator's tools (gd2p push,
 # dataset build, health) reach the planner, generator and validator, and `gd2p health` every service.
 CALLS: dict[str, tuple[str, ...]] = interfaces.calls()
-# Lease role (gd2p/lease/<role>/<holder>, shared/bus/lease.py) -> the one identity that may hold it.
-LEASE_HOLDERS: dict[str, str] = dict(interfaces.LEASE_HOLDERS)
-# Keys every authenticated identity may put on: the e-stop (stopping must never need the planner) and
-# the router watchdogs' beats (shared/bus/lease.py RouterWatchdog: a process's probe session beats on
-# gd2p/watchdog/<name> to itself; a beat only shows that the router forwards to the subscriber, which
-# a beat from anyone else shows just as truly, so the key needs no owner).
-OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop, gd2p/watchdog/*
+# Lease role (gd2p/lease/<role>/<identity>/<holder>, shared/bus/lease.py) -> the identities that may hold it.
+LEASE_HOLDERS: dict[str, tuple[str, ...]] = dict(interfaces.LEASE_HOLDERS)
+# Keys every authenticated identity may put on: the e-stop (stopping must never need the planner).
+OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop
+# The router watchdogs' beats (shared/bus/lease.py RouterWatchdog): the bridge's probe session beats on
+# gd2p/watchdog/<name> to its main session. Issue 53: a forged beat once hid a frozen router, so only the
+# identities of the registry row put there (robot_bridge).
+_WATCHDOG = interfaces.interface(interfaces.WATCHDOG_KEY, "publication")
+WATCHDOG_KEYS = _WATCHDOG.pattern  # gd2p/watchdog/*
+WATCHDOG_BEATERS: tuple[str, ...] = tuple(sorted(_WATCHDOG.declarers))  # robot_bridge
 # Tokens every identity may declare: a Dispatcher's presence (gd2p/caller/*), whose only power is to keep
 # its own jobs from being cancelled before their deadline.
 OPEN_TOKEN_KEYS: tuple[str, ...] = interfaces.open_token_keys()
@@ -123,13 +131,17 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("command-issue", "ingress", ["query", "put"], [COMMAND_KEYS]),
         _rule("command-hear-replies", "egress", ["reply"], [COMMAND_KEYS]),
     ]
-    for role, holder in LEASE_HOLDERS.items():
-        by_subject[holder].append(_rule(f"lease-{role}", "ingress", ["liveliness_token"], [f"{LEASE_PREFIX}/{role}/**"]))
+    for role, holders in LEASE_HOLDERS.items():
+        for holder in holders:  # its own identity's part only: gd2p/lease/<role>/<holder>/*
+            by_subject[holder].append(_rule(f"lease-{role}-{holder}", "ingress", ["liveliness_token"],
+                                            [f"{LEASE_PREFIX}/{role}/{holder}/*"]))
     by_subject[OPERATOR_IDENTITY] += [
         _rule("launcher-control", "ingress", ["query"], [LAUNCHER_KEYS]),
         _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),
     ]
     by_subject[TRACKER_IDENTITY].append(_rule("object-track", "ingress", ["put"], [OBJECT_TRACK_KEY]))
+    for beater in WATCHDOG_BEATERS:
+        by_subject[beater].append(_rule(f"{beater}-watchdog-beats", "ingress", ["put"], [WATCHDOG_KEYS]))
     return by_subject
 
 

@@ -5,7 +5,7 @@ The algorithm is `pipeline.PushPipeline`; this module gives it its services over
 - arm rollouts: `ValidationJob(with_arm=True)` through a Dispatcher to the validator farm, all plans
   of a push at once (they run in parallel on as many validator processes as there are);
 - execution: an `ExecutionCommand` queried on the robot bridge's command key under a lease of its
-  own (a liveliness token `gd2p/lease/planner/<worker id>.<command id>`, declared for that command
+  own (a liveliness token `gd2p/lease/planner/planner/<worker id>.<command id>`, declared for that command
   only), while the robot's `ExecutionState` stream is collected for the recording;
 - cancellation: every request must name its client's lease (`PushRequest.client_lease`; without one
   it is refused, ErrorReply "bad_request"), watched (`shared.bus.lease.LeaseMonitor`) from when the

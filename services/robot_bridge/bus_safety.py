@@ -4,7 +4,7 @@ The executor (executor.py) knows a lease and an e-stop only as small interfaces;
 the bus adapter gives it:
 
 - `CommandLease` (an `executor.Lease`): a command's `lease_token` must be a planner's lease key,
-  `gd2p/lease/planner/<holder>` (shared/bus/lease.py); any other key is refused, even one with a live
+  `gd2p/lease/planner/<identity>/<holder>` (shared/bus/lease.py); any other key is refused, even one with a live
   token behind it (another role's lease, a worker's `gd2p/alive/...` token, a wildcard). A
   `LeaseMonitor` watches it from *before* the first check until the motion ends: the lease must be
   confirmed held before anything moves, and its loss at any moment (the commander dropped it, crashed
@@ -36,22 +36,22 @@ COMMAND_LEASE_ROLE = "planner"  # the only role whose lease may command motion
 
 # ------------------------------------------------------------------------------------------ lease
 def check_command_lease(key: str) -> str:
-    """`key` if it is a planner's lease key, `gd2p/lease/planner/<holder>`; SafetyRefusal("lease") otherwise.
+    """`key` if it is a planner's lease key, `gd2p/lease/planner/<identity>/<holder>`; SafetyRefusal("lease") otherwise.
 
     Nothing else may keep a command alive, even with a live token behind it: a worker's `gd2p/alive/...`
     token, a client's lease, a wildcard. The key says nothing about who holds its token: Zenoh
     consolidates tokens declared twice on one key, so the bridge cannot count holders. Binding the
     lease to the planner is the secure profile's (only the planner's certificate may declare tokens
-    under `gd2p/lease/planner/**`) and the planner's (a fresh key per command).
+    under `gd2p/lease/planner/planner/*`) and the planner's (a fresh key per command).
     """
     try:
         role, _ = parse_lease_key(key)
     except LeaseError as exc:
         raise SafetyRefusal("lease", f"{exc}; a command's lease must be "
-                            f"gd2p/lease/{COMMAND_LEASE_ROLE}/<holder>") from None
+                            f"gd2p/lease/{COMMAND_LEASE_ROLE}/<identity>/<holder>") from None
     if role != COMMAND_LEASE_ROLE:
         raise SafetyRefusal("lease", f"lease {key!r} is a {role} lease; only a {COMMAND_LEASE_ROLE} lease "
-                            f"(gd2p/lease/{COMMAND_LEASE_ROLE}/<holder>) may command motion")
+                            f"(gd2p/lease/{COMMAND_LEASE_ROLE}/<identity>/<holder>) may command motion")
     return key
 
 

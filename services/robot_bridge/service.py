@@ -8,7 +8,7 @@
   "stopped" (e-stop or lost lease), "error", or "refused" with a message naming the broken limit, joint
   and time. The worker's own job key does not execute commands (anyone on the bus may query it); it
   serves health queries and EStop.
-- The command's `lease_token` must be a planner's lease, `gd2p/lease/planner/<holder>`, held by a live
+- The command's `lease_token` must be a planner's lease, `gd2p/lease/planner/<identity>/<holder>`, held by a live
   liveliness token (`bus_safety.CommandLease`). It is watched from before the first check until the
   motion ends: a lease lost at any point — during the checks, the world reset or the motion; the
   commander dropped it, or this bridge lost its router — refuses or stops the command, and the final

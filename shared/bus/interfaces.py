@@ -37,7 +37,7 @@ from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
 from shared.bus import keys
-from shared.bus.lease import LEASE_ROLES, lease_key
+from shared.bus.lease import BEAT_BYTES, BEAT_FORMAT, LEASE_ROLES, lease_key
 from shared.contracts import messages
 from shared.contracts.codec import ENCODING_PREFIX
 from shared.contracts.messages import (
@@ -65,6 +65,7 @@ from shared.contracts.messages import (
 Kind = Literal["queryable", "publication", "liveliness"]
 LAUNCHER_CONTROL_KEY = f"{keys.PREFIX}/launcher/control"  # served by deploy/launcher.py
 WORKER_ID = "<worker_id>"
+WATCHDOG_KEY = f"{keys.WATCHDOG_PREFIX}/<name>"  # the router watchdog's beats (shared/bus/lease.py RouterWatchdog)
 GENERATED_BY = "python -m shared.bus.interfaces --markdown > docs/interfaces.md"
 
 
@@ -200,8 +201,9 @@ TOOLS: dict[str, str] = {
 }
 PARTICIPANTS: dict[str, str] = {s.name: f"service: {s.summary}" for s in WORKERS} | TOOLS
 EVERYONE: frozenset[str] = frozenset(PARTICIPANTS)
-# Lease role (shared/bus/lease.py) -> the one identity that holds leases of that role.
-LEASE_HOLDERS: dict[str, str] = {"planner": "planner", "client": "cli"}
+# Lease role (shared/bus/lease.py) -> the identities that may hold leases of that role, each under its own
+# `gd2p/lease/<role>/<identity>/*` only (the first is the role's default, lease.LEASE_IDENTITIES).
+LEASE_HOLDERS: dict[str, tuple[str, ...]] = {"planner": ("planner",), "client": ("cli",)}
 
 
 # ------------------------------------------------------------------------------------------ the table
@@ -225,8 +227,7 @@ def _worker_interfaces(svc: Service) -> tuple[Interface, ...]:
     )
 
 
-def _lease_interface(role: str) -> Interface:
-    holder = LEASE_HOLDERS[role]
+def _lease_interface(role: str, identity: str) -> Interface:
     detail = {"planner": (("The lease of one robot command: the planner declares `<worker_id>.<command_id>` before"
                            " it sends the command and names it in ExecutionCommand.lease_token."),
                           ("The robot bridge (`CommandLease`: a LeaseMonitor from before its first check until"
@@ -238,12 +239,15 @@ def _lease_interface(role: str) -> Interface:
                           " request and stops the robot if it moves)."),
                          ("client/push_client.py: push", "services/planner/service.py: BusServices.watch_client"))}
     summary, used_by, code = detail[role]
-    return Interface(f"{role} lease", lease_key(role, "<holder>"), "liveliness", summary,
-                     frozenset({holder}), EVERYONE, payload="none (a token)", used_by=used_by,
+    title = f"{role} lease" if len(LEASE_HOLDERS[role]) == 1 else f"{role} lease of {identity}"
+    return Interface(title, lease_key(role, "<holder>", identity), "liveliness", summary,
+                     frozenset({identity}), EVERYONE, payload="none (a token)", used_by=used_by,
                      liveliness="The token is the lease: held while the holder's session lives; its DELETE (the"
                                 " holder undeclared it, closed its session or died) reaches the watcher at once.",
-                     qos="A random part in `<holder>` makes each lease key unique (Zenoh merges two tokens on one"
-                         " key). The watcher confirms it once with a liveliness query, then follows its subscriber.",
+                     qos=f"The key names its holder's identity (`{identity}`): only that identity may declare a token"
+                         " under it, so one identity cannot hold another's lease. A random part in `<holder>` makes"
+                         " each lease key unique (Zenoh merges two tokens on one key). The watcher confirms it once"
+                         " with a liveliness query, then follows its subscriber.",
                      code=("shared/bus/lease.py", *code))
 
 
@@ -311,14 +315,19 @@ _INFRASTRUCTURE = (
               qos="Open to every identity: a token only keeps a caller's jobs from being cancelled early; their"
                   " deadline still bounds them.",
               code=("shared/bus/dispatcher.py: Dispatcher", "shared/bus/worker.py: Worker._on_caller")),
-    Interface("router watchdog", f"{keys.WATCHDOG_PREFIX}/<name>", "publication",
-              "Beats a process sends itself through the router: a beat can only come back through it, so their"
-              " silence shows a router that stopped forwarding, however the link looks.",
-              EVERYONE, EVERYONE, payload="an 8-byte big-endian beat number (struct `!Q`), no encoding",
+    Interface("router watchdog", WATCHDOG_KEY, "publication",
+              "Beats the robot bridge sends itself through the router: a beat can only come back through it, so"
+              " their silence shows a router that stopped forwarding, however the link looks. Only the bridge's"
+              " own beats count: a forged one is ignored, so it cannot hide a frozen router.",
+              frozenset({"robot_bridge"}), EVERYONE,
+              payload=f"{BEAT_BYTES} bytes, no encoding (struct `{BEAT_FORMAT}`): the beat number, the probe session's zid, an"
+                      " HMAC-SHA256 of both under a secret that never leaves the bridge's process",
               used_by="The robot bridge's RouterWatchdog (`<name>` = `robot_bridge-<zid>`): its probe session"
-                      " publishes, its main session subscribes. The recorder records the beats too.",
-              qos="A beat every 20 ms with congestion control DROP (a late beat is worthless, and the watchdog must"
-                  " never wait); the subscriber keeps the last 64 (ring channel). Not numbered for the recorder.",
+                      " publishes, its main session subscribes and counts a beat only if it carries the probe's"
+                      " zid and a valid MAC and is numbered at most the last beat sent (others are ignored and"
+                      " counted). The recorder records the beats too.",
+              qos="A beat every 20 ms with congestion control DROP; the subscriber keeps the last 64 (ring channel)."
+                  " Put by the bridge's identity only in the secure profile.",
               code=("shared/bus/lease.py: RouterWatchdog",)),
     Interface("launcher control", LAUNCHER_CONTROL_KEY, "queryable",
               "Bring a scalable service to exactly N workers; answered once the new workers have registered.",
@@ -349,7 +358,7 @@ _INFRASTRUCTURE = (
 INTERFACES: tuple[Interface, ...] = (
     *(row for svc in WORKERS for row in _worker_interfaces(svc)),
     *_ROBOT,
-    *(_lease_interface(role) for role in LEASE_ROLES),
+    *(_lease_interface(role, identity) for role in LEASE_ROLES for identity in LEASE_HOLDERS[role]),
     *_INFRASTRUCTURE,
 )
 
@@ -378,7 +387,7 @@ def open_token_keys() -> tuple[str, ...]:
 
 
 def open_put_keys() -> tuple[str, ...]:
-    """The key expressions every identity may publish on (the e-stop, the watchdog beats)."""
+    """The key expressions every identity may publish on (the e-stop)."""
     return tuple(row.pattern for row in INTERFACES if row.kind == "publication" and row.declarers == EVERYONE)
 
 

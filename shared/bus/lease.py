@@ -1,10 +1,14 @@
 """Leases: a holder's liveliness token that others watch, and lose within a bounded time.
 
-A lease is a Zenoh liveliness token on `gd2p/lease/<role>/<holder>` (`lease_key`). The role names who
-holds it (`planner` commands the robot; `client` is a push client waiting for its answer); the secure
-profile lets only the identity of that role declare tokens under its role, which binds a lease to
-an identity. Zenoh consolidates tokens declared twice on one key, so a second holder cannot be
-counted: a lease key carries a random part (per command, per client) so that nobody else holds it.
+A lease is a Zenoh liveliness token on `gd2p/lease/<role>/<identity>/<holder>` (`lease_key`). The role
+names what the holder does (`planner` commands the robot; `client` is a push client waiting for its
+answer); the identity is the holder's (its certificate's CN in the secure profile: LEASE_IDENTITIES
+gives each role's default, the only identity that holds it today); `<holder>` is a random part (per
+command, per client). The secure profile lets an identity declare tokens only under
+`gd2p/lease/<role>/<its own identity>/*`, and only for a role it may hold, which binds a lease to an
+identity: one `cli` cannot hold another client identity's lease, nor a planner's. Zenoh consolidates
+tokens declared twice on one key, so a second holder cannot be counted: the random part makes the key
+one nobody else holds.
 
 `LeaseMonitor` watches one lease and sets `lost` when
 - it is not confirmed within `startup_s` (a liveliness query that finds the token; a token just
@@ -25,11 +29,14 @@ uses them only to confirm the token once.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import logging
+import secrets
 import struct
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable
 
 import zenoh
@@ -45,31 +52,51 @@ WATCHDOG_BOUND_S = 0.3  # see RouterWatchdog
 STARTUP_S = 1.0
 QUERY_TIMEOUT_S = 0.15
 LEASE_ROLES: tuple[str, ...] = ("planner", "client")  # who may hold a lease (the secure ACL binds each to an identity)
+# Role -> the identity a lease of that role names when its holder gives none: the planner's certificate, and
+# the "cli" certificate every push client carries (the plain profile has no certificates: the same names).
+LEASE_IDENTITIES: dict[str, str] = {"planner": "planner", "client": "cli"}
+ZID_BYTES = 16  # a Zenoh session id (ZenohId: 128 bits)
+BEAT_FORMAT = f"!Q{ZID_BYTES}s32s"  # a watchdog beat: number, the probe session's zid, HMAC-SHA256 (RouterWatchdog)
+BEAT_BYTES = struct.calcsize(BEAT_FORMAT)  # 56
 
 
 class LeaseError(BusError):
-    """A lease key is malformed (not `gd2p/lease/<role>/<holder>`, or a wildcard)."""
+    """A lease key is malformed (not `gd2p/lease/<role>/<identity>/<holder>`, or a wildcard)."""
 
 
-def lease_key(role: str, holder: str) -> str:
-    """`gd2p/lease/<role>/<holder>`: where a holder of `role` declares its lease token."""
+def lease_key(role: str, holder: str, identity: str | None = None) -> str:
+    """`gd2p/lease/<role>/<identity>/<holder>`: where `identity`, holding a lease of `role`, declares its token
+    (`identity` defaults to the role's, LEASE_IDENTITIES)."""
     if role not in LEASE_ROLES:
         raise LeaseError(f"unknown lease role {role!r}; roles: {', '.join(LEASE_ROLES)}")
     try:
-        return f"{LEASE_PREFIX}/{role}/{check_chunk(holder, 'lease holder')}"
+        who = check_chunk(LEASE_IDENTITIES[role] if identity is None else identity, "lease identity")
+        return f"{LEASE_PREFIX}/{role}/{who}/{check_chunk(holder, 'lease holder')}"
     except BusError as exc:
         raise LeaseError(str(exc)) from None
 
 
 def parse_lease_key(key: str) -> tuple[str, str]:
-    """(role, holder) of a lease key; LeaseError unless it is exactly `gd2p/lease/<role>/<holder>`."""
+    """(role, holder) of a lease key; LeaseError unless it is exactly `gd2p/lease/<role>/<identity>/<holder>`
+    (`lease_identity` gives the identity)."""
+    role, _, holder = _lease_parts(key)
+    return role, holder
+
+
+def lease_identity(key: str) -> str:
+    """The identity a lease key names (LeaseError for a malformed key)."""
+    return _lease_parts(key)[1]
+
+
+def _lease_parts(key: str) -> tuple[str, str, str]:
     parts = str(key).split("/")
-    if len(parts) != 4 or "/".join(parts[:2]) != LEASE_PREFIX:
-        raise LeaseError(f"lease {key!r} is not a key of the form {LEASE_PREFIX}/<role>/<holder>")
+    if len(parts) != 5 or "/".join(parts[:2]) != LEASE_PREFIX:
+        raise LeaseError(f"lease {key!r} is not a key of the form {LEASE_PREFIX}/<role>/<identity>/<holder>")
     try:
-        return parts[2], lease_key(parts[2], parts[3]).split("/")[3]
+        lease_key(parts[2], parts[4], parts[3])
     except BusError as exc:
         raise LeaseError(f"lease {key!r}: {exc}") from None
+    return parts[2], parts[3], parts[4]
 
 
 def lease_present(session: zenoh.Session, key: str, timeout_s: float = QUERY_TIMEOUT_S) -> bool:
@@ -95,6 +122,11 @@ def has_router(session: zenoh.Session) -> bool:
     return any(True for _ in session.info.routers_zid())
 
 
+def zid_bytes(zid: zenoh.ZenohId) -> bytes:
+    """A session id as the `ZID_BYTES` bytes a watchdog beat carries (its text form is hex, leading zeros left out)."""
+    return int(str(zid), 16).to_bytes(ZID_BYTES, "big")
+
+
 class RouterWatchdog:
     """Is the router still forwarding? A probe session publishes a numbered beat every `period_s` on a key
     of its own; the watched session receives them. A beat can only arrive through the router, so
@@ -112,6 +144,16 @@ class RouterWatchdog:
     Python (a ring channel, drained by `silence_s()` and the beat thread), so the ones that came back
     while the process was busy count as heard, and none were sent meanwhile.
 
+    Only this watchdog's own beats count (issue 53: one beat numbered 2^64-1 from anyone else used to
+    mark every later beat as heard, so a frozen router went unnoticed). A beat is `BEAT_FORMAT`: the
+    beat number, the probe session's id (zid, 16 bytes) and an HMAC-SHA256 of both under a random secret
+    made for this watchdog, which never leaves the process. A beat of another length, another zid or a
+    wrong MAC is ignored, and so is a number ahead of the last beat sent; `ignored` counts them by
+    reason. What another session can still send is a copy of a beat it saw (a replay): it is numbered
+    at most the last one sent and it came through the router, so it shows nothing the real beat did
+    not. A flood of foreign beats can push real ones out of the ring channel: that looks like silence
+    and stops the robot (safe); the secure profile lets only the bridge's identity put on the key.
+
     The probe session must be a second session to the same router (a session delivers its own
     publications locally). `close()` undeclares both ends; the sessions stay the caller's.
     """
@@ -122,8 +164,12 @@ class RouterWatchdog:
             raise ValueError("period_s and bound_s must be positive")
         self.key = f"{WATCHDOG_PREFIX}/{check_chunk(name, 'watchdog name')}"
         self.period_s, self.bound_s = period_s, bound_s
+        self.probe_zid = zid_bytes(probe.zid())
+        self._secret = secrets.token_bytes(32)  # never sent, never logged: only this process can sign a beat
+        self.ignored: Counter[str] = Counter()  # beats not counted, by reason: "length", "zid", "mac", "ahead"
         self._unanswered: deque[tuple[int, float]] = deque()  # (number, time sent) of beats not heard back yet
         self._heard = 0  # the newest beat heard back
+        self._sent = 0  # the newest beat numbered for sending (no beat numbered higher is accepted)
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._subscriber = session.declare_subscriber(self.key, zenoh.handlers.RingChannel(64))
@@ -131,25 +177,52 @@ class RouterWatchdog:
         self._thread = threading.Thread(target=self._beat, name="router-watchdog", daemon=True)
         self._thread.start()
 
+    def _mac(self, number: int, zid: bytes) -> bytes:
+        return hmac.new(self._secret, struct.pack("!Q", number) + zid, hashlib.sha256).digest()
+
+    def _signed(self, number: int) -> bytes:
+        """The beat numbered `number`, as the probe publishes it."""
+        return struct.pack(BEAT_FORMAT, number, self.probe_zid, self._mac(number, self.probe_zid))
+
     def _beat(self) -> None:
         seq = 0
         while not self._closed.wait(self.period_s):
             seq += 1
+            with self._lock:  # numbered before the put: its echo may be drained before the put returns
+                self._sent = seq
             try:
-                self._publisher.put(struct.pack("!Q", seq))
+                self._publisher.put(self._signed(seq))
             except zenoh.ZError:  # no router: the silence says so
                 pass
             with self._lock:  # timed from after the put: a pause before it is this process's, not the router's
                 self._unanswered.append((seq, time.monotonic()))
                 self._drain()
 
+    def _accept(self, beat: bytes) -> int | None:
+        """The number of `beat` if it is one of this watchdog's own, sent already; None (counted) otherwise."""
+        if len(beat) != BEAT_BYTES:
+            reason = "length"
+        else:
+            number, zid, mac = struct.unpack(BEAT_FORMAT, beat)
+            if not hmac.compare_digest(zid, self.probe_zid):
+                reason = "zid"
+            elif not hmac.compare_digest(mac, self._mac(number, zid)):
+                reason = "mac"
+            elif number > self._sent:
+                reason = "ahead"
+            else:
+                return int(number)
+        if not self.ignored[reason]:
+            log.warning("router watchdog %s: ignoring a beat that is not its own (%s)", self.key, reason)
+        self.ignored[reason] += 1
+        return None
+
     def _drain(self) -> None:
         """Forget every beat up to the newest one heard back (beats overtaken or dropped included)."""
         while (sample := self._subscriber.try_recv()) is not None:
-            try:
-                self._heard = max(self._heard, struct.unpack("!Q", sample.payload.to_bytes())[0])
-            except struct.error:  # not one of our beats
-                continue
+            number = self._accept(sample.payload.to_bytes())
+            if number is not None:
+                self._heard = max(self._heard, number)
         while self._unanswered and self._unanswered[0][0] <= self._heard:
             self._unanswered.popleft()
 

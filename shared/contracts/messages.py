@@ -756,7 +756,7 @@ class PushRequest(Message):
     # prescreen). False is the fast path (with sampler "ddim"): about 1.2 s less to plan (bench/push.py), some
     # success lost, so not the default (docs/evaluation.md §Tuned settings).
     prescreen: bool = True
-    # The client's lease (`gd2p/lease/client/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
+    # The client's lease (`gd2p/lease/client/<identity>/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
     # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.
     client_lease: str | None = Field(default=None, min_length=1, max_length=256)
 
