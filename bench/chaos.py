@@ -559,10 +559,10 @@ def _flood(endpoint: str, planner_key: str, count: int, name: str) -> tuple[Coun
 def validator_held(quick: bool) -> Figure:
     """Two validators each get a maximal ValidationJob (4,096 poses, augmented) from a caller that then leaves; a
     1-pose job sent beside them is answered, and the validators are freed when the maximal jobs' caller left."""
-    from services.validator.service import job_budget
     from shared.contracts.messages import HealthQuery, ObjectRef, ValidationJob
     from shared.frames import POSE_DIM
     from shared.robots.hands import load_hand
+    from shared.validation.jobs import job_budget
     from shared.world.fixed_poses import spatula_pose
     from shared.world.object_refs import load_object_ref
 
@@ -619,10 +619,10 @@ def recording_complete(quick: bool) -> Figure:
 
     import zenoh
 
-    from services.recorder.recorder import FILE_GLOB, StreamCount, read_counts
     from shared.bus import STREAM_QUEUE, RecordedPublisher, live_workers
     from shared.contracts import messages as m
     from shared.contracts.codec import encode
+    from visualisation.recorder import FILE_GLOB, StreamCount, read_counts
 
     seconds = 3.0 if quick else 5.0
     cloud = encode(m.PushRequest(object=m.ObjectRef(point_cloud=np.random.default_rng(0).normal(

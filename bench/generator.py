@@ -42,11 +42,11 @@ def run_batch(object_id: str, hand: str, batch: int, iterations: int | None, see
     import torch
 
     torch.set_num_threads(1)
-    from services.generator.config import GenerationConfig
-    from services.generator.plots import plot_energy_history
-    from services.generator.scene import PushScene
-    from services.generator.synthesis import generate
     from shared.robots.hands import load_hand
+    from shared.synthesis.config import GenerationConfig
+    from shared.synthesis.plots import plot_energy_history
+    from shared.synthesis.scene import PushScene
+    from shared.synthesis.synthesis import generate
     from shared.world.objects import load_object
 
     config = GenerationConfig(batch_size=batch).replace(iterations=iterations)

@@ -27,9 +27,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.planner.ik import ArmIK
-from services.planner.motion import MotionPlanner
 from shared.frames import direction_frame, make_transform, pose25_to_matrix
+from shared.planning.ik import ArmIK
+from shared.planning.motion import MotionPlanner
 from shared.robots.hands import load_hand
 from shared.world.fixed_poses import spatula_pose
 from shared.world.objects import load_object, write_object_urdf

@@ -19,7 +19,7 @@ Per object, as the evaluation places it: resting in its default pose at OBJECT_X
 2. Captures: `shared.world.sim.camera.capture_object` with 1 and with 3 cameras (default size, D435-class
    noise, seeded per object and camera count), thinned as a request carries it
    (`cloud_for_request`), reconstructed and modelled as every service does (`object_from_cloud`).
-3. Pushes: the validator's floating-hand push (`services.validator.push.PushSimulator`, default
+3. Pushes: the validator's floating-hand push (`shared.validation.push.PushSimulator`, default
    physics, 0.20 m), each pose once on the true object and once on each reconstruction.
 
 The frame (thought through): a pose is a hand pose in D, and it must be the same physical pose for
@@ -145,7 +145,7 @@ def _pose_sampler() -> Any:
     """The process's PoseSampler (loaded once)."""
     global _SAMPLER
     if _SAMPLER is None:
-        from services.sampler.sampling import PoseSampler
+        from shared.sampling.sampling import PoseSampler
 
         _SAMPLER = PoseSampler(CHECKPOINT)
     return _SAMPLER
@@ -159,10 +159,10 @@ def _init_worker() -> None:
 
 def run_object(job: Job, progress: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Everything measured for one object (one JSON line); see the module docstring."""
-    from services.validator.push import PushSimulator, TableObject
     from shared.contracts.messages import DirectionFrame
     from shared.frames import invert_transform, make_transform
     from shared.robots.hands import load_hand
+    from shared.validation.push import PushSimulator, TableObject
     from shared.world.objects import load_object, write_object_urdf
     from shared.world.perception import PerceptionError, cloud_for_request, object_from_cloud
     from shared.world.push_outcome import object_pose

@@ -78,7 +78,7 @@ def measure(object_id: str, cache: str) -> list[dict]:
 
 
 def main(split: str) -> None:
-    from services.validator.data_engine import select_objects
+    from shared.data_engine import select_objects
     from shared.world.objects.catalog import resolve_library_id
 
     os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--validators", type=int, default=None,
                         help="validator processes (default: one per core, as `gd2p up`)")
     args = parser.parse_args(argv)
-    from services.sampler.checkpoint import default_checkpoint_path
+    from shared.sampling.checkpoint import default_checkpoint_path
 
     method = args.method
     if method == "auto":

@@ -8,7 +8,7 @@ dataset's source — the diffusion model learns to sample like it; unfiltered, w
 than the dataset, so there are bad ones among them, as in a sampler's output), for val objects (tuning
 never looks at test objects) and a few directions, placed as the planner places them (object at 0.55 m
 in front of the robot). Each pose goes through the planner's own steps: IK + collision screen,
-`plan_push`, and an arm rollout (`services.validator.rollout`) in the nominal world plus
+`plan_push`, and an arm rollout (`shared.validation.rollout`) in the nominal world plus
 `--rank-draws` drawn worlds (what robust ranking sees, `PushRequest.physics_draws`).
 
 Truth: each plan is also played in `--truth-worlds` other worlds drawn from the evaluation's `real`
@@ -33,15 +33,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from services.generator.config import GenerationConfig
-from services.generator.synthesis import generate
-from services.planner import ranking
-from services.planner.motion import MotionPlanner, PlanningError
-from services.validator.rollout import rollout
-from services.validator.service import DEFAULT_PARAMS
 from shared.contracts.messages import DirectionFrame, ObjectRef, ValidationJob
 from shared.frames import direction_frame, pose25_to_matrix, poses_d_to_world
+from shared.planning import ranking
+from shared.planning.motion import MotionPlanner, PlanningError
 from shared.robots.hands import load_hand
+from shared.synthesis.config import GenerationConfig
+from shared.synthesis.synthesis import generate
+from shared.validation.jobs import DEFAULT_PARAMS
+from shared.validation.rollout import rollout
 from shared.world.objects import load_object, write_object_urdf
 from shared.world.push_outcome import object_pose
 from shared.world.sim.robot_scene import RobotScene

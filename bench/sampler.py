@@ -46,21 +46,21 @@ if REPO_DIR not in sys.path:
 
 import torch  # noqa: E402
 
-from services.sampler.checkpoint import SamplerCheckpoint, default_checkpoint_path, load_checkpoint  # noqa: E402
-from services.sampler.critic import CriticConfig, SuccessCritic  # noqa: E402
-from services.sampler.critic_features import CONTACT_FEATURES  # noqa: E402
-from services.sampler.critic_train import success_probabilities  # noqa: E402
-from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED  # noqa: E402
-from services.sampler.diffusion import (  # noqa: E402
+from shared.sampling.checkpoint import SamplerCheckpoint, default_checkpoint_path, load_checkpoint  # noqa: E402
+from shared.sampling.critic import CriticConfig, SuccessCritic  # noqa: E402
+from shared.sampling.critic_features import CONTACT_FEATURES  # noqa: E402
+from shared.sampling.critic_train import success_probabilities  # noqa: E402
+from shared.sampling.dataset import SURFACE_POINTS, SURFACE_SEED  # noqa: E402
+from shared.sampling.diffusion import (  # noqa: E402
     GradientGuidance,
     PoseNormalizer,
     denoising_loss,
     make_ema,
     make_noise_scheduler,
 )
-from services.sampler.model import DenoiserConfig, PoseDenoiser, parameter_count  # noqa: E402
-from services.sampler.sampling import PoseSampler, default_frame  # noqa: E402
-from services.sampler.train import hand_joint_limits  # noqa: E402
+from shared.sampling.model import DenoiserConfig, PoseDenoiser, parameter_count  # noqa: E402
+from shared.sampling.sampling import PoseSampler, default_frame  # noqa: E402
+from shared.sampling.train import hand_joint_limits  # noqa: E402
 from shared.world.bps import BasisPointSet  # noqa: E402
 from shared.world.objects import list_object_ids, load_object  # noqa: E402
 
@@ -192,7 +192,7 @@ def measure_quality(sampler: PoseSampler, count: int, poses_per_object: int, nn)
 
 def nearest_neighbor(args: argparse.Namespace):
     """The NN baseline from a saved index or built from a dataset store (None: not measured)."""
-    from services.sampler.nearest_neighbor import NearestNeighborBaseline
+    from shared.sampling.nearest_neighbor import NearestNeighborBaseline
 
     if args.nn_index:
         return NearestNeighborBaseline.load(args.nn_index)

@@ -69,9 +69,9 @@ def candidate_poses(hand, obj, count: int, seed: int) -> np.ndarray:
 
 def generator_poses(object_id: str, hand_name: str, count: int) -> np.ndarray:
     """`count` candidates from the project's generator (default settings, seed 1)."""
-    from services.generator.config import GenerationConfig
-    from services.generator.scene import PushScene
-    from services.generator.synthesis import generate
+    from shared.synthesis.config import GenerationConfig
+    from shared.synthesis.scene import PushScene
+    from shared.synthesis.synthesis import generate
     from shared.world.objects import load_object
 
     config = GenerationConfig(batch_size=count, record_history=False)
@@ -80,8 +80,8 @@ def generator_poses(object_id: str, hand_name: str, count: int) -> np.ndarray:
 
 def episode_set(object_ids: list[str], per_object: int, source: str) -> list[tuple[str, str, np.ndarray]]:
     """(object id, hand, poses [per_object, 25]) for every object and hand; deterministic."""
-    from services.validator.push import table_object
     from shared.robots.hands import load_hand
+    from shared.validation.push import table_object
     from shared.world.objects import load_object
 
     out = []
@@ -109,9 +109,9 @@ def _init_worker() -> None:
 def run_chunk(task: tuple) -> dict:
     """Validate one (object, hand, poses, solver, augment) chunk: {"raw": [outcome], "copies": [outcome]}."""
     object_id, hand_name, poses, solver, augment = task
-    from services.validator.push import table_object
-    from services.validator.validator import Validator
     from shared.robots.hands import load_hand
+    from shared.validation.push import table_object
+    from shared.validation.validator import Validator
     from shared.world.objects import load_object
     from shared.world.sim import PhysicsParams, c_stdout_to_stderr
 
@@ -126,7 +126,7 @@ def run_chunk(task: tuple) -> dict:
 
 def _warm_worker(_: int) -> None:
     """Import the simulator and load both hands in a pool worker, so the timing excludes start-up."""
-    import services.validator.validator  # noqa: F401  (the import is the warm-up)
+    import shared.validation.validator  # noqa: F401  (the import is the warm-up)
     from shared.robots.hands import load_hand
 
     for hand in HANDS:

@@ -1,6 +1,6 @@
 """`gd2p bridge selftest [--json] [--device D ...]` and `gd2p bridge estop [--reason TEXT]`.
 
-selftest: every hardware robot against its protocol fake (services/robot_bridge/selftest.py); devices are
+selftest: every hardware robot against its protocol fake (shared/execution/selftest.py); devices are
 named as everywhere else: panda (the Franka FR3), xarm7, leap, allegro. Exit code 0 only if every
 device checked is ok.
 estop: publish an EStop on `gd2p/robot_bridge/estop`: every robot of every bridge stops at once.
@@ -15,7 +15,7 @@ import sys
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.robot_bridge.robots import DEVICES
+    from shared.execution.robots import DEVICES
 
     bridge = subparsers.add_parser("bridge", help="robot bridge: hardware self-test, e-stop")
     commands = bridge.add_subparsers(dest="bridge_command", metavar="SUBCOMMAND")
@@ -49,7 +49,7 @@ def _stdout_to_stderr():
 
 
 def _selftest(args: argparse.Namespace) -> int:
-    from services.robot_bridge.selftest import DEVICES, run_selftest
+    from shared.execution.selftest import DEVICES, run_selftest
 
     devices = tuple(args.device) if args.device else DEVICES
     with _stdout_to_stderr():
@@ -67,8 +67,8 @@ def _selftest(args: argparse.Namespace) -> int:
 def _estop(args: argparse.Namespace) -> int:
     import getpass
 
-    from services.robot_bridge.bus_safety import ESTOP_KEY
     from shared.bus import BusConfig, BusError, open_session
+    from shared.bus.keys import ROBOT_ESTOP_KEY as ESTOP_KEY
     from shared.contracts.codec import encode
     from shared.contracts.messages import EStop
 

@@ -102,8 +102,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_data(args: argparse.Namespace) -> int:
     from evaluation.critic_data import build
-    from services.validator.data_engine import select_objects
     from shared.data.dataset_store import DatasetStore
+    from shared.data_engine import select_objects
     from shared.world.objects.catalog import resolve_library_id
 
     ids = select_objects(args.split, allow_split=args.split != "train")
@@ -128,8 +128,8 @@ def run_data(args: argparse.Namespace) -> int:
 def run_train(args: argparse.Namespace) -> int:
     import torch
 
-    from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
-    from services.sampler.critic_train import (
+    from shared.sampling.checkpoint import checkpoint_id, default_checkpoint_path
+    from shared.sampling.critic_train import (
         CriticError,
         CriticTraining,
         manifest_for,
@@ -137,7 +137,7 @@ def run_train(args: argparse.Namespace) -> int:
         save_critic,
         train_critic,
     )
-    from services.sampler.sampling import PoseSampler
+    from shared.sampling.sampling import PoseSampler
     from shared.world.objects import split_of
 
     torch.set_num_threads(1)
@@ -180,9 +180,10 @@ def run_eval(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from services.planner import ranking
-    from services.sampler.checkpoint import default_checkpoint_path
-    from services.sampler.critic_train import (
+    from shared.planning import ranking
+    from shared.robots.hands import load_hand
+    from shared.sampling.checkpoint import default_checkpoint_path
+    from shared.sampling.critic_train import (
         CriticError,
         default_critic_path,
         evaluate,
@@ -190,8 +191,7 @@ def run_eval(args: argparse.Namespace) -> int:
         read_records,
         top_k_success,
     )
-    from services.sampler.sampling import PoseSampler
-    from shared.robots.hands import load_hand
+    from shared.sampling.sampling import PoseSampler
 
     torch.set_num_threads(1)
     path = args.critic or default_critic_path(args.hand)
@@ -221,7 +221,7 @@ def _encode_dirs(sources: list[tuple[Path, list]], sampler, what: str, captures:
     ~3 s per 1,000 poses."""
     from tqdm import tqdm
 
-    from services.sampler.critic_train import CriticData, encode_records, record_captures
+    from shared.sampling.critic_train import CriticData, encode_records, record_captures
 
     parts = []
     for directory, records in sources:

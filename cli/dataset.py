@@ -105,8 +105,8 @@ def _register_stats(commands: argparse._SubParsersAction) -> None:
 
 # ============================================================================= build
 def run_build(args: argparse.Namespace) -> int:
-    from services.validator.data_engine import BuildError, BuildSettings, select_objects
     from shared.data.dataset_store import DatasetStore, StoreError
+    from shared.data_engine import BuildError, BuildSettings, select_objects
 
     if args.max_rounds is None:  # resolved here, so the recorded command line names it
         args.max_rounds = args.min_rounds
@@ -148,8 +148,8 @@ def _raise_keyboard_interrupt(signum, frame) -> None:
 
 
 def _build(args: argparse.Namespace, settings, objects: list[str], store) -> int:
-    from services.validator.data_engine import BuildError, DataEngine, run_record
     from shared.bus import Dispatcher
+    from shared.data_engine import BuildError, DataEngine, run_record
 
     with _bus_session(args) as session, \
             Dispatcher(session, "generator", max_in_flight_per_worker=1, timeout_s=GENERATION_TIMEOUT_S) as generators, \
@@ -205,8 +205,8 @@ def build_command_line(args: argparse.Namespace) -> list[str]:
 @contextlib.contextmanager
 def _bus_session(args: argparse.Namespace) -> Iterator:
     """A session on the running system (`--connect`), or on a local system started for this build."""
-    from services.validator.data_engine import BuildError
     from shared.bus import BusConfig, BusError, open_session
+    from shared.data_engine import BuildError
 
     if args.connect:
         try:

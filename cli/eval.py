@@ -184,7 +184,7 @@ def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) ->
 
 def _guidance_refusal(args: argparse.Namespace) -> str | None:
     """Why the critic guidance flags cannot be used as given, or None."""
-    from services.sampler.diffusion import DiffusionConfigError, GradientGuidance
+    from shared.sampling.diffusion import DiffusionConfigError, GradientGuidance
 
     if args.guided_steps is not None and args.critic_guidance is None:
         return "--guided-steps needs --critic-guidance"
@@ -203,7 +203,7 @@ def _sampler_quality_options(args: argparse.Namespace) -> dict:
     if args.noise_scale is not None:
         options["noise_scale"] = args.noise_scale
     if args.critic_guidance is not None:
-        from services.sampler.diffusion import GradientGuidance
+        from shared.sampling.diffusion import GradientGuidance
 
         options["guidance"] = GradientGuidance.of(args.critic_guidance, args.guided_steps)
     if args.methods is not None:

@@ -55,11 +55,11 @@ def run_generate(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from services.generator.config import GenerationConfig, GenerationConfigError
-    from services.generator.init import InitialisationError
-    from services.generator.plots import plot_energy_history
-    from services.generator.scene import PushScene
-    from services.generator.synthesis import GenerationError, generate
+    from shared.synthesis.config import GenerationConfig, GenerationConfigError
+    from shared.synthesis.init import InitialisationError
+    from shared.synthesis.plots import plot_energy_history
+    from shared.synthesis.scene import PushScene
+    from shared.synthesis.synthesis import GenerationError, generate
     from shared.world.objects import ObjectLoadError, load_object
 
     torch.set_num_threads(args.threads)

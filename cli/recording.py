@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_info(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from services.recorder.recorder import read_counts
+    from visualisation.recorder import read_counts
 
     missing_any = False
     for path in args.files:

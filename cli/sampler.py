@@ -118,10 +118,10 @@ def _register_train(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     import torch
 
-    from services.sampler.checkpoint import CheckpointError
-    from services.sampler.dataset import DatasetError
-    from services.sampler.model import DenoiserConfig
-    from services.sampler.train import RunOptions, TrainConfig, TrainingError, train
+    from shared.sampling.checkpoint import CheckpointError
+    from shared.sampling.dataset import DatasetError
+    from shared.sampling.model import DenoiserConfig
+    from shared.sampling.train import RunOptions, TrainConfig, TrainingError, train
 
     if args.learn_failures and args.condition_dropout > 0:
         print("gd2p train: error: --learn-failures and --condition-dropout do not combine (guidance steers away "
@@ -256,7 +256,7 @@ def check_sample_flags(args: argparse.Namespace) -> None:
 def _sample(args: argparse.Namespace) -> dict:
     import torch
 
-    from services.sampler.sampling import SamplerInputError
+    from shared.sampling.sampling import SamplerInputError
 
     torch.set_num_threads(max(1, args.threads))
     validator = _validator_modules() if args.validate else None  # fail before any work if it cannot run
@@ -284,8 +284,8 @@ def _sample(args: argparse.Namespace) -> dict:
 def _object_and_frame(args: argparse.Namespace) -> tuple:
     """(ObjectModel, DirectionFrame, what the sampler encodes): a library object or mesh in its default
     placement; a point cloud reconstructed where it stands, its own points encoded."""
-    from services.sampler.sampling import default_frame
     from shared.contracts.messages import DirectionFrame, ObjectRef
+    from shared.sampling.sampling import default_frame
     from shared.world.object_refs import captured_object
     from shared.world.objects import ObjectLoadError, load_object
     from shared.world.perception import PerceptionError, bps_points, cloud_for_request, load_cloud
@@ -304,8 +304,8 @@ def _object_and_frame(args: argparse.Namespace) -> tuple:
 
 def _sample_diffusion(args: argparse.Namespace, obj, frame) -> tuple:
     """(SampleResult, report fields naming the checkpoint) from the diffusion model."""
-    from services.sampler.checkpoint import CheckpointError, default_checkpoint_path
-    from services.sampler.sampling import PoseSampler
+    from shared.sampling.checkpoint import CheckpointError, default_checkpoint_path
+    from shared.sampling.sampling import PoseSampler
 
     path = args.checkpoint or default_checkpoint_path(args.hand)
     if not path.is_file():
@@ -328,8 +328,8 @@ def _sample_diffusion(args: argparse.Namespace, obj, frame) -> tuple:
 def _critic_guidance(args: argparse.Namespace, sampler) -> tuple:
     """(the critic model, GradientGuidance) for --critic-guidance, else (None, None); SamplerCliError when the hand's
     critic is missing or was made for another checkpoint (it reads that checkpoint's BPS and samples)."""
-    from services.sampler.critic_train import CriticError, default_critic_path, load_critic
-    from services.sampler.diffusion import DiffusionConfigError, GradientGuidance
+    from shared.sampling.critic_train import CriticError, default_critic_path, load_critic
+    from shared.sampling.diffusion import DiffusionConfigError, GradientGuidance
 
     if args.critic_guidance is None:
         if args.guided_steps is not None:
@@ -351,7 +351,7 @@ def _critic_guidance(args: argparse.Namespace, sampler) -> tuple:
 
 def _sample_nearest(args: argparse.Namespace, obj, frame) -> tuple:
     """(SampleResult, report fields naming the index and the match) from the nearest-neighbour baseline."""
-    from services.sampler.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
+    from shared.sampling.nearest_neighbor import NearestNeighborError, NearestNeighborSampler, default_nn_index_path
 
     if any(value is not None for value in (args.steps, args.noise_scale, args.critic_guidance, args.guided_steps)):
         raise SamplerCliError("--steps, --noise-scale, --critic-guidance and --guided-steps apply to the diffusion samplers, "
@@ -371,8 +371,8 @@ def _sample_nearest(args: argparse.Namespace, obj, frame) -> tuple:
 
 def _validator_modules():
     try:
-        from services.validator.push import table_object  # noqa: F401
-        from services.validator.validator import Validator  # noqa: F401
+        from shared.validation.push import table_object  # noqa: F401
+        from shared.validation.validator import Validator  # noqa: F401
     except ImportError as exc:
         raise SamplerCliError(f"--validate needs the validator's push simulation (services.validator), which cannot be imported: {exc}") from exc
     return True
@@ -385,10 +385,10 @@ def validate_sampled_poses(obj, hand_name: str, poses_d: np.ndarray, frame, prog
     """
     from tqdm import tqdm
 
-    from services.validator.push import table_object
-    from services.validator.validator import Validator
     from shared.frames import object_yaw_in_d
     from shared.robots.hands import load_hand
+    from shared.validation.push import table_object
+    from shared.validation.validator import Validator
     from shared.world.sim import c_stdout_to_stderr
 
     hand = load_hand(hand_name)
@@ -431,8 +431,8 @@ def _register_nn(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_nn_build(args: argparse.Namespace) -> int:
-    from services.sampler.dataset import DatasetError
-    from services.sampler.nearest_neighbor import NearestNeighborError, build_index
+    from shared.sampling.dataset import DatasetError
+    from shared.sampling.nearest_neighbor import NearestNeighborError, build_index
 
     # The command that reproduces the file (from the parsed arguments, so it is right however gd2p was called).
     command = shlex.join(["gd2p", "sampler-nn", "build", "--dataset", str(args.dataset), "--hand", args.hand,

@@ -230,7 +230,7 @@ DEMO_DISTANCE_M = 0.20
 def run_demo(args: argparse.Namespace) -> int:
     """Push demo: bring the system up, push a bundled object 0.20 m, print the result and recordings, shut down."""
     from deploy.launcher import Launcher, LaunchError, free_loopback_endpoint
-    from services.sampler.checkpoint import default_checkpoint_path
+    from shared.sampling.checkpoint import default_checkpoint_path
 
     checkpoint = default_checkpoint_path("allegro")
     method = "gd2p" if checkpoint.is_file() else "fixed"

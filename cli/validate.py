@@ -68,9 +68,9 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> dict:
-    from services.validator.push import table_object
-    from services.validator.validator import Validator, placement_offsets
     from shared.robots.hands import load_hand
+    from shared.validation.push import table_object
+    from shared.validation.validator import Validator, placement_offsets
     from shared.world.fixed_poses import spatula_pose
     from shared.world.objects import ObjectLoadError, load_object
     from shared.world.sim import PhysicsParams, c_stdout_to_stderr

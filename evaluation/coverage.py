@@ -134,8 +134,8 @@ def object_yaw_rad(settings: CoverageSettings, object_id: str) -> float:
 
 def coverage_frame(obj: Any, settings: CoverageSettings, object_id: str) -> Any:
     """The frame an object is measured in: default resting pose at the origin, turned, pushed along +x."""
-    from services.sampler.sampling import default_frame
     from shared.contracts.messages import DirectionFrame
+    from shared.sampling.sampling import default_frame
     from shared.world.push_outcome import object_pose
 
     yaw = object_yaw_rad(settings, object_id)
@@ -175,7 +175,7 @@ def _cached(key: tuple, load: Callable[[], Any], close: Callable[[Any], None] | 
 @dataclass(frozen=True)
 class DiffusionSource:
     """Poses from a sampler checkpoint (`PoseSampler.sample`), DDPM or DDIM; with `critic` and `guidance`, the
-    last denoising steps steered up the critic's log P(success) (`services.sampler.guidance`)."""
+    last denoising steps steered up the critic's log P(success) (`shared.sampling.guidance`)."""
 
     checkpoint: str
     sampler: str = "ddpm"
@@ -192,7 +192,7 @@ class DiffusionSource:
 
     def pose_sampler(self) -> Any:
         """The checkpoint's `PoseSampler`, loaded once per process."""
-        from services.sampler.sampling import PoseSampler
+        from shared.sampling.sampling import PoseSampler
 
         return _cached(("diffusion", self.checkpoint, _file_stamp(self.checkpoint)), lambda: PoseSampler(self.checkpoint))
 
@@ -210,8 +210,8 @@ def guidance_text(guidance: Any) -> str:
 def critic_for(critic: str, checkpoint: str) -> Any:
     """The critic (`LoadedCritic`) at `critic`, loaded once per process; CoverageError for a critic trained for
     another sampler checkpoint than `checkpoint` (it encodes objects with that checkpoint's BPS)."""
-    from services.sampler.checkpoint import checkpoint_id
-    from services.sampler.critic_train import load_critic
+    from shared.sampling.checkpoint import checkpoint_id
+    from shared.sampling.critic_train import load_critic
 
     def load() -> Any:
         loaded = load_critic(critic)
@@ -239,7 +239,7 @@ class NearestNeighborSource:
 
     def sampler(self) -> Any:
         """The index served as the sampler service serves it (`NearestNeighborSampler`), loaded once per process."""
-        from services.sampler.nearest_neighbor import NearestNeighborSampler
+        from shared.sampling.nearest_neighbor import NearestNeighborSampler
 
         return _cached(("nn", self.index, _file_stamp(self.index)), lambda: NearestNeighborSampler.load(self.index))
 
@@ -272,7 +272,7 @@ class CriticOrderedSource:
         return critic_for(self.critic, self.checkpoint)
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.critic_train import success_probabilities_for
+        from shared.sampling.critic_train import success_probabilities_for
 
         poses = self.inner.poses(obj, frame, k, seed)
         critic = self.scorer()
@@ -299,8 +299,8 @@ class CriticClimbedSource:
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
         import torch
 
-        from services.sampler.guidance import CriticGuide
         from shared.robots.hands import load_hand
+        from shared.sampling.guidance import CriticGuide
 
         poses = self.inner.poses(obj, frame, k, seed)
         sampler = DiffusionSource(self.checkpoint).pose_sampler()
@@ -374,7 +374,7 @@ _WORKER_STATE: dict[str, Any] = {}
 
 
 def _validator():
-    from services.validator.validator import Validator
+    from shared.validation.validator import Validator
 
     if "validator" not in _WORKER_STATE:
         _WORKER_STATE["validator"] = Validator()  # default physics: the data engine's criterion
@@ -452,8 +452,8 @@ def _camera_sighting(obj: Any, frame: Any, world: Any) -> Sighting:
 
 def measure_object(source: PoseSource, object_id: str, settings: CoverageSettings) -> dict[str, Any]:
     """Sample, push with early stopping, and return the object's coverage record."""
-    from services.validator.push import table_object
     from shared.frames import object_yaw_in_d, poses_d_to_world
+    from shared.validation.push import table_object
     from shared.world.objects import ObjectLoadError, load_object
 
     started = time.perf_counter()
@@ -498,7 +498,7 @@ def not_perceived_record(object_id: str, settings: CoverageSettings, world: Any,
 def failure_counts(failures: Sequence[str | None], settings: CoverageSettings | None = None) -> dict[str, int]:
     """How many of the pushes failed in each way (`PushOutcome.failure`), every kind listed (with cameras
     also the poses lost to a capture that could not be reconstructed)."""
-    from services.validator.push import FAILURES
+    from shared.validation.push import FAILURES
 
     kinds = [*FAILURES, NOT_PERCEIVED] if settings is not None and settings.cameras else list(FAILURES)
     return {kind: sum(f == kind for f in failures) for kind in kinds}

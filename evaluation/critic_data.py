@@ -66,9 +66,9 @@ def plan_objects(object_ids: list[str], hand: str, per_object: int, seed: int) -
 
 def label_object(unit: CriticObject) -> dict[str, Any]:
     """Sample, push a random subset of the samples, and record the outcomes (runs in a worker)."""
-    from services.sampler.critic_train import critic_frame
-    from services.validator.service import validate
     from shared.contracts.messages import ObjectRef, SampleRequest, ValidationJob
+    from shared.sampling.critic_train import critic_frame
+    from shared.validation.jobs import validate
 
     frame = critic_frame(unit.object_id, unit.yaw_deg)
     ref = ObjectRef(library_id=unit.object_id)
@@ -88,7 +88,7 @@ def _init_worker() -> None:
 
     torch.set_num_threads(1)
     global _sampler
-    from services.sampler.service import SamplerService
+    from shared.sampling.server import SamplerService
 
     _sampler = SamplerService()
 

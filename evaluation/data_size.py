@@ -175,8 +175,8 @@ def train_model(dataset_dir: Path, path: Path, fraction: float, seed: int, setti
     """Train (or finish training) one model with the project's training code; its record."""
     import torch
 
-    from services.sampler.checkpoint import load_checkpoint
-    from services.sampler.train import RunOptions, TrainConfig, train
+    from shared.sampling.checkpoint import load_checkpoint
+    from shared.sampling.train import RunOptions, TrainConfig, train
 
     previous = torch.get_num_threads()
     torch.set_num_threads(max(1, threads))
@@ -218,7 +218,7 @@ def run(out: Path, quick: bool = False, workers: int = 2, dataset_dir: Path = DE
                             f"`gd2p dataset build --split train --hand {HAND} ... --out {dataset_dir}`")
     directory = result_directory(out, yaw, tag, world, cameras)
     object_ids = test_objects(settings)
-    from services.sampler.dataset import load_pose_dataset
+    from shared.sampling.dataset import load_pose_dataset
 
     fingerprint = load_pose_dataset(dataset_dir, HAND).fingerprint
     store = ResultStore(directory, {**settings.to_dict(), "objects": object_ids, "dataset_sha256": fingerprint})

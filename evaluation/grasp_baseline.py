@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from services.generator.config import GenerationConfig
-from services.generator.synthesis import generate
 from shared.atomic import atomic_writer
 from shared.contracts.messages import SampleRequest, SampleResponse
 from shared.frames import direction_frame, direction_xy, invert_transform, poses_d_to_world, transform_poses
+from shared.synthesis.config import GenerationConfig
+from shared.synthesis.synthesis import generate
 from shared.world.objects import load_object
 from shared.world.push_outcome import pose_matrix
 

@@ -22,16 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from services.planner.cancellation import Cancellation
-from services.planner.monitor import PushMonitor
-from services.planner.outcome import Execution, PushError
-from services.planner.pipeline import PushPipeline, PushServices
-from services.planner.stages import PipelineSettings
-from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
-from services.robot_bridge.robots.sim.config import SimConfig
-from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
-from services.sampler.service import SamplerService
-from services.validator.service import validate
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
     ExecutionCommand,
@@ -44,7 +34,17 @@ from shared.contracts.messages import (
     SimWorld,
     ValidationJob,
 )
+from shared.execution.executor import EStopLatch, Executor, LocalLease
+from shared.execution.robots.sim.config import SimConfig
+from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 from shared.frames import invert_transform
+from shared.planning.cancellation import Cancellation
+from shared.planning.monitor import PushMonitor
+from shared.planning.outcome import Execution, PushError
+from shared.planning.pipeline import PushPipeline, PushServices
+from shared.planning.stages import PipelineSettings
+from shared.sampling.server import SamplerService
+from shared.validation.jobs import validate
 from shared.world.push_outcome import object_pose, pose_matrix
 from shared.world.sim.world import ExecutionWorld
 

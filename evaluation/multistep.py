@@ -125,7 +125,7 @@ def true_start(run: Run, world: ExecutionWorld) -> np.ndarray:
 
 def run_one(run: Run) -> dict[str, Any]:
     """Plan and execute one multi-step request; its record (outcome, error to the goal, contacts)."""
-    from services.planner.outcome import PushError
+    from shared.planning.outcome import PushError
 
     system = protocol._system
     system.robot.contacts.reset()

@@ -106,7 +106,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method("gd2p-robust", "GD2P, robust ranking", "gd2p", "ranked", ROBUST_DRAWS),
     Method("gd2p-corrected", "GD2P + corrective pushes", "gd2p", "ranked", corrections=CORRECTIONS),
     Method("gd2p-closed", "GD2P closed loop", "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True),
-    # Monitor thresholds compared on val objects (services/planner/monitor.py: the loose ones are shipped).
+    # Monitor thresholds compared on val objects (shared/planning/monitor.py: the loose ones are shipped).
     Method("gd2p-closed-tight", "GD2P closed loop, 2 cm / 10° (val candidate)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, monitor=(0.02, 10.0, 15.0)),
     Method("gd2p-closed-3cm", "GD2P closed loop, 3 cm / 15° (val candidate)", "gd2p", "ranked",
@@ -123,11 +123,11 @@ METHODS: dict[str, Method] = {m.name: m for m in (
            corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddpm"),
     Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
            "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
-    # The success critic orders the candidates (services/sampler/critic.py), with fewer or no prescreen pushes.
+    # The success critic orders the candidates (shared/sampling/critic.py), with fewer or no prescreen pushes.
     # The planner's default (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
     Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
            corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
-    # The samples steered up the critic's gradient too (services/sampler/guidance.py, the scale chosen on val objects
+    # The samples steered up the critic's gradient too (shared/sampling/guidance.py, the scale chosen on val objects
     # by sampler-quality, docs/evaluation.md §Tuned settings).
     Method("gd2p-closed-critic-guided", "GD2P closed loop, critic-guided samples in the critic's order (val candidate)",
            "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm",
@@ -328,20 +328,20 @@ def _init_worker(grasp_cache: str) -> None:
 
 
 def _ranking_weights(alpha: float, beta: float, gamma: float):  # the planner's type, imported in workers only
-    from services.planner.ranking import Weights
+    from shared.planning.ranking import Weights
 
     return Weights(alpha, beta, gamma)
 
 
 def _monitor_thresholds(position_m: float, rotation_deg: float, tilt_deg: float):  # as _ranking_weights
-    from services.planner.monitor import MonitorThresholds
+    from shared.planning.monitor import MonitorThresholds
 
     return MonitorThresholds(position_m, rotation_deg, tilt_deg)
 
 
 def run_episode(episode: Episode) -> dict[str, Any]:
     """Plan and execute one trial; a record with the outcome ("infeasible" when no plan exists)."""
-    from services.planner.outcome import PushError
+    from shared.planning.outcome import PushError
 
     started = time.perf_counter()
     method = METHODS[episode.method]
@@ -402,9 +402,9 @@ def pose_model_ids(hand: str) -> dict[str, str | float | None]:
     """The ids of the diffusion checkpoint and NN index the sampler loads for `hand` (the shipped ones or the
     $GD2P_SAMPLER_* overrides the workers inherit); None for a missing file. A sampling temperature other
     than 1 is named too (only then, so that stores made before it existed still resume)."""
-    from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
-    from services.sampler.diffusion import default_noise_scale
-    from services.sampler.nearest_neighbor import default_nn_index_path
+    from shared.sampling.checkpoint import checkpoint_id, default_checkpoint_path
+    from shared.sampling.diffusion import default_noise_scale
+    from shared.sampling.nearest_neighbor import default_nn_index_path
 
     ids: dict[str, str | float | None] = {
         kind: checkpoint_id(path) if path.is_file() else None
@@ -417,7 +417,7 @@ def pose_model_ids(hand: str) -> dict[str, str | float | None]:
 def _pose_model(hand: str, source: str) -> str | None:
     """The weights (diffusion checkpoint) or index (Nearest Neighbor) the trial's poses came from."""
     if source == "gd2p":
-        from services.sampler.diffusion import default_noise_scale
+        from shared.sampling.diffusion import default_noise_scale
 
         noise_scale = default_noise_scale()  # the temperature the sampler service gives the planner's requests
         temperature = "" if noise_scale == 1.0 else f"@noise{noise_scale:g}"
@@ -434,8 +434,8 @@ def _has_critic(hand: str) -> bool:
 
 
 def _critic_id(hand: str) -> str | None:
-    from services.sampler.checkpoint import checkpoint_id
-    from services.sampler.critic_train import default_critic_path
+    from shared.sampling.checkpoint import checkpoint_id
+    from shared.sampling.critic_train import default_critic_path
 
     path = default_critic_path(hand)
     return checkpoint_id(path) if path is not None and path.is_file() else None

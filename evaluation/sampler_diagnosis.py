@@ -23,7 +23,7 @@ default resting pose at yaw 0), the frame's BPS (float16) and every stored pose 
 `StoredPosesSource` returns an object's own frame, found by id, not by BPS.
 
 Objects: the shipped checkpoint trained on 200 of the dataset's 222 objects and held 22 out for its
-validation loss (`services.sampler.train.split_object_ids` with the manifest's settings). The
+validation loss (`shared.sampling.train.split_object_ids` with the manifest's settings). The
 diagnosis takes `trained` (12) objects of the first group and `held_out` (4) of the second, each
 round-robin over families (the largest family first; within a family the issue's first-look objects
 rnd-000 and proc-box-003 first, then the order of a seeded hash): held-out objects are in the
@@ -112,8 +112,8 @@ class StoredPosesSource(NearestNeighborSource):
         return "Stored poses"
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.dataset import DEFAULT_POSE_INDEX, Frame
         from shared.frames import object_yaw_in_d
+        from shared.sampling.dataset import DEFAULT_POSE_INDEX, Frame
 
         if abs(object_yaw_in_d(frame, obj.default_pose.rotation)) > 1e-6:
             raise CoverageError(f"{obj.id}: stored poses are in the default placement (yaw 0 in D), not this frame")
@@ -142,7 +142,7 @@ class ShuffledBpsSource(DiffusionSource):
         return donor
 
     def poses(self, obj: Any, frame: Any, k: int, seed: int) -> np.ndarray:
-        from services.sampler.sampling import default_frame
+        from shared.sampling.sampling import default_frame
         from shared.world.objects import load_object
 
         donor = load_object(self.donor_of(obj.id))
@@ -166,9 +166,9 @@ def checkpoint_objects(checkpoint: Path, nn_index: Path) -> tuple[list[str], lis
     Recomputed from the NN index's frames (the dataset's objects) with the checkpoint manifest's
     split settings, and checked against the manifest's counts and dataset hash.
     """
-    from services.sampler.checkpoint import load_checkpoint
-    from services.sampler.nearest_neighbor import NearestNeighborBaseline
-    from services.sampler.train import split_object_ids
+    from shared.sampling.checkpoint import load_checkpoint
+    from shared.sampling.nearest_neighbor import NearestNeighborBaseline
+    from shared.sampling.train import split_object_ids
 
     manifest = load_checkpoint(checkpoint).manifest
     index = NearestNeighborBaseline.load(nn_index)
@@ -237,7 +237,7 @@ def placed_frame(obj: Any, x: float, y: float, object_yaw_deg: float, direction_
 
 def encoding_settings(sampler: Any, index: Any) -> dict[str, Any]:
     """Basis fingerprint and surface sampling (points, seed) of each path: training, checkpoint, NN index."""
-    from services.sampler.dataset import SURFACE_POINTS, SURFACE_SEED
+    from shared.sampling.dataset import SURFACE_POINTS, SURFACE_SEED
     from shared.world.bps import BasisPointSet
 
     return {
@@ -250,7 +250,7 @@ def encoding_settings(sampler: Any, index: Any) -> dict[str, Any]:
 
 def frame_placements(index: Any) -> dict[str, int]:
     """How many of the index's (the dataset's) frames there are, and how many are an object's default resting pose at yaw 0."""
-    from services.sampler.dataset import DEFAULT_POSE_INDEX
+    from shared.sampling.dataset import DEFAULT_POSE_INDEX
 
     default = sum(f.pose_index == DEFAULT_POSE_INDEX and abs(f.yaw_rad) < 1e-9 for f in index.frames)
     return {"frames": len(index.frames), "default_placement": int(default)}
@@ -259,10 +259,10 @@ def frame_placements(index: Any) -> dict[str, int]:
 def bps_paths(object_id: str, sampler: Any, index: Any, training_bps: Any = None) -> dict[str, Any]:
     """One object's BPS along each path, compared (max abs difference, metres); see the module docstring.
 
-    - training: `services.sampler.dataset.frame_bps` of the object's frame with `training_bps` (default
-      `BasisPointSet()`), what `services.sampler.train` conditions on;
+    - training: `shared.sampling.dataset.frame_bps` of the object's frame with `training_bps` (default
+      `BasisPointSet()`), what `shared.sampling.train` conditions on;
     - stored: the NN index's float16 BPS of the frame (built by the same `frame_bps`);
-    - inference: the sampler service's path, `services.sampler.service.object_input(ObjectRef)` then
+    - inference: the sampler service's path, `shared.sampling.server.object_input(ObjectRef)` then
       `PoseSampler.encode` (what `PoseSampler.sample` encodes), in the default placement;
     - moved: the same path with the object elsewhere in the world and the push turned with it (the
       same placement in D: must agree);
@@ -271,11 +271,11 @@ def bps_paths(object_id: str, sampler: Any, index: Any, training_bps: Any = None
       the nearest other training frame's.
     """
     from evaluation.push_protocol import DIRECTIONS_DEG, OBJECT_XY
-    from services.sampler.dataset import DEFAULT_POSE_INDEX, Frame, frame_bps
-    from services.sampler.sampling import default_frame
-    from services.sampler.service import object_input
     from shared.contracts.messages import ObjectRef
     from shared.frames import object_yaw_in_d
+    from shared.sampling.dataset import DEFAULT_POSE_INDEX, Frame, frame_bps
+    from shared.sampling.sampling import default_frame
+    from shared.sampling.server import object_input
     from shared.world.bps import BasisPointSet
 
     frame = Frame(object_id, DEFAULT_POSE_INDEX, 0.0)
@@ -342,16 +342,16 @@ def measure_bps(objects: Sequence[str], store: ResultStore, sampler: Any, index:
 # ----------------------------------------------------------------------------- the experiment
 def diagnosed_files() -> tuple[Path, Path]:
     """The version-1 checkpoint and NN index the diagnosis was written about (shipped as `<hand>_v1*`)."""
-    from services.sampler.checkpoint import SHIPPED_DIR
+    from shared.sampling.checkpoint import SHIPPED_DIR
 
     return SHIPPED_DIR / f"{HAND}_v1.pt", SHIPPED_DIR / f"{HAND}_v1_nn.npz"
 
 
 def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
     """Answer the three questions into `out/sampler-diagnosis/`; returns the report path."""
-    from services.sampler.checkpoint import checkpoint_id
-    from services.sampler.nearest_neighbor import NearestNeighborBaseline
-    from services.sampler.service import SamplerService
+    from shared.sampling.checkpoint import checkpoint_id
+    from shared.sampling.nearest_neighbor import NearestNeighborBaseline
+    from shared.sampling.server import SamplerService
 
     started = time.perf_counter()
     settings = QUICK if quick else FULL
@@ -498,10 +498,10 @@ def report_body(settings: DiagnosisSettings, groups: Mapping[str, Sequence[str]]
         f"## 2. Shuffled BPS\n\n{q2_table}\n{verdict_2(q2)}\n\n"
         f"## 3. The BPS at inference and in training\n\n{verdict_3(q3)}\n\n{q3_settings}\n{q3_table}\n"
         "Max abs difference over the 4096 features (metres). Paths compared: **training** — "
-        "`services.sampler.train` conditions on `services.sampler.dataset.frame_bps` (the frame's object placed by "
+        "`shared.sampling.train` conditions on `shared.sampling.dataset.frame_bps` (the frame's object placed by "
         "`ObjectModel.T_D_O(pose_index, yaw)`, `surface_points(2048, seed 0, T_D_O=...)`, `BasisPointSet().encode`); "
         "**stored** — the NN index's `frame_features` (the same `frame_bps`, saved in float16); **inference** — "
-        "`services.sampler.service.SamplerService.handle`: `object_input(ObjectRef)` then `PoseSampler.encode` "
+        "`shared.sampling.server.SamplerService.handle`: `object_input(ObjectRef)` then `PoseSampler.encode` "
         "(`ObjectPoints.in_d`: surface samples in O with the checkpoint's count and seed, placed by the request's "
         "`DirectionFrame` through `frame_transform` / `frame_object_transform`, encoded with the checkpoint's basis), "
         "with the object as `gd2p sample` places it; **moved** — the same with the object at "

@@ -52,7 +52,7 @@ from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, SETTINGS_FILE, ResultStore, read_records
 
 if TYPE_CHECKING:
-    from services.sampler.diffusion import GradientGuidance
+    from shared.sampling.diffusion import GradientGuidance
 
 NAME = "sampler-quality"
 QUICK_OBJECTS = 8
@@ -71,20 +71,20 @@ SPLITS = ("test", "val")
 
 
 def shipped_checkpoint(hand: str = HAND) -> Path:
-    from services.sampler.checkpoint import SHIPPED_DIR
+    from shared.sampling.checkpoint import SHIPPED_DIR
 
     return SHIPPED_DIR / f"{hand}.pt"
 
 
 def shipped_nn_index(hand: str = HAND) -> Path:
-    from services.sampler.checkpoint import SHIPPED_DIR
+    from shared.sampling.checkpoint import SHIPPED_DIR
 
     return SHIPPED_DIR / f"{hand}_nn.npz"
 
 
 def checkpoint_hand(checkpoint: Path) -> str:
     """The hand a checkpoint was trained for: the hand its poses are pushed with."""
-    from services.sampler.checkpoint import load_checkpoint
+    from shared.sampling.checkpoint import load_checkpoint
 
     return load_checkpoint(checkpoint).hand
 
@@ -106,8 +106,8 @@ def nearest_neighbor_index(cache_dir: Path, dataset_dir: Path = DEFAULT_DATASET,
     if not Path(dataset_dir).is_dir():
         raise CoverageError(f"no nearest-neighbour index at {shipped_nn_index()} and no training store at {dataset_dir} "
                             f"to build one from (`gd2p dataset build --split train --hand {HAND} ... --out {dataset_dir}`)")
-    from services.sampler.checkpoint import load_checkpoint
-    from services.sampler.nearest_neighbor import NearestNeighborBaseline
+    from shared.sampling.checkpoint import load_checkpoint
+    from shared.sampling.nearest_neighbor import NearestNeighborBaseline
 
     bps = load_checkpoint(checkpoint or shipped_checkpoint()).bps
     return NearestNeighborBaseline.from_directory(dataset_dir, HAND, bps=bps, progress=True).save(built)
@@ -180,7 +180,7 @@ def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, cov
     The methods are not pinned: a run can be extended with another method later (each method's
     records are keyed by its own prefix).
     """
-    from services.sampler.checkpoint import checkpoint_id
+    from shared.sampling.checkpoint import checkpoint_id
 
     settings = {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
                 "methods": list(DEFAULT_METHOD_KEYS), "coverage": coverage.to_dict()}
@@ -261,8 +261,8 @@ def run(out: Path, quick: bool = False, workers: int = 2, split: str = "test", c
     else the shipped one), and with `guidance` (`GradientGuidance`) guide the "-guided" / "-climbed" ones; `world` /
     `cameras`: where the poses are pushed and what the sources are given (`CoverageSettings`; a run of another world than exact-told-the-mesh puts the exact run of the same name beside it).
     """
-    from services.sampler.critic_train import default_critic_path
-    from services.sampler.diffusion import default_noise_scale
+    from shared.sampling.critic_train import default_critic_path
+    from shared.sampling.diffusion import default_noise_scale
 
     started = time.perf_counter()
     noise_scale = default_noise_scale() if noise_scale is None else float(noise_scale)
@@ -328,7 +328,7 @@ def family_table_data(results: dict[str, list[dict[str, Any]]], sources: dict[st
 def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource], results: dict[str, list[dict[str, Any]]],
                 objects: Sequence[str], checkpoint: Path, nn_index: Path, plot_name: str, split: str = "test",
                 yaw: str = "zero", hand: str = HAND, coverage: CoverageSettings | None = None) -> str:
-    from services.sampler.checkpoint import checkpoint_id
+    from shared.sampling.checkpoint import checkpoint_id
 
     rows = [[sources[k].label(), f"{s['mean_validated_fraction']:.1%}",
              (f"{s['pooled_validated_fraction']:.1%} [{s['pooled_validated_fraction_ci'][0]:.1%}, "
@@ -367,7 +367,7 @@ def report_body(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSou
 
 def failure_markdown(summaries: dict[str, dict[str, Any]], sources: dict[str, PoseSource]) -> str:
     """Why the pushed poses failed, per method (empty for stores made before failures were recorded)."""
-    from services.validator.push import FAILURES  # pybullet, imported only by what pushes or reports pushes
+    from shared.validation.push import FAILURES  # pybullet, imported only by what pushes or reports pushes
 
     shares = {k: s["failure_shares"] for k, s in summaries.items() if s.get("failure_shares")}
     if not shares:

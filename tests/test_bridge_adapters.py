@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.robot_bridge.robot import (
+from shared.execution.robot import (
     DeviceRefused,
     DeviceUnavailable,
     JointTrajectory,
@@ -52,7 +52,7 @@ def test_trajectory_selects_joints_by_name_and_interpolates():
 @pytest.fixture()
 def dxl_bus():
     pytest.importorskip("dynamixel_sdk")
-    from services.robot_bridge.robots.leap.fake import DynamixelBus
+    from shared.execution.robots.leap.fake import DynamixelBus
 
     with DynamixelBus(motor_ids=range(16)) as bus:
         yield bus
@@ -60,7 +60,7 @@ def dxl_bus():
 
 def test_responder_crc_matches_the_sdk():
     dynamixel_sdk = pytest.importorskip("dynamixel_sdk")
-    from services.robot_bridge.robots.leap.fake import crc16
+    from shared.execution.robots.leap.fake import crc16
 
     packet = bytes([0xFF, 0xFF, 0xFD, 0x00, 0x01, 0x07, 0x00, 0x02, 0x84, 0x00, 0x04, 0x00])
     sdk_crc = dynamixel_sdk.Protocol2PacketHandler().updateCRC(0, list(packet), len(packet))
@@ -68,7 +68,7 @@ def test_responder_crc_matches_the_sdk():
 
 
 def test_responder_byte_stuffing_round_trips():
-    from services.robot_bridge.robots.leap.fake import stuff, unstuff
+    from shared.execution.robots.leap.fake import stuff, unstuff
 
     raw = bytes([0x01, 0xFF, 0xFF, 0xFD, 0x02, 0xFF, 0xFF, 0xFD])
     stuffed = stuff(raw)
@@ -78,7 +78,7 @@ def test_responder_byte_stuffing_round_trips():
 
 def test_responder_refuses_eeprom_writes_while_torque_is_on(dxl_bus):
     sdk = pytest.importorskip("dynamixel_sdk")
-    from services.robot_bridge.robots.leap import fake as dx
+    from shared.execution.robots.leap import fake as dx
 
     port = sdk.PortHandler(dxl_bus.port_name)
     assert port.openPort()
@@ -95,9 +95,9 @@ def test_responder_refuses_eeprom_writes_while_torque_is_on(dxl_bus):
 
 
 def test_leap_connect_configures_current_limited_position_mode(dxl_bus):
-    from services.robot_bridge.robots.leap import fake as dx
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap import fake as dx
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
 
     backend = LeapRobot(LeapConfig(dxl_bus.port_name, current_limit_ma=400))
     backend.connect()
@@ -115,9 +115,9 @@ def test_leap_connect_configures_current_limited_position_mode(dxl_bus):
 
 
 def test_leap_executes_with_sync_write_and_reads_state_with_sync_read(dxl_bus):
-    from services.robot_bridge.robots.leap import fake as dx
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap import fake as dx
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
 
     backend = LeapRobot(LeapConfig(dxl_bus.port_name))
     backend.connect()
@@ -134,8 +134,8 @@ def test_leap_executes_with_sync_write_and_reads_state_with_sync_read(dxl_bus):
 
 
 def test_state_stream_reports_at_a_fixed_rate(dxl_bus):
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
 
     backend = LeapRobot(LeapConfig(dxl_bus.port_name))
     backend.connect()
@@ -151,8 +151,8 @@ def test_state_stream_reports_at_a_fixed_rate(dxl_bus):
 
 
 def test_leap_stop_interrupts_and_recover_reboots_a_faulted_motor(dxl_bus):
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
 
     backend = LeapRobot(LeapConfig(dxl_bus.port_name, settle_timeout_s=0.3))
     backend.connect()
@@ -177,8 +177,8 @@ def test_leap_stop_interrupts_and_recover_reboots_a_faulted_motor(dxl_bus):
 
 
 def test_a_faulted_leap_motor_refuses_connect_until_recovered(dxl_bus):
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
 
     dxl_bus.motor(7).fault(0x04)  # overheating shutdown before the bridge starts
     backend = LeapRobot(LeapConfig(dxl_bus.port_name))
@@ -194,9 +194,9 @@ def test_a_faulted_leap_motor_refuses_connect_until_recovered(dxl_bus):
 
 def test_leap_reports_absent_port_and_missing_motors():
     pytest.importorskip("dynamixel_sdk")
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.fake import DynamixelBus
-    from services.robot_bridge.robots.leap.robot import LeapRobot
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.fake import DynamixelBus
+    from shared.execution.robots.leap.robot import LeapRobot
 
     with pytest.raises(DeviceUnavailable, match="cannot open"):
         LeapRobot(LeapConfig("/dev/does-not-exist")).connect()
@@ -209,7 +209,7 @@ def test_leap_reports_absent_port_and_missing_motors():
 @pytest.fixture()
 def allegro_hand():
     pytest.importorskip("can")
-    from services.robot_bridge.robots.allegro.fake import SimAllegroHand
+    from shared.execution.robots.allegro.fake import SimAllegroHand
 
     channel = f"test-{uuid.uuid4().hex[:8]}"
     with SimAllegroHand(interface="virtual", channel=channel, initial_rad=np.full(16, 0.2)) as hand:
@@ -217,7 +217,7 @@ def allegro_hand():
 
 
 def test_allegro_protocol_ids_follow_the_v5_driver():
-    from services.robot_bridge.robots.allegro import protocol as proto
+    from shared.execution.robots.allegro import protocol as proto
 
     assert proto.wire_id(proto.ID_CMD_SET_POSE + 3) == 0x38C
     assert proto.wire_id(proto.ID_RTR_FINGER_POSE) == 0x080
@@ -227,9 +227,9 @@ def test_allegro_protocol_ids_follow_the_v5_driver():
 
 
 def test_allegro_connects_holds_then_follows_a_trajectory(allegro_hand):
-    from services.robot_bridge.robots.allegro import protocol as proto
-    from services.robot_bridge.robots.allegro.config import AllegroConfig
-    from services.robot_bridge.robots.allegro.robot import AllegroRobot
+    from shared.execution.robots.allegro import protocol as proto
+    from shared.execution.robots.allegro.config import AllegroConfig
+    from shared.execution.robots.allegro.robot import AllegroRobot
 
     hand, channel = allegro_hand
     backend = AllegroRobot(AllegroConfig(interface="virtual", channel=channel, report_period_ms=10, stale_after_s=1.0))
@@ -252,10 +252,10 @@ def test_allegro_connects_holds_then_follows_a_trajectory(allegro_hand):
 
 def test_allegro_h_inf_firmware_takes_positions_on_the_torque_ids():
     pytest.importorskip("can")
-    from services.robot_bridge.robots.allegro import protocol as proto
-    from services.robot_bridge.robots.allegro.config import AllegroConfig
-    from services.robot_bridge.robots.allegro.fake import SimAllegroHand
-    from services.robot_bridge.robots.allegro.robot import AllegroRobot
+    from shared.execution.robots.allegro import protocol as proto
+    from shared.execution.robots.allegro.config import AllegroConfig
+    from shared.execution.robots.allegro.fake import SimAllegroHand
+    from shared.execution.robots.allegro.robot import AllegroRobot
 
     channel = f"hinf-{uuid.uuid4().hex[:8]}"
     with SimAllegroHand(channel=channel, h_inf_firmware=True) as hand:
@@ -269,8 +269,8 @@ def test_allegro_h_inf_firmware_takes_positions_on_the_torque_ids():
 
 
 def test_allegro_fault_is_refused_until_its_cause_is_cleared(allegro_hand):
-    from services.robot_bridge.robots.allegro.config import AllegroConfig
-    from services.robot_bridge.robots.allegro.robot import AllegroRobot
+    from shared.execution.robots.allegro.config import AllegroConfig
+    from shared.execution.robots.allegro.robot import AllegroRobot
 
     hand, channel = allegro_hand
     hand.fault()
@@ -297,9 +297,9 @@ def test_allegro_fault_is_refused_until_its_cause_is_cleared(allegro_hand):
 @pytest.fixture()
 def xarm_backend():
     pytest.importorskip("xarm")
-    from services.robot_bridge.robots.xarm7.config import XArm7Config
-    from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xarm_api
-    from services.robot_bridge.robots.xarm7.robot import XArm7Robot
+    from shared.execution.robots.xarm7.config import XArm7Config
+    from shared.execution.robots.xarm7.fake import FakeXArmController, fake_xarm_api
+    from shared.execution.robots.xarm7.robot import XArm7Robot
 
     controller = FakeXArmController()
     backend = XArm7Robot(XArm7Config("192.168.1.201"), api_factory=lambda ip: fake_xarm_api(controller, ip))
@@ -338,8 +338,8 @@ def test_xarm_controller_error_is_refused_and_recovered(xarm_backend):
 
 
 def test_xarm_unreachable_controller_is_unavailable():
-    from services.robot_bridge.robots.xarm7.config import XArm7Config
-    from services.robot_bridge.robots.xarm7.robot import XArm7Robot
+    from shared.execution.robots.xarm7.config import XArm7Config
+    from shared.execution.robots.xarm7.robot import XArm7Robot
 
     class Unreachable:
         connected = False
@@ -357,7 +357,7 @@ def test_xarm_unreachable_controller_is_unavailable():
 def test_fr3_on_franky_sim_executes_and_stops():
     pytest.importorskip("franky")
     pytest.importorskip("franky_sim")
-    from services.robot_bridge.selftest import check_panda
+    from shared.execution.selftest import check_panda
 
     result = check_panda()
     assert result["ok"], result
@@ -365,14 +365,14 @@ def test_fr3_on_franky_sim_executes_and_stops():
 
 
 def test_every_robots_default_effort_cap_is_inside_its_device_limit():
-    from services.robot_bridge.robots.allegro.config import AllegroConfig
-    from services.robot_bridge.robots.allegro.robot import AllegroRobot
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
-    from services.robot_bridge.robots.panda.config import PandaConfig
-    from services.robot_bridge.robots.panda.robot import PandaRobot
-    from services.robot_bridge.robots.xarm7.config import XArm7Config
-    from services.robot_bridge.robots.xarm7.robot import XArm7Robot
+    from shared.execution.robots.allegro.config import AllegroConfig
+    from shared.execution.robots.allegro.robot import AllegroRobot
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
+    from shared.execution.robots.panda.config import PandaConfig
+    from shared.execution.robots.panda.robot import PandaRobot
+    from shared.execution.robots.xarm7.config import XArm7Config
+    from shared.execution.robots.xarm7.robot import XArm7Robot
 
     for backend, device in ((PandaRobot(PandaConfig("172.16.0.2")), "panda"), (XArm7Robot(XArm7Config("10.0.0.2")), "xarm7"),
                             (LeapRobot(LeapConfig("/dev/ttyUSB0")), "leap"), (AllegroRobot(AllegroConfig()), "allegro")):
@@ -384,7 +384,7 @@ def test_fr3_limits_match_franky_sims_fr3_model():
     franky_sim = pytest.importorskip("franky_sim")
     import xml.etree.ElementTree as ET
 
-    from services.robot_bridge.robots.panda.config import limits
+    from shared.execution.robots.panda.config import limits
 
     FR3_LIMITS = limits()
 
@@ -414,7 +414,7 @@ def test_selftest_cli_reports_every_device_it_runs_as_json():
 def test_selftest_names_a_missing_simulator(monkeypatch):
     import importlib.util
 
-    from services.robot_bridge import selftest
+    from shared.execution import selftest
 
     # Neither franky package installed (a fresh `make install`: they are the opt-in hardware-sim extra).
     real = importlib.util.find_spec
@@ -429,9 +429,9 @@ def test_selftest_names_a_missing_simulator(monkeypatch):
 def test_hardware_flags_build_the_paired_devices_or_say_what_is_missing():
     import argparse
 
-    from services.robot_bridge.hardware import HardwareConfigError, HardwareSpec
-    from services.robot_bridge.robots.leap.robot import LeapRobot
-    from services.robot_bridge.robots.xarm7.robot import XArm7Robot
+    from shared.execution.hardware import HardwareConfigError, HardwareSpec
+    from shared.execution.robots.leap.robot import LeapRobot
+    from shared.execution.robots.xarm7.robot import XArm7Robot
 
     parser = argparse.ArgumentParser()
     HardwareSpec.add_cli_args(parser)
@@ -449,11 +449,11 @@ def test_hardware_flags_build_the_paired_devices_or_say_what_is_missing():
 
 def test_connect_all_leaves_nothing_half_connected(dxl_bus):
     pytest.importorskip("xarm")
-    from services.robot_bridge.hardware import connect_all
-    from services.robot_bridge.robots.leap.config import LeapConfig
-    from services.robot_bridge.robots.leap.robot import LeapRobot
-    from services.robot_bridge.robots.xarm7.config import XArm7Config
-    from services.robot_bridge.robots.xarm7.robot import XArm7Robot
+    from shared.execution.hardware import connect_all
+    from shared.execution.robots.leap.config import LeapConfig
+    from shared.execution.robots.leap.robot import LeapRobot
+    from shared.execution.robots.xarm7.config import XArm7Config
+    from shared.execution.robots.xarm7.robot import XArm7Robot
 
     hand = LeapRobot(LeapConfig(dxl_bus.port_name))
     arm = XArm7Robot(XArm7Config("127.0.0.1"))  # nothing listens on the xArm's port here: connection refused

@@ -21,22 +21,22 @@ import zenoh
 
 from services.robot_bridge import bus_safety as safety
 from services.robot_bridge.bus_safety import ESTOP_KEY, EStopSubscriber, LeasedExecutor, check_command_lease
-from services.robot_bridge.executor import EStopLatch, Executor
-from services.robot_bridge.limits import SafetyRefusal
-from services.robot_bridge.robot import MotionStopped
-from services.robot_bridge.robots.leap import config as leap_config
-from services.robot_bridge.robots.leap import fake as dx
-from services.robot_bridge.robots.leap.config import LeapConfig
-from services.robot_bridge.robots.leap.fake import DynamixelBus
-from services.robot_bridge.robots.leap.robot import LeapRobot
-from services.robot_bridge.robots.xarm7 import config as xarm7_config
-from services.robot_bridge.robots.xarm7.config import XArm7Config
-from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xarm_api
-from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus.keys import alive_key
 from shared.bus.lease import RouterWatchdog, lease_alive, lease_key, lease_present
 from shared.contracts.codec import encode
 from shared.contracts.messages import ErrorReply, EStop, ExecutionCommand, Plan
+from shared.execution.executor import EStopLatch, Executor
+from shared.execution.limits import SafetyRefusal
+from shared.execution.robot import MotionStopped
+from shared.execution.robots.leap import config as leap_config
+from shared.execution.robots.leap import fake as dx
+from shared.execution.robots.leap.config import LeapConfig
+from shared.execution.robots.leap.fake import DynamixelBus
+from shared.execution.robots.leap.robot import LeapRobot
+from shared.execution.robots.xarm7 import config as xarm7_config
+from shared.execution.robots.xarm7.config import XArm7Config
+from shared.execution.robots.xarm7.fake import FakeXArmController, fake_xarm_api
+from shared.execution.robots.xarm7.robot import XArm7Robot
 
 XARM_HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
 HAND_OPEN = np.zeros(16)
@@ -475,11 +475,11 @@ def test_fr3_and_allegro_behind_the_safe_executor(zenoh_router):
     from franky_sim import SimulationServer
     from franky_sim.mujoco_simulator import MujocoSimulator
 
-    from services.robot_bridge.robots.allegro.config import AllegroConfig
-    from services.robot_bridge.robots.allegro.fake import SimAllegroHand
-    from services.robot_bridge.robots.allegro.robot import AllegroRobot
-    from services.robot_bridge.robots.panda.config import PandaConfig
-    from services.robot_bridge.robots.panda.robot import PandaRobot
+    from shared.execution.robots.allegro.config import AllegroConfig
+    from shared.execution.robots.allegro.fake import SimAllegroHand
+    from shared.execution.robots.allegro.robot import AllegroRobot
+    from shared.execution.robots.panda.config import PandaConfig
+    from shared.execution.robots.panda.robot import PandaRobot
 
     channel = f"fr3-test-{uuid.uuid4().hex[:6]}"
     with MujocoSimulator(enable_visualization=False) as sim, SimAllegroHand(channel=channel, initial_rad=np.full(16, 0.3)):

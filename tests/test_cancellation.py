@@ -7,7 +7,7 @@ from concurrent.futures import Future
 
 import pytest
 
-from services.planner.cancellation import Cancellation, RequestCancelled
+from shared.planning.cancellation import Cancellation, RequestCancelled
 
 
 def test_callbacks_run_once_when_cancelled_and_at_once_when_registered_late():

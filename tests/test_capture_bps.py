@@ -1,4 +1,4 @@
-"""Capture BPS of training frames (services/sampler/capture_bps.py): the planner's view of an object, for training.
+"""Capture BPS of training frames (shared/sampling/capture_bps.py): the planner's view of an object, for training.
 
 The capture goes through the real simulated cameras and reconstruction; the store's resumption and the
 training batch's swap are checked on their own.
@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 import torch
 
-from services.sampler import capture_bps
-from services.sampler.capture_bps import (
+from shared.sampling import capture_bps
+from shared.sampling.capture_bps import (
     CaptureSettings,
     CaptureStoreError,
     build_captures,
     capture_points,
     load_captures,
 )
-from services.sampler.checkpoint import load_checkpoint
-from services.sampler.dataset import Frame, frame_points, load_pose_dataset
-from services.sampler.diffusion import PoseNormalizer
-from services.sampler.nearest_neighbor import NearestNeighborBaseline
-from services.sampler.train import CaptureTensors, TrainingError, train
+from shared.sampling.checkpoint import load_checkpoint
+from shared.sampling.dataset import Frame, frame_points, load_pose_dataset
+from shared.sampling.diffusion import PoseNormalizer
+from shared.sampling.nearest_neighbor import NearestNeighborBaseline
+from shared.sampling.train import CaptureTensors, TrainingError, train
 from shared.world.bps import BasisPointSet
 from test_sampler import HAND, quiet, synthetic_objects, tiny_config, write_store
 

@@ -39,7 +39,7 @@ def _seen(x: float, y: float = 0.0, yaw_deg: float = 0.0):
 
 
 def _monitor(**thresholds):
-    from services.planner.monitor import MonitorThresholds, PushMonitor
+    from shared.planning.monitor import MonitorThresholds, PushMonitor
 
     return PushMonitor(_plan(), _straight_path(), np.array([1.0, 0.0]), MonitorThresholds(**thresholds))
 
@@ -68,7 +68,7 @@ def test_an_object_straying_from_its_predicted_path_stops_the_push_with_the_reas
 
 
 def test_an_object_turning_less_than_predicted_or_a_little_the_other_way_is_not_stopped():
-    from services.planner.monitor import MonitorThresholds, PushMonitor
+    from shared.planning.monitor import MonitorThresholds, PushMonitor
 
     turning = _straight_path()
     times = turning.times_s.to_numpy()
@@ -111,7 +111,7 @@ def test_a_state_repeating_the_last_tracked_pose_is_not_compared_again():
 
 
 def test_backing_out_retraces_the_plan_from_where_the_robot_stopped_to_its_start():
-    from services.planner.monitor import BACK_OUT_LEAD_S, backed_out
+    from shared.planning.monitor import BACK_OUT_LEAD_S, backed_out
 
     plan = _plan()
     q_now = np.full(7, 0.0352)  # stopped a little behind the command at 3.55 s
@@ -129,10 +129,10 @@ def test_backing_out_retraces_the_plan_from_where_the_robot_stopped_to_its_start
 
 
 def test_a_plan_may_start_at_the_limit_a_pressed_joint_stands_past_but_not_beyond_it():
-    from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
-    from services.robot_bridge.robots.sim.config import SimConfig
-    from services.robot_bridge.robots.sim.robot import SimRobot
     from shared.contracts.messages import ExecutionCommand
+    from shared.execution.executor import EStopLatch, Executor, LocalLease
+    from shared.execution.robots.sim.config import SimConfig
+    from shared.execution.robots.sim.robot import SimRobot
 
     with SimRobot(SimConfig("panda", "allegro")) as robot:
         limits = robot.limits
@@ -158,7 +158,7 @@ def test_a_plan_may_start_at_the_limit_a_pressed_joint_stands_past_but_not_beyon
 
 
 def test_the_simulated_tracker_reports_the_pose_late_and_noisy_and_repeats_with_its_seed():
-    from services.robot_bridge.robots.sim.tracker import SimTracker, TrackerConfig
+    from shared.execution.robots.sim.tracker import SimTracker, TrackerConfig
 
     tracker = SimTracker(TrackerConfig(position_sigma_m=0.002, yaw_sigma_deg=1.0), seed=3)
     poses = [np.eye(4) for _ in range(400)]
@@ -176,9 +176,9 @@ def test_the_simulated_tracker_reports_the_pose_late_and_noisy_and_repeats_with_
 
 
 def test_the_simulated_robot_publishes_tracked_poses_at_the_tracker_rate_with_the_plan_time():
-    from services.robot_bridge.robot import JointTrajectory
-    from services.robot_bridge.robots.sim.config import SimConfig
-    from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
+    from shared.execution.robot import JointTrajectory
+    from shared.execution.robots.sim.config import SimConfig
+    from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 
     tracks, states = [], []
     robot = SimRobot(SimConfig("panda", "allegro"), publish=states.append)
@@ -222,8 +222,8 @@ def _push_with_a_mid_push_slip(closed_loop: bool):
     """A push of the box along +y whose object slides 5 cm sideways (+x) once it has moved 4 cm: a slip the
     planner's rollout did not predict. The response, the robot's joints after each executed command."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
     from tests.test_push import _spatula_poses
 
     start = _box_at(0.5, 0.0)

@@ -8,12 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from services.planner.candidates import Candidates
-from services.planner.stages import PipelineSettings, RequestState, priority
-from services.sampler.checkpoint import checkpoint_id, default_checkpoint_path
-from services.sampler.critic import CriticConfig, SuccessCritic
-from services.sampler.critic_features import CONTACT_FEATURES, contact_features
-from services.sampler.critic_train import (
+from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
+from shared.planning.candidates import Candidates
+from shared.planning.stages import PipelineSettings, RequestState, priority
+from shared.robots.hands import load_hand
+from shared.sampling.checkpoint import checkpoint_id, default_checkpoint_path
+from shared.sampling.critic import CriticConfig, SuccessCritic
+from shared.sampling.critic_features import CONTACT_FEATURES, contact_features
+from shared.sampling.critic_train import (
     CriticData,
     CriticError,
     CriticTraining,
@@ -23,10 +25,8 @@ from services.sampler.critic_train import (
     save_critic,
     train_critic,
 )
-from services.sampler.diffusion import GradientGuidance, PoseNormalizer
-from services.sampler.guidance import CriticGuide
-from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
-from shared.robots.hands import load_hand
+from shared.sampling.diffusion import GradientGuidance, PoseNormalizer
+from shared.sampling.guidance import CriticGuide
 
 torch.set_num_threads(1)
 TINY = CriticConfig(bps_dim=32, object_dim=16, hidden_dim=64, num_layers=2, contact_dim=3)
@@ -130,7 +130,7 @@ def test_critic_guidance_climbs_the_critics_success_probability_from_inside_the_
 
 @pytest.mark.parametrize("contact_dim", [0, CONTACT_FEATURES])  # 0: critics trained before contact features
 def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoint(tmp_path, monkeypatch, contact_dim):
-    from services.sampler.service import SamplerService
+    from shared.sampling.server import SamplerService
 
     shipped = default_checkpoint_path("allegro")
     if not shipped.is_file():
@@ -157,8 +157,8 @@ def test_the_sampler_scores_its_samples_only_with_a_critic_made_for_its_checkpoi
 
 
 def test_the_sampler_service_guides_samples_with_its_critic_when_asked_and_refuses_when_it_cannot(monkeypatch):
-    from services.sampler.service import SamplerService
     from shared.contracts.errors import ServiceError
+    from shared.sampling.server import SamplerService
 
     request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=40, frame=_frame_at_origin(),
                             seed=3)
@@ -183,8 +183,8 @@ def test_the_sampler_service_guides_samples_with_its_critic_when_asked_and_refus
 def test_retrieved_poses_are_scored_by_the_same_critic_so_a_planner_orders_them_alike(monkeypatch):
     """The Nearest Neighbor baseline gets the critic's order too (PushRequest.critic), scored from the object as the
     diffusion sampler encodes it, the encoding the critic was trained on."""
-    from services.sampler.critic_train import success_probabilities
-    from services.sampler.service import SamplerService, object_input
+    from shared.sampling.critic_train import success_probabilities
+    from shared.sampling.server import SamplerService, object_input
 
     request = SampleRequest(object=ObjectRef(library_id="proc-box-000"), hand="allegro", k=30, frame=_frame_at_origin(),
                             sampler="nearest", seed=2)
@@ -236,7 +236,7 @@ def test_the_planner_tries_the_poses_the_critic_likes_best_first():
 def test_each_hand_ships_a_critic_for_its_default_sampler(hand, monkeypatch):
     # The sampler service ignores a critic made for another checkpoint: a retrained default without its
     # critic retrained would silently lose the fast path's order (CHANGELOG.md "The success critic").
-    from services.sampler.critic_train import default_critic_path
+    from shared.sampling.critic_train import default_critic_path
 
     monkeypatch.delenv(f"GD2P_CRITIC_CHECKPOINT_{hand.upper()}", raising=False)
     monkeypatch.delenv(f"GD2P_SAMPLER_CHECKPOINT_{hand.upper()}", raising=False)
@@ -296,14 +296,14 @@ def test_critic_train_learns_from_several_data_directories_and_refuses_test_obje
 def test_a_capture_view_carries_the_same_pushes_into_the_reconstructions_frame(tmp_path):
     """Each record also comes as each of its reconstructed captures: the same outcomes, the poses moved by the
     capture's shift, BPS and contact features read from the captured points; a failed capture adds nothing."""
-    from services.sampler.capture_bps import FrameCaptures
-    from services.sampler.critic_train import critic_frame, critic_frames, encode_records
-    from services.sampler.sampling import PoseSampler
+    from shared.sampling.capture_bps import FrameCaptures
+    from shared.sampling.critic_train import critic_frame, critic_frames, encode_records
+    from shared.sampling.sampling import PoseSampler
     from shared.world.perception.object_model import BPS_POINTS
 
     sampler_id = checkpoint_id(default_checkpoint_path("allegro"))
     _write_records(tmp_path / "data", ["proc-spatula-077", "rnd-957"], sampler_id, seed=0)
-    from services.sampler.critic_train import read_records
+    from shared.sampling.critic_train import read_records
 
     records = read_records(tmp_path / "data")
     shift = np.array([0.004, -0.003], np.float32)
@@ -332,7 +332,7 @@ def test_a_capture_view_carries_the_same_pushes_into_the_reconstructions_frame(t
 
 
 def test_a_capture_fraction_sets_each_batchs_share_of_capture_views():
-    from services.sampler.critic_train import _batch_rows
+    from shared.sampling.critic_train import _batch_rows
 
     data = synthetic_data(6, seed=0)
     captured = data.group >= 4  # two of the six views are captures

@@ -20,8 +20,8 @@ import pyarrow as pa
 import pytest
 
 from cli.main import main as gd2p
-from services.sampler.dataset import load_pose_dataset
-from services.validator.data_engine import (
+from shared.data.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
+from shared.data_engine import (
     SCHEMA,
     BuildError,
     BuildSettings,
@@ -30,7 +30,7 @@ from services.validator.data_engine import (
     choose_placement,
     select_objects,
 )
-from shared.data.dataset_store import MANIFEST_NAME, DatasetStore, StoreError
+from shared.sampling.dataset import load_pose_dataset
 from shared.world.objects import load_object
 from shared.world.push_outcome import TOPPLED_TILT_DEG
 
@@ -232,8 +232,8 @@ def bus():
     """A router with one generator and one validator worker (threads of this process)."""
     from deploy.launcher import free_loopback_endpoint
     from services.generator import service as generator_service
-    from services.validator import service as validator_service
     from shared.bus import BusConfig, open_session, run_worker
+    from shared.validation import service as validator_service
 
     endpoint = free_loopback_endpoint()
     router = open_session(BusConfig(mode="router", listen=[endpoint], connect=[]))
@@ -290,7 +290,7 @@ def test_a_build_stores_validated_poses_with_provenance(reference_store):
     assert run["physics"]["validator_defaults"]["solver_iterations"] > 0 and "commit" in run
     assert store.manifest["content_hash"] == store.content_hash()
     assert len(load_pose_dataset(reference_store, "allegro")) == len(rows)  # training reads the successes only
-    from services.sampler.nearest_neighbor import NearestNeighborBaseline
+    from shared.sampling.nearest_neighbor import NearestNeighborBaseline
 
     index = NearestNeighborBaseline.from_directory(reference_store, "allegro")  # `gd2p sampler-nn build`
     assert index.pose_count == len(rows) and {f.yaw_rad for f in index.frames} <= {round(r["yaw_rad"], 6) for r in rows}

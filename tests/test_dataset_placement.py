@@ -8,13 +8,13 @@ import pytest
 from pydantic import ValidationError
 
 from services.generator import service as generator_service
-from services.generator.config import GenerationConfig
-from services.validator import service as validator_service
-from services.validator.data_engine import Placement, placement_frame
-from services.validator.push import PushSimulator, table_object
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import GenerationJob, ObjectRef, ValidationJob
+from shared.data_engine import Placement, placement_frame
 from shared.robots.hands import load_hand
+from shared.synthesis.config import GenerationConfig
+from shared.validation import service as validator_service
+from shared.validation.push import PushSimulator, table_object
 from shared.world.fixed_poses import spatula_pose
 from shared.world.objects import load_object
 

@@ -112,9 +112,9 @@ def test_with_cameras_the_tracker_follows_the_reconstruction_the_planner_plans_a
     from dataclasses import replace
 
     from evaluation.local_system import true_world
-    from services.robot_bridge.robots.sim.config import SimConfig
-    from services.robot_bridge.robots.sim.robot import SimRobot
     from shared.contracts.messages import SimWorld
+    from shared.execution.robots.sim.config import SimConfig
+    from shared.execution.robots.sim.robot import SimRobot
     from shared.frames import make_transform, yaw_rotation
     from shared.world.object_refs import captured_object
     from shared.world.push_outcome import judge_push
@@ -243,8 +243,8 @@ def test_a_multistep_run_that_fails_after_some_pushes_records_how_far_the_object
 
     from evaluation import multistep
     from evaluation.local_system import Contacts
-    from services.planner.outcome import PushError
     from shared.contracts.messages import ObjectPose
+    from shared.planning.outcome import PushError
 
     moved = [SimpleNamespace(step=SimpleNamespace(result=SimpleNamespace(final_object_pose=ObjectPose(position=p))))
              for p in [(0.45, 0.0, 0.04), (0.47, 0.1, 0.04)]]
@@ -268,7 +268,7 @@ def test_a_multistep_run_with_cameras_sends_a_capture_and_the_robot_pushes_the_t
 
     from evaluation import multistep
     from evaluation.local_system import Contacts
-    from services.planner.outcome import PushError
+    from shared.planning.outcome import PushError
 
     run = multistep.Run(multistep.SCENARIOS[0], "proc-cylinder-001", 0, cameras=3)
     request = multistep.request(run)
@@ -332,7 +332,7 @@ def test_the_index_names_the_commits_that_ran_the_trials(tmp_path):
 
 def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_models(tmp_path, monkeypatch):
     from evaluation.methods import protocol_for
-    from services.sampler.checkpoint import SHIPPED_DIR
+    from shared.sampling.checkpoint import SHIPPED_DIR
 
     spec = protocol_for("methods", True, 1, "real", ("gd2p",), tag="v2")
     assert spec.directory_name == "methods-real-v2" and spec.title.endswith("(v2)")

@@ -19,10 +19,10 @@ from evaluation.coverage import (
 )
 from evaluation.data_size import object_subset
 from evaluation.store import ResultStore, ResultStoreError
-from services.validator.augment import halton_perturbations
-from services.validator.push import table_object
-from services.validator.validator import Validator
 from shared.robots.hands import load_hand
+from shared.validation.augment import halton_perturbations
+from shared.validation.push import table_object
+from shared.validation.validator import Validator
 from shared.world.fixed_poses import spatula_pose
 from shared.world.objects import load_object, split_of
 
@@ -303,7 +303,7 @@ def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(caps
 def test_eval_passes_critic_guidance_to_sampler_quality_and_refuses_it_elsewhere_or_malformed(monkeypatch, capsys):
     import cli.eval
     from cli.main import main
-    from services.sampler.diffusion import GradientGuidance
+    from shared.sampling.diffusion import GradientGuidance
 
     calls = []
     monkeypatch.setattr(cli.eval, "experiment_function", lambda name: lambda out, quick, workers, **o: calls.append(o) or out)
@@ -344,8 +344,8 @@ def test_sampler_quality_takes_the_hand_a_checkpoint_was_trained_for_and_its_ind
 def test_critic_order_puts_the_samples_the_critic_likes_first_and_refuses_another_checkpoints_critic():
     from evaluation.coverage import CriticOrderedSource, DiffusionSource, coverage_frame
     from evaluation.sampler_quality import shipped_checkpoint
-    from services.sampler.critic_train import load_critic, success_probabilities
-    from services.sampler.sampling import PoseSampler
+    from shared.sampling.critic_train import load_critic, success_probabilities
+    from shared.sampling.sampling import PoseSampler
 
     checkpoint, critic = shipped_checkpoint(), shipped_checkpoint().with_name("allegro_critic.pt")
     obj = load_object("proc-box-000")
@@ -369,8 +369,8 @@ def test_critic_guidance_raises_what_the_critic_expects_of_the_samples_and_of_re
     seed's plain samples and the plain retrieved poses."""
     from evaluation.coverage import CriticClimbedSource, DiffusionSource, NearestNeighborSource, coverage_frame
     from evaluation.sampler_quality import shipped_checkpoint, shipped_nn_index
-    from services.sampler.critic_train import load_critic, success_probabilities
-    from services.sampler.diffusion import GradientGuidance
+    from shared.sampling.critic_train import load_critic, success_probabilities
+    from shared.sampling.diffusion import GradientGuidance
 
     checkpoint, critic = str(shipped_checkpoint()), str(shipped_checkpoint().with_name("allegro_critic.pt"))
     obj = load_object("proc-box-000")

@@ -213,7 +213,7 @@ def test_unknown_family_or_index_is_rejected_naming_the_families():
 # ----------------------------------------------------------------------------- the library before them
 def test_existing_objects_keep_their_ids_splits_meshes_and_selections(cache):
     from evaluation.data_size import object_subset
-    from services.validator.data_engine import select_objects
+    from shared.data_engine import select_objects
 
     before = [i for i in list_object_ids() if library_generation(i) == 0]
     assert list_object_ids()[:len(before)] == before  # the new ids come after all of them

@@ -13,13 +13,13 @@ import pytest
 import torch
 import trimesh
 
-from services.generator import energy as E
-from services.generator.config import GenerationConfig, GenerationConfigError
-from services.generator.init import initial_poses, palm_center_base, sample_contacts
-from services.generator.optimizer import AnnealingOptimizer
-from services.generator.scene import PushScene
-from services.generator.synthesis import generate, hand_geometry
 from shared.robots.hands import load_hand
+from shared.synthesis import energy as E
+from shared.synthesis.config import GenerationConfig, GenerationConfigError
+from shared.synthesis.init import initial_poses, palm_center_base, sample_contacts
+from shared.synthesis.optimizer import AnnealingOptimizer
+from shared.synthesis.scene import PushScene
+from shared.synthesis.synthesis import generate, hand_geometry
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -242,7 +242,7 @@ def test_contact_sampling_is_distinct_and_avoids_excluded_indices():
 
 
 def test_annealing_schedule_and_metropolis_rule():
-    from services.generator.config import AnnealingSettings
+    from shared.synthesis.config import AnnealingSettings
 
     optimizer = AnnealingOptimizer(AnnealingSettings(), 100, torch.Generator().manual_seed(0))
     assert optimizer.step_size() == 0.005 and optimizer.temperature() == 18.0

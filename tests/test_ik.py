@@ -1,11 +1,11 @@
-"""Batched arm IK for hand poses (services/planner/ik.py): reaches what is reachable, says so when it is not."""
+"""Batched arm IK for hand poses (shared/planning/ik.py): reaches what is reachable, says so when it is not."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from services.planner.ik import ArmIK, IKError, pose_errors
+from shared.planning.ik import ArmIK, IKError, pose_errors
 from shared.robots.arms import load_arm, mount
 
 torch.set_num_threads(1)

@@ -199,9 +199,9 @@ def system(module_router, tmp_path_factory):
     from services.generator import service as generator
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
-    from services.sampler import service as sampler
-    from services.validator import service as validator
     from shared.bus import run_worker
+    from shared.sampling import service as sampler
+    from shared.validation import service as validator
 
     cfg = BusConfig(mode="client", connect=[module_router], connect_timeout_ms=5000)
     stop = threading.Event()
@@ -232,8 +232,8 @@ def system(module_router, tmp_path_factory):
 
 
 def _record(cfg: BusConfig, record_dir: Path, stop: threading.Event) -> None:
-    from services.recorder.recorder import RotatingRecorder
     from services.recorder.service import RecorderService
+    from visualisation.recorder import RotatingRecorder
 
     with open_session(cfg) as session:
         RecorderService(RotatingRecorder(record_dir)).run(session, worker_id="recorder-t", stop=stop)

@@ -1,4 +1,4 @@
-"""Arm motion for a push (services/planner/motion.py) and the object's multi-step path (multistep.py)."""
+"""Arm motion for a push (shared/planning/motion.py) and the object's multi-step path (multistep.py)."""
 from __future__ import annotations
 
 import math
@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from services.planner.candidates import Candidates, Push
-from services.planner.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
-from services.planner.multistep import (
+from shared.frames import direction_frame, direction_xy, make_transform, matrix_to_r6, pose25_to_matrix
+from shared.planning.candidates import Candidates, Push
+from shared.planning.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
+from shared.planning.multistep import (
     DirectionInfeasible,
     next_push_target,
     plan_object_path,
@@ -17,7 +18,6 @@ from services.planner.multistep import (
     split_into_pushes,
     turned_pushes,
 )
-from shared.frames import direction_frame, direction_xy, make_transform, matrix_to_r6, pose25_to_matrix
 from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits, WorkspaceBox
 from shared.world.fixed_poses import spatula_pose

@@ -28,8 +28,8 @@ def system(module_router, tmp_path_factory):
     """Planner, one validator and the simulated robot bridge, registered on the router."""
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
-    from services.validator import service as validator
     from shared.bus import run_worker
+    from shared.validation import service as validator
 
     cfg = BusConfig(mode="client", connect=[module_router], connect_timeout_ms=5000)
     record_dir = tmp_path_factory.mktemp("pushes")
@@ -141,9 +141,9 @@ def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
 def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_robot(system):
     """A closed-loop push whose object follows its prediction is not stopped; a monitor that finds a reason
     to stop drops the command's lease and the bridge halts the robot, naming the reason."""
-    from services.planner.cancellation import Cancellation
     from services.planner.service import BusServices
     from shared.contracts.messages import SimWorld
+    from shared.planning.cancellation import Cancellation
 
     cfg, _ = system
     request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", closed_loop=True)
@@ -238,8 +238,8 @@ def test_gd2p_push_json_reports_an_infeasible_request_and_exits_2(system, capsys
 
 
 def test_l_dir_is_minus_one_for_a_palm_facing_the_push_and_plus_one_facing_back():
-    from services.planner.ranking import direction_costs, score
     from shared.frames import make_transform, matrix_to_pose25, pose25_to_matrix, yaw_rotation
+    from shared.planning.ranking import direction_costs, score
     from shared.robots.hands import load_hand
     from shared.world.fixed_poses import spatula_pose
     from shared.world.objects import load_object
@@ -276,7 +276,7 @@ def test_a_push_that_tips_the_object_over_is_judged_toppled_and_failed():
 
 
 def test_a_rollout_that_rotates_the_object_past_45_deg_ranks_behind_a_clean_miss():
-    from services.planner.ranking import goal_cost, predicts_success, score
+    from shared.planning.ranking import goal_cost, predicts_success, score
 
     rotated_but_close = score(goal_cost(0.01, rotation_deg=60.0, max_tilt_deg=5.0), 0.0, -1.0)
     toppled_but_close = score(goal_cost(0.01, rotation_deg=20.0, max_tilt_deg=80.0), 0.0, -1.0)
@@ -320,9 +320,9 @@ def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0, p
     """A push of the box by spatula poses (`_spatula_poses`) on an in-process system whose i-th arm
     rollout result is `alter(i, result)`; (response or PushError, rollouts made)."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.outcome import PushError
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     T_world_O = _box_at(0.5, 0.0)
     rollouts = []
@@ -367,8 +367,8 @@ def test_when_no_rollout_succeeds_another_round_of_plans_is_rolled_out_and_ranke
 def test_the_ranking_ablation_keeps_every_rollout_and_drops_only_the_score():
     """choice="unranked": the same plans are made and rolled out as when ranked, but the executed one is
     drawn at random among them, so the worse-scored plan can run."""
-    from services.planner.stages import PipelineSettings
     from shared.contracts.messages import NDArray
+    from shared.planning.stages import PipelineSettings
 
     def second_plan_missing(i, result):  # the second rolled-out plan "misses by 10 cm"
         return result.model_copy(update={"goal_error_m": NDArray.from_numpy(np.full(1, 0.1))}) if i == 1 else result
@@ -385,8 +385,8 @@ def test_robust_ranking_executes_the_plan_that_works_in_the_drawn_worlds_not_onl
     """physics_draws=2: each plan is also rolled out in two drawn worlds. The first plan "works" only in
     the nominal world (its draws overridden to miss by 10 cm), the second in all three: the second runs,
     although ranking by the nominal rollout alone would pick the first (its nominal error is lower)."""
-    from services.planner.stages import PipelineSettings
     from shared.contracts.messages import NDArray
+    from shared.planning.stages import PipelineSettings
 
     real_draws = []
 
@@ -425,9 +425,9 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
     """prescreen=4: the first four feasible poses are pushed by a floating hand (overridden: the 2nd and 3rd
     succeed, the 3rd closer to the target); the first plan rolled out is the 3rd pose's, the next the 2nd's."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
     from shared.contracts.messages import NDArray
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     jobs = []
 
@@ -463,9 +463,9 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
     the prescreen pushes; with `prescreen` off (the fast path) no floating hand pushes and its plan is rolled out
     first. (Without the critic, L_dir's order: tests/test_critic.py.)"""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
     from shared.contracts.messages import NDArray
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     liked = 5
 
@@ -499,7 +499,7 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
 
 def test_a_request_for_critic_guided_samples_reaches_the_sampler_and_only_for_diffusion_samples():
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PushPipeline, PushServices
+    from shared.planning.pipeline import PushPipeline, PushServices
 
     asked = []
 
@@ -524,7 +524,7 @@ def test_a_request_for_critic_guided_samples_reaches_the_sampler_and_only_for_di
 
 
 def _one_plan_settings():
-    from services.planner.stages import PipelineSettings
+    from shared.planning.stages import PipelineSettings
 
     return PipelineSettings(max_plans=1, prescreen=0, max_plan_rounds=1)
 
@@ -534,10 +534,10 @@ def _push_with_a_displaced_first_outcome(displace, corrections=2, sample=None):
     the simulated object is moved there (a slip the planner did not predict) and the robot reports it there.
     The response (or PushError) and the T_world_O the first push left before the displacement."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.outcome import Execution
-    from services.planner.pipeline import PushPipeline
-    from services.planner.pipeline import PushServices as Services
-    from services.planner.stages import PipelineSettings
+    from shared.planning.outcome import Execution
+    from shared.planning.pipeline import PushPipeline
+    from shared.planning.pipeline import PushServices as Services
+    from shared.planning.stages import PipelineSettings
     from shared.world.push_outcome import object_pose, pose_matrix
 
     robot = LocalRobot()
@@ -626,8 +626,8 @@ def test_a_correction_that_cannot_be_planned_leaves_the_push_as_it_was_and_says_
 
 
 def test_a_plan_whose_rollout_touches_an_obstacle_is_never_executed():
-    from services.planner.outcome import PushError
     from shared.contracts.messages import NDArray
+    from shared.planning.outcome import PushError
 
     def touching(result):
         return result.model_copy(update={"obstacle_contact": NDArray.from_numpy(np.ones(1, dtype=bool))})
@@ -650,8 +650,8 @@ def test_a_plan_breaking_a_limit_is_made_again_and_a_planning_error_gives_up_at_
     """The one retry helper of arm plans and their ways back (`stages.within_limits`)."""
     from collections import Counter
 
-    from services.planner.motion import PlanningError
-    from services.planner.stages import within_limits
+    from shared.planning.motion import PlanningError
+    from shared.planning.stages import within_limits
     from shared.robots.robot_limits import LimitViolation
 
     class Limits:  # the first `broken` plans leave the workspace
@@ -689,9 +689,9 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
     (overridden: "no IK solution"); with three plan-less rounds allowed, the third round's poses are
     planned and the push is made, by the ranked and the random choice alike; with two, the request is
     infeasible and says how many poses it tried and why."""
-    from services.planner import stages
-    from services.planner.motion import PlanningError
-    from services.planner.outcome import PushError
+    from shared.planning import stages
+    from shared.planning.motion import PlanningError
+    from shared.planning.outcome import PushError
 
     planned = []
     plan_push = stages.ArmPlanning._plan_push
@@ -726,7 +726,7 @@ def test_when_no_pose_of_a_round_can_be_planned_the_next_poses_are_tried(monkeyp
 
 def test_planning_time_leaves_out_the_screening_a_plan_less_round_does_inside_it(monkeypatch):
     """A plan-less round screens the next poses while planning: those seconds count as "ik" only."""
-    from services.planner import stages
+    from shared.planning import stages
 
     clock = iter([10.0, 10.2, 10.5, 13.0])  # planning starts, screening starts and ends, planning ends
     monkeypatch.setattr(stages.time, "perf_counter", lambda: next(clock))
@@ -742,10 +742,10 @@ def test_a_later_push_of_a_point_cloud_request_reads_the_cloud_as_the_object_now
     """The request's cloud stays where the cameras captured it; after a push moved the object 20 cm and turned
     it 30 degrees, the next push's sampler frame puts the captured points where the moved object's are in
     that push's D (the first push's frame is the push's own)."""
-    from services.planner import stages
-    from services.planner.candidates import Push
-    from services.planner.outcome import StepRecord
     from shared.frames import frame_transform, make_transform, points_world_to_d, transform_points, yaw_rotation
+    from shared.planning import stages
+    from shared.planning.candidates import Push
+    from shared.planning.outcome import StepRecord
 
     rng = np.random.default_rng(0)
     T_captured = make_transform(yaw_rotation(0.4), np.array([0.45, -0.05, 0.03]))
@@ -766,9 +766,9 @@ def test_a_later_push_of_a_point_cloud_request_reads_the_cloud_as_the_object_now
 def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made():
     """The validator farm is gone by the second push: the PushError carries the first push's record."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.outcome import PushError
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     executed = []
 
@@ -805,9 +805,9 @@ def test_a_sampler_draw_with_no_feasible_pose_is_followed_by_another_and_the_las
     """The first draw's poses are all out of reach (1.5 m up): the push draws again with another seed and
     succeeds; when every draw is out of reach the error says how many draws were tried."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.outcome import PushError
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     seeds = []
 
@@ -841,9 +841,9 @@ def test_a_multi_step_push_the_arm_cannot_make_is_turned_off_the_path_and_still_
     """Pushes within 10 deg of straight toward the goal get only unreachable poses (1.5 m up): the first push
     is turned off the object path, the response says so, and the object reaches the goal."""
     from evaluation.local_system import LocalRobot, validate_here
-    from services.planner.pipeline import PushPipeline, PushServices
-    from services.planner.stages import PipelineSettings
     from shared.frames import frame_transform
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
 
     def out_of_reach_straight_ahead(request):
         x, y = frame_transform(request.frame)[:2, 0]
@@ -1020,7 +1020,7 @@ def test_gd2p_push_refuses_corrections_for_a_goal_request(capsys):
 def test_near_copies_of_a_pose_are_tried_after_the_poses_that_differ():
     """Rolled-out requests try different hand positions first: a pose within min_separation_m of one already
     kept goes back, in its own order; 0 keeps the order as it is."""
-    from services.planner.stages import spread_out
+    from shared.planning.stages import spread_out
 
     positions = np.array([[0.0, 0.0, 0.0], [0.005, 0.0, 0.0], [0.03, 0.0, 0.0], [0.031, 0.0, 0.0], [0.0, 0.05, 0.0]])
     order = np.array([0, 1, 2, 3, 4])

@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from services.recorder.recorder import (
+from shared.contracts import messages as m
+from shared.contracts.codec import CodecError, decode, encode
+from visualisation.recorder import (
     METADATA_COUNTS,
     METADATA_RECORDING,
     METADATA_TOTAL,
@@ -26,8 +28,6 @@ from services.recorder.recorder import (
     read_counts,
     recover_unfinished,
 )
-from shared.contracts import messages as m
-from shared.contracts.codec import CodecError, decode, encode
 from visualisation.recording import (
     McapWriter,
     MessageDecoderFactory,
@@ -652,8 +652,8 @@ def test_a_queued_publisher_never_waits_and_numbers_what_it_drops():
     counts it missing; the numbers of what was sent are in order."""
     import zenoh
 
-    from services.recorder.recorder import SequenceCounts
     from shared.bus import RecordedPublisher, sequence_of
+    from visualisation.recorder import SequenceCounts
 
     session = _FakeSession()
     publisher = RecordedPublisher(session, "gd2p/test/state", queue_size=2)

@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from conftest import free_port, router_config
-from services.planner.motion import MotionPlanner
-from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
-from services.robot_bridge.robot import MotionStopped
-from services.robot_bridge.robots.sim.config import SimConfig
-from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.contracts.messages import ExecutionCommand, ExecutionState, Plan
+from shared.execution.executor import EStopLatch, Executor, LocalLease
+from shared.execution.robot import MotionStopped
+from shared.execution.robots.sim.config import SimConfig
+from shared.execution.robots.sim.robot import SimRobot
 from shared.frames import direction_frame, pose25_to_matrix, quat_xyzw_to_matrix
+from shared.planning.motion import MotionPlanner
 from shared.robots.hands import load_hand
 from shared.robots.robot_limits import WorkspaceBox
 from shared.world.objects import load_object, write_object_urdf

@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.robot_bridge.executor import EStopLatch, Executor, LocalLease
-from services.robot_bridge.limits import DeviceLimits
-from services.robot_bridge.robot import Observation, StreamingRobot
-from services.robot_bridge.robots import DEVICES
-from services.robot_bridge.robots.allegro import config as allegro_config
-from services.robot_bridge.robots.leap import config as leap_config
-from services.robot_bridge.robots.panda import config as panda_config
-from services.robot_bridge.robots.xarm7 import config as xarm7_config
 from shared.contracts.messages import ARMS, HANDS, EStop, ExecutionCommand, Plan
+from shared.execution.executor import EStopLatch, Executor, LocalLease
+from shared.execution.limits import DeviceLimits
+from shared.execution.robot import Observation, StreamingRobot
+from shared.execution.robots import DEVICES
+from shared.execution.robots.allegro import config as allegro_config
+from shared.execution.robots.leap import config as leap_config
+from shared.execution.robots.panda import config as panda_config
+from shared.execution.robots.xarm7 import config as xarm7_config
 from shared.robots.robot_limits import JointLimits
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -148,8 +148,8 @@ def test_the_simulated_robot_and_the_hardware_robots_share_one_executor():
     import argparse
 
     from evaluation.local_system import LocalRobot
-    from services.robot_bridge.hardware import HardwareSpec
-    from services.robot_bridge.robots.sim.robot import SimRobot
+    from shared.execution.hardware import HardwareSpec
+    from shared.execution.robots.sim.robot import SimRobot
 
     local = LocalRobot()
     try:
@@ -182,7 +182,7 @@ def test_device_limits_are_the_urdfs_except_what_the_real_device_differs_on():
 
 def test_one_vocabulary_for_arms_and_hands():
     from cli.main import build_parser
-    from services.robot_bridge.selftest import CHECKS
+    from shared.execution.selftest import CHECKS
 
     assert set(DEVICES) == set(ARMS) | set(HANDS) == set(CHECKS)
     assert {d.kind for d in DEVICES.values()} == {"arm", "hand"}
@@ -206,8 +206,8 @@ def test_only_the_bus_adapter_of_the_robot_bridge_imports_zenoh():
     importers = {p.relative_to(bridge).as_posix() for p in bridge.rglob("*.py")
                  if any(name == "zenoh" or name.startswith("zenoh.") for name in _imports(p))}
     assert importers == {"service.py", "bus_safety.py"}
-    code = ("import sys, services.robot_bridge.executor, services.robot_bridge.hardware, "
-            "services.robot_bridge.selftest, services.robot_bridge.robots.sim.robot; "
+    code = ("import sys, shared.execution.executor, shared.execution.hardware, "
+            "shared.execution.selftest, shared.execution.robots.sim.robot; "
             "sys.exit('zenoh' in sys.modules)")
     assert subprocess.run([sys.executable, "-c", code], cwd=ROOT, timeout=120).returncode == 0
 

@@ -21,8 +21,10 @@ import torch
 import trimesh
 
 from pose_store import write_pose_store
-from services.sampler.checkpoint import CheckpointError, load_checkpoint, manifest_path, save_checkpoint
-from services.sampler.dataset import (
+from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
+from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
+from shared.sampling.checkpoint import CheckpointError, load_checkpoint, manifest_path, save_checkpoint
+from shared.sampling.dataset import (
     DatasetError,
     Frame,
     choose_fraction,
@@ -30,11 +32,11 @@ from services.sampler.dataset import (
     load_pose_dataset,
     split_objects,
 )
-from services.sampler.diffusion import TRAIN_TIMESTEPS, DiffusionConfigError, GradientGuidance, sample_normalized
-from services.sampler.model import DenoiserConfig, PoseDenoiser
-from services.sampler.nearest_neighbor import NearestNeighborBaseline
-from services.sampler.sampling import PoseSampler, SamplerInputError, default_frame
-from services.sampler.train import (
+from shared.sampling.diffusion import TRAIN_TIMESTEPS, DiffusionConfigError, GradientGuidance, sample_normalized
+from shared.sampling.model import DenoiserConfig, PoseDenoiser
+from shared.sampling.nearest_neighbor import NearestNeighborBaseline
+from shared.sampling.sampling import PoseSampler, SamplerInputError, default_frame
+from shared.sampling.train import (
     RunOptions,
     TrainConfig,
     TrainingError,
@@ -43,8 +45,6 @@ from services.sampler.train import (
     object_balanced_weights,
     train,
 )
-from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
-from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
 from shared.world.objects import list_object_ids, load_object
 
 torch.set_num_threads(1)
@@ -470,8 +470,8 @@ def test_nearest_neighbor_returns_the_closest_training_frame_and_round_trips(sto
 def test_sample_request_over_the_bus(zenoh_router, trained, tmp_path, monkeypatch):
     # A hand whose checkpoint is missing (the shipped leap.pt is pointed away) gets a clear error reply.
     monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_LEAP", str(tmp_path / "no-such-leap.pt"))
-    from services.sampler.service import SERVICE, handlers
     from shared.bus import BusConfig, Dispatcher, RemoteError, Worker, open_session
+    from shared.sampling.server import SERVICE, handlers
 
     session = open_session(BusConfig(connect=[zenoh_router], connect_timeout_ms=5000))
     stop = threading.Event()
@@ -526,7 +526,7 @@ def test_cli_train_then_sample_json(store, tmp_path, capsys, monkeypatch):
 
 
 def test_cli_sample_validate_counts_successes_in_simulation(trained, capsys):
-    pytest.importorskip("services.validator.validator")
+    pytest.importorskip("shared.validation.validator")
     from cli.main import main
 
     code = main(["sample", "--object", synthetic_objects()[0], "--hand", HAND, "--n", "3", "--sampler", "ddim",

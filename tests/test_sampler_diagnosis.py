@@ -11,9 +11,9 @@ import evaluation.coverage as coverage
 import evaluation.sampler_diagnosis as diagnosis
 from evaluation.coverage import CoverageError, DiffusionSource, PushTally, coverage_record
 from evaluation.store import RECORDS_FILE
-from services.sampler.checkpoint import load_checkpoint
-from services.sampler.nearest_neighbor import NearestNeighborBaseline
-from services.sampler.sampling import PoseSampler, default_frame
+from shared.sampling.checkpoint import load_checkpoint
+from shared.sampling.nearest_neighbor import NearestNeighborBaseline
+from shared.sampling.sampling import PoseSampler, default_frame
 from shared.world.bps import BasisPointSet
 from shared.world.objects import load_object
 

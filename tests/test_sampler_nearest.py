@@ -18,14 +18,14 @@ import pyarrow as pa
 import pytest
 
 from pose_store import write_pose_store
-from services.sampler.nearest_neighbor import (
+from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
+from shared.frames import direction_frame, matrix_to_pos_quat, poses_d_to_world
+from shared.sampling.nearest_neighbor import (
     NearestNeighborBaseline,
     NearestNeighborSampler,
     default_nn_index_path,
     half_precision_agreement,
 )
-from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
-from shared.frames import direction_frame, matrix_to_pos_quat, poses_d_to_world
 from shared.world.objects import list_object_ids, load_object
 
 HAND = "allegro"
@@ -85,8 +85,8 @@ def index_path(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def dispatcher(module_router, index_path, tmp_path_factory):
     """A sampler worker serving the tiny index for allegro and a missing index for leap."""
-    from services.sampler.service import SERVICE, handlers
     from shared.bus import BusConfig, Dispatcher, Worker, open_session
+    from shared.sampling.server import SERVICE, handlers
 
     missing = tmp_path_factory.mktemp("missing") / "leap_nn.npz"
     session = open_session(BusConfig(connect=[module_router], connect_timeout_ms=5000))
@@ -208,10 +208,10 @@ def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zeno
     from client.push_client import push
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
-    from services.sampler import service as sampler
-    from services.validator import service as validator
     from shared.bus import BusConfig, live_workers, open_session, run_worker
     from shared.contracts.messages import PushRequest
+    from shared.sampling import service as sampler
+    from shared.validation import service as validator
 
     monkeypatch.delenv("GD2P_SAMPLER_NN_INDEX_ALLEGRO", raising=False)
     if not default_nn_index_path("allegro").is_file():

@@ -35,13 +35,6 @@ from deploy.secure import CertificateError, prepare
 from deploy.secure import profile as acl
 from deploy.secure.certs import IDENTITIES, generate
 from services.robot_bridge.bus_safety import COMMAND_KEY, ESTOP_KEY, EStopSubscriber, LeasedExecutor
-from services.robot_bridge.executor import EStopLatch, Executor
-from services.robot_bridge.robots.leap.config import LeapConfig
-from services.robot_bridge.robots.leap.fake import DynamixelBus
-from services.robot_bridge.robots.leap.robot import LeapRobot
-from services.robot_bridge.robots.xarm7.config import XArm7Config
-from services.robot_bridge.robots.xarm7.fake import FakeXArmController, fake_xarm_api
-from services.robot_bridge.robots.xarm7.robot import XArm7Robot
 from shared.bus import (
     Dispatcher,
     RemoteError,
@@ -64,6 +57,13 @@ from shared.contracts.messages import (
     ScaleReply,
     WorkerStatus,
 )
+from shared.execution.executor import EStopLatch, Executor
+from shared.execution.robots.leap.config import LeapConfig
+from shared.execution.robots.leap.fake import DynamixelBus
+from shared.execution.robots.leap.robot import LeapRobot
+from shared.execution.robots.xarm7.config import XArm7Config
+from shared.execution.robots.xarm7.fake import FakeXArmController, fake_xarm_api
+from shared.execution.robots.xarm7.robot import XArm7Robot
 
 HOME = np.array([0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0])
 XARM7_JOINTS = tuple(f"joint{i}" for i in range(1, 8))  # the xArm7 URDF's

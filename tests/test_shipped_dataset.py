@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.sampler.dataset import open_store
+from shared.sampling.dataset import open_store
 from shared.world.objects import split_of
 
 DATASETS = Path(__file__).resolve().parents[1] / "datasets"
@@ -17,8 +17,8 @@ DATASETS = Path(__file__).resolve().parents[1] / "datasets"
 @cache
 def store_fingerprint(hand: str) -> str:
     """The fingerprint training records for a shipped store (its shard bytes), hashed once per hand."""
-    from services.sampler.dataset import dataset_fingerprint
     from shared.data.dataset_store import DatasetStore
+    from shared.sampling.dataset import dataset_fingerprint
 
     return dataset_fingerprint(DatasetStore.open(DATASETS / f"{hand}-v2"))
 
@@ -55,7 +55,7 @@ def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_su
 def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, index_name, poses):
     import json
 
-    from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
+    from shared.sampling.checkpoint import SHIPPED_DIR, load_checkpoint
 
     # the store's integrity is the test above's
     fingerprint = store_fingerprint(hand)
@@ -64,7 +64,7 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, inde
     assert checkpoint.hand == hand and checkpoint.manifest["dataset"]["sha256"] == fingerprint
     assert index["dataset"]["sha256"] == fingerprint
     # A frame whose resting pose the training machine's object library did not find is left out and recorded
-    # (services/sampler/dataset.py unplaceable_frames); with it the model saw the whole store, as the index did.
+    # (shared/sampling/dataset.py unplaceable_frames); with it the model saw the whole store, as the index did.
     trained, skipped = checkpoint.manifest["dataset"], checkpoint.manifest["dataset"].get("frames_skipped", [])
     assert index["dataset"]["poses_total"] == trained["poses_total"] + sum(f["poses"] for f in skipped) == poses
     with np.load(SHIPPED_DIR / f"{index_name}.npz", allow_pickle=False) as arrays:
@@ -75,7 +75,7 @@ def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, inde
 def test_shipped_default_model_was_trained_on_this_store_and_its_camera_captures(hand):
     # The planner sees objects through cameras by default, so each hand's default sampler was trained with half
     # its batches on captures of its own store's frames (CHANGELOG.md "Trained on what the cameras see").
-    from services.sampler.checkpoint import SHIPPED_DIR, load_checkpoint
+    from shared.sampling.checkpoint import SHIPPED_DIR, load_checkpoint
 
     fingerprint = store_fingerprint(hand)
     manifest = load_checkpoint(SHIPPED_DIR / f"{hand}.pt").manifest

@@ -9,10 +9,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from services.validator.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRANSLATION_M, halton_perturbations
-from services.validator.push import PushSimulator, table_object
-from services.validator.service import validate
-from services.validator.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
 from shared.bus import BusConfig, Worker, job_key, live_workers, open_session
 from shared.bus.worker import timeout_attachment
 from shared.contracts.codec import decode, encode
@@ -20,6 +16,10 @@ from shared.contracts.errors import ServiceError
 from shared.contracts.messages import DirectionFrame, ErrorReply, ObjectRef, ValidationJob, ValidationResult
 from shared.frames import make_transform, pose25_to_matrix
 from shared.robots.hands import load_hand
+from shared.validation.augment import MAX_JOINT_RAD, MAX_ROTATION_DEG, MAX_TRANSLATION_M, halton_perturbations
+from shared.validation.jobs import validate
+from shared.validation.push import PushSimulator, table_object
+from shared.validation.validator import PLACEMENT_NOISE_XY_M, PLACEMENT_NOISE_YAW_DEG, placement_offsets
 from shared.world.fixed_poses import SPATULA_GAP_M, spatula_pose
 from shared.world.objects import load_object
 from shared.world.push_outcome import object_pose
@@ -236,7 +236,7 @@ def test_a_job_past_its_deadline_stops_between_episodes(zenoh_router, box):
 
 
 def test_a_failed_push_says_why_toppled_before_turned_before_untouched_before_missed():
-    from services.validator.push import PushOutcome
+    from shared.validation.push import PushOutcome
 
     def outcome(success=False, error=0.1, rotation=5.0, tilt=5.0, contact=1.0):
         return PushOutcome(success=success, position_error_m=error, rotation_deg=rotation, max_tilt_deg=tilt,

@@ -10,9 +10,9 @@ import pytest
 
 from evaluation.local_system import true_world
 from evaluation.stats import difference_interval, success_interval
-from services.robot_bridge.robots.sim.config import SimConfig
-from services.robot_bridge.robots.sim.robot import SimRobot, TrueWorld
 from shared.contracts.messages import ObjectRef, SimWorld
+from shared.execution.robots.sim.config import SimConfig
+from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 from shared.world.objects import load_object
 from shared.world.push_outcome import object_pose
 from shared.world.sim.params import REFERENCE_PARAMS

@@ -15,14 +15,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from services.generator.config import GenerationConfig, GenerationConfigError
-from services.generator.init import InitialisationError
-from services.generator.scene import PushScene
-from services.generator.synthesis import GenerationError, GenerationOutput, generate
 from shared.bus.worker import check_deadline
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import GenerationJob, GenerationResult, Message, ObjectRef
 from shared.robots.hands import load_hand
+from shared.synthesis.config import GenerationConfig, GenerationConfigError
+from shared.synthesis.init import InitialisationError
+from shared.synthesis.scene import PushScene
+from shared.synthesis.synthesis import GenerationError, GenerationOutput, generate
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel
 

@@ -25,8 +25,8 @@ import pybullet as pb
 import trimesh
 from foxglove import messages as fg
 
-from services.planner.outcome import PushOutcome, StepRecord
 from shared.contracts.messages import ExecutionState, PushRequest
+from shared.planning.outcome import PushOutcome, StepRecord
 from shared.robots.arms import combined_urdf
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import write_object_urdf

@@ -33,10 +33,6 @@ from pathlib import Path
 
 import zenoh
 
-from services.planner.cancellation import Cancellation, RequestCancelled
-from services.planner.monitor import PushMonitor
-from services.planner.outcome import Execution, PushError
-from services.planner.pipeline import PushPipeline, PushServices
 from services.planner.recording import record_push
 from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, Worker, open_session
 from shared.bus.errors import DispatchError
@@ -57,6 +53,10 @@ from shared.contracts.messages import (
     ValidationJob,
     new_id,
 )
+from shared.planning.cancellation import Cancellation, RequestCancelled
+from shared.planning.monitor import PushMonitor
+from shared.planning.outcome import Execution, PushError
+from shared.planning.pipeline import PushPipeline, PushServices
 
 SERVICE = "planner"
 RECORD_DIR_ENV = "GD2P_PUSH_RECORD_DIR"

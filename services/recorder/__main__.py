@@ -12,9 +12,9 @@ import sys
 import threading
 from pathlib import Path
 
-from services.recorder.recorder import DEFAULT_MAX_FILE_MB, MIB, RecorderError, RotatingRecorder
 from services.recorder.service import RecorderService
 from shared.bus import BusConfig, BusError, open_session
+from visualisation.recorder import DEFAULT_MAX_FILE_MB, MIB, RecorderError, RotatingRecorder
 
 
 def _positive_mb(text: str) -> float:

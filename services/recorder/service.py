@@ -20,8 +20,8 @@ import time
 
 import zenoh
 
-from services.recorder.recorder import RotatingRecorder
 from shared.bus import ALL_KEYS, Worker, sequence_of
+from visualisation.recorder import RotatingRecorder
 
 log = logging.getLogger("gd2p.recorder")
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import sys
 
-from services.robot_bridge.hardware import HardwareConfigError, HardwareSpec
-from services.robot_bridge.robot import RobotError
 from services.robot_bridge.service import run
 from shared.bus import BusConfig
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
+from shared.execution.hardware import HardwareConfigError, HardwareSpec
+from shared.execution.robot import RobotError
 
 
 def main(argv: list[str] | None = None) -> int:

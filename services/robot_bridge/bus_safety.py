@@ -22,12 +22,12 @@ from collections.abc import Callable
 
 import zenoh
 
-from services.robot_bridge.executor import EStopLatch, Executor
-from services.robot_bridge.limits import SafetyRefusal
 from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
 from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, parse_lease_key
 from shared.contracts.codec import decode
 from shared.contracts.messages import EStop, ExecutionCommand, ExecutionState, Message
+from shared.execution.executor import EStopLatch, Executor
+from shared.execution.limits import SafetyRefusal
 
 ESTOP_KEY = ROBOT_ESTOP_KEY
 COMMAND_KEY = ROBOT_COMMAND_KEY

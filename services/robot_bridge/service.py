@@ -44,11 +44,6 @@ import numpy as np
 import zenoh
 
 from services.robot_bridge.bus_safety import COMMAND_KEY, EStopSubscriber, LeasedExecutor
-from services.robot_bridge.executor import EStopLatch, Executor, StatePublisher
-from services.robot_bridge.hardware import HardwareSpec, connect_all
-from services.robot_bridge.limits import SafetyRefusal
-from services.robot_bridge.robots.sim.config import SimConfig
-from services.robot_bridge.robots.sim.robot import SimRobot
 from shared.bus import STREAM_QUEUE, BusConfig, OpenCancelled, RecordedPublisher, Worker, open_session
 from shared.bus.keys import OBJECT_TRACK_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
@@ -62,6 +57,11 @@ from shared.contracts.messages import (
     ObjectPose,
     ObjectTrack,
 )
+from shared.execution.executor import EStopLatch, Executor, StatePublisher
+from shared.execution.hardware import HardwareSpec, connect_all
+from shared.execution.limits import SafetyRefusal
+from shared.execution.robots.sim.config import SimConfig
+from shared.execution.robots.sim.robot import SimRobot
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY

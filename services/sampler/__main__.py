@@ -11,9 +11,9 @@ import sys
 
 import torch
 
-from services.sampler.service import SERVICE, handlers
 from shared.bus import BusConfig, run_worker
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
+from shared.sampling.server import SERVICE, handlers
 
 # Requests handled at once: they wait together in the sampler's batching thread and share network passes.
 CONCURRENT_REQUESTS = 8

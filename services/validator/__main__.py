@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import sys
 
-from services.validator.service import JOB_DEADLINE_S, SERVICE, handlers, is_express, job_budget
 from shared.bus import BusConfig, run_worker
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
+from shared.validation.jobs import JOB_DEADLINE_S, SERVICE, handlers, is_express, job_budget
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -165,12 +165,12 @@ WORKERS: tuple[Service, ...] = (
             (Exchange(ValidationJob, (ValidationResult, ErrorReply)),), frozenset({"planner", "cli"}), True,
             "The planner's Dispatcher (arm rollouts of ranked plans); `gd2p dataset build` (cli).",
             "The planner waits 120 s per rollout and sends at most one job at a time to each validator.",
-            ("services/validator/service.py: handlers()", "services/planner/service.py: BusServices.validate")),
+            ("shared/validation/jobs.py: handlers()", "services/planner/service.py: BusServices.validate")),
     Service("sampler", "BPS-conditioned diffusion model (DDPM-100 / DDIM fast path), NN baseline",
             (Exchange(SampleRequest, (SampleResponse, ErrorReply)),), frozenset({"planner", "cli"}), True,
             "The planner's Dispatcher (candidate poses of a push); `gd2p sample` runs locally.",
             "The planner waits 60 s for a SampleResponse.",
-            ("services/sampler/service.py: handlers()", "services/planner/service.py: BusServices.sample")),
+            ("shared/sampling/server.py: handlers()", "services/planner/service.py: BusServices.sample")),
     Service("planner", "push/pull requests: IK, RRTConnect, rollouts, ranking, multi-step",
             (Exchange(PushRequest, (PushResponse, ErrorReply)),), frozenset({"cli"}), True,
             "`gd2p push`, `gd2p demo` and the Python push client (client/push_client.py), through a Dispatcher"
@@ -281,7 +281,7 @@ _ROBOT = (
               " publisher knows them — the command and its plan time).",
               frozenset({"robot_bridge", "tracker"}), EVERYONE, message=ObjectTrack,
               used_by="The simulated robot bridge publishes its tracker's frames (20 Hz, noisy and one frame late:"
-                      " services/robot_bridge/robots/sim/tracker.py). With hardware a user's tracker publishes here"
+                      " shared/execution/robots/sim/tracker.py). With hardware a user's tracker publishes here"
                       " and the bridge folds the latest pose into its ExecutionStates (with their plan time), where"
                       " the planner's closed-loop monitor reads it (examples/object_tracker.py publishes one from"
                       " zenoh and msgpack alone); the recorder records both. The pose is of the frame O the"
@@ -291,7 +291,7 @@ _ROBOT = (
               qos="Publish at the tracker's rate (10-30 Hz) while the robot moves; a pose older than 0.5 s is not"
                   f" folded into a state. {_RECORDED_QOS} The simulated bridge sends its frames from a queue like"
                   " its states; examples/object_tracker.py numbers its own.",
-              code=("services/robot_bridge/robots/sim/robot.py: SimRobot._track_frame",
+              code=("shared/execution/robots/sim/robot.py: SimRobot._track_frame",
                     "services/robot_bridge/service.py: TrackSubscriber")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
               "Stop every robot at once. Anything published here stops the robot — a valid EStop, an empty"
@@ -352,7 +352,7 @@ _INFRASTRUCTURE = (
                   " config, seeds: `--run-seeds` or $GD2P_RUN_SEEDS), `gd2p.counts` (the file's samples) and, in"
                   " the run's final file, `gd2p.counts.total`. Samples without the attachment (e-stop, watchdog"
                   " beats, a foreign publisher) are counted as received only.",
-              code=("services/recorder/service.py: RecorderService.run", "services/recorder/recorder.py: SequenceCounts",
+              code=("services/recorder/service.py: RecorderService.run", "visualisation/recorder.py: SequenceCounts",
                     "shared/bus/recorded.py", "cli/recording.py")),
 )
 INTERFACES: tuple[Interface, ...] = (

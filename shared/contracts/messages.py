@@ -656,13 +656,13 @@ class SampleRequest(Message):
     steps: int | None = Field(default=None, ge=1, le=1000)  # denoising steps (DDIM); None = sampler default
     seed: Seed = 0
     # The diffusion samplers' temperature (initial and step noise multiplied by it); None = the service's
-    # default (services.sampler.diffusion.default_noise_scale). Not for "nearest".
+    # default (shared.sampling.diffusion.default_noise_scale). Not for "nearest".
     noise_scale: float | None = Field(default=None, gt=0.0, le=1.0)
     # Whether to score the poses with the success critic (SampleResponse.success_probability): its contact
     # features cost 24-35 ms per 200 poses, so a planner that will not order by the critic skips them.
     score: bool = True
     # Steer the diffusion samples up the success critic's log P(success) in their last `guided_steps` denoising
-    # steps, each moving a pose by this scale x the gradient in normalised units (services/sampler/guidance.py);
+    # steps, each moving a pose by this scale x the gradient in normalised units (shared/sampling/guidance.py);
     # None: plain samples. 0.02 was chosen on val objects (docs/evaluation.md §Tuned settings); ~0.2 s per guided
     # step per 200 poses on one thread. Needs a critic made for the sampler's checkpoint; not for "nearest".
     critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
@@ -730,7 +730,7 @@ class PushRequest(Message):
     # publish it on gd2p/robot_bridge/object_track (docs/interfaces.md).
     corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
     # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
-    # strays from the path the chosen plan's rollout predicted (services/planner/monitor.py); the push is
+    # strays from the path the chosen plan's rollout predicted (shared/planning/monitor.py); the push is
     # backed out and, within `corrections`, pushed again from where the object was seen. Plans chosen
     # with choice "random" have no rollout to follow and run open loop.
     # On by default: stopping a push that strays and correcting it beat corrective pushes alone on the val

@@ -1,14 +1,14 @@
 """The pose store: validated push poses in Parquet shards plus a `manifest.json`.
 
 Written by the data engine (`gd2p dataset build`), read by the sampler's training
-(`services.sampler.dataset.load_pose_dataset`), the Nearest-Neighbor index and `gd2p dataset stats`.
+(`shared.sampling.dataset.load_pose_dataset`), the Nearest-Neighbor index and `gd2p dataset stats`.
 
 Layout of a store directory:
 
     manifest.json              what the store holds (below); the only file a reader trusts
     shards/<object_id>-<sha256 prefix>.parquet   every validated pose of one object (raw and augmented)
 
-Columns of a shard (the first five are the reader contract of `services.sampler.dataset`):
+Columns of a shard (the first five are the reader contract of `shared.sampling.dataset`):
 
     object_id  string             library id
     hand       string             "allegro" | "leap"

@@ -14,7 +14,7 @@ Every violation raises `LimitViolation`, whose message names the limit, the join
 waypoint time and the offending value, e.g.
 "joint velocity limit: panda_joint4 at t=1.240 s moves 3.100 rad/s > 2.175 rad/s".
 The robot bridge reads each device's limits from here (`JointLimits`) and narrows them where the real
-device is stricter (services/robot_bridge/limits.py).
+device is stricter (shared/execution/limits.py).
 """
 from __future__ import annotations
 

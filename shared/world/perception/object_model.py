@@ -46,7 +46,7 @@ from .errors import PerceptionError
 from .reconstruct import Reconstruction, ReconstructionSettings, Region, reconstruct
 
 RECONSTRUCTION_VERSION = 2  # bump when the pipeline's output for the same input changes
-BPS_POINTS = 2048  # as many points as the mesh BPS samples (services/sampler/dataset.py SURFACE_POINTS)
+BPS_POINTS = 2048  # as many points as the mesh BPS samples (shared/sampling/dataset.py SURFACE_POINTS)
 BPS_SPACING_M = 0.002  # thinned to uniform density first, so a camera's close-up side does not dominate
 
 
@@ -141,7 +141,7 @@ def bps_from_cloud(
 ) -> np.ndarray:
     """[bps.n] float32 BPS of an object's captured points, in the direction frame D.
 
-    The same encoding as a mesh's (services/sampler/dataset.py): D's frame, metres, the basis's own
+    The same encoding as a mesh's (shared/sampling/dataset.py): D's frame, metres, the basis's own
     ordering, `n_points` points. The cloud is first thinned to uniform density (BPS_SPACING_M) and
     then `n_points` of it are drawn (seeded), like the mesh's area-uniform samples. What the camera
     did not see (the underside, a far side) is missing from the cloud, so basis points near it read

@@ -2,7 +2,7 @@
 
 `ArmController` is the joint controller of every simulated arm: the validator's arm rollouts (the
 planner's L_goal / L_coll, `run_plan` here) and the robot bridge's simulated robot
-(`services/robot_bridge/robots/sim/robot.py`, which adds pacing, stop and state publishing) follow a plan
+(`shared/execution/robots/sim/robot.py`, which adds pacing, stop and state publishing) follow a plan
 with it, so a prediction and an execution differ only in the world they run in (`PhysicsParams`:
 friction, mass, the controller's gain and latency; `shared.world.sim.world` draws an execution's).
 Control: POSITION_CONTROL tracking the linearly interpolated trajectory, the segment's

@@ -1,0 +1,271 @@
+"""The simulated robot: a PyBullet arm + hand (+ object, obstacles) that executes plans with physics.
+
+It is the bridge's default robot and follows the contract of the devices (`robot.Robot`: connect /
+observe / send / stop / recover / disconnect), one robot for the arm and hand together — they share
+one physics world, stepped by one thread. `executor.Executor` runs commands on it behind the same
+checks as on hardware (the bus bridge and the evaluation alike).
+
+- Control: `shared.world.sim.plan_runner.ArmController`, the control law the planner's rollouts predict
+  with (POSITION_CONTROL tracking the linearly interpolated trajectory, velocity feed-forward, URDF
+  efforts as torque caps); its gain, latency and settling come from the robot's `PhysicsParams`,
+  which a reset sets to the world's (an evaluation's drawn execution world, `shared.world.sim.world`).
+- World: `reset_world(TrueWorld)` builds a fresh simulation with the object as it truly is, where it
+  truly stands. The bus bridge knows only the world it is told (`reset_told`); the evaluation computes
+  the truth it keeps from the planner (evaluation/local_system.py).
+- Time: physics follows the trajectory's own times (a push at the planned speed, `time_scale` 1); the
+  wall clock is paced `realtime_factor` times faster (a large factor runs as fast as the CPU allows).
+  A device, by contrast, moves the time-scaled trajectory.
+- State: published through `publish` (an ExecutionState with the plan time and the tracked object
+  pose) every 1/`state_rate_hz` seconds of robot time; `observe()` (joints and object pose) is safe
+  from any thread.
+- The object is seen through a simulated tracker (`tracker.py`: late, noisy, at a camera's rate), as a
+  real bridge sees it: every pose the robot reports is the tracker's, each of its frames also goes to
+  `track` (an ObjectTrack, for the bus). `true_object_pose()` is the truth, for the evaluation's judge.
+- Collisions: robot contacts with the table, obstacles or (arm links) the object during a motion are
+  recorded in `collisions` (hand-object contact is the push) and named in the report's message.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack, SimWorld
+from shared.execution.executor import StatePublisher
+from shared.execution.limits import SafetyRefusal
+from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped, Observation, Robot
+from shared.execution.robots.sim.config import SimConfig, limits
+from shared.execution.robots.sim.tracker import SimTracker
+from shared.world.object_refs import load_object_ref
+from shared.world.objects import ObjectLoadError, write_object_urdf
+from shared.world.push_outcome import object_pose, pose_matrix
+from shared.world.sim.params import PhysicsParams
+from shared.world.sim.plan_runner import ArmController, prepare_robot
+from shared.world.sim.robot_scene import RobotScene
+
+
+@dataclass(frozen=True)
+class TrueWorld:
+    """What the simulated robot is reset to: the object as it truly is (its mass and centre of mass may
+    differ from the model's), where it truly stands, the obstacles, and the physics the robot meets."""
+
+    obj: ObjectRef
+    T_world_O: np.ndarray  # the object's true pose
+    obstacles: tuple[tuple[float, float, float], ...] = ()  # (x, y, radius) cylinders on the table
+    physics: PhysicsParams | None = None  # None: the robot's nominal physics (its config's)
+    mass_scale: float = 1.0
+    com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the object's frame O
+    tracker_seed: int = 0  # the tracker's noise draws
+    # Where the frame the tracker reports sits in the object's frame O (None: O itself). A model-based
+    # tracker follows the model the system has: for a reconstruction from a camera cloud, its own frame
+    # (centre of mass and principal axes of what was seen), which may be the true O turned 180 degrees.
+    T_O_tracked: np.ndarray | None = None
+
+    @classmethod
+    def told(cls, world: SimWorld) -> TrueWorld:
+        """`world` taken as the truth: all a bus bridge knows."""
+        return cls(world.object, pose_matrix(world.object_pose), tuple((o.x, o.y, o.radius) for o in world.obstacles))
+
+
+class SimRobot(Robot):
+    """A simulated arm + hand on the table; add an object and obstacles after `connect()`."""
+
+    name = "sim"
+    streams_states = True
+
+    def __init__(self, config: SimConfig, publish: StatePublisher | None = None):
+        device_limits = limits(config.arm, config.hand)
+        super().__init__(device_limits.joint_names, device_limits)
+        self.config = config
+        self.arm_name, self.hand_name = config.arm, config.hand
+        self.T_world_base = config.T_world_base
+        self.nominal_params = config.params  # the physics of a world reset without its own
+        self.params = config.params
+        self.state_rate_hz = config.state_rate_hz
+        self.publish = publish
+        self.tracker = SimTracker(config.tracker)
+        self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
+        self._tracked: ObjectPose | None = None  # the tracker's latest frame (what the robot reports)
+        self._T_O_tracked = np.eye(4)  # the frame the tracker follows, in the object's frame O (TrueWorld)
+        self.scene: RobotScene | None = None
+        self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
+        # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
+        # time each (robot link, other) pair touched. Hand-object contact is the push, not a collision.
+        self.collisions: dict[tuple[str, str], float] = {}
+
+    # ------------------------------------------------------------------------------------ lifecycle
+
+    @property
+    def connected(self) -> bool:
+        return self.scene is not None
+
+    def connect(self) -> None:
+        with self._lock:
+            if self.scene is not None:
+                return
+            self.scene = RobotScene(self.arm_name, self.hand_name, T_world_base=self.T_world_base, params=self.params)
+            prepare_robot(self.scene, self.params.hand_joint_damping)
+            self.reset()
+
+    def disconnect(self) -> None:
+        with self._lock:
+            if self.scene is not None:
+                self.scene.close()
+                self.scene = None
+
+    def __enter__(self) -> SimRobot:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disconnect()
+
+    def reset(self, q_arm: Sequence[float] | None = None, q_hand: Sequence[float] | None = None) -> None:
+        """Teleport the robot (default: arm home, hand open) and hold it there."""
+        scene = self._scene()
+        arm = scene.arm.home.double().numpy() if q_arm is None else np.asarray(q_arm, dtype=np.float64)
+        hand = (scene.hand.open_joint_positions.double().numpy() if q_hand is None
+                else np.asarray(q_hand, dtype=np.float64))
+        q = np.concatenate([arm, hand])
+        with self._lock:
+            scene.set_configuration(arm, hand)
+            ArmController(scene, self.params, np.zeros(1), q[None]).command(q, np.zeros(len(q)))
+
+    def reset_world(self, world: TrueWorld) -> None:
+        """A fresh simulation in `world`: its physics, the robot at home with the hand open, the object as
+        it truly is at its true pose, the obstacles. ObjectLoadError if the object cannot be loaded."""
+        obj = load_object_ref(world.obj)
+        urdf = write_object_urdf(obj, world.mass_scale, world.com_offset_m)
+        with self._lock:
+            self.disconnect()
+            self.params = self.nominal_params if world.physics is None else world.physics
+            self.connect()
+        self.add_object(urdf, world.T_world_O)
+        self.add_obstacles(world.obstacles)
+        self.tracker.reset(world.tracker_seed)
+        self._T_O_tracked = np.eye(4) if world.T_O_tracked is None else np.asarray(world.T_O_tracked, dtype=np.float64)
+        self._tracked = None  # the next observation is a frame of this world's object
+
+    def reset_told(self, world: SimWorld) -> None:
+        """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
+        object cannot be loaded."""
+        try:
+            self.reset_world(TrueWorld.told(world))
+        except ObjectLoadError as exc:
+            raise SafetyRefusal("world", str(exc)) from None
+
+    def add_object(self, urdf_path: str | Path, T_world_O: np.ndarray) -> None:
+        """Place the object to push (URDF from `shared.world.objects.write_object_urdf`) with frame O at T_world_O."""
+        scene = self._scene()
+        with self._lock:
+            scene.add_object(urdf_path, T_world_O)
+            self._tracked = None
+            self._T_O_tracked = np.eye(4)  # tracked in its own frame, unless the world says otherwise (reset_world)
+
+    def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
+        """Static cylinders (x, y, radius) on the table."""
+        scene = self._scene()
+        with self._lock:
+            scene.add_obstacles(circles)
+
+    # ---------------------------------------------------------------------------------------- observe
+
+    def _scene(self) -> RobotScene:
+        self.require_connected()
+        assert self.scene is not None  # require_connected
+        return self.scene
+
+    def observe(self) -> Observation:
+        scene = self._scene()
+        with self._lock:
+            positions, velocities = scene.joint_state()
+        return Observation(time.time(), self.joint_names, positions, velocities, object_pose=self._seen())
+
+    def _seen(self) -> ObjectPose | None:
+        """The tracker's latest frame, held between frames (the first since the object was placed is taken
+        now). Observing draws no noise of its own: the frames, and so a trial, repeat whoever observes how often."""
+        with self._lock:
+            if self._tracked is None:
+                true = self._true_pose()
+                if true is not None:
+                    self._tracked = self.tracker.frame(true @ self._T_O_tracked)
+            return self._tracked
+
+    def true_object_pose(self) -> ObjectPose | None:
+        """Where the object's frame O truly is in the world (None without an object): no tracker sees this."""
+        true = self._true_pose()
+        return None if true is None else object_pose(true)
+
+    def _true_pose(self) -> np.ndarray | None:
+        scene = self._scene()
+        with self._lock:
+            return None if scene.object is None else scene.object.pose()
+
+    def _track_frame(self, plan_time_s: float, command_id: str | None) -> None:
+        """One tracker frame: the pose it reports becomes the robot's, and goes to `track`."""
+        true = self._true_pose()
+        if true is None:
+            return
+        with self._lock:
+            self._tracked = self.tracker.frame(true @ self._T_O_tracked)
+        if self.track is not None:
+            self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
+                                   command_id=command_id, plan_time_s=plan_time_s))
+
+    def _executing_state(self, command_id: str | None, plan_time_s: float) -> ExecutionState:
+        scene = self._scene()
+        with self._lock:
+            positions, velocities = scene.joint_state()
+        return ExecutionState(stamp=time.time(), joint_names=list(self.joint_names), positions=positions,
+                              velocities=velocities, object_pose=self._tracked, status="executing",
+                              command_id=command_id, plan_time_s=plan_time_s)
+
+    # ------------------------------------------------------------------------------------------ send
+
+    def time_scale(self, realtime_factor: float) -> float:
+        return 1.0  # physics keeps the plan's timing whatever the factor: only the wall clock runs faster
+
+    def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
+             command_id: str | None = None) -> ExecutionReport:
+        """Follow `trajectory` (physical times) with physics, the wall clock paced `realtime_factor` times
+        faster; MotionStopped on stop() / `stop`. `command_id` stamps the published states."""
+        if realtime_factor <= 0:
+            raise ValueError(f"realtime_factor must be positive, got {realtime_factor}")
+        own = self._prepare_send(trajectory, 1.0)
+        scene = self._scene()
+        controller = ArmController(scene, self.params, own.times_s, own.positions)
+        publish_every = max(1, round(1.0 / (self.state_rate_hz * self.params.time_step_s)))
+        track_every = self.tracker.steps_per_frame(self.params.time_step_s)
+        wall_start = time.monotonic()
+        self.collisions = {}
+        self.tracker.forget()  # the latency is within a command: its first frame is the object as it is now
+        self._track_frame(controller.time_of(0), command_id)
+        for step in range(1, controller.step_count + 1):
+            elapsed = step * self.params.time_step_s
+            if self._stopped(stop):
+                with self._lock:
+                    controller.hold()
+                raise MotionStopped(f"{self.name}: stopped {elapsed:.2f} s into a {own.duration_s:.2f} s trajectory")
+            with self._lock:
+                controller.step(step)
+                for contact in scene.contacts(allow_hand_object=True):
+                    self.collisions.setdefault((contact.robot_link, contact.other), elapsed)
+            if step % track_every == 0:
+                self._track_frame(controller.time_of(step), command_id)
+            if self.publish is not None and step % publish_every == 0:
+                self.publish(self._executing_state(command_id, controller.time_of(step)))
+            ahead = elapsed / realtime_factor - (time.monotonic() - wall_start)
+            if ahead > 0.0:
+                time.sleep(ahead)
+        final = self.observe().positions
+        error = float(np.max(np.abs(final - own.final)))
+        message = f"final joint error {error:.4f} rad"
+        if self.collisions:
+            message += "; collisions: " + ", ".join(f"{link} vs {other} at t={t:.2f} s"
+                                                    for (link, other), t in self.collisions.items())
+        return ExecutionReport(self.name, True, final, own.final, time.monotonic() - wall_start, message,
+                               samples=controller.step_count)

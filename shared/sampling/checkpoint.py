@@ -1,0 +1,169 @@
+"""Sampler checkpoints: the shipped file (EMA weights + everything sampling needs) and training state.
+
+Shipped checkpoint (`save_checkpoint` / `load_checkpoint`), a `torch.save` dict of tensors and
+plain values, loaded with `weights_only=True` (no pickled code runs on load):
+    format, hand, model_config, state_dict (EMA weights and BPS statistics; fp32 or fp16),
+    pose_normalizer {low, high}, joint_limits {lower, upper}, bps {n, radius, seed, basis},
+    surface {points, seed}, manifest {dataset hash, command, final losses, ...}
+The manifest is also written beside it as `<file>.manifest.json` for people and tools.
+
+Training state (`save_training_state` / `load_training_state`): the live model, EMA, optimiser,
+learning-rate schedule, random-generator state, loss history and the object split — what `gd2p
+train` needs to resume. It stays next to the run (`<out>.train.pt`) and is never shipped.
+
+Every write is atomic (temporary file in the same directory, fsync, rename): a crash mid-save
+leaves the previous file intact.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from shared.atomic import atomic_write_text, atomic_writer
+from shared.sampling.diffusion import PoseNormalizer
+from shared.sampling.model import DenoiserConfig, PoseDenoiser
+from shared.world.bps import BasisPointSet
+
+CHECKPOINT_FORMAT = "gd2p-sampler-v1"
+TRAINING_STATE_FORMAT = "gd2p-sampler-train-v1"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that is missing, unreadable, or not a sampler checkpoint."""
+
+
+@dataclass
+class SamplerCheckpoint:
+    """Everything needed to sample poses for one hand."""
+
+    hand: str
+    model_config: DenoiserConfig
+    state_dict: dict[str, torch.Tensor]
+    normalizer: PoseNormalizer
+    joint_lower: torch.Tensor  # [16]
+    joint_upper: torch.Tensor  # [16]
+    bps: BasisPointSet
+    surface_points: int
+    surface_seed: int
+    manifest: dict[str, Any] = field(default_factory=dict)
+    # Classifier-free guidance weight the sampler uses (`sample_normalized`); != 1 needs an unconditional model.
+    guidance_scale: float = 1.0
+
+    def build_model(self) -> PoseDenoiser:
+        """The denoiser with these weights, in fp32 and eval mode."""
+        model = PoseDenoiser(self.model_config)
+        model.load_state_dict({k: v.float() for k, v in self.state_dict.items()})
+        return model.eval()
+
+    def to_dict(self, half: bool = False) -> dict[str, Any]:
+        weights = {k: (v.half() if half and v.is_floating_point() else v.float()).detach().cpu().clone() for k, v in self.state_dict.items()}
+        bps = self.bps.to_dict()
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "hand": self.hand,
+            "model_config": self.model_config.to_dict(),
+            "state_dict": weights,
+            "weights_dtype": "float16" if half else "float32",
+            "pose_normalizer": self.normalizer.to_dict(),
+            "joint_limits": {"lower": self.joint_lower.float().clone(), "upper": self.joint_upper.float().clone()},
+            "bps": {"n": bps["n"], "radius": bps["radius"], "seed": bps["seed"], "basis": torch.from_numpy(bps["basis"])},
+            "surface": {"points": int(self.surface_points), "seed": int(self.surface_seed)},
+            "manifest": json.loads(json.dumps(self.manifest)),  # plain JSON values only
+            **({} if self.guidance_scale == 1.0 else {"guidance_scale": float(self.guidance_scale)}),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str = "checkpoint") -> SamplerCheckpoint:
+        if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+            found = data.get("format") if isinstance(data, dict) else type(data).__name__
+            raise CheckpointError(f"{source}: not a GD2P sampler checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT!r})")
+        try:
+            bps = data["bps"]
+            return cls(
+                hand=str(data["hand"]),
+                model_config=DenoiserConfig.from_dict(data["model_config"]),
+                state_dict=dict(data["state_dict"]),
+                normalizer=PoseNormalizer.from_dict(data["pose_normalizer"]),
+                joint_lower=torch.as_tensor(data["joint_limits"]["lower"], dtype=torch.float32),
+                joint_upper=torch.as_tensor(data["joint_limits"]["upper"], dtype=torch.float32),
+                bps=BasisPointSet.from_dict({"n": bps["n"], "radius": bps["radius"], "seed": bps["seed"], "basis": bps["basis"].numpy()}),
+                surface_points=int(data["surface"]["points"]),
+                surface_seed=int(data["surface"]["seed"]),
+                manifest=dict(data.get("manifest") or {}),
+                guidance_scale=float(data.get("guidance_scale", 1.0)),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{source}: incomplete sampler checkpoint: {exc!r}") from exc
+
+
+# ----------------------------------------------------------------------------- files
+def atomic_torch_save(obj: Any, path: str | Path) -> Path:
+    """torch.save through an atomic, durable write: a crash never leaves a half checkpoint."""
+    with atomic_writer(path, "wb", durable=True) as handle:
+        torch.save(obj, handle)
+    return Path(path)
+
+
+def manifest_path(checkpoint_path: str | Path) -> Path:
+    path = Path(checkpoint_path)
+    return path.with_name(path.name + ".manifest.json")
+
+
+def save_checkpoint(checkpoint: SamplerCheckpoint, path: str | Path, half: bool = False) -> Path:
+    """Write the shipped checkpoint (fp16 weights with `half`) and its manifest JSON beside it."""
+    path = atomic_torch_save(checkpoint.to_dict(half=half), path)
+    atomic_write_text(manifest_path(path), json.dumps(checkpoint.manifest, indent=2, sort_keys=True) + "\n")
+    return path
+
+
+def _torch_load(path: Path) -> Any:
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a corrupt or foreign file
+        raise CheckpointError(f"{path}: unreadable checkpoint: {exc}") from exc
+
+
+def load_checkpoint(path: str | Path) -> SamplerCheckpoint:
+    """Load a shipped checkpoint (CheckpointError if it is not one)."""
+    path = Path(path)
+    return SamplerCheckpoint.from_dict(_torch_load(path), str(path))
+
+
+def checkpoint_id(path: str | Path) -> str:
+    """First 16 hex digits of the file's SHA-256: names the exact weights that produced a sample."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def save_training_state(state: dict[str, Any], path: str | Path) -> Path:
+    return atomic_torch_save({"format": TRAINING_STATE_FORMAT, **state}, path)
+
+
+def load_training_state(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    state = _torch_load(path)
+    if not isinstance(state, dict) or state.get("format") != TRAINING_STATE_FORMAT:
+        raise CheckpointError(f"{path}: not a GD2P sampler training state")
+    return state
+
+
+# ----------------------------------------------------------------------------- shipped checkpoints
+SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"
+CHECKPOINT_ENV = "GD2P_SAMPLER_CHECKPOINT_{hand}"  # e.g. GD2P_SAMPLER_CHECKPOINT_ALLEGRO=/path/to.pt
+
+
+def default_checkpoint_path(hand: str) -> Path:
+    """Where the sampler looks for `hand`'s checkpoint: $GD2P_SAMPLER_CHECKPOINT_<HAND>, else the shipped file."""
+    override = os.environ.get(CHECKPOINT_ENV.format(hand=hand.upper()))
+    return Path(override).expanduser() if override else SHIPPED_DIR / f"{hand}.pt"
