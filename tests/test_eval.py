@@ -344,7 +344,7 @@ def test_a_tagged_run_has_its_own_directory_and_a_store_refuses_other_pose_model
     with pytest.raises(ResultStoreError, match="pose_models"):
         ResultStore(tmp_path / spec.directory_name, spec.settings())
     monkeypatch.delenv("GD2P_SAMPLER_NOISE_SCALE")
-    monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_ALLEGRO", str(SHIPPED_DIR / "allegro_v1.pt"))
+    monkeypatch.setenv("GD2P_SAMPLER_CHECKPOINT_ALLEGRO", str(SHIPPED_DIR / "leap.pt"))  # other weights
     with pytest.raises(ResultStoreError, match="pose_models"):
         ResultStore(tmp_path / spec.directory_name, spec.settings())
 
