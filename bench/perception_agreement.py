@@ -80,7 +80,7 @@ from evaluation.push_protocol import (  # noqa: E402
 
 RESULTS = REPO_DIR / "bench" / "results"
 OUT = RESULTS / "perception_agreement.jsonl"
-CHECKPOINT = REPO_DIR / "services" / "sampler" / "checkpoints" / "allegro.pt"
+CHECKPOINT = REPO_DIR / "shared" / "sampling" / "checkpoints" / "allegro.pt"
 HAND = "allegro"
 SAMPLER = "ddpm"
 POSES = 200

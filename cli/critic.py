@@ -3,7 +3,7 @@
     gd2p critic data --split train --exclude-dataset datasets/allegro-v2 --objects 400 --out data/critic-allegro-train
     gd2p critic data --split val --objects 60 --out data/critic-allegro-val
     gd2p critic train --data data/critic-allegro-train --val data/critic-allegro-val --capture-fraction 0.5 \\
-        --out services/sampler/checkpoints/allegro_critic.pt
+        --out shared/sampling/checkpoints/allegro_critic.pt
     gd2p critic data --split test --objects 60 --out data/critic-allegro-test   # for reporting only
     gd2p critic data --split test --family mug --objects 30 --out data/critic-allegro-test-mug   # unseen family
     gd2p critic eval --data data/critic-allegro-test --captures
@@ -29,7 +29,7 @@ objects (3 simulated depth cameras, 2 captures per object, reconstructed the pla
 moved into the reconstruction's frame; stored resumably in `<data>/captures`, about 0.5 s per capture
 per core) and the val AUC then pools mesh and capture views. `eval --captures` reports mesh and
 capture views apart. The sampler service picks up
-`services/sampler/checkpoints/<hand>_critic.pt` (or $GD2P_CRITIC_CHECKPOINT_<HAND>; "none" turns it off)
+`shared/sampling/checkpoints/<hand>_critic.pt` (or $GD2P_CRITIC_CHECKPOINT_<HAND>; "none" turns it off)
 when it was trained for the installed sampler checkpoint.
 """
 from __future__ import annotations

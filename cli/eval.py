@@ -28,8 +28,9 @@ cameras' reconstruction; their exact runs keep their first names (`<out>/sampler
 name beside it, and `data-size-real-camera3...` measures its models in both worlds.
 
 Each experiment writes `<out>/<experiment>/report.md`, `summary.json`, its records and plots, and
-refreshes `<out>/README.md`. Every finished trial is recorded at once: re-running the same command
-resumes where a killed run stopped; different settings into the same directory are refused.
+refreshes the index `<out>/README.md` (one row per run; for results/, docs/results.md too). Every
+finished trial is recorded at once: re-running the same command resumes where a killed run stopped;
+different settings into the same directory are refused.
 Runs in this process and `--workers` spawn processes (no running system needed).
 """
 from __future__ import annotations

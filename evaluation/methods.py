@@ -36,7 +36,7 @@ VAL_OBJECTS = ("proc-box-010", "proc-box-017", "proc-cylinder-006", "proc-cylind
 # procedural mugs of the test split (catalog.UNSEEN_FAMILIES; pb-mug, one of the 14, is of it too).
 UNSEEN_OBJECTS = ("proc-mug-000", "proc-mug-001", "proc-mug-002", "proc-mug-003", "proc-mug-004", "proc-mug-005")
 OBJECT_SETS = ("test", "val", "unseen")
-# The records of the committed `exact` run made before execution worlds existed (results/methods, leap):
+# The records of the committed `exact` runs made before execution worlds existed (results/methods, results/leap):
 # the same trials, under the methods' earlier names.
 LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
 # Compared in the report's differences: GD2P against each baseline with the same pipeline stages.

@@ -1,8 +1,7 @@
 """Writing an experiment's results: a Markdown report, a JSON summary, and the index `results/README.md`.
 
 Each experiment writes `<out>/<experiment>/report.md` and `summary.json` (plots beside them);
-`write_index` gathers every experiment found under `<out>` into `<out>/README.md` with the exact
-command, the wall time and the machine each one ran on.
+`write_index` lists every run found under `<out>` in `<out>/README.md`, one row each (`evaluation.results_index`).
 """
 from __future__ import annotations
 
@@ -14,6 +13,7 @@ import subprocess
 import sys
 from collections import Counter
 from collections.abc import Sequence
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -94,7 +94,8 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     directory.mkdir(parents=True, exist_ok=True)
     total = wall_time_s + _earlier_wall_time(directory)
     meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
-            "machine": machine(), "code": CODE_AT_START, "quick": quick}
+            "machine": machine(), "code": CODE_AT_START, "quick": quick,
+            "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
     if records:
         meta["records_code"] = dict(Counter(r.get("code", "not recorded") for r in records))
         if any(r.get("pose_model") for r in records):
@@ -120,26 +121,6 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     return directory / REPORT_FILE
 
 
-def _provenance(summary: dict[str, Any], summary_path: Path) -> str:
-    """Which code the index says made an experiment: the commits that ran its trials (each record's stamp)
-    and the one that wrote its report; for a result from before stamps, the commit that added it to git."""
-    if "records_code" in summary:
-        trials = ", ".join(f"{c} ({n})" for c, n in summary["records_code"].items())
-        return f"trials run by code: {trials}; report written by {summary.get('code', 'not recorded')}"
-    if "code" in summary:
-        return f"code: {summary['code']}"
-    added = _git("log", "--diff-filter=A", "--format=%h", "--", summary_path.name, cwd=summary_path.parent)
-    first = added.split()[-1] if added.split() else None
-    return ("code: not recorded (run before results were stamped" + (f"; committed in {first})" if first else ")"))
-
-
-def _git(*args: str, cwd: Path) -> str:
-    try:
-        return subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, check=False, timeout=10).stdout
-    except (OSError, subprocess.SubprocessError):
-        return ""
-
-
 def _earlier_wall_time(directory: Path) -> float:
     """Wall time of the earlier invocations of a resumed experiment (0 for a fresh one)."""
     try:
@@ -149,20 +130,7 @@ def _earlier_wall_time(directory: Path) -> float:
 
 
 def write_index(out: str | os.PathLike) -> Path:
-    """`<out>/README.md`: every experiment's title, command, wall time, machine and report link."""
-    out = Path(out)
-    sections = []
-    for summary_path in sorted(out.glob(f"*/{SUMMARY_FILE}")):
-        summary = json.loads(summary_path.read_text())
-        name = summary_path.parent.name
-        report = (summary_path.parent / REPORT_FILE).read_text()
-        body = report.split("\n\n", 2)[-1]  # the report without its title and header bullets
-        sections.append(f"## [{summary.get('title', name)}]({name}/{REPORT_FILE})\n\n"
-                        f"- command: `{summary.get('command', '?')}`\n"
-                        f"- wall time: {summary.get('wall_time_s', 0) / 60:.1f} min\n"
-                        f"- machine: {summary.get('machine', '?')}\n"
-                        f"- {_provenance(summary, summary_path)}\n\n{body.strip()}\n")
-    text = ("# Evaluation results\n\nReproduced in simulation by `gd2p eval` (see `gd2p eval --help`). Each section "
-            "is copied from its experiment's report; the JSON beside each report has every figure.\n\n"
-            + "\n".join(sections))
-    return atomic_write_text(out / "README.md", text)
+    """`<out>/README.md`: one row per run (`evaluation.results_index`; for the repository's results/, docs/results.md too)."""
+    from evaluation.results_index import write_index as write
+
+    return write(Path(out))

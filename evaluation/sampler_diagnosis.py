@@ -6,7 +6,7 @@ objects) is the model and how much the data:
 
 1. **Does the model reproduce its own training data?** On objects of the shipped checkpoint's
    training set: the validated fraction of 200 diffusion samples (the version-1 Allegro checkpoint
-   `allegro_v1.pt`, DDPM-100, placed and seeded as `gd2p sample --validate` and `gd2p eval sampler-quality` do)
+   `allegro_v1.pt`, no longer shipped: `diagnosed_files` restores it from git history; DDPM-100, placed and seeded as `gd2p sample --validate` and `gd2p eval sampler-quality` do)
    against that of the same objects' stored poses (the training dataset's poses of the object).
 2. **Does the model use the geometry at all?** The same objects sampled with the BPS of *another*
    training object (of another family where possible) and validated on their own geometry.
@@ -16,8 +16,8 @@ objects) is the model and how much the data:
    the BPS the planner's frames give (the evaluation's push directions).
 
 Where the stored poses come from: the training dataset (`data/allegro-train`, built by the
-`gd2p dataset build` command of docs/usage.md) is not in the repository, but the shipped Nearest-Neighbor index
-`services/sampler/checkpoints/allegro_v1_nn.npz` is built from the same store (the manifests' dataset
+`gd2p dataset build` command of docs/usage.md) is not in the repository, but the version-1 Nearest-Neighbor index
+`allegro_v1_nn.npz` (restored from git history with the checkpoint) is built from the same store (the manifests' dataset
 SHA-256 agree; checked on every run) and holds, per training frame (222 objects, each in its
 default resting pose at yaw 0), the frame's BPS (float16) and every stored pose (9,683). A
 `StoredPosesSource` returns an object's own frame, found by id, not by BPS.
@@ -340,11 +340,42 @@ def measure_bps(objects: Sequence[str], store: ResultStore, sampler: Any, index:
 
 
 # ----------------------------------------------------------------------------- the experiment
-def diagnosed_files() -> tuple[Path, Path]:
-    """The version-1 checkpoint and NN index the diagnosis was written about (shipped as `<hand>_v1*`)."""
-    from shared.sampling.checkpoint import SHIPPED_DIR
+# The version-1 checkpoint and NN index left the tree and the wheel (only each hand's current model is shipped);
+# git history keeps them: the last commit that shipped them, and where they were.
+VERSION_1_COMMIT = "76ddcd8"
+VERSION_1_DIR = "services/sampler/checkpoints"
 
-    return SHIPPED_DIR / f"{HAND}_v1.pt", SHIPPED_DIR / f"{HAND}_v1_nn.npz"
+
+def diagnosed_files() -> tuple[Path, Path]:
+    """The version-1 checkpoint and NN index the diagnosis was written about. They are no longer shipped: on first
+    use they are restored from git history (`VERSION_1_COMMIT`) into `$GD2P_CACHE_DIR/models/` (default
+    `~/.cache/gd2p/models/`); CoverageError, naming the file, outside a clone that has that commit."""
+    import os
+    import subprocess
+
+    from shared.atomic import atomic_writer
+    from shared.world.objects.cache import CACHE_ENV
+
+    directory = Path(os.environ.get(CACHE_ENV, Path.home() / ".cache" / "gd2p")) / "models" / VERSION_1_COMMIT
+    paths = []
+    for name in (f"{HAND}_v1.pt", f"{HAND}_v1_nn.npz"):
+        path = directory / name
+        if not path.is_file():
+            spec = f"{VERSION_1_COMMIT}:{VERSION_1_DIR}/{name}"
+            try:
+                done = subprocess.run(["git", "show", spec], cwd=Path(__file__).resolve().parent.parent,
+                                      capture_output=True, timeout=120, check=False)
+            except (OSError, subprocess.SubprocessError) as exc:
+                done = subprocess.CompletedProcess([], 1, b"", str(exc).encode())
+            if done.returncode != 0 or not done.stdout:
+                raise CoverageError(f"{name}, the version-1 model this diagnosis was written about, is not shipped and "
+                                    f"`git show {spec}` failed ({done.stderr.decode(errors='replace').strip()}): run it "
+                                    "in a full clone of the repository")
+            directory.mkdir(parents=True, exist_ok=True)
+            with atomic_writer(path, "wb") as handle:
+                handle.write(done.stdout)
+        paths.append(path)
+    return paths[0], paths[1]
 
 
 def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
@@ -359,7 +390,7 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
     checkpoint, nn_index = diagnosed_files()
     for path in (checkpoint, nn_index):
         if not path.is_file():
-            raise CoverageError(f"no shipped {HAND} checkpoint / index at {path}")
+            raise CoverageError(f"no version-1 {HAND} checkpoint / index at {path}")
     trained_pool, held_out_pool = checkpoint_objects(checkpoint, nn_index)
     groups = {"trained": pick_objects(trained_pool, settings.trained, seed=settings.selection_seed),
               "held_out": pick_objects(held_out_pool, settings.held_out, seed=settings.selection_seed)}

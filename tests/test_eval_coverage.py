@@ -359,7 +359,7 @@ def test_critic_order_puts_the_samples_the_critic_likes_first_and_refuses_anothe
     scores = success_probabilities(load_critic(critic).model, "allegro", sampler.encode_points(points_d, "box"), points_d,
                                    ordered)
     assert np.all(np.diff(scores) <= 0) and scores[0] > scores[-1]
-    wrong = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint.with_name("allegro_v1.pt")), str(critic))
+    wrong = CriticOrderedSource(DiffusionSource(str(checkpoint)), str(checkpoint.with_name("leap.pt")), str(critic))
     with pytest.raises(CoverageError, match="trained for the sampler checkpoint"):
         wrong.poses(obj, frame, 4, seed=0)
 

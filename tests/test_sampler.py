@@ -23,7 +23,7 @@ import trimesh
 from pose_store import write_pose_store
 from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
 from shared.frames import JOINTS, ROTATION_6D, object_yaw_in_d, poses_d_to_world, r6_to_matrix
-from shared.sampling.checkpoint import CheckpointError, load_checkpoint, manifest_path, save_checkpoint
+from shared.sampling.checkpoint import CheckpointError, file_sha256, load_checkpoint, manifest_path, save_checkpoint
 from shared.sampling.dataset import (
     DatasetError,
     Frame,
@@ -200,6 +200,7 @@ def test_training_loss_falls_and_writes_checkpoint_plot_and_manifest(trained):
     manifest = json.loads(manifest_path(trained.checkpoint_path).read_text())
     assert manifest["dataset"]["sha256"] and manifest["dataset"]["val_objects"] == 1
     assert manifest["final_train_loss"] == pytest.approx(trained.final_train_loss)
+    assert manifest.pop("sha256") == file_sha256(trained.checkpoint_path)  # the file the manifest describes
     assert load_checkpoint(trained.checkpoint_path).manifest == manifest
 
 
@@ -434,6 +435,10 @@ def test_checkpoint_round_trips_and_fp16_is_smaller(trained, tmp_path):
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError):
         load_checkpoint(tmp_path / "junk.pt")
+    # A file swapped under its manifest (here: the fp16 weights where the fp32 ones were) is refused by name.
+    copy.write_bytes(half.read_bytes())
+    with pytest.raises(CheckpointError, match=r"copy\.pt: its SHA-256 .* its manifest copy\.pt\.manifest\.json records"):
+        load_checkpoint(copy)
 
 
 def test_objects_that_cannot_be_encoded_get_clear_errors(sampler, tmp_path):

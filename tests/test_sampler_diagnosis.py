@@ -17,6 +17,11 @@ from shared.sampling.sampling import PoseSampler, default_frame
 from shared.world.bps import BasisPointSet
 from shared.world.objects import load_object
 
+try:  # the version-1 model is no longer shipped: restored from git history (a shallow clone has none)
+    diagnosis.diagnosed_files()
+except CoverageError as exc:
+    pytest.skip(str(exc), allow_module_level=True)
+
 TRAINED = "rnd-000"  # an object the diagnosed (version-1) checkpoint trained on
 OTHER = "proc-cylinder-047"  # another one, of another family
 

@@ -48,10 +48,9 @@ def test_shipped_v2_store_is_intact_and_meets_its_size(hand, min_objects, min_su
     assert all(e is not None and e >= 0 for e in failed_errors)
 
 
-# Allegro's default model is its v2 one; LEAP's v2 mesh-trained model ships beside its default (the default is
-# trained on the same store with captures). Both hands' default indexes are their v2 store's.
+# Each hand's shipped model and index are its v2 store's (the model trained on it with captures).
 @pytest.mark.parametrize(("hand", "model", "index_name", "poses"),
-                         [("allegro", "allegro", "allegro_nn", 44_204), ("leap", "leap_v2", "leap_nn", 18_916)])
+                         [("allegro", "allegro", "allegro_nn", 44_204), ("leap", "leap", "leap_nn", 18_916)])
 def test_shipped_v2_model_and_index_were_built_from_this_store(hand, model, index_name, poses):
     import json
 

@@ -1,7 +1,7 @@
 """`python -m services.sampler [bus flags] [--worker-id ID] [--checkpoint HAND=PATH ...] [--nn-index HAND=PATH ...]`:
 one sampler worker until SIGTERM.
 
-Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped services/sampler/checkpoints/<hand>.pt;
+Checkpoints default to $GD2P_SAMPLER_CHECKPOINT_<HAND> or the shipped shared/sampling/checkpoints/<hand>.pt;
 nearest-neighbour indexes (sampler "nearest") to $GD2P_SAMPLER_NN_INDEX_<HAND> or the shipped <hand>_nn.npz.
 """
 from __future__ import annotations

@@ -5,7 +5,8 @@ plain values, loaded with `weights_only=True` (no pickled code runs on load):
     format, hand, model_config, state_dict (EMA weights and BPS statistics; fp32 or fp16),
     pose_normalizer {low, high}, joint_limits {lower, upper}, bps {n, radius, seed, basis},
     surface {points, seed}, manifest {dataset hash, command, final losses, ...}
-The manifest is also written beside it as `<file>.manifest.json` for people and tools.
+The manifest is also written beside it as `<file>.manifest.json` for people and tools, with the file's SHA-256:
+every model loader (checkpoint, critic, NN index) checks the file against it (`verify_file`).
 
 Training state (`save_training_state` / `load_training_state`): the live model, EMA, optimiser,
 learning-rate schedule, random-generator state, loss history and the object split — what `gd2p
@@ -115,10 +116,42 @@ def manifest_path(checkpoint_path: str | Path) -> Path:
     return path.with_name(path.name + ".manifest.json")
 
 
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes (hex)."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_manifest(path: str | Path, manifest: dict[str, Any], indent: int = 2, sort_keys: bool = True) -> Path:
+    """Write `<path>.manifest.json` beside a model file (checkpoint, critic, NN index) with the file's SHA-256,
+    which every loader checks (`verify_file`)."""
+    return atomic_write_text(manifest_path(path), json.dumps({**manifest, "sha256": file_sha256(path)}, indent=indent,
+                                                             sort_keys=sort_keys) + "\n")
+
+
+def verify_file(path: str | Path, error: type[Exception] = ValueError) -> None:
+    """Raise `error` naming the file when the manifest beside a model file records a SHA-256 the file does not have
+    (a file replaced, truncated or changed after its manifest was written). A file without a manifest, or with
+    one from before hashes were recorded, loads as it is."""
+    path = Path(path)
+    try:
+        recorded = json.loads(manifest_path(path).read_text()).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        return
+    if recorded and (actual := file_sha256(path)) != recorded:
+        raise error(f"{path}: its SHA-256 is {actual[:16]}..., but its manifest {manifest_path(path).name} records "
+                    f"{str(recorded)[:16]}...: the file is not the one the manifest describes (restore it, or rewrite "
+                    "the manifest if it was replaced on purpose)")
+
+
 def save_checkpoint(checkpoint: SamplerCheckpoint, path: str | Path, half: bool = False) -> Path:
-    """Write the shipped checkpoint (fp16 weights with `half`) and its manifest JSON beside it."""
+    """Write the shipped checkpoint (fp16 weights with `half`) and its manifest JSON (with the file's SHA-256)
+    beside it."""
     path = atomic_torch_save(checkpoint.to_dict(half=half), path)
-    atomic_write_text(manifest_path(path), json.dumps(checkpoint.manifest, indent=2, sort_keys=True) + "\n")
+    write_manifest(path, checkpoint.manifest)
     return path
 
 
@@ -132,18 +165,16 @@ def _torch_load(path: Path) -> Any:
 
 
 def load_checkpoint(path: str | Path) -> SamplerCheckpoint:
-    """Load a shipped checkpoint (CheckpointError if it is not one)."""
+    """Load a shipped checkpoint (CheckpointError if it is not one, or not the file its manifest describes)."""
     path = Path(path)
-    return SamplerCheckpoint.from_dict(_torch_load(path), str(path))
+    data = _torch_load(path)
+    verify_file(path, CheckpointError)
+    return SamplerCheckpoint.from_dict(data, str(path))
 
 
 def checkpoint_id(path: str | Path) -> str:
     """First 16 hex digits of the file's SHA-256: names the exact weights that produced a sample."""
-    digest = hashlib.sha256()
-    with Path(path).open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()[:16]
+    return file_sha256(path)[:16]
 
 
 def save_training_state(state: dict[str, Any], path: str | Path) -> Path:

@@ -27,10 +27,9 @@ import torch
 from scipy.stats import rankdata
 from torch.nn import functional as F
 
-from shared.atomic import atomic_write_text
 from shared.contracts.messages import DirectionFrame
 from shared.sampling.capture_bps import CaptureSettings, FrameCaptures, build_captures, capture_store_spec
-from shared.sampling.checkpoint import SHIPPED_DIR, atomic_torch_save, manifest_path
+from shared.sampling.checkpoint import SHIPPED_DIR, atomic_torch_save, verify_file, write_manifest
 from shared.sampling.critic import ERROR_FLOOR_M, CriticConfig, SuccessCritic
 from shared.sampling.critic_features import CONTACT_FEATURES, contact_features
 from shared.sampling.dataset import DEFAULT_POSE_INDEX, Frame
@@ -281,8 +280,8 @@ def save_critic(model: SuccessCritic, path: str | Path, hand: str, sampler_check
             "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
             "sampler_checkpoint_id": sampler_checkpoint_id, "manifest": manifest}
     out = atomic_torch_save(data, path)
-    atomic_write_text(manifest_path(out), json.dumps({**manifest, "hand": hand, "format": CRITIC_FORMAT,
-                                                      "sampler_checkpoint_id": sampler_checkpoint_id}, indent=1))
+    write_manifest(out, {**manifest, "hand": hand, "format": CRITIC_FORMAT, "sampler_checkpoint_id": sampler_checkpoint_id},
+                   indent=1, sort_keys=False)
     return out
 
 
@@ -333,6 +332,7 @@ def load_critic(path: str | Path) -> LoadedCritic:
         raise CriticError(f"cannot read critic checkpoint {path}: {exc}") from exc
     if not isinstance(data, dict) or data.get("format") != CRITIC_FORMAT:
         raise CriticError(f"{path} is not a {CRITIC_FORMAT} checkpoint")
+    verify_file(path, CriticError)
     model = SuccessCritic(CriticConfig.from_dict(data["config"]))
     model.load_state_dict(data["state_dict"])
     return LoadedCritic(data["hand"], model.eval(), data["sampler_checkpoint_id"], data.get("manifest", {}))

@@ -27,11 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from shared.atomic import atomic_write_text
 from shared.contracts.messages import DirectionFrame
 from shared.frames import poses_d_to_world
 from shared.sampling.capture_bps import FrameCaptures, capture_store_spec, load_captures
-from shared.sampling.checkpoint import SHIPPED_DIR, checkpoint_id, manifest_path
+from shared.sampling.checkpoint import SHIPPED_DIR, checkpoint_id, verify_file, write_manifest
 from shared.sampling.dataset import SURFACE_POINTS, SURFACE_SEED, Frame, PoseDataset, frame_bps, load_pose_dataset
 from shared.sampling.sampling import ObjectInput, ObjectPoints, SampleResult, SamplerInputError, check_count_and_seed
 from shared.world.bps import BasisPointSet, BPSError
@@ -186,6 +185,7 @@ class NearestNeighborBaseline:
             raise NearestNeighborError(f"{path}: unreadable nearest-neighbour index: {exc}") from exc
         if str(arrays.get("format", "")) != INDEX_FORMAT:
             raise NearestNeighborError(f"{path}: not a nearest-neighbour index ({INDEX_FORMAT})")
+        verify_file(path, NearestNeighborError)
         n, radius, seed = arrays["bps_meta"]
         bps = BasisPointSet.from_dict({"n": int(n), "radius": float(radius), "seed": int(seed), "basis": arrays["basis"]})
         frames = [Frame(str(o), int(i), float(y)) for o, i, y in
@@ -281,7 +281,7 @@ def build_index(dataset_dir: str | Path, hand: str, out: str | Path, half: bool 
     manifest["wall_time_s"] = round(time.perf_counter() - started, 1)
     index.manifest = manifest
     path = index.save(out, half=half)
-    atomic_write_text(manifest_path(path), json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    write_manifest(path, manifest)
     return NearestNeighborBaseline.load(path)  # what the sampler will serve (float16 features if `half`)
 
 

@@ -1,0 +1,71 @@
+"""The results index is generated and cannot go stale: results/README.md and docs/results.md are what
+`python -m evaluation.results_index` writes from the runs in results/, docs/results.md stays short, and every run
+either links exists."""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from evaluation.results_index import (
+    COMMAND,
+    DOCS_MAX_LINES,
+    DOCS_RESULTS,
+    RESULTS,
+    describe,
+    newest,
+    read_runs,
+    render_docs,
+    render_index,
+)
+
+LINK = re.compile(r"\]\(([^)#]+)\)")
+
+
+def test_the_committed_index_and_docs_are_what_the_generator_writes():
+    runs = read_runs(RESULTS)
+    assert (RESULTS / "README.md").read_text() == render_index(runs), f"results/README.md is stale: run `{COMMAND}`"
+    assert DOCS_RESULTS.read_text() == render_docs(runs), f"docs/results.md is stale: run `{COMMAND}`"
+
+
+def test_the_results_page_is_short_and_says_it_is_generated():
+    text = DOCS_RESULTS.read_text()
+    assert len(text.splitlines()) <= DOCS_MAX_LINES
+    assert COMMAND in text.split("\n\n")[1] and COMMAND in (RESULTS / "README.md").read_text().split("\n\n")[1]
+
+
+def test_every_run_linked_exists_and_every_kept_run_is_listed():
+    index = (RESULTS / "README.md").read_text()
+    for page in (RESULTS / "README.md", DOCS_RESULTS):
+        for target in LINK.findall(page.read_text()):
+            assert (page.parent / target).exists(), f"{page.name} links {target}, which is not in the tree"
+    for run in (p for p in RESULTS.iterdir() if p.is_dir()):
+        assert f"[{run.name}]({run.name}/" in index
+
+
+def test_a_run_is_grouped_with_the_other_runs_of_its_experiment_and_the_newest_is_kept(tmp_path):
+    def run(name: str, date: str, settings: dict, **summary) -> Path:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "settings.json").write_text(json.dumps(settings))
+        (tmp_path / name / "summary.json").write_text(json.dumps({"date": date, "code": "abc1234", **summary}))
+        return tmp_path / name
+
+    methods = {"gd2p": {"success_rate": 0.9, "trials": 42, "interval_95": {"value": 0.9, "low": 0.8, "high": 1.0}}}
+    protocol = {"hand": "allegro", "cameras": 3, "objects": ["a", "b"], "directions_deg": [0.0, 90.0, 180.0]}
+    old = run("methods-real-camera3-v1", "2026-12-01T00:00:00Z", protocol, methods=methods,
+              command="gd2p eval methods --cameras 3 --trials 7 --methods gd2p --tag v1 --out /somewhere --workers 2")
+    new = run("methods-real-camera3-v2", "2026-12-02T00:00:00Z", protocol, methods=methods)
+    val = run("methods-real-camera3-val-v3", "2026-12-03T00:00:00Z", protocol, methods=methods)
+    closed = run("multistep-real-v2-ahead-closed", "2026-12-01T00:00:00Z", {"closed_loop": True}, runs=18,
+                 success_rate=0.5, interval_95={"value": 0.5, "low": 0.2, "high": 0.8})
+    opened = run("multistep-real-v2-ahead", "2026-12-01T00:00:00Z", {}, runs=18, success_rate=0.5)
+
+    described = {p.name: describe(p) for p in (old, new, val, closed, opened)}
+    assert described[old.name].key == described[new.name].key != described[val.name].key  # a tag is another run
+    assert described[closed.name].key != described[opened.name].key  # closed loop is another experiment
+    assert described[old.name].command == "gd2p eval methods --cameras 3 --trials 7 --methods gd2p --tag v1"
+    assert "7 per object and direction" in described[old.name].seeds
+    kept = {r.name for r in newest(read_runs(tmp_path)).values()}
+    assert kept == {new.name, val.name, closed.name, opened.name}
+    index = render_index(read_runs(tmp_path))
+    assert "| gd2p: 90.0% [80.0%, 100.0%] |" in index and "no interval recorded" in index  # the open-loop run
