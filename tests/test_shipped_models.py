@@ -33,7 +33,7 @@ def test_the_wheel_ships_only_the_shipped_models():
     tomllib = pytest.importorskip("tomllib")  # Python 3.11+
     pyproject = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())
     package_data = pyproject["tool"]["setuptools"]["package-data"]
-    assert set(package_data["services.sampler.checkpoints"]) == SHIPPED
+    assert set(package_data["shared.sampling.checkpoints"]) == SHIPPED
     assert not any(p.endswith((".pt", ".npz", ".safetensors")) for p in package_data["*"])
 
 
