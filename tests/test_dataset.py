@@ -233,7 +233,7 @@ def bus():
     from deploy.launcher import free_loopback_endpoint
     from services.generator import service as generator_service
     from shared.bus import BusConfig, open_session, run_worker
-    from shared.validation import service as validator_service
+    from shared.validation import jobs as validator_service
 
     endpoint = free_loopback_endpoint()
     router = open_session(BusConfig(mode="router", listen=[endpoint], connect=[]))

@@ -13,7 +13,7 @@ from shared.contracts.messages import GenerationJob, ObjectRef, ValidationJob
 from shared.data_engine import Placement, placement_frame
 from shared.robots.hands import load_hand
 from shared.synthesis.config import GenerationConfig
-from shared.validation import service as validator_service
+from shared.validation import jobs as validator_service
 from shared.validation.push import PushSimulator, table_object
 from shared.world.fixed_poses import spatula_pose
 from shared.world.objects import load_object

@@ -200,8 +200,8 @@ def system(module_router, tmp_path_factory):
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
     from shared.bus import run_worker
-    from shared.sampling import service as sampler
-    from shared.validation import service as validator
+    from shared.sampling import server as sampler
+    from shared.validation import jobs as validator
 
     cfg = BusConfig(mode="client", connect=[module_router], connect_timeout_ms=5000)
     stop = threading.Event()

@@ -29,7 +29,7 @@ def system(module_router, tmp_path_factory):
     from services.planner import service as planner
     from services.robot_bridge import service as bridge
     from shared.bus import run_worker
-    from shared.validation import service as validator
+    from shared.validation import jobs as validator
 
     cfg = BusConfig(mode="client", connect=[module_router], connect_timeout_ms=5000)
     record_dir = tmp_path_factory.mktemp("pushes")

@@ -210,8 +210,8 @@ def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zeno
     from services.robot_bridge import service as bridge
     from shared.bus import BusConfig, live_workers, open_session, run_worker
     from shared.contracts.messages import PushRequest
-    from shared.sampling import service as sampler
-    from shared.validation import service as validator
+    from shared.sampling import server as sampler
+    from shared.validation import jobs as validator
 
     monkeypatch.delenv("GD2P_SAMPLER_NN_INDEX_ALLEGRO", raising=False)
     if not default_nn_index_path("allegro").is_file():
