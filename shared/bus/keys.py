@@ -7,6 +7,8 @@
     gd2p/robot_bridge/state                      ExecutionState stream               ROBOT_STATE_KEY
     gd2p/robot_bridge/estop                      EStop                               ROBOT_ESTOP_KEY
     gd2p/robot_bridge/object_track               ObjectTrack stream                  OBJECT_TRACK_KEY
+    gd2p/robot_bridge/held                       PlanHeld (--confirm)                ROBOT_HELD_KEY
+    gd2p/robot_bridge/confirm                    PlanConfirm queries (--confirm)     ROBOT_CONFIRM_KEY
     gd2p/lease/<role>/<holder>                   a lease token (lease.py)            LEASE_PREFIX
     gd2p/watchdog/<name>                         router watchdog beats (lease.py)    WATCHDOG_PREFIX
     gd2p/caller/<id>                             a Dispatcher's presence (jobs)      CALLER_PREFIX, caller_key
@@ -28,6 +30,8 @@ ROBOT_COMMAND_KEY = f"{PREFIX}/robot_bridge/command/execute"
 ROBOT_STATE_KEY = f"{PREFIX}/robot_bridge/state"
 ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
 OBJECT_TRACK_KEY = f"{PREFIX}/robot_bridge/object_track"
+ROBOT_HELD_KEY = f"{PREFIX}/robot_bridge/held"
+ROBOT_CONFIRM_KEY = f"{PREFIX}/robot_bridge/confirm"
 LEASE_PREFIX = f"{PREFIX}/lease"
 WATCHDOG_PREFIX = f"{PREFIX}/watchdog"
 CALLER_PREFIX = f"{PREFIX}/caller"

@@ -904,6 +904,37 @@ class EStop(Message):
 
 
 # ---------------------------------------------------------------------------------------------
+# Preview and confirm (`gd2p up --confirm`): the bridge holds each plan until an operator confirms it
+# ---------------------------------------------------------------------------------------------
+
+
+class PlanHeld(Message):
+    """A command the robot bridge holds until an operator confirms it (or `expires_at` passes: then it is
+    dropped and the push answers "not confirmed"). Published on the bridge's held-plan key."""
+
+    command_id: str = Field(min_length=1, max_length=128)
+    plan: Plan
+    expires_at: FiniteFloat  # seconds since the Unix epoch
+    reason: str | None = Field(default=None, max_length=500)  # set when the hold ends: "confirmed", "expired", ...
+
+
+class PlanConfirm(Message):
+    """An operator's go for one held command (`gd2p confirm ID`, or the live view's button)."""
+
+    command_id: str = Field(min_length=1, max_length=128)
+    operator: str | None = Field(default=None, max_length=128)  # who confirmed, for the log and the recording
+
+
+class PlanConfirmReply(Message):
+    """The bridge's answer to a PlanConfirm: accepted (the held plan runs now) or why not (unknown id,
+    expired, already confirmed, not an operator)."""
+
+    command_id: str
+    accepted: bool
+    reason: str = ""
+
+
+# ---------------------------------------------------------------------------------------------
 # Launcher control
 # ---------------------------------------------------------------------------------------------
 
