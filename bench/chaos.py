@@ -425,7 +425,7 @@ def client_gone(quick: bool) -> Figure:
     from shared.bus.keys import ROBOT_STATE_KEY
     from shared.bus.lease import lease_key
     from shared.contracts.codec import decode
-    from shared.contracts.messages import ObjectRef, PushRequest
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
     tries = 4 if quick else 20
     rng = np.random.default_rng(53)
@@ -441,7 +441,7 @@ def client_gone(quick: bool) -> Figure:
             for i in range(tries):
                 lease = lease_key("client", f"chaos-gone-{i}")
                 request = PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0 if i % 2 else -90.0,
-                                      method="fixed", client_lease=lease)
+                                      client_lease=lease, options=PlannerOptions(method="fixed"))
                 session = client(endpoint)
                 session.liveliness().declare_token(lease)
                 replies = _raw_push(session, planner_key, request)
@@ -457,7 +457,7 @@ def client_gone(quick: bool) -> Figure:
                 moving.clear()
             for _ in range(2 if quick else 5):
                 reply = _ask(observer, planner_key, PushRequest(object=ObjectRef(library_id="proc-box-013"),
-                                                                direction_deg=90.0, method="fixed"))
+                                                                direction_deg=90.0, options=PlannerOptions(method="fixed")))
                 refused_without_lease += getattr(reply, "code", "") == "bad_request"
             time.sleep(0.5)
             motions_without_lease = len(moving)
@@ -498,7 +498,7 @@ def request_flood(quick: bool) -> Figure:
     """1,000 leased push requests at once from one raw client, whose lease then goes; the planner's memory and
     whether it still answers, and whether any motion followed."""
     from shared.bus.keys import ROBOT_STATE_KEY
-    from shared.contracts.messages import HealthQuery, ObjectRef, PushRequest
+    from shared.contracts.messages import HealthQuery, ObjectRef, PlannerOptions, PushRequest
 
     count = 200 if quick else 1000
     with router_process() as (endpoint, _router), services_running(endpoint, "robot_bridge", "validator", "planner",
@@ -512,7 +512,8 @@ def request_flood(quick: bool) -> Figure:
             # that is not the flood's (a flood request that starts before its lease goes would pay it).
             from client.push_client import push
 
-            push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed"),
+            push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0,
+                             options=PlannerOptions(method="fixed")),
                  BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000), timeout_s=120.0)
             _flood(endpoint, planner_key, 100, "warm-up")
             rss_before = _rss_mb(planner_pid)
@@ -538,14 +539,15 @@ def _flood(endpoint: str, planner_key: str, count: int, name: str) -> tuple[Coun
     """`count` leased push requests at once from one raw client that then drops its lease; (reply codes, when it left)."""
     from shared.bus.lease import lease_key
     from shared.contracts.codec import decode
-    from shared.contracts.messages import ObjectRef, PushRequest
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
     codes: Counter[str] = Counter()
     with client(endpoint) as flooder:
         lease = lease_key("client", f"chaos-{name}")
         token = flooder.liveliness().declare_token(lease)
         pending = [_raw_push(flooder, planner_key, PushRequest(
-            object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed", client_lease=lease))
+            object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, client_lease=lease,
+            options=PlannerOptions(method="fixed")))
             for _ in range(count)]
         token.undeclare()  # the flooding client gives up on all of them
         gone_at = time.monotonic()

@@ -32,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from client.push_client import PushFailed, push
 from deploy.launcher import Launcher, free_loopback_endpoint
 from shared.bus import BusConfig
-from shared.contracts.messages import ObjectRef, PushRequest
+from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
 OBJECTS = ("proc-box-013", "proc-box-000", "proc-cylinder-000")  # test split
 DIRECTIONS_DEG = (90.0, -90.0)  # sideways both ways from the default spot 0.55 m in front of the robot
@@ -77,9 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler of method gd2p (DDIM-10: the fast path)")
     parser.add_argument("--no-critic", dest="critic", action="store_false",
-                        help="PushRequest.critic off: L_dir's order instead of the success critic's (the default)")
+                        help="PlannerOptions.critic off: L_dir's order instead of the success critic's (the default)")
     parser.add_argument("--no-prescreen", dest="prescreen", action="store_false",
-                        help="PushRequest.prescreen off: no floating-hand pushes before planning (with DDIM: the fast path)")
+                        help="PlannerOptions.prescreen off: no floating-hand pushes before planning (with DDIM: the fast path)")
     parser.add_argument("--record-dir", default="/tmp/gd2p-bench-push")
     parser.add_argument("--validators", type=int, default=None,
                         help="validator processes (default: one per core, as `gd2p up`)")
@@ -94,9 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for object_id in OBJECTS:
             for direction in DIRECTIONS_DEG:
-                request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, k=args.k,
-                                      method=method, sampler=args.sampler, critic=args.critic,
-                                      prescreen=args.prescreen)
+                options = PlannerOptions(k=args.k, method=method, sampler=args.sampler, critic=args.critic,
+                                         prescreen=args.prescreen)
+                request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, options=options)
                 started = time.perf_counter()
                 try:
                     response = push(request, cfg, timeout_s=300.0)

@@ -9,7 +9,7 @@ than the dataset, so there are bad ones among them, as in a sampler's output), f
 never looks at test objects) and a few directions, placed as the planner places them (object at 0.55 m
 in front of the robot). Each pose goes through the planner's own steps: IK + collision screen,
 `plan_push`, and an arm rollout (`shared.validation.rollout`) in the nominal world plus
-`--rank-draws` drawn worlds (what robust ranking sees, `PushRequest.physics_draws`).
+`--rank-draws` drawn worlds (what robust ranking sees, `PlannerOptions.physics_draws`).
 
 Truth: each plan is also played in `--truth-worlds` other worlds drawn from the evaluation's `real`
 ranges with seeds of their own (friction, mass, centre of mass, controller, the object off its told

@@ -133,7 +133,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="data-size: comma-separated training seeds, one model per fraction and seed (default 0,1,2)")
     parser.add_argument("--closed-loop", action="store_true",
                         help="multistep: watch every push and stop it when the object strays from its predicted "
-                             "path (PushRequest.closed_loop), into <out>/multistep-<world>-closed/")
+                             "path (PlannerOptions.closed_loop), into <out>/multistep-<world>-closed/")
     parser.set_defaults(func=run)
     register_compare(subparsers)
 

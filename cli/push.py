@@ -33,9 +33,10 @@ CONNECT_TIMEOUT_MS = 3000
 # PushRequest fields -> the flags that set them (errors name what the user typed).
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
-         "k": "--k", "seed": "--seed", "method": "--method", "sampler": "--sampler", "choice": "--choice",
-         "physics_draws": "--physics-draws", "corrections": "--corrections", "closed_loop": "--closed-loop",
-         "critic": "--no-critic", "prescreen": "--no-prescreen"}
+         "seed": "--seed", "options": "the planner options", "options.k": "--k", "options.method": "--method",
+         "options.sampler": "--sampler", "options.choice": "--choice", "options.physics_draws": "--physics-draws",
+         "options.corrections": "--corrections", "options.closed_loop": "--closed-loop", "options.critic": "--no-critic",
+         "options.prescreen": "--no-prescreen"}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -68,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "when the sampler has a critic)")
     parser.add_argument("--no-prescreen", dest="prescreen", action="store_false",
                         help="push no floating hand before planning: with --sampler ddim the fast path (about 1.2 s "
-                             "less to plan; see PushRequest.prescreen for what it costs in success)")
+                             "less to plan; see PlannerOptions.prescreen for what it costs in success)")
     parser.add_argument("--choice", choices=("ranked", "unranked", "random"), default="ranked",
                         help="how the executed plan is chosen: ranked by arm rollouts (GD2P, default); unranked: "
                              "the same rolled-out plans, one drawn at random (the ranking ablation); random: a "
@@ -136,14 +137,15 @@ def build_request(args: argparse.Namespace):
         T_world_O = make_transform(np.eye(3), np.array([*args.position, 0.0])) @ obj.T_D_O(yaw_rad=math.radians(args.yaw))
         pose = object_pose(T_world_O)
     arm = args.arm or {"allegro": "panda", "leap": "xarm7"}[args.hand]
-    return PushRequest(object=ref, object_pose=pose, direction_deg=args.direction_deg,
-                       goal_xy=tuple(args.goal) if args.goal else None, distance_m=args.distance, hand=args.hand,
-                       arm=arm, obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle],
-                       k=args.k, choice=args.choice, seed=args.seed, method=args.method,
-                       sampler=args.sampler, critic=args.critic, prescreen=args.prescreen,
-                       physics_draws=args.physics_draws,
-                       **({} if args.corrections is None else {"corrections": args.corrections}),
-                       **({} if args.closed_loop is None else {"closed_loop": args.closed_loop}))
+    knobs = {name: value for name, value in (("corrections", args.corrections), ("closed_loop", args.closed_loop))
+             if value is not None}  # left out: the planner's default
+    # A map, not a PlannerOptions: pydantic then reports a bad option beside a bad question field, each by its flag.
+    options = dict(k=args.k, choice=args.choice, method=args.method, sampler=args.sampler, critic=args.critic,
+                   prescreen=args.prescreen, physics_draws=args.physics_draws, **knobs)
+    return PushRequest.model_validate(dict(
+        object=ref, object_pose=pose, direction_deg=args.direction_deg, goal_xy=tuple(args.goal) if args.goal else None,
+        distance_m=args.distance, hand=args.hand, arm=arm, seed=args.seed, options=options,
+        obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle]))
 
 
 def run_push(args: argparse.Namespace) -> int:

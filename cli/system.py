@@ -265,10 +265,11 @@ def _demo_push(launcher, method: str) -> bool:
     from cli.push import describe
     from client.push_client import PushFailed, push
     from shared.bus import BusConfig
-    from shared.contracts.messages import ObjectRef, PushRequest
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
     request = PushRequest(object=ObjectRef(library_id=DEMO_OBJECT), direction_deg=DEMO_DIRECTION_DEG,
-                          distance_m=DEMO_DISTANCE_M, method=method)
+                          distance_m=DEMO_DISTANCE_M,
+                          options=PlannerOptions(method=method))
     print(f"2. push request: {DEMO_OBJECT} at the default spot, {DEMO_DISTANCE_M:.2f} m toward "
           f"{DEMO_DIRECTION_DEG:.0f} deg, pose source {method!r} (planning, arm rollouts, ranking, execution)...")
     cfg = BusConfig(mode="client", connect=[launcher.endpoint], connect_timeout_ms=CLI_CONNECT_TIMEOUT_MS)

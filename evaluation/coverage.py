@@ -254,7 +254,7 @@ class NearestNeighborSource:
 @dataclass(frozen=True)
 class CriticOrderedSource:
     """Another source's poses, most likely to push well first by the success critic: the order the planner's
-    critic path (`PushRequest.critic`) tries them in, so the first poses pushed are the ones it would plan.
+    critic path (`PlannerOptions.critic`) tries them in, so the first poses pushed are the ones it would plan.
 
     The critic scores a pose from the object's BPS as `checkpoint`'s sampler encodes it (the encoding it was
     trained on), whatever the poses came from.

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from evaluation.store import ResultStore
 
-K_SAMPLES = 200  # as a push request (PushRequest.k)
+K_SAMPLES = 200  # as a push request (PlannerOptions.k)
 PUSH_DISTANCE_M = 0.20
 
 _sampler = None  # each worker's SamplerService

@@ -295,7 +295,7 @@ def corrections(record: dict[str, Any]) -> float:
 
 def _corrects(spec: Protocol) -> bool:
     """Whether any method of `spec` may push more than once (the report then counts the pushes)."""
-    return any(protocol.METHODS[m].corrections for m in spec.methods)
+    return any(protocol.METHODS[m].options.corrections for m in spec.methods)
 
 
 def _cell(records: Sequence[dict[str, Any]]) -> str:

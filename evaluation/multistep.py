@@ -30,7 +30,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import CODE_AT_START, markdown_table, write_experiment
 from evaluation.stats import success_interval
 from evaluation.store import ResultStore
-from shared.contracts.messages import CircleObstacle, ObjectRef, PushRequest
+from shared.contracts.messages import CircleObstacle, ObjectRef, PlannerOptions, PushRequest
 from shared.frames import make_transform, yaw_rotation
 from shared.world.objects import load_object
 from shared.world.push_outcome import SUCCESS_POSITION_TOLERANCE_M, judge_push, object_pose, pose_matrix
@@ -104,8 +104,8 @@ def request(run: Run) -> PushRequest:
     """The multi-step request: the object told (mesh and pose) or, with cameras, the cloud they capture of it."""
     ox, oy, radius = run.scenario.obstacle
     common = dict(goal_xy=run.scenario.goal_xy, obstacles=[CircleObstacle(x=ox, y=oy, radius=radius)],
-                  distance_m=MAX_PUSH_M, max_steps=MAX_STEPS, hand=run.hand, arm=protocol.ROBOTS[run.hand],
-                  seed=run.seed, closed_loop=run.closed_loop)
+                  distance_m=MAX_PUSH_M, hand=run.hand, arm=protocol.ROBOTS[run.hand], seed=run.seed,
+                  options=PlannerOptions(max_steps=MAX_STEPS, closed_loop=run.closed_loop))
     if run.cameras:
         from shared.world.perception import cloud_for_request
         from shared.world.sim.camera import capture_object

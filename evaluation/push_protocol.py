@@ -20,7 +20,7 @@ simulated depth cameras capture of the object at its true pose (`shared.world.si
 trial) and plans around its own reconstruction; the robot still executes on the true object.
 
 Methods: every pose source runs through the same pipeline, (a) with the plans ranked by arm rollouts
-and (b) as a random feasible choice (`PushRequest.choice`), so pose quality and ranking are measured
+and (b) as a random feasible choice (`PlannerOptions.choice`), so pose quality and ranking are measured
 apart; the ranking ablation keeps every stage and rollout and drops only the ranking score:
 - `gd2p`: K = 200 diffusion samples, ranked (V = α L_goal + β L_coll + γ L_dir);
 - `gd2p-unranked`: the same stages and rollouts, the executed plan drawn at random among the rolled-out ones;
@@ -49,7 +49,15 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
-from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, Plan, PlanChoice, PushRequest, SimWorld
+from shared.contracts.messages import (
+    ExecutionResult,
+    ObjectPose,
+    ObjectRef,
+    Plan,
+    PlannerOptions,
+    PushRequest,
+    SimWorld,
+)
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
@@ -69,104 +77,60 @@ PLACEMENT_NOISE_DEG = 5.0  # uniform yaw in ±5°
 ROBOTS = {"allegro": "panda", "leap": "xarm7"}
 
 
+METHODS_FILE = Path(__file__).resolve().parent / "methods.yaml"
+
+
 @dataclass(frozen=True)
 class Method:
-    """A pose source and how the executed plan is chosen among its candidates."""
+    """An evaluation method (evaluation/methods.yaml): the planner options it asks for, and what it changes inside
+    the planner for a comparison (physics budget, ranking weights, monitor thresholds, grasp poses)."""
 
     name: str
     label: str
-    source: str  # "gd2p" | "nearest" | "fixed" (the planner's PushRequest.method) or "grasp" (grasp_baseline)
-    choice: PlanChoice
-    physics_draws: int = 0  # PushRequest.physics_draws: rank by rollouts in this many drawn worlds too
-    corrections: int = 0  # PushRequest.corrections: corrective pushes after a miss
-    # Ranking weights (α, β, γ) instead of the shipped ones: a candidate setting, compared on val objects.
+    options: PlannerOptions
+    # Ranking weights (alpha, beta, gamma) instead of the shipped ones: a candidate setting, compared on val objects.
     weights: tuple[float, float, float] | None = None
-    closed_loop: bool = False  # PushRequest.closed_loop: stop a push that strays from its predicted path
-    # The closed-loop monitor's thresholds (position m, rotation °, tilt °) instead of the shipped ones: a
-    # candidate setting, compared on val objects.
+    # The closed-loop monitor's thresholds (position m, rotation deg, tilt deg) instead of the shipped ones.
     monitor: tuple[float, float, float] | None = None
-    # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the
-    # shipped one (`PipelineSettings`): a candidate setting, compared on val objects.
+    # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the shipped
+    # one (`PipelineSettings`).
     budget: tuple[int, int] | None = None
-    sampler: str | None = None  # PushRequest.sampler: the diffusion sampler (None: the request's default)
-    # PushRequest.critic: the success critic's order. Off for the paper's methods and the baselines (their names
-    # keep meaning what their committed trials ran: L_dir's order); on in the methods named for it.
-    critic: bool = False
-    prescreen: bool = True  # PushRequest.prescreen: false is the fast path (no floating-hand pushes before planning)
-    critic_guidance: float | None = None  # PushRequest.critic_guidance: the samples steered up the critic's gradient
+    grasp: bool = False  # grasp poses (evaluation/grasp_baseline.py) in place of the sampler's
+    tuning: bool = False  # a candidate compared on val objects: a full run leaves it out
+
+    @property
+    def source(self) -> str:
+        """Where its poses come from: the planner's pose source, or "grasp"."""
+        return "grasp" if self.grasp else self.options.method
 
 
-ROBUST_DRAWS = 4  # the robust ranking's draws per plan
-CORRECTIONS = 2  # the corrected method's corrective pushes at most
-
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("gd2p", "GD2P", "gd2p", "ranked"),
-    Method("gd2p-unranked", "GD2P w/o ranking", "gd2p", "unranked"),
-    Method("gd2p-random", "Diffusion, random feasible", "gd2p", "random"),
-    Method("gd2p-robust", "GD2P, robust ranking", "gd2p", "ranked", ROBUST_DRAWS),
-    Method("gd2p-corrected", "GD2P + corrective pushes", "gd2p", "ranked", corrections=CORRECTIONS),
-    Method("gd2p-closed", "GD2P closed loop", "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True),
-    # Monitor thresholds compared on val objects (shared/planning/monitor.py: the loose ones are shipped).
-    Method("gd2p-closed-tight", "GD2P closed loop, 2 cm / 10° (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, monitor=(0.02, 10.0, 15.0)),
-    Method("gd2p-closed-3cm", "GD2P closed loop, 3 cm / 15° (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, monitor=(0.03, 15.0, 20.0)),
-    Method("gd2p-closed-loose", "GD2P closed loop, 4 cm / 25° (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, monitor=(0.04, 25.0, 30.0)),
-    Method("gd2p-closed-looser", "GD2P closed loop, 6 cm / 35° (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, monitor=(0.06, 35.0, 40.0)),
-    # Smaller physics budgets and the fast sampler, for time to plan (compared on val objects).
-    # The pipeline before the time-to-plan work (docs/evaluation.md §Tuned settings): no critic, 24 prescreen pushes, DDPM-100.
-    Method("gd2p-closed-b24x6", "GD2P closed loop, prescreen 24 / 6 plans, no critic, DDPM", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), sampler="ddpm"),
-    Method("gd2p-closed-b12x4", "GD2P closed loop, prescreen 12 / 4 plans (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddpm"),
-    Method("gd2p-closed-b12x4-ddim", "GD2P closed loop, prescreen 12 / 4 plans, DDIM (val candidate)", "gd2p",
-           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(12, 4), sampler="ddim"),
-    # The success critic orders the candidates (shared/sampling/critic.py), with fewer or no prescreen pushes.
-    # The planner's default (PushRequest.critic on, 24 prescreen pushes, DDPM-100), chosen on val.
-    Method("gd2p-closed-critic-p24", "GD2P closed loop, critic order (the default)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm"),
-    # The samples steered up the critic's gradient too (shared/sampling/guidance.py, the scale chosen on val objects
-    # by sampler-quality, docs/evaluation.md §Tuned settings).
-    Method("gd2p-closed-critic-guided", "GD2P closed loop, critic-guided samples in the critic's order (val candidate)",
-           "gd2p", "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True, sampler="ddpm",
-           critic_guidance=0.02),
-    Method("gd2p-closed-critic-p8", "GD2P closed loop, critic order, prescreen 8 (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(8, 6), critic=True, sampler="ddpm"),
-    Method("gd2p-closed-critic-p0", "GD2P closed loop, critic order, no prescreen (val candidate)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddpm"),
-    Method("gd2p-closed-critic-p0x4", "GD2P closed loop, critic order, no prescreen, 4 plans (val candidate)", "gd2p",
-           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 4), critic=True, sampler="ddpm"),
-    Method("gd2p-closed-critic-p0-ddim", "GD2P closed loop, critic order, no prescreen, DDIM (val candidate)", "gd2p",
-           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(0, 6), critic=True, sampler="ddim"),
-    # The fast path (docs/evaluation.md §Tuned settings) as a request asks for it: critic, no prescreen pushes, sampler "ddim".
-    Method("gd2p-closed-fast", "GD2P closed loop, fast path (critic order, no prescreen, DDIM)", "gd2p", "ranked",
-           corrections=CORRECTIONS, closed_loop=True, critic=True, prescreen=False, sampler="ddim"),
-    # The ranking weights the val bench picked (bench/results/ranking_weights.json): a collision worth a
-    # 3.3 cm miss instead of a 10 cm one.
-    Method("gd2p-a30", "GD2P, α=30 (val candidate)", "gd2p", "ranked", weights=(30.0, 1.0, 0.1)),
-    Method("gd2p-a10", "GD2P, α=10 (the weights before val tuning)", "gd2p", "ranked", weights=(10.0, 1.0, 0.1)),
-    Method("nearest", "Nearest Neighbor", "nearest", "random"),
-    Method("nearest-ranked", "Nearest Neighbor + ranking", "nearest", "ranked"),
-    # Retrieval through every stage of the planner's default (closed loop, corrections, the critic's order, the same
-    # physics budget): the baseline the default is measured against with equal budgets and stages.
-    Method("nearest-closed-critic", "Nearest Neighbor closed loop, critic order (the default's stages)", "nearest",
-           "ranked", corrections=CORRECTIONS, closed_loop=True, budget=(24, 6), critic=True),
-    Method("fixed", "Fixed spatula", "fixed", "random"),
-    # The baselines with the same corrective pushes as GD2P + corrective pushes (the same pipeline stages).
-    Method("nearest-corrected", "Nearest Neighbor + corrective pushes", "nearest", "random", corrections=CORRECTIONS),
-    Method("fixed-corrected", "Fixed spatula + corrective pushes", "fixed", "random", corrections=CORRECTIONS),
-    Method("grasp", "Grasp pose", "grasp", "random"),
-    Method("grasp-ranked", "Grasp pose + ranking", "grasp", "ranked"),
-)}
+class MethodsFileError(ValueError):
+    """evaluation/methods.yaml names an unknown field or a value PlannerOptions refuses."""
 
 
+def load_methods(path: Path = METHODS_FILE) -> dict[str, Method]:
+    """The methods of `path`, by name, in the file's order; MethodsFileError naming the method and the problem."""
+    import yaml
+    from pydantic import ValidationError
+
+    methods = {}
+    for name, entry in (yaml.safe_load(path.read_text()) or {}).items():
+        entry = dict(entry or {})
+        try:
+            options = PlannerOptions(**entry.pop("options", {}) or {})
+            fields = {key: tuple(value) if isinstance(value, list) else value for key, value in entry.items()}
+            methods[name] = Method(name=name, options=options, **fields)
+        except ValidationError as exc:
+            problems = "; ".join(f"options.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+            raise MethodsFileError(f"{path.name}: method {name!r}: {problems}") from None
+        except TypeError as exc:  # a key Method does not have
+            raise MethodsFileError(f"{path.name}: method {name!r}: {exc}") from None
+    return methods
+
+
+METHODS: dict[str, Method] = load_methods()
 # Candidate settings compared on val objects while tuning; a full run (no --methods) leaves them out.
-TUNING_METHODS = frozenset({"gd2p-robust", "gd2p-a30", "gd2p-a10", "gd2p-closed-tight", "gd2p-closed-3cm",
-                            "gd2p-closed-loose", "gd2p-closed-looser", "gd2p-closed-b24x6", "gd2p-closed-b12x4",
-                            "gd2p-closed-b12x4-ddim", "gd2p-closed-critic-p8", "gd2p-closed-critic-guided",
-                            "gd2p-closed-critic-p0", "gd2p-closed-critic-p0x4", "gd2p-closed-critic-p0-ddim"})
+TUNING_METHODS = frozenset(name for name, method in METHODS.items() if method.tuning)
 DEFAULT_METHODS = tuple(m for m in METHODS if m not in TUNING_METHODS)
 
 
@@ -244,15 +208,10 @@ def half_extents(object_id: str) -> np.ndarray:
     return world_half_extents(load_object(object_id).mesh.vertices)
 
 
-def push_request(episode: Episode, k: int = 200) -> PushRequest:
+def push_request(episode: Episode) -> PushRequest:
     """What the system is asked: the object as told (mesh and pose), or as the cameras see it."""
-    method = METHODS[episode.method]
-    source = "gd2p" if method.source == "grasp" else method.source  # grasp poses replace the sampler's
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
-                  arm=episode.arm, k=k, choice=method.choice, method=source, seed=episode.seed,
-                  physics_draws=method.physics_draws, corrections=method.corrections, closed_loop=method.closed_loop,
-                  critic=method.critic, prescreen=method.prescreen, critic_guidance=method.critic_guidance,
-                  **({} if method.sampler is None else {"sampler": method.sampler}))
+                  arm=episode.arm, seed=episode.seed, options=METHODS[episode.method].options)
     if episode.cameras:
         return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
@@ -386,15 +345,15 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["seconds"] = round(time.perf_counter() - started, 2)
     record["code"] = CODE_AT_START  # the commit this trial ran (a run may be resumed by later code)
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
-    if method.closed_loop:
+    if method.options.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
-    record["sampler"] = request.sampler if method.source == "gd2p" else None
+    record["sampler"] = request.options.sampler if method.source == "gd2p" else None
     record["pose_model"] = _pose_model(episode.hand, method.source)
-    record["critic"] = method.critic and method.source in ("gd2p", "nearest") and _has_critic(episode.hand)
+    record["critic"] = method.options.critic and method.source in ("gd2p", "nearest") and _has_critic(episode.hand)
     if record["critic"]:  # which critic ordered the poses (the sampler loads it from the same path)
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
-    record["budget"] = [settings.prescreen if request.prescreen else 0, settings.max_plans]
+    record["budget"] = [settings.prescreen if request.options.prescreen else 0, settings.max_plans]
     return record
 
 

@@ -56,13 +56,13 @@ def main() -> int:
     # Held while we wait (closing the session cancels the push); <identity>/<holder>: the secure profile lets
     # the "cli" certificate hold only gd2p/lease/client/cli/*.
     lease = f"gd2p/lease/client/cli/{uuid.uuid4().hex[:16]}"
-    request = {  # a PushRequest: every field left out takes its default
-        "schema_version": 1,
+    request = {  # a PushRequest (schema 2): every field left out takes its default
+        "schema_version": 2,
         "id": uuid.uuid4().hex,
         "object": {"library_id": "proc-box-013"},
         "direction_deg": 90.0,
-        "method": "fixed",
         "client_lease": lease,
+        "options": {"method": "fixed"},  # the planner's knobs; those left out take the planner's default
     }
     with open_session(args.connect) as session:
         token = session.liveliness().declare_token(lease)

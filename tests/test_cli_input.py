@@ -86,9 +86,9 @@ def test_a_request_models_validation_error_is_described_by_flag():
     from shared.contracts.messages import CircleObstacle, ObjectRef, PushRequest
 
     with pytest.raises(ValidationError) as caught:
-        PushRequest(object=ObjectRef(library_id=BOX), distance_m=2.0, k=0,
+        PushRequest(object=ObjectRef(library_id=BOX), distance_m=2.0, options={"k": 0},
                     obstacles=[CircleObstacle(x=0, y=0, radius=0.1).model_dump() | {"radius": -1.0}])
-    text = describe_validation_error(caught.value, {"distance_m": "--distance", "k": "--k", "obstacles": "--obstacle"},
+    text = describe_validation_error(caught.value, {"distance_m": "--distance", "options.k": "--k", "obstacles": "--obstacle"},
                                      command="push")
     lines = text.splitlines()
     assert "gd2p push: --distance: must be <= 1.0, got 2.0" in lines

@@ -4,7 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.contracts.messages import ExecutionState, ObjectPath, ObjectRef, Plan, PlanSegment, PushRequest
+from shared.contracts.messages import (
+    ExecutionState,
+    ObjectPath,
+    ObjectRef,
+    Plan,
+    PlannerOptions,
+    PlanSegment,
+    PushRequest,
+)
 from shared.frames import yaw_rotation
 from shared.world.push_outcome import object_pose, pose_matrix
 
@@ -250,7 +258,7 @@ def _push_with_a_mid_push_slip(closed_loop: bool):
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=object_pose(start),
-                                           direction_deg=90.0, k=8, corrections=1, closed_loop=closed_loop))
+                                           direction_deg=90.0, options=PlannerOptions(k=8, corrections=1, closed_loop=closed_loop)))
         return outcome.response, joints_after, slipped
     finally:
         pipeline.close()

@@ -186,9 +186,11 @@ def push_requests(draw) -> m.PushRequest:
     target = {"direction_deg": draw(finite)} if draw(st.booleans()) else {"goal_xy": draw(st.tuples(finite, finite))}
     obj = draw(object_refs)  # a point cloud shows where the object stands: it comes without a pose
     pose = None if obj.point_cloud is not None else draw(st.none() | object_poses)
-    return m.PushRequest(object=obj, object_pose=pose, distance_m=draw(st.floats(1e-3, 1.0)),
-                         hand=hand, arm=arm, obstacles=draw(obstacles), k=draw(st.integers(1, 1000)), choice=draw(st.sampled_from(["ranked", "unranked", "random"])),
-                         max_steps=draw(st.integers(1, 100)), seed=draw(seeds), **target)
+    options = m.PlannerOptions(k=draw(st.integers(1, 1000)), choice=draw(st.sampled_from(["ranked", "unranked", "random"])),
+                               max_steps=draw(st.integers(1, 100)), method=draw(st.sampled_from(["gd2p", "nearest", "fixed"])),
+                               closed_loop=draw(st.booleans()), corrections=draw(st.integers(0, m.MAX_CORRECTIONS)))
+    return m.PushRequest(object=obj, object_pose=pose, distance_m=draw(st.floats(1e-3, 1.0)), hand=hand, arm=arm,
+                         obstacles=draw(obstacles), seed=draw(seeds), **target, options=options)
 
 
 @st.composite

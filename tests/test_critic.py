@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from shared.contracts.messages import ObjectRef, PushRequest, SampleRequest
+from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest, SampleRequest
 from shared.planning.candidates import Candidates
 from shared.planning.stages import PipelineSettings, RequestState, priority
 from shared.robots.hands import load_hand
@@ -181,7 +181,7 @@ def test_the_sampler_service_guides_samples_with_its_critic_when_asked_and_refus
 
 
 def test_retrieved_poses_are_scored_by_the_same_critic_so_a_planner_orders_them_alike(monkeypatch):
-    """The Nearest Neighbor baseline gets the critic's order too (PushRequest.critic), scored from the object as the
+    """The Nearest Neighbor baseline gets the critic's order too (PlannerOptions.critic), scored from the object as the
     diffusion sampler encodes it, the encoding the critic was trained on."""
     from shared.sampling.critic_train import success_probabilities
     from shared.sampling.server import SamplerService, object_input
@@ -223,7 +223,7 @@ def test_the_planner_tries_the_poses_the_critic_likes_best_first():
                             l_dir=np.array([0.1, 0.2, 0.3, 0.4]), p_success=np.array([0.2, 0.9, 0.9, 0.1]))
 
     def state(**asks: bool) -> RequestState:
-        request = PushRequest(object=ObjectRef(library_id="proc-box-000"), direction_deg=0.0, **asks)
+        request = PushRequest(object=ObjectRef(library_id="proc-box-000"), direction_deg=0.0, options=PlannerOptions(**asks))
         return RequestState(request, None, "", hand, np.eye(4))
 
     assert priority(state(), candidates).tolist() == [1, 2, 0, 3]  # the default: the critic, L_dir breaks the tie

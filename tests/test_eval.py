@@ -69,11 +69,11 @@ def test_every_method_faces_the_same_placement():
     offset = protocol.placement(a)[:2, 3] - np.array(protocol.OBJECT_XY)
     assert np.all(np.abs(offset) <= protocol.PLACEMENT_NOISE_M + 1e-9)
     request = protocol.push_request(a)
-    assert request.choice == "ranked" and request.method == "gd2p" and request.distance_m == pytest.approx(0.20)
+    assert request.options.choice == "ranked" and request.options.method == "gd2p" and request.distance_m == pytest.approx(0.20)
     ablation = protocol.push_request(protocol.Episode("gd2p-unranked", "allegro", "pb-mug", 180.0, 3))
     random_nn = protocol.push_request(protocol.Episode("nearest", "allegro", "pb-mug", 180.0, 3))
-    assert (ablation.method, ablation.choice) == ("gd2p", "unranked")
-    assert (random_nn.method, random_nn.choice) == ("nearest", "random")
+    assert (ablation.options.method, ablation.options.choice) == ("gd2p", "unranked")
+    assert (random_nn.options.method, random_nn.options.choice) == ("nearest", "random")
 
 
 def test_every_method_faces_the_same_execution_world_and_trials_differ():
@@ -362,3 +362,20 @@ def test_a_run_extended_by_another_method_keeps_the_methods_it_ran_before_in_its
     assert extended.methods == ("nearest", "gd2p", "fixed")  # asked first; an incomplete method is not reported
     more_trials = with_stored_methods(protocol_for("methods", True, 2, "real", ("nearest",)), store)
     assert more_trials.methods == ("nearest",)  # the earlier methods lack trial 1 of the longer run
+
+
+def test_the_methods_are_data_and_the_planner_default_is_defined_once(tmp_path):
+    """evaluation/methods.yaml lists each method's options; the default method changes none of PlannerOptions'."""
+    from shared.contracts.messages import PlannerOptions
+
+    assert protocol.METHODS["gd2p-closed-critic-p24"].options == PlannerOptions()
+    assert protocol.METHODS["gd2p"].options == PlannerOptions(corrections=0, closed_loop=False, critic=False)
+    assert protocol.METHODS["grasp"].source == "grasp" and protocol.METHODS["grasp"].options.method == "gd2p"
+    assert "gd2p-a30" in protocol.TUNING_METHODS and "gd2p-a30" not in protocol.DEFAULT_METHODS
+    bad = tmp_path / "methods.yaml"
+    bad.write_text("mine:\n  label: Mine\n  options: {k: 0}\n")
+    with pytest.raises(protocol.MethodsFileError, match="methods.yaml: method 'mine': .*k"):
+        protocol.load_methods(bad)
+    bad.write_text("mine:\n  label: Mine\n  options: {}\n  budgett: [1, 2]\n")
+    with pytest.raises(protocol.MethodsFileError, match="method 'mine': .*budgett"):
+        protocol.load_methods(bad)

@@ -106,7 +106,7 @@ def test_every_message_travels_on_some_key_and_the_documented_map_decodes():
     assert ours <= {m.__name__ for m in registry.message_types()}
     request = decode(msgpack.packb(registry.EXAMPLE_PUSH_REQUEST, use_bin_type=True), f"{ENCODING_PREFIX}PushRequest")
     assert isinstance(request, PushRequest) and request.object.library_id == "proc-box-013"
-    assert (request.direction_deg, request.method, request.hand) == (90.0, "fixed", "allegro")
+    assert (request.direction_deg, request.options.method, request.hand) == (90.0, "fixed", "allegro")
 
 
 def test_the_committed_document_is_the_generated_one():

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+import msgpack
 import numpy as np
 import pytest
 from pydantic import ValidationError
@@ -108,7 +109,22 @@ def test_direction_frame_yaw_or_vector():
 
 def test_push_request_defaults():
     req = m.PushRequest(object=BOX, direction_deg=90)
-    assert (req.distance_m, req.hand, req.arm, req.k, req.choice) == (0.20, "allegro", "panda", 200, "ranked")
+    assert (req.distance_m, req.hand, req.arm, req.options.k, req.options.choice) == (0.20, "allegro", "panda", 200, "ranked")
+    assert req.options == m.PlannerOptions()  # left out: the planner's default, defined once
+
+
+def test_a_schema_1_push_request_is_refused_naming_the_new_shape():
+    """A request of the old shape (knobs at the top, schema_version 1) gets a message that says where they went."""
+    from shared.contracts.codec import CodecError, decode
+
+    old = {"schema_version": 1, "object": {"library_id": "proc-box-013"}, "direction_deg": 90.0, "method": "fixed", "k": 50}
+    with pytest.raises(CodecError, match=r"schema_version 1; this build speaks 2: schema 2 .* every planner knob into `options`"):
+        decode(msgpack.packb(old), "application/msgpack;PushRequest")
+    unversioned = {key: value for key, value in old.items() if key != "schema_version"}
+    with pytest.raises(CodecError, match=r"method, k belong in `options` since PushRequest schema 2"):
+        decode(msgpack.packb(unversioned), "application/msgpack;PushRequest")
+    new = {"object": {"library_id": "proc-box-013"}, "direction_deg": 90.0, "options": {"method": "fixed", "k": 50}}
+    assert decode(msgpack.packb(new), "application/msgpack;PushRequest").options.k == 50
 
 
 def test_push_request_direction_xor_goal():
@@ -121,7 +137,7 @@ def test_push_request_direction_xor_goal():
 @pytest.mark.parametrize("k", [0, 1001])
 def test_push_request_k_bounds(k):
     with pytest.raises(ValidationError, match=r"k\n.*Input should be (greater|less) than or equal to"):
-        m.PushRequest(object=BOX, direction_deg=0, k=k)
+        m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(k=k))
 
 
 @pytest.mark.parametrize("d", [0.0, -0.1, 1.5])
@@ -132,19 +148,19 @@ def test_push_request_distance_bounds(d):
 
 def test_physics_draws_are_bounded_and_only_for_rolled_out_plans():
     with pytest.raises(ValidationError, match=r"physics_draws\n.*less than or equal to 16"):
-        m.PushRequest(object=BOX, direction_deg=0, physics_draws=17)
+        m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(physics_draws=17))
     with pytest.raises(ValidationError, match="choice 'random' rolls none out"):
-        m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="random")
+        m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(physics_draws=4, choice="random"))
     with pytest.raises(ValidationError, match="physics_draws is only used with with_arm=True"):
         m.ValidationJob(object=BOX, hand="allegro", poses=_poses(2), physics_draws=2)
-    assert m.PushRequest(object=BOX, direction_deg=0, physics_draws=4, choice="unranked").physics_draws == 4
+    assert m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(physics_draws=4, choice="unranked")).options.physics_draws == 4
 
 
 def test_corrections_are_bounded_and_on_by_default():
     with pytest.raises(ValidationError, match=r"corrections\n.*less than or equal to 5"):
-        m.PushRequest(object=BOX, direction_deg=0, corrections=6)
-    assert m.PushRequest(object=BOX, direction_deg=0).corrections == 2  # on by default (val: +10.7 points)
-    assert m.PushRequest(object=BOX, direction_deg=0, corrections=0).corrections == 0  # open loop, as the paper
+        m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(corrections=6))
+    assert m.PushRequest(object=BOX, direction_deg=0).options.corrections == 2  # on by default
+    assert m.PushRequest(object=BOX, direction_deg=0, options=m.PlannerOptions(corrections=0)).options.corrections == 0  # open loop, as the paper
 
 
 def test_unknown_hand_and_bad_pair():

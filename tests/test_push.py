@@ -18,7 +18,7 @@ import pytest
 
 from client.push_client import PushFailed, push
 from shared.bus import BusConfig, live_workers, open_session
-from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PushRequest, SampleRequest
+from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PlannerOptions, PushRequest, SampleRequest
 
 BOX = "proc-box-013"  # 13.9 x 4.6 x 7.5 cm, 0.24 kg (test split)
 
@@ -61,7 +61,7 @@ def test_a_push_request_moves_the_box_to_the_target_and_is_recorded(system):
     from mcap.reader import make_reader
 
     cfg, record_dir = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, distance_m=0.20, method="fixed")
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, distance_m=0.20, options=PlannerOptions(method="fixed"))
     response = push(request, cfg, timeout_s=240.0)
     result = response.result
     assert response.success and result.success
@@ -116,7 +116,7 @@ def test_a_point_cloud_is_pushed_through_the_system_and_recorded(system):
     T_world_O[:2, 3] = (0.55, 0.0)
     cloud = cloud_for_request(capture_object(box, T_world_O, n_cameras=3, seed=1, size=(212, 120)).cloud)
     ref = ObjectRef(point_cloud=cloud)
-    response = push(PushRequest(object=ref, direction_deg=90.0, method="fixed", choice="random"), cfg, timeout_s=240.0)
+    response = push(PushRequest(object=ref, direction_deg=90.0, options=PlannerOptions(method="fixed", choice="random")), cfg, timeout_s=240.0)
     captured = captured_object(ref)
     assert captured.from_cache  # reconstructed once, by the first service handed the cloud
     assert np.allclose(captured.T_world_O[:2, 3], (0.55, 0.0), atol=0.01)  # where the cloud shows the box
@@ -132,7 +132,7 @@ def test_a_point_cloud_is_pushed_through_the_system_and_recorded(system):
 
 def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
     cfg, _ = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, method="fixed", choice="random")
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=-90.0, options=PlannerOptions(method="fixed", choice="random"))
     response = push(request, cfg, timeout_s=240.0)
     assert response.score is None and "rollouts" not in response.timings_s
     assert response.result.success, response.result
@@ -146,7 +146,7 @@ def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_
     from shared.planning.cancellation import Cancellation
 
     cfg, _ = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", closed_loop=True)
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, options=PlannerOptions(method="fixed", closed_loop=True))
     response = push(request, cfg, timeout_s=240.0)
     assert response.success and [s.stopped for s in response.steps] == [None]
 
@@ -179,7 +179,7 @@ def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_
 def test_an_unreachable_object_gets_the_infeasible_error_with_its_reason(system):
     cfg, _ = system
     far = ObjectPose(position=(2.0, 0.0, 0.0375))
-    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=far, direction_deg=90.0, method="fixed")
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=far, direction_deg=90.0, options=PlannerOptions(method="fixed"))
     with pytest.raises(PushFailed) as failure:
         push(request, cfg, timeout_s=120.0)
     assert failure.value.code == "infeasible"
@@ -198,7 +198,7 @@ def test_a_multi_step_push_goes_around_the_obstacle_without_touching_it(system):
     start_T = box.T_D_O()
     start_T[:2, 3] = (0.50, 0.15)
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start_T), goal_xy=(0.50, -0.15),
-                          obstacles=[obstacle], distance_m=0.20, method="fixed")
+                          obstacles=[obstacle], distance_m=0.20, options=PlannerOptions(method="fixed"))
     response = push(request, cfg, timeout_s=600.0)
     assert response.success, response.result
     assert np.linalg.norm(np.array(response.result.final_object_pose.position[:2]) - (0.50, -0.15)) <= 0.03
@@ -340,8 +340,8 @@ def _push_with_altered_rollouts(alter, settings=None, choice="ranked", seed=0, p
                             settings or PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=2))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(T_world_O),
-                                           direction_deg=90.0, k=8, choice=choice, seed=seed,
-                                           physics_draws=physics_draws))
+                                           direction_deg=90.0, seed=seed,
+                                           options=PlannerOptions(k=8, choice=choice, physics_draws=physics_draws)))
         assert [r.step for r in outcome.records] == outcome.response.steps
         return outcome.response, len(rollouts)
     except PushError as exc:
@@ -446,7 +446,7 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
                             PipelineSettings(max_plans=2, prescreen=4, max_plan_rounds=1))
     try:
         pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, k=8))
+                                 direction_deg=90.0, options=PlannerOptions(k=8)))
     finally:
         pipeline.close()
         robot.close()
@@ -486,7 +486,7 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
                             PipelineSettings(max_plans=2, max_plan_rounds=1))
     try:
         pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, k=8, prescreen=prescreen))
+                                 direction_deg=90.0, options=PlannerOptions(k=8, prescreen=prescreen)))
     finally:
         pipeline.close()
         robot.close()
@@ -512,13 +512,13 @@ def test_a_request_for_critic_guided_samples_reaches_the_sampler_and_only_for_di
     try:
         for guidance in (None, 0.02):
             pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                     direction_deg=90.0, k=8, critic_guidance=guidance))
+                                     direction_deg=90.0, options=PlannerOptions(k=8, critic_guidance=guidance)))
     finally:
         pipeline.close()
         robot.close()
     assert [r.critic_guidance for r in asked] == [None, 0.02] and asked[1].guided_steps == 10
     with pytest.raises(ValueError, match="steers the diffusion samples"):
-        PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="nearest", critic_guidance=0.02)
+        PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, options=PlannerOptions(method="nearest", critic_guidance=0.02))
     with pytest.raises(ValueError):
         SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", frame=asked[0].frame, critic_guidance=0.0)
 
@@ -556,7 +556,7 @@ def _push_with_a_displaced_first_outcome(displace, corrections=2, sample=None):
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     try:
         outcome = pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                           direction_deg=90.0, k=8, corrections=corrections))
+                                           direction_deg=90.0, options=PlannerOptions(k=8, corrections=corrections)))
         return outcome.response, left[0]
     finally:
         pipeline.close()
@@ -788,7 +788,7 @@ def test_a_multi_step_request_that_fails_after_a_push_reports_the_push_it_made()
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     start = _box_at(0.5, 0.12)
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(start), goal_xy=(0.5, -0.12),
-                          distance_m=0.13, k=8)
+                          distance_m=0.13, options=PlannerOptions(k=8))
     try:
         with pytest.raises(PushError) as failure:
             pipeline.run(request)
@@ -821,7 +821,7 @@ def test_a_sampler_draw_with_no_feasible_pose_is_followed_by_another_and_the_las
     robot = LocalRobot()
     settings = PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1, sample_draws=2)
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)), direction_deg=90.0,
-                          distance_m=0.1, k=8)
+                          distance_m=0.1, options=PlannerOptions(k=8))
     pipelines = [PushPipeline(PushServices(sample=sample, validate=validate_here, execute=robot.execute), settings)
                  for sample in (out_of_reach_first, never_in_reach)]
     try:
@@ -853,7 +853,7 @@ def test_a_multi_step_push_the_arm_cannot_make_is_turned_off_the_path_and_still_
     pipeline = PushPipeline(PushServices(sample=out_of_reach_straight_ahead, validate=validate_here,
                                          execute=robot.execute), PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.12)), goal_xy=(0.5, -0.12),
-                          distance_m=0.13, k=8, max_steps=4)
+                          distance_m=0.13, options=PlannerOptions(k=8, max_steps=4))
     try:
         outcome = pipeline.run(request)
     finally:
@@ -888,7 +888,7 @@ def _push_cancelled_when(system, drop_when, lease: str):
                 drop.set()
 
         subscriber = session.declare_subscriber(ROBOT_STATE_KEY, on_state)
-        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", client_lease=lease)
+        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, client_lease=lease, options=PlannerOptions(method="fixed"))
         with Dispatcher(session, "planner", timeout_s=240.0, max_attempts=1) as planner:
             future = planner.submit(request)
             dropped_at = None
@@ -937,7 +937,7 @@ def test_a_request_whose_client_is_already_gone_never_moves_the_robot(system):
         while states and time.monotonic() - states[-1] < 1.0 and time.monotonic() < deadline:
             time.sleep(0.1)
         quiet_since = time.monotonic()
-        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", client_lease=gone)
+        request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, client_lease=gone, options=PlannerOptions(method="fixed"))
         with Dispatcher(session, "planner", timeout_s=120.0, max_attempts=1) as planner:
             reply = planner.submit(request).result(120.0)
         subscriber.undeclare()
@@ -953,7 +953,7 @@ def test_a_request_without_a_client_lease_is_refused_and_never_moves_the_robot(s
     from shared.bus.keys import ROBOT_STATE_KEY
 
     cfg, _ = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed")
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, options=PlannerOptions(method="fixed"))
     with open_session(cfg) as session:
         states: list[float] = []
         subscriber = session.declare_subscriber(ROBOT_STATE_KEY, lambda sample: states.append(time.monotonic()))
@@ -971,8 +971,7 @@ def test_a_client_lease_of_another_role_is_a_bad_request(system):
     from shared.bus.errors import RemoteError
 
     cfg, _ = system
-    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed",
-                          client_lease="gd2p/alive/recorder/r1")
+    request = PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, client_lease="gd2p/alive/recorder/r1", options=PlannerOptions(method="fixed"))
     with open_session(cfg) as session:
         from shared.bus import Dispatcher
 
@@ -1037,4 +1036,4 @@ def test_gd2p_push_orders_by_the_critic_and_prescreens_unless_told_not_to(flags,
 
     args = build_parser().parse_args(["push", "--object", BOX, "--direction-deg", "90", *flags])
     request = build_request(args)
-    assert (request.critic, request.prescreen) == (critic, prescreen)
+    assert (request.options.critic, request.options.prescreen) == (critic, prescreen)

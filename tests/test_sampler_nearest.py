@@ -18,7 +18,14 @@ import pyarrow as pa
 import pytest
 
 from pose_store import write_pose_store
-from shared.contracts.messages import DirectionFrame, ObjectPose, ObjectRef, SampleRequest, SampleResponse
+from shared.contracts.messages import (
+    DirectionFrame,
+    ObjectPose,
+    ObjectRef,
+    PlannerOptions,
+    SampleRequest,
+    SampleResponse,
+)
 from shared.frames import direction_frame, matrix_to_pos_quat, poses_d_to_world
 from shared.sampling.nearest_neighbor import (
     NearestNeighborBaseline,
@@ -234,7 +241,7 @@ def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zeno
             while not all(live_workers(session).get(s) for s in ("planner", "validator", "robot_bridge", "sampler")):
                 assert time.monotonic() < deadline, "workers did not register"
                 time.sleep(0.2)
-        response = push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="nearest"),
+        response = push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, options=PlannerOptions(method="nearest")),
                         cfg, timeout_s=240.0)
     finally:
         stop.set()

@@ -41,6 +41,7 @@ from shared.bus.lease import BEAT_BYTES, BEAT_FORMAT, LEASE_ROLES, lease_key
 from shared.contracts import messages
 from shared.contracts.codec import ENCODING_PREFIX
 from shared.contracts.messages import (
+    MESSAGE_TYPES,
     SCHEMA_VERSION,
     ErrorReply,
     EStop,
@@ -392,6 +393,13 @@ def open_put_keys() -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------------------ field tables
+def _newer_schemas() -> str:
+    """The messages whose schema moved past SCHEMA_VERSION, with theirs ("PushRequest (2)")."""
+    newer = [f"{name} ({cls.wire_schema()})" for name, cls in sorted(MESSAGE_TYPES.items())
+             if cls.__module__ == messages.__name__ and cls.wire_schema() != SCHEMA_VERSION]
+    return ", ".join(newer) or "none"
+
+
 def array_aliases() -> dict[str, dict[str, typing.Any]]:
     """Name of each NDArray type of shared/contracts/messages.py (PoseBatch, ...) -> its `array_of` constraints
     (shape, dtypes, min_rows, max_rows, finite), read from the validator that enforces them."""
@@ -460,6 +468,8 @@ def default_text(info: FieldInfo) -> str:
     if info.default_factory is not None:
         if info.default_factory is messages.new_id:
             return "a new random id (uuid4 hex)"
+        if isinstance(info.default_factory, type) and issubclass(info.default_factory, messages.Value):
+            return f"every field of {info.default_factory.__name__} its default"
         return repr(info.get_default(call_default_factory=True))
     if info.default is PydanticUndefined:
         return "required"
@@ -651,11 +661,12 @@ def _arrays() -> list[str]:
 
 # An example PushRequest map as a client builds it (docs/interfaces.md; tests decode it with the codec).
 EXAMPLE_PUSH_REQUEST: dict[str, typing.Any] = {
-    "schema_version": SCHEMA_VERSION,
+    "schema_version": PushRequest.wire_schema(),
     "id": "5c2d0f3e8a9b4c1d9e7f6a5b4c3d2e1f",
     "object": {"library_id": "proc-box-013"},
     "direction_deg": 90.0,
-    "method": "fixed",
+    "client_lease": "gd2p/lease/client/cli/5c2d0f3e8a9b4c1d",
+    "options": {"method": "fixed"},
 }
 
 _INTRODUCTION = f"""# Interfaces
@@ -700,8 +711,8 @@ it; the robot command and launcher control keys assume their request type withou
 an unknown or unexpected model, or whose map does not validate, is answered with ErrorReply
 "bad_request" naming the problem.
 
-* Every message map has `schema_version` (this build speaks {SCHEMA_VERSION} and refuses any other) and `id`
-  (1-128 characters). On a worker's key the id names the job: the same id with the same payload is the
+* Every message map has `schema_version` and `id` (1-128 characters). This build speaks schema
+  {SCHEMA_VERSION} of every message but {_newer_schemas()}, and refuses any other version, saying what changed. On a worker's key the id names the job: the same id with the same payload is the
   same job, computed once; the same id with another payload is refused.
 * Fields are those of the [message tables](#messages). A field left out takes its default; a
   "required" one must be there; a key the model does not have is refused.
@@ -718,17 +729,21 @@ an unknown or unexpected model, or whose map does not validate, is answered with
 
 1. Find a worker: a liveliness query on `{keys.alive_pattern('planner')}`; each reply's key ends with a
    worker id.
-2. Build the message map, e.g. a PushRequest for the library object proc-box-013 pushed towards 90°
-   with the fixed spatula pose (every other field takes its default):
+2. Hold a client lease: declare a liveliness token on a key of your own under
+   `gd2p/lease/client/<identity>/` (the planner refuses a push without one, and cancels it, stopping
+   the robot, when the token goes).
+3. Build the message map, e.g. a PushRequest for the library object proc-box-013 pushed towards 90°
+   with the fixed spatula pose, naming that lease (every other field, and every planner option left out
+   of `options`, takes its default):
 
    ```python
 {_indented(json.dumps(EXAMPLE_PUSH_REQUEST, indent=4), 3)}
    ```
 
-3. Query that worker's key, `{keys.job_key('planner', WORKER_ID)}`, with the payload
+4. Query that worker's key, `{keys.job_key('planner', WORKER_ID)}`, with the payload
    `msgpack.packb(request, use_bin_type=True)`, the encoding `{ENCODING_PREFIX}PushRequest`,
    consolidation NONE, a timeout T and the attachment `msgpack.packb({{"timeout_s": T}})`.
-4. Decode the reply: `msgpack.unpackb(payload, raw=False)` into the model its encoding names. A
+5. Decode the reply: `msgpack.unpackb(payload, raw=False)` into the model its encoding names. A
    PushResponse has `success` and `result.final_object_pose.position` ([x, y, z], metres); an
    ErrorReply has `code` and `message`.
 """]

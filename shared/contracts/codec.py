@@ -15,7 +15,7 @@ from typing import TypeVar, overload
 import msgpack
 from pydantic import ValidationError
 
-from shared.contracts.messages import DEFAULT_MAX_PAYLOAD_BYTES, MESSAGE_TYPES, SCHEMA_VERSION, ErrorReply, Message
+from shared.contracts.messages import DEFAULT_MAX_PAYLOAD_BYTES, MESSAGE_TYPES, ErrorReply, Message
 
 ENCODING_PREFIX = "application/msgpack;"
 M = TypeVar("M", bound=Message)
@@ -94,9 +94,10 @@ def decode(payload: bytes | bytearray | memoryview, encoding: str | None = None,
         raise CodecError(f"payload is not valid msgpack ({type(exc).__name__}: {exc})") from None
     if not isinstance(obj, dict):
         raise CodecError(f"a {cls.__name__} must be a msgpack map, got {type(obj).__name__}")
-    version = obj.get("schema_version", SCHEMA_VERSION)
-    if version != SCHEMA_VERSION:
-        raise CodecError(f"{cls.__name__} has schema_version {version!r}; this build speaks {SCHEMA_VERSION}")
+    version = obj.get("schema_version", cls.wire_schema())
+    if version != cls.wire_schema():
+        change = f": {cls.SCHEMA_CHANGE}" if cls.SCHEMA_CHANGE else ""
+        raise CodecError(f"{cls.__name__} has schema_version {version!r}; this build speaks {cls.wire_schema()}{change}")
     try:
         return cls.model_validate(obj)
     except ValidationError as exc:

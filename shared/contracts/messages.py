@@ -58,7 +58,7 @@ Arm = Literal["panda", "xarm7"]
 Sampler = Literal["ddpm", "ddim", "nearest"]  # nearest: the nearest-neighbour baseline (stored training poses)
 DiffusionSampler = Literal["ddpm", "ddim"]
 PoseMethod = Literal["gd2p", "nearest", "fixed"]
-# How the executed plan is chosen among the candidates (PushRequest.choice):
+# How the executed plan is chosen among the candidates (PlannerOptions.choice):
 # - "ranked": GD2P - plans rolled out with the arm and ranked by V = alpha L_goal + beta L_coll + gamma L_dir;
 # - "unranked": the ranking ablation - the same stages and rollouts, the executed plan drawn at random
 #   among the rolled-out ones (only the ranking score is removed);
@@ -83,10 +83,17 @@ class Message(BaseModel):
     """Base of every bus message."""
 
     model_config = ConfigDict(extra="forbid", frozen=False)
-    schema_version: int = SCHEMA_VERSION
+    schema_version: int = SCHEMA_VERSION  # a message whose shape changed incompatibly defaults to its own, higher
     id: str = Field(default_factory=new_id, min_length=1, max_length=128)
 
     MAX_PAYLOAD_BYTES: ClassVar[int] = DEFAULT_MAX_PAYLOAD_BYTES
+    SCHEMA_CHANGE: ClassVar[str] = ""  # what changed in the message's last schema version (for the refusal)
+
+    @classmethod
+    def wire_schema(cls) -> int:
+        """The schema version this build speaks for the message type."""
+        version: int = cls.model_fields["schema_version"].default
+        return version
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -700,9 +707,74 @@ class SampleResponse(Message):
 # ---------------------------------------------------------------------------------------------
 
 
-class PushRequest(Message):
-    """Push or pull an object: a direction and distance, or a goal point (multi-step)."""
+class PlannerOptions(Value):
+    """How the planner answers a push request: every knob, each defaulting to the planner's default.
 
+    This class is the one definition of that default (docs/usage.md "The planner's default"); the evaluation's
+    methods (evaluation/methods.yaml) name only what they change from it.
+    """
+
+    # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
+    # service) or the fixed spatula pose (the paper's baselines, for comparisons).
+    method: PoseMethod = "gd2p"
+    # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (fewer denoising
+    # steps; its poses validate about as often: docs/results.md).
+    sampler: DiffusionSampler = "ddpm"
+    k: int = Field(default=200, ge=1, le=1000)  # candidate poses drawn per push
+    # Consider the samples (the model's, or for method "nearest" the retrieved ones) in the order of the sampler's
+    # success critic (when it has one for its checkpoint and scored them) instead of the best-aligned palms first
+    # (L_dir, the paper's order). Chosen on the val objects (docs/evaluation.md §Tuned settings).
+    critic: bool = True
+    # SampleRequest.critic_guidance for the diffusion samples (None: plain samples; guidance has not been
+    # measured in the trial experiments as the default).
+    critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
+    # Push `PipelineSettings.prescreen` of the first feasible poses with a floating hand before planning (the
+    # prescreen). False is the fast path (with sampler "ddim"): less time to plan, some success lost, so not the
+    # default (docs/evaluation.md §Tuned settings).
+    prescreen: bool = True
+    # "ranked" (GD2P), "unranked" (the ranking ablation: same stages, a rolled-out plan drawn at random) or
+    # "random" (a random feasible pose, no prescreen or rollouts).
+    choice: PlanChoice = "ranked"
+    # Rank by robustness: roll each plan out in this many physics draws besides the nominal world
+    # (friction, mass, centre of mass, controller, pose off by up to 1 cm / 5 deg; `shared.world.sim.world`)
+    # and score its mean L_goal. 0: the paper's single nominal rollout.
+    physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
+    # Closed loop at the scale of pushes (direction requests; a goal_xy request does not use it: each of
+    # its pushes is already planned from where the object was seen, up to max_steps): when the executed
+    # push leaves the object more than the success tolerance from the target but upright and turned no
+    # more than the success bound allows, push again from where the robot bridge observed it, up to this
+    # many times. Needs the object's pose after each push: the simulated robot's tracker sees it; on
+    # hardware a tracker must publish it on gd2p/robot_bridge/object_track (docs/interfaces.md).
+    corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
+    # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
+    # strays from the path the chosen plan's rollout predicted (shared/planning/monitor.py); the push is
+    # backed out and, within `corrections`, pushed again from where the object was seen. Plans chosen
+    # with choice "random" have no rollout to follow and run open loop.
+    closed_loop: bool = True
+    max_steps: int = Field(default=10, ge=1, le=100)  # a goal_xy request's pushes at most
+
+    @model_validator(mode="after")
+    def _consistent(self) -> PlannerOptions:
+        if self.critic_guidance is not None and self.method != "gd2p":
+            raise ValueError(f"critic_guidance steers the diffusion samples; method {self.method!r} draws none")
+        if self.physics_draws and self.choice == "random":
+            raise ValueError("physics_draws ranks rolled-out plans; choice 'random' rolls none out")
+        return self
+
+
+PUSH_REQUEST_SCHEMA = 2
+
+
+class PushRequest(Message):
+    """Push or pull an object: a direction and distance, or a goal point (multi-step). The question a user
+    asks; how the planner answers it is `options` (its default when left out)."""
+
+    SCHEMA_CHANGE: ClassVar[str] = (
+        "schema 2 keeps the question at the top (object, object_pose, direction_deg or goal_xy, distance_m, hand, "
+        "arm, obstacles, seed, client_lease) and moves every planner knob into `options` (PlannerOptions: "
+        f"{', '.join(PlannerOptions.model_fields)}); see docs/interfaces.md")
+
+    schema_version: int = PUSH_REQUEST_SCHEMA
     object: ObjectRef
     # None: resting at a reachable spot in front of the robot; for a point cloud, where the cloud shows it.
     object_pose: ObjectPose | None = None
@@ -712,59 +784,22 @@ class PushRequest(Message):
     hand: Hand = "allegro"
     arm: Arm = "panda"
     obstacles: list[CircleObstacle] = Field(default_factory=list)
-    k: int = Field(default=200, ge=1, le=1000)
-    choice: PlanChoice = "ranked"
-    # Rank by robustness: roll each plan out in this many physics draws besides the nominal world
-    # (friction, mass, centre of mass, controller, pose off by up to 1 cm / 5 deg; `shared.world.sim.world`)
-    # and score its mean L_goal. 0: the paper's single nominal rollout.
-    physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
-    max_steps: int = Field(default=10, ge=1, le=100)
-    # Closed loop at the scale of pushes (direction requests; a goal_xy request does not use it: each of
-    # its pushes is already planned from where the object was seen, up to max_steps): when the executed
-    # push leaves the object more than the success tolerance from the target but upright and turned no
-    # more than the success bound allows, push again from where the robot bridge observed it, up to this
-    # many times.
-    # On by default: pushing again from where the object was seen mends misses that a world the planner does
-    # not know causes (chosen on val objects: docs/evaluation.md §Tuned settings). Needs
-    # the object's pose after each push: the simulated robot's tracker sees it; on hardware a tracker must
-    # publish it on gd2p/robot_bridge/object_track (docs/interfaces.md).
-    corrections: int = Field(default=2, ge=0, le=MAX_CORRECTIONS)
-    # Watch the object while each push runs (the robot bridge's object tracking) and stop the push when it
-    # strays from the path the chosen plan's rollout predicted (shared/planning/monitor.py); the push is
-    # backed out and, within `corrections`, pushed again from where the object was seen. Plans chosen
-    # with choice "random" have no rollout to follow and run open loop.
-    # On by default: stopping a push that strays and correcting it beat corrective pushes alone on the val
-    # objects, where its thresholds were chosen, at a small cost in time per request (docs/evaluation.md
-    # §Tuned settings; figures in docs/results.md).
-    closed_loop: bool = True
     seed: Seed = 0
-    # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
-    # service) or the fixed spatula pose (the paper's baselines, for comparisons).
-    method: PoseMethod = "gd2p"
-    # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (about 0.3 s less
-    # per push; its poses validate about as often: docs/results.md).
-    sampler: DiffusionSampler = "ddpm"
-    # Consider the samples (the model's, or for method "nearest" the retrieved ones) in the order of the sampler's
-    # success critic (when it has one for its checkpoint and scored them) instead of the best-aligned palms first
-    # (L_dir, the paper's order). On by default: with the same prescreen pushes it helped LEAP and left Allegro
-    # level on the val objects, where it was chosen (docs/evaluation.md §Tuned settings).
-    critic: bool = True
-    # SampleRequest.critic_guidance for the diffusion samples (None: plain samples, the default; guidance has not
-    # been measured in the trial experiments as the default).
-    critic_guidance: float | None = Field(default=None, gt=0.0, le=1.0)
-    # Push `PipelineSettings.prescreen` of the first feasible poses with a floating hand before planning (the
-    # prescreen). False is the fast path (with sampler "ddim"): about 1.2 s less to plan (bench/push.py), some
-    # success lost, so not the default (docs/evaluation.md §Tuned settings).
-    prescreen: bool = True
     # The client's lease (`gd2p/lease/client/<identity>/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
-    # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves.
+    # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves. The
+    # planner refuses a request without one (every push moves the robot).
     client_lease: str | None = Field(default=None, min_length=1, max_length=256)
+    options: PlannerOptions = Field(default_factory=PlannerOptions)
 
-    @model_validator(mode="after")
-    def _guidance_for_diffusion(self) -> PushRequest:
-        if self.critic_guidance is not None and self.method != "gd2p":
-            raise ValueError(f"critic_guidance steers the diffusion samples; method {self.method!r} draws none")
-        return self
+    @model_validator(mode="before")
+    @classmethod
+    def _knobs_in_options(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            misplaced = [name for name in PlannerOptions.model_fields if name in data]
+            if misplaced:
+                raise ValueError(f"{', '.join(misplaced)} belong in `options` since PushRequest schema 2: "
+                                 f"{cls.SCHEMA_CHANGE}")
+        return data
 
     @model_validator(mode="after")
     def _target_and_robot(self) -> PushRequest:
@@ -772,8 +807,6 @@ class PushRequest(Message):
             raise ValueError("give exactly one of direction_deg or goal_xy")
         if self.object.point_cloud is not None and self.object_pose is not None:
             raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
-        if self.physics_draws and self.choice == "random":
-            raise ValueError("physics_draws ranks rolled-out plans; choice 'random' rolls none out")
         _check_pair(self.hand, self.arm)
         return self
 

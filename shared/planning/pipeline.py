@@ -11,13 +11,13 @@ success criterion, one more round of plans and rollouts -> the best plan is exec
 bridge, and the object pose it observes afterwards is judged. The data passed between the stages
 are the dataclasses of `candidates.py`.
 
-Pose sources (`PushRequest.method`), so that methods can be compared on the same pipeline:
+Pose sources (`PlannerOptions.method`), so that methods can be compared on the same pipeline:
 - "gd2p": K poses from the diffusion sampler service;
 - "nearest": the paper's Nearest-Neighbour baseline, also from the sampler service (`sampler="nearest"`):
   the stored poses of the training frame nearest to the object in BPS space, at most K of them;
 - "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline).
 
-`PushRequest.choice` says how the executed plan is chosen: "ranked" (GD2P), "unranked" (the ranking
+`PlannerOptions.choice` says how the executed plan is chosen: "ranked" (GD2P), "unranked" (the ranking
 ablation: the same stages and rollouts, the executed plan drawn at random among the rolled-out ones)
 or "random" (a random feasible pose planned and executed, with no prescreen or rollouts: the pose
 source's quality on its own).
@@ -162,7 +162,7 @@ class PushPipeline:
         try:
             outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles, push,
                                       object_radius_m=_footprint_radius(state.obj), max_push_m=request.distance_m,
-                                      margin_m=self.settings.obstacle_margin_m, max_steps=request.max_steps,
+                                      margin_m=self.settings.obstacle_margin_m, max_steps=request.options.max_steps,
                                       seed=request.seed)
         except DirectionInfeasible as refusal:
             turned = ", ".join(f"{t:+.0f}" for t in refusal.turns_tried)
@@ -182,7 +182,7 @@ class PushPipeline:
         return final
 
     def _corrected(self, state: RequestState, push: Push) -> ExecutionResult:
-        """The outcome of a direction push after up to `request.corrections` corrective pushes.
+        """The outcome of a direction push after up to `request.options.corrections` corrective pushes.
 
         A push that left the object more than the success tolerance from the target, upright and turned
         no more than the success bound, is followed by a push from where the robot bridge observed the
@@ -192,7 +192,7 @@ class PushPipeline:
         """
         start = state.records[0].T_world_O_start
         final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose)
-        for _ in range(state.request.corrections):
+        for _ in range(state.request.options.corrections):
             if final.success or not correctable(final):
                 break
             offset = push.target_xy - state.T_world_O[:2, 3]
@@ -236,21 +236,21 @@ class PushPipeline:
         """The push's candidates, its settings and the kinematically feasible candidates. When none of a
         diffusion draw's K samples is feasible, K more are drawn (another seed), up to `sample_draws` draws."""
         request = state.request
-        draws = self.settings.sample_draws if request.method == "gd2p" else 1  # retrieval and fixed: the same poses
+        draws = self.settings.sample_draws if request.options.method == "gd2p" else 1  # retrieval and fixed: the same poses
         for draw in range(draws - 1):
             try:
                 return self._screened_draw(state, planner, push, draw)
             except PushError as exc:
                 if exc.code != "infeasible":
                     raise
-                state.notes.append(f"push {len(state.records) + 1}: none of the sampler's {request.k} poses was "
-                                   f"kinematically feasible (draw {draw + 1}); drew {request.k} more")
+                state.notes.append(f"push {len(state.records) + 1}: none of the sampler's {request.options.k} poses was "
+                                   f"kinematically feasible (draw {draw + 1}); drew {request.options.k} more")
         try:
             return self._screened_draw(state, planner, push, draws - 1)
         except PushError as exc:
             if exc.code != "infeasible" or draws == 1:
                 raise
-            raise PushError(exc.code, f"{exc.message}; none in the {draws - 1} draw(s) of {request.k} before "
+            raise PushError(exc.code, f"{exc.message}; none in the {draws - 1} draw(s) of {request.options.k} before "
                             "either") from exc
 
     def _screened_draw(self, state: RequestState, planner: MotionPlanner, push: Push,
@@ -269,7 +269,7 @@ class PushPipeline:
             feasible = stages.prescreen(state, planning.planner, feasible, planning.push, self.services.validate,
                                         settings)
         ranked = stages.plan_and_rank(state, planning, feasible, self.services.validate, settings)
-        if state.request.choice == "unranked":
+        if state.request.options.choice == "unranked":
             ranked = [ranked[i] for i in np.random.default_rng(state.seed).permutation(len(ranked))]
         started = time.perf_counter()
         try:

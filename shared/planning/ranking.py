@@ -10,7 +10,7 @@
 - L_dir = E_dir = -cos(v_palm, u_dir) of the hand pose in the direction frame D (u_dir = +x of D):
   -1 when the palm faces the push direction.
 
-Robust ranking (`PushRequest.physics_draws`, `score_rollout`): L_goal is the mean of the goal cost
+Robust ranking (`PlannerOptions.physics_draws`, `score_rollout`): L_goal is the mean of the goal cost
 over the nominal rollout and the rollouts in the drawn worlds, so a push tuned to the nominal
 friction and pose ranks behind one that works across them.
 

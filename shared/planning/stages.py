@@ -104,7 +104,7 @@ class PipelineSettings:
 
     def for_push(self, request: PushRequest) -> PipelineSettings:
         """The settings of a push the request asks for: no prescreen pushes when it turns them off (the fast path)."""
-        return self if request.prescreen else dataclasses.replace(self, prescreen=0)
+        return self if request.options.prescreen else dataclasses.replace(self, prescreen=0)
 
     def feasible_needed(self, rolled_out: bool) -> int:
         """How many feasible poses the stages after screening can use: screening stops there."""
@@ -163,7 +163,7 @@ class RequestState:
 
 
 def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int = 0) -> Candidates:
-    """The request's pose source's candidates for `push` (`PushRequest.method`).
+    """The request's pose source's candidates for `push` (`PlannerOptions.method`).
 
     Candidates are poses in D, the frame of the object and the push direction: a later push of the request
     (a correction, the next push of a multi-step request) that sees the object in its D turned no more
@@ -171,7 +171,7 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
     another draw of the sampler for the same push (its own seed), never a reused one."""
     request = state.request
     started = time.perf_counter()
-    if request.method == "fixed":
+    if request.options.method == "fixed":
         T_D_O = invert_transform(push.T_world_D) @ push.T_world_O
         vertices_d = state.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
         try:
@@ -185,12 +185,12 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
         if draw == 0 and reusable:
             _, poses_d, p_success = state.sampled  # a later push sees the object in D as the last one did
         else:
-            sampler = "nearest" if request.method == "nearest" else request.sampler
+            sampler = "nearest" if request.options.method == "nearest" else request.options.sampler
             seed = (state.seed + DRAW_SEED_STRIDE * draw) % 2**31
             reply = sample(SampleRequest(object=request.object, hand=request.hand, frame=sampling_frame(state, push),
-                                         k=request.k, sampler=sampler, seed=seed,
-                                         score=request.critic and rolls_out(request),  # only an order uses scores
-                                         critic_guidance=None if sampler == "nearest" else request.critic_guidance))
+                                         k=request.options.k, sampler=sampler, seed=seed,
+                                         score=request.options.critic and rolls_out(request),  # only an order uses scores
+                                         critic_guidance=None if sampler == "nearest" else request.options.critic_guidance))
             poses_d = reply.poses_d.to_numpy().astype(np.float64)
             p_success = None if reply.success_probability is None else reply.success_probability.to_numpy()
             state.sampled = (R_D_O, poses_d, p_success)
@@ -262,14 +262,14 @@ def screen_more(state: RequestState, planner: MotionPlanner, feasible: Feasible,
 
 
 def orders_by_critic(request: PushRequest, candidates: Candidates) -> bool:
-    """Whether the request's candidates are considered in the critic's order: it asks (`PushRequest.critic`),
+    """Whether the request's candidates are considered in the critic's order: it asks (`PlannerOptions.critic`),
     its plans are rolled out, and the sampler scored them."""
-    return request.critic and rolls_out(request) and candidates.p_success is not None
+    return request.options.critic and rolls_out(request) and candidates.p_success is not None
 
 
 def rolls_out(request: PushRequest) -> bool:
     """Whether the request's plans are rolled out (ranked or not), i.e. not a random feasible choice."""
-    return request.choice != "random"
+    return request.options.choice != "random"
 
 
 def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
@@ -477,7 +477,7 @@ def rollout_job(request: PushRequest, push: Push, pose_d: np.ndarray, plan: Plan
     """The arm rollout of `plan` (for the pose `pose_d` in D) in simulation, with the request's obstacles."""
     return ValidationJob(object=request.object, hand=request.hand, poses=pose_d[None], push_distance_m=push.distance_m,
                          with_arm=True, arm=request.arm, plan=plan, frame=push.frame, obstacles=request.obstacles,
-                         seed=request.seed, physics_draws=request.physics_draws)
+                         seed=request.seed, physics_draws=request.options.physics_draws)
 
 
 # ------------------------------------------------------------------------------- 6. ranking
@@ -572,7 +572,7 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     """Execute `chosen` on the robot bridge (`run_plan`); the record of the push, its outcome judged
     from the object pose the bridge observed. PushError when the bridge did not execute it.
 
-    Closed loop (`request.closed_loop`): a monitor follows the tracked object against the path the plan's
+    Closed loop (`request.options.closed_loop`): a monitor follows the tracked object against the path the plan's
     rollout predicted; when it stops the push, the robot backs out the way it came (`_backed_out`) and
     the push is judged where it left the object."""
     request = state.request
@@ -580,7 +580,7 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     if state.q_robot is None:
         world = SimWorld(object=request.object, object_pose=object_pose(push.T_world_O), obstacles=request.obstacles)
     monitor = None
-    if request.closed_loop and chosen.predicted is not None:  # unranked choices have no rollout to follow
+    if request.options.closed_loop and chosen.predicted is not None:  # unranked choices have no rollout to follow
         monitor = PushMonitor(chosen.plan, chosen.predicted, push.direction[:2], settings.monitor)
     state.cancel.check()
     started = time.perf_counter()

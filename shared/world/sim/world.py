@@ -21,7 +21,7 @@ differently. `sample_world(level, seed, ...)` draws one such execution world per
 | told pose vs true pose | equal | ±1 cm in x and y, ±5° yaw | object pose from a tabletop camera or a fiducial: typical errors 0.5-1.5 cm, a few degrees |
 
 Rollouts never see an execution world: it goes to the robot (the evaluation's simulated robot), the
-planner gets the told pose. A planner that ranks for robustness (`PushRequest.physics_draws`) rolls
+planner gets the told pose. A planner that ranks for robustness (`PlannerOptions.physics_draws`) rolls
 each plan out in worlds of its own, `rollout_worlds`: drawn from the same ranges (the planner's prior
 about what it does not know) with seeds derived from the request's, never the execution's draw.
 
