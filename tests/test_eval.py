@@ -374,8 +374,8 @@ def test_the_methods_are_data_and_the_planner_default_is_defined_once(tmp_path):
     assert "gd2p-a30" in protocol.TUNING_METHODS and "gd2p-a30" not in protocol.DEFAULT_METHODS
     bad = tmp_path / "methods.yaml"
     bad.write_text("mine:\n  label: Mine\n  options: {k: 0}\n")
-    with pytest.raises(protocol.MethodsFileError, match="methods.yaml: method 'mine': .*k"):
+    with pytest.raises(protocol.MethodsFileError, match=r"methods.yaml: method 'mine': .*k"):
         protocol.load_methods(bad)
     bad.write_text("mine:\n  label: Mine\n  options: {}\n  budgett: [1, 2]\n")
-    with pytest.raises(protocol.MethodsFileError, match="method 'mine': .*budgett"):
+    with pytest.raises(protocol.MethodsFileError, match=r"method 'mine': .*budgett"):
         protocol.load_methods(bad)
