@@ -606,15 +606,6 @@ def validator_held(quick: bool) -> Figure:
 
 
 # ------------------------------------------------------------------------------------------ recording
-def _paced(publisher, payload: bytes, encoding: str, hz: float, seconds: float) -> None:
-    """Publish at `hz` for `seconds`: whatever is due each tick (a late tick catches up)."""
-    started = time.monotonic()
-    while (elapsed := time.monotonic() - started) < seconds:
-        for _ in range(int(elapsed * hz) + 1 - publisher.seq):
-            publisher.put(payload, encoding=encoding)
-        time.sleep(min(0.002, 1.0 / hz))
-
-
 def recording_complete(quick: bool) -> Figure:
     import glob
     import tempfile
@@ -649,8 +640,8 @@ def recording_complete(quick: bool) -> Figure:
                 while not (clouds.matching and states.matching) and time.monotonic() < deadline:
                     time.sleep(0.05)
                 load = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
-                threads = [threading.Thread(target=_paced, args=(clouds, *cloud, 10.0, seconds)),
-                           threading.Thread(target=_paced, args=(states, *state, 500.0, seconds))]
+                threads = [threading.Thread(target=clouds.put_paced, args=(*cloud, 10.0, seconds)),
+                           threading.Thread(target=states.put_paced, args=(*state, 500.0, seconds))]
                 for t in threads:
                     t.start()
                 for t in threads:

@@ -540,15 +540,6 @@ def _busy(n: int, seconds: float) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
 
 
-def _publish_paced(publisher, payload: bytes, encoding: str, hz: float, seconds: float) -> None:
-    """Publish at `hz` for `seconds`: whatever is due each tick (a late tick catches up)."""
-    started = time.monotonic()
-    while (elapsed := time.monotonic() - started) < seconds:
-        for _ in range(int(elapsed * hz) + 1 - publisher.seq):
-            publisher.put(payload, encoding=encoding)
-        time.sleep(min(0.002, 1.0 / hz))
-
-
 def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_router, tmp_path):
     """10 s of 1 MB point clouds at 10 Hz and robot states at 500 Hz through a real router to the recorder
     process, with two busy processes on the 2 cores: the metadata counts every sample published, none missing."""
@@ -573,8 +564,8 @@ def test_nothing_is_missing_with_1mb_clouds_and_500hz_states_under_load(zenoh_ro
             states = RecordedPublisher(session, "gd2p/test/state", queue_size=STREAM_QUEUE)
             _wait_for(lambda: clouds.matching and states.matching, 10, "the recorder's subscription")
             load = _busy(2, seconds + 2.0)
-            threads = [threading.Thread(target=_publish_paced, args=(clouds, *cloud, 10.0, seconds)),
-                       threading.Thread(target=_publish_paced, args=(states, *state, 500.0, seconds))]
+            threads = [threading.Thread(target=clouds.put_paced, args=(*cloud, 10.0, seconds)),
+                       threading.Thread(target=states.put_paced, args=(*state, 500.0, seconds))]
             started = time.monotonic()
             for t in threads:
                 t.start()

@@ -19,6 +19,7 @@ This module knows nothing of Zenoh sessions; it only moves bytes.
 """
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -186,42 +187,39 @@ class McapWriter:
         return schema_id
 
 
-def read_metadata(path: str) -> dict[str, dict[str, str]]:
-    """The metadata records of a recording by name (a name written twice: the last one)."""
+@contextlib.contextmanager
+def _mcap_reader(path: str) -> Iterator[Any]:
+    """An mcap reader of `path`; RecordingError for a file that cannot be opened or read as MCAP."""
     try:
         stream = open(path, "rb")
     except OSError as exc:
         raise RecordingError(f"cannot open recording {path}: {exc.strerror}") from None
     with stream:
         try:
-            return {record.name: dict(record.metadata) for record in make_reader(stream).iter_metadata()}
-        except RecordingError:
-            raise
-        except Exception as exc:
-            raise RecordingError(f"cannot read recording {path}: {exc}") from None
-
-
-def read_records(path: str) -> Iterator[Record]:
-    """Every sample of an MCAP recording in log-time order."""
-    try:
-        stream = open(path, "rb")
-    except OSError as exc:
-        raise RecordingError(f"cannot open recording {path}: {exc.strerror}") from None
-    with stream:
-        try:
-            reader = make_reader(stream)
-            for _schema, channel, message in reader.iter_messages(log_time_order=True):
-                yield Record(
-                    key=channel.topic,
-                    encoding=channel.metadata.get(ZENOH_ENCODING_KEY, channel.message_encoding),
-                    payload=message.data,
-                    log_time_ns=message.log_time,
-                    publish_time_ns=message.publish_time,
-                )
+            yield make_reader(stream)
         except RecordingError:
             raise
         except Exception as exc:  # the mcap package raises several unrelated types on a bad file
             raise RecordingError(f"{path} is not a readable MCAP file ({type(exc).__name__}: {exc})") from None
+
+
+def read_metadata(path: str) -> dict[str, dict[str, str]]:
+    """The metadata records of a recording by name (a name written twice: the last one)."""
+    with _mcap_reader(path) as reader:
+        return {record.name: dict(record.metadata) for record in reader.iter_metadata()}
+
+
+def read_records(path: str) -> Iterator[Record]:
+    """Every sample of an MCAP recording in log-time order."""
+    with _mcap_reader(path) as reader:
+        for _schema, channel, message in reader.iter_messages(log_time_order=True):
+            yield Record(
+                key=channel.topic,
+                encoding=channel.metadata.get(ZENOH_ENCODING_KEY, channel.message_encoding),
+                payload=message.data,
+                log_time_ns=message.log_time,
+                publish_time_ns=message.publish_time,
+            )
 
 
 # ----------------------------------------------------------------------------- recovery

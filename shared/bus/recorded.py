@@ -26,6 +26,7 @@ import contextlib
 import logging
 import queue
 import threading
+import time
 import uuid
 
 import msgpack
@@ -120,6 +121,15 @@ class RecordedPublisher:
             log.warning("%s: %d sample(s) dropped, the send queue was full (the recorder counts them missing)",
                         self.key, dropped)
         return seq
+
+    def put_paced(self, payload: bytes, encoding: str | None, hz: float, seconds: float) -> None:
+        """Publish `payload` at `hz` for `seconds` (a load generator for tests and benches): whatever is due each
+        tick, so a late tick catches up and the count matches the rate."""
+        started = time.monotonic()
+        while (elapsed := time.monotonic() - started) < seconds:
+            for _ in range(int(elapsed * hz) + 1 - self.seq):
+                self.put(payload, encoding=encoding)
+            time.sleep(min(0.002, 1.0 / hz))
 
     def skip(self, count: int = 1) -> None:
         """Use up `count` sequence numbers without publishing (tests: a gap the recorder must count)."""
