@@ -232,3 +232,38 @@ def test_a_small_job_runs_beside_a_big_one_on_the_express_thread(client, serve):
     assert small.text == "small" and time.monotonic() - started < 1.0, "the small job waited for the big one"
     other_big = send(client, key, tw.BusTestJob(text="second big"))  # not express: it waits its turn
     assert big().text == "big" and other_big().text == "second big"
+
+
+def test_every_service_sizes_its_jobs_deadline_by_the_work_they_ask_for():
+    """A bigger job gets a longer deadline, a small one a short one, and none the worker's hour by default."""
+    import numpy as np
+
+    from services.generator.service import job_budget as generation_budget
+    from services.planner.service import job_budget as push_budget
+    from shared.contracts.messages import (
+        DirectionFrame,
+        ObjectPose,
+        PlannerOptions,
+        PushRequest,
+        SampleRequest,
+        ValidationJob,
+    )
+    from shared.sampling.server import job_budget as sample_budget
+    from shared.validation.jobs import JOB_DEADLINE_S
+    from shared.validation.jobs import job_budget as validation_budget
+
+    box = ObjectRef(library_id="proc-box-001")
+    poses = lambda n: np.zeros((n, 25))  # noqa: E731
+    one, many = (validation_budget(ValidationJob(object=box, hand="allegro", poses=poses(n))) for n in (1, 200))
+    assert one < 60.0 < many and validation_budget(ValidationJob(object=box, hand="allegro", poses=poses(4096),
+                                                                 augment=True)) == JOB_DEADLINE_S
+    small, large = (generation_budget(GenerationJob(object=box, hand="allegro", batch_size=b, iterations=1500))
+                    for b in (8, 1024))
+    assert 60.0 < small < large < 3600.0
+    frame = DirectionFrame(object_pose=ObjectPose(position=(0.4, 0.0, 0.0)), yaw_deg=0.0)
+    assert sample_budget(SampleRequest(object=box, hand="allegro", frame=frame, k=10)) < sample_budget(
+        SampleRequest(object=box, hand="allegro", frame=frame, k=1000, critic_guidance=0.02)) < 3600.0
+    direction = PushRequest(object=box, direction_deg=0.0, options=PlannerOptions(corrections=0))
+    corrected = PushRequest(object=box, direction_deg=0.0)  # the default: up to 2 corrective pushes
+    goal = PushRequest(object=box, goal_xy=(0.5, 0.1))
+    assert push_budget(direction) < push_budget(corrected) < push_budget(goal)

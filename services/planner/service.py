@@ -44,6 +44,7 @@ from shared.contracts.messages import (
     ErrorReply,
     ExecutionCommand,
     ExecutionState,
+    Message,
     Plan,
     PushRequest,
     PushResponse,
@@ -65,6 +66,10 @@ SAMPLE_TIMEOUT_S = 60.0
 ROLLOUT_TIMEOUT_S = 120.0
 EXECUTION_TIMEOUT_S = 300.0
 MAX_QUEUED = 4  # push requests waiting behind the running one; more are answered "busy" at once
+# A request's deadline (Worker job_budget): each push it may make (the first, its corrections, or a goal
+# request's steps) gets the time a push takes at the most on a loaded 2-core machine (sampling, planning,
+# rollouts, execution: about 20 s seen under a full test suite, bench/push.py 5 s idle), with a margin.
+SECONDS_PER_PUSH = 120.0
 REALTIME_FACTOR = 1000.0  # the simulated robot runs as fast as it can (physics keeps the plan's timing)
 
 log = logging.getLogger("gd2p.planner")
@@ -267,6 +272,15 @@ class PlannerService:
         self.pipeline.close()
 
 
+def job_budget(job: Message) -> float:
+    """Seconds a PushRequest may take: SECONDS_PER_PUSH for each push it may make."""
+    if not isinstance(job, PushRequest):
+        return SECONDS_PER_PUSH
+    options = job.options
+    pushes = options.max_steps if job.goal_xy is not None else 1 + options.corrections  # a goal's pushes correct
+    return SECONDS_PER_PUSH * pushes
+
+
 def _render_logged(render) -> None:
     try:
         log.info("storyboard written: %s", render())
@@ -293,7 +307,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     try:
         bus = BusServices(session, worker_id)
         service = PlannerService(bus.services(), record_dir, watch_client=bus.watch_client)
-        Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session, max_queued=MAX_QUEUED).run()
+        Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session, max_queued=MAX_QUEUED,
+               job_budget=job_budget).run()
     finally:
         if service is not None:
             service.close()

@@ -13,7 +13,7 @@ import torch
 
 from shared.bus import BusConfig, run_worker
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
-from shared.sampling.server import SERVICE, handlers
+from shared.sampling.server import SERVICE, handlers, job_budget
 
 # Requests handled at once: they wait together in the sampler's batching thread and share network passes.
 CONCURRENT_REQUESTS = 8
@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     configure_service_logging()
     torch.set_num_threads(max(1, args.threads))
     run_worker(SERVICE, handlers(dict(args.checkpoint), dict(args.nn_index)), BusConfig.from_args(args),
-               worker_id=args.worker_id, concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim", "nearest"])
+               worker_id=args.worker_id, concurrency=CONCURRENT_REQUESTS, capabilities=["ddpm", "ddim", "nearest"],
+               job_budget=job_budget)
     return 0
 
 
