@@ -535,6 +535,13 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                             ("ingress", "declare_subscriber", keys.ROBOT_STATE_KEY, ALL)],
         "OBJECT_TRACK_KEY": [("ingress", "put", keys.OBJECT_TRACK_KEY, frozenset({"robot_bridge", "tracker"})),
                              ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
+        # Preview and confirm (issue 52): the bridge publishes held plans; only the operator confirms.
+        "ROBOT_HELD_KEY": [("ingress", "put", keys.ROBOT_HELD_KEY, frozenset({"robot_bridge"})),
+                           ("ingress", "declare_subscriber", keys.ROBOT_HELD_KEY, ALL)],
+        "ROBOT_CONFIRM_KEY": [("ingress", "query", keys.ROBOT_CONFIRM_KEY, frozenset({"operator"})),
+                              ("egress", "reply", keys.ROBOT_CONFIRM_KEY, frozenset({"operator"})),
+                              ("ingress", "declare_queryable", keys.ROBOT_CONFIRM_KEY, frozenset({"robot_bridge"})),
+                              ("egress", "query", keys.ROBOT_CONFIRM_KEY, frozenset({"robot_bridge"}))],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
         # Router watchdog beats (shared/bus/lease.py): the bridge's own (issue 53), see profile.WATCHDOG_BEATERS.
