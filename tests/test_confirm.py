@@ -303,3 +303,63 @@ def test_a_push_an_operator_confirms_runs(confirm_system):
         subscriber.undeclare()
     assert replies and replies[0].accepted
     assert response.result.success, response.result
+
+
+# ------------------------------------------------------------------------------------------ where users reach it
+def test_gd2p_confirm_lists_the_held_plan_and_releases_it(confirming_bridge, zenoh_router, capsys):
+    from cli.main import main
+
+    bridge, listener = confirming_bridge
+    key, _token = bridge.lease("planner-1.held-cli")
+    command = bridge.move(key, duration_s=0.5)
+    thread, result = _execute_in_thread(bridge, command)
+    listener.wait_held()
+    bus = ["--connect", zenoh_router]
+    assert main(["confirm", "--list", *bus]) == 0
+    listed = capsys.readouterr().out
+    assert command.id in listed and "panda+allegro" in listed
+    assert main(["confirm", "no-such-id", *bus]) == 1
+    assert "not accepted: unknown command no-such-id" in capsys.readouterr().err
+    assert main(["confirm", command.id, "--operator", "carol", *bus]) == 0
+    assert "confirmed by carol" in capsys.readouterr().out
+    thread.join(10.0)
+    assert result[0].status == "done" and "confirmed by carol" in result[0].message
+    assert main(["confirm", command.id, *bus]) == 1
+    assert "already confirmed (by carol)" in capsys.readouterr().err
+    assert main(["confirm", *bus]) == 2
+
+
+def test_gd2p_up_passes_confirm_to_the_bridge_process_only_when_asked(tmp_path):
+    from deploy.launcher import Launcher
+
+    off = Launcher(validators=0, record_dir=tmp_path, log_dir=tmp_path)
+    on = Launcher(validators=0, record_dir=tmp_path, log_dir=tmp_path, confirm_timeout_s=30.0)
+    assert off._command("robot_bridge", "robot_bridge-1")[-1] == "--no-confirm"
+    assert on._command("robot_bridge", "robot_bridge-1")[-3:] == ["--confirm", "--confirm-timeout", "30"]
+    assert "--confirm" not in on._command("planner", "planner-1")
+
+
+@pytest.mark.parametrize(("flags", "expected", "warned"), [
+    ([], None, False),  # the simulated robot: off
+    (["--confirm", "--confirm-timeout", "12"], 12.0, False),
+    (["--hardware", "xarm7+leap", "--xarm7-ip", "10.0.0.2", "--leap-port", "/dev/null"], 60.0, False),  # hardware: on
+    (["--hardware", "xarm7+leap", "--xarm7-ip", "10.0.0.2", "--leap-port", "/dev/null", "--no-confirm"], None, True),
+])
+def test_the_bridge_confirms_by_default_on_hardware_only(monkeypatch, caplog, flags, expected, warned):
+    from services.robot_bridge import __main__ as bridge_main
+
+    calls: list[dict] = []
+    monkeypatch.setattr(bridge_main, "run", lambda *args, **kwargs: calls.append(kwargs))
+    monkeypatch.setattr(bridge_main, "configure_service_logging", lambda: None)
+    with caplog.at_level("WARNING"):
+        assert bridge_main.main(flags) == 0
+    assert calls[0]["confirm_timeout_s"] == expected
+    assert ("--no-confirm on hardware" in caplog.text) == warned
+
+
+def test_a_confirm_timeout_beyond_the_planners_wait_is_refused(capsys):
+    from services.robot_bridge import __main__ as bridge_main
+
+    with pytest.raises(SystemExit):
+        bridge_main.main(["--confirm", "--confirm-timeout", "900"])
+    assert "--confirm-timeout must be in (0, 240] s" in capsys.readouterr().err
