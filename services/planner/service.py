@@ -54,6 +54,7 @@ from shared.contracts.messages import (
     ValidationJob,
     new_id,
 )
+from shared.execution.confirm import MAX_TIMEOUT_S as MAX_HOLD_S
 from shared.planning.cancellation import Cancellation, RequestCancelled
 from shared.planning.monitor import PushMonitor
 from shared.planning.outcome import Execution, PushError
@@ -68,8 +69,10 @@ EXECUTION_TIMEOUT_S = 300.0
 MAX_QUEUED = 4  # push requests waiting behind the running one; more are answered "busy" at once
 # A request's deadline (Worker job_budget): each push it may make (the first, its corrections, or a goal
 # request's steps) gets the time a push takes at the most on a loaded 2-core machine (sampling, planning,
-# rollouts, execution: about 20 s seen under a full test suite, bench/push.py 5 s idle), with a margin.
-SECONDS_PER_PUSH = 120.0
+# rollouts, execution: about 20 s seen under a full test suite, bench/push.py 5 s idle), with a margin, plus
+# two plans held for an operator's confirmation (the push and its back-out) at the bridge's longest hold.
+SECONDS_PER_PUSH = 120.0 + 2 * MAX_HOLD_S
+NOT_CONFIRMED = "not_confirmed:"  # how the bridge's refusal of a plan nobody confirmed starts (`--confirm`)
 REALTIME_FACTOR = 1000.0  # the simulated robot runs as fast as it can (physics keeps the plan's timing)
 
 log = logging.getLogger("gd2p.planner")
@@ -156,6 +159,9 @@ class BusServices:
             raise PushError("internal", f"robot bridge reply: {exc}") from exc
         if isinstance(reply, ErrorReply):
             raise PushError(reply.code if reply.code in ErrorReply.CODES else "internal", f"robot bridge: {reply.message}")
+        if isinstance(reply, ExecutionState) and reply.status == "refused" and reply.message.startswith(NOT_CONFIRMED):
+            # Held for an operator (`--confirm`) who did not confirm: nothing moved, and nobody asked for it again.
+            raise PushError("not_confirmed", f"robot bridge: the plan was not confirmed: {reply.message}")
         return Execution(final=reply, states=states)
 
     @contextlib.contextmanager
@@ -256,7 +262,8 @@ class PlannerService:
         try:
             with self.pipeline.scene(request.arm, request.hand) as scene:
                 path = record_push(self.record_dir, request, outcome, scene,
-                                   defer=lambda render: self._storyboards.submit(_render_logged, render))
+                                   defer=lambda render: self._storyboards.submit(_render_logged, render),
+                                   settings=self.pipeline.settings)
         except OSError as exc:
             log.warning("could not record push %s: %s", request.id, exc)
             return response
