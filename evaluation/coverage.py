@@ -561,7 +561,7 @@ class CoveragePool:
     def __enter__(self) -> CoveragePool:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:

@@ -14,10 +14,11 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
-from diffusers import DDIMScheduler, DDPMScheduler
+from diffusers.schedulers.scheduling_ddim import DDIMScheduler  # from their modules, as diffusers' lazy __init__
+from diffusers.schedulers.scheduling_ddpm import DDPMScheduler  # shows a type checker placeholders (same classes)
 from diffusers.training_utils import EMAModel
 from torch.nn import functional as F
 
@@ -74,13 +75,15 @@ class GradientGuidance:
         """The normalised poses [n, 25] moved one guided step along `guide`, kept inside [-1, 1]."""
         move = self.scale * guide(normalized)
         move = move * (self.max_step / move.norm(dim=1, keepdim=True).clamp_min(self.max_step))  # long moves shortened
-        return (normalized + move).clamp(-1.0, 1.0)
+        moved: torch.Tensor = (normalized + move).clamp(-1.0, 1.0)
+        return moved
 
 
 def make_noise_scheduler() -> DDPMScheduler:
     """The paper's training (and DDPM sampling) schedule."""
-    return DDPMScheduler(
+    scheduler: DDPMScheduler = DDPMScheduler(  # its __init__ is wrapped by an untyped decorator (register_to_config)
         num_train_timesteps=TRAIN_TIMESTEPS, beta_schedule=BETA_SCHEDULE, clip_sample=True, prediction_type="epsilon")
+    return scheduler
 
 
 def resolve_steps(kind: str, steps: int | None = None) -> int:
@@ -146,7 +149,7 @@ class PoseNormalizer:
         return {"low": self.low.clone(), "high": self.high.clone()}
 
     @classmethod
-    def from_dict(cls, data: dict) -> PoseNormalizer:
+    def from_dict(cls, data: dict[str, Any]) -> PoseNormalizer:
         return cls(torch.as_tensor(data["low"], dtype=torch.float32), torch.as_tensor(data["high"], dtype=torch.float32))
 
 
@@ -160,8 +163,11 @@ def denoising_loss(model: PoseDenoiser, scheduler: DDPMScheduler, poses: torch.T
     model learns the unconditional noise too (classifier-free guidance, Ho & Salimans 2022). Rows where
     `failed` [B] is true are failed pushes, learned under the object's failure embedding (an `outcome` model)."""
     noise = torch.randn(poses.shape, generator=generator, device=poses.device, dtype=poses.dtype)
-    timesteps = torch.randint(0, scheduler.config.num_train_timesteps, (poses.shape[0],), generator=generator, device=poses.device)
-    noisy = scheduler.add_noise(poses, noise, timesteps)
+    # diffusers' stubs: the config (a FrozenDict) is typed as a plain dict, though it reads by attribute too, and
+    # add_noise asks for the legacy IntTensor where any integer tensor does.
+    timesteps = torch.randint(0, scheduler.config.num_train_timesteps,  # type: ignore[attr-defined]
+                              (poses.shape[0],), generator=generator, device=poses.device)
+    noisy = scheduler.add_noise(poses, noise, timesteps)  # type: ignore[arg-type]
     drop = None
     if condition_dropout > 0:
         drop = torch.rand(poses.shape[0], generator=generator, device=poses.device) < condition_dropout
@@ -264,10 +270,14 @@ def default_noise_scale() -> float:
     return value
 
 
-def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, generator: torch.Generator,
-          noise_scale: float = 1.0) -> torch.Tensor:
+def _step(scheduler: DDPMScheduler | DDIMScheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor,
+          generator: torch.Generator, noise_scale: float = 1.0) -> torch.Tensor:
+    # diffusers' stubs: step() takes the timestep as an int (a 0-d tensor is what its own pipelines pass) and is
+    # typed to return its output or a tuple (a tuple only with return_dict=False).
+    sample: torch.Tensor
     if noise_scale == 1.0 or not isinstance(scheduler, DDPMScheduler) or int(t) == 0:
-        return scheduler.step(epsilon, t, x, generator=generator).prev_sample
+        sample = scheduler.step(epsilon, t, x, generator=generator).prev_sample  # type: ignore[arg-type, union-attr]
+        return sample
     # diffusers' DDPM step draws its noise z from `generator` and returns mean + sigma_t z; replaying the
     # generator gives the same z, so the step with sigma_t scaled is the returned sample minus (1 - scale) sigma_t z.
     state = generator.get_state()
@@ -275,10 +285,11 @@ def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, ge
     z = torch.randn(epsilon.shape, generator=torch.Generator(device=generator.device).set_state(state),
                     device=epsilon.device, dtype=epsilon.dtype)
     sigma = scheduler._get_variance(t) ** 0.5  # the step's "fixed_small" posterior standard deviation
-    return prev_sample - (1.0 - noise_scale) * sigma * z
+    sample = prev_sample - (1.0 - noise_scale) * sigma * z
+    return sample
 
 
-def _steered(scheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: list[tuple[int, int]],
+def _steered(scheduler: DDPMScheduler | DDIMScheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: list[tuple[int, int]],
              guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
     """The noise prediction whose clean pose is the predicted one moved along each request's guide."""
     alpha_bar = scheduler.alphas_cumprod[t].to(x)
