@@ -17,8 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
-from diffusers.schedulers.scheduling_ddim import DDIMScheduler  # from their modules, as diffusers' lazy __init__
-from diffusers.schedulers.scheduling_ddpm import DDPMScheduler  # shows a type checker placeholders (same classes)
+from diffusers import DDIMScheduler, DDPMScheduler
 from diffusers.training_utils import EMAModel
 from torch.nn import functional as F
 
@@ -81,9 +80,8 @@ class GradientGuidance:
 
 def make_noise_scheduler() -> DDPMScheduler:
     """The paper's training (and DDPM sampling) schedule."""
-    scheduler: DDPMScheduler = DDPMScheduler(  # its __init__ is wrapped by an untyped decorator (register_to_config)
+    return DDPMScheduler(
         num_train_timesteps=TRAIN_TIMESTEPS, beta_schedule=BETA_SCHEDULE, clip_sample=True, prediction_type="epsilon")
-    return scheduler
 
 
 def resolve_steps(kind: str, steps: int | None = None) -> int:
@@ -163,11 +161,8 @@ def denoising_loss(model: PoseDenoiser, scheduler: DDPMScheduler, poses: torch.T
     model learns the unconditional noise too (classifier-free guidance, Ho & Salimans 2022). Rows where
     `failed` [B] is true are failed pushes, learned under the object's failure embedding (an `outcome` model)."""
     noise = torch.randn(poses.shape, generator=generator, device=poses.device, dtype=poses.dtype)
-    # diffusers' stubs: the config (a FrozenDict) is typed as a plain dict, though it reads by attribute too, and
-    # add_noise asks for the legacy IntTensor where any integer tensor does.
-    timesteps = torch.randint(0, scheduler.config.num_train_timesteps,  # type: ignore[attr-defined]
-                              (poses.shape[0],), generator=generator, device=poses.device)
-    noisy = scheduler.add_noise(poses, noise, timesteps)  # type: ignore[arg-type]
+    timesteps = torch.randint(0, scheduler.config.num_train_timesteps, (poses.shape[0],), generator=generator, device=poses.device)
+    noisy = scheduler.add_noise(poses, noise, timesteps)
     drop = None
     if condition_dropout > 0:
         drop = torch.rand(poses.shape[0], generator=generator, device=poses.device) < condition_dropout
@@ -272,11 +267,9 @@ def default_noise_scale() -> float:
 
 def _step(scheduler: DDPMScheduler | DDIMScheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor,
           generator: torch.Generator, noise_scale: float = 1.0) -> torch.Tensor:
-    # diffusers' stubs: step() takes the timestep as an int (a 0-d tensor is what its own pipelines pass) and is
-    # typed to return its output or a tuple (a tuple only with return_dict=False).
-    sample: torch.Tensor
+    sample: torch.Tensor  # diffusers is not analysed (pyproject.toml): its results are Any
     if noise_scale == 1.0 or not isinstance(scheduler, DDPMScheduler) or int(t) == 0:
-        sample = scheduler.step(epsilon, t, x, generator=generator).prev_sample  # type: ignore[arg-type, union-attr]
+        sample = scheduler.step(epsilon, t, x, generator=generator).prev_sample
         return sample
     # diffusers' DDPM step draws its noise z from `generator` and returns mean + sigma_t z; replaying the
     # generator gives the same z, so the step with sigma_t scaled is the returned sample minus (1 - scale) sigma_t z.
@@ -289,8 +282,8 @@ def _step(scheduler: DDPMScheduler | DDIMScheduler, epsilon: torch.Tensor, t: to
     return sample
 
 
-def _steered(scheduler: DDPMScheduler | DDIMScheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: list[tuple[int, int]],
-             guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
+def _steered(scheduler: DDPMScheduler | DDIMScheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor,
+             bounds: list[tuple[int, int]], guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
     """The noise prediction whose clean pose is the predicted one moved along each request's guide."""
     alpha_bar = scheduler.alphas_cumprod[t].to(x)
     clean = ((x - (1 - alpha_bar).sqrt() * epsilon) / alpha_bar.sqrt()).clamp(-1.0, 1.0)  # the scheduler's clip_sample
@@ -298,7 +291,8 @@ def _steered(scheduler: DDPMScheduler | DDIMScheduler, t: int, x: torch.Tensor, 
     for (a, b), guide in zip(bounds, guides, strict=True):
         if guide is not None:
             moved[a:b] = guidance.move(clean[a:b], guide)
-    return (x - alpha_bar.sqrt() * moved) / (1 - alpha_bar).sqrt()
+    steered: torch.Tensor = (x - alpha_bar.sqrt() * moved) / (1 - alpha_bar).sqrt()
+    return steered
 
 
 def _row_bounds(counts: Iterable[int]) -> list[tuple[int, int]]:
