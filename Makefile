@@ -19,7 +19,8 @@ $(STAMP): pyproject.toml
 demo: install
 	$(BIN)/gd2p demo
 
-# Lint (ruff, whole tree) and type-check (mypy, strict on shared/, visualisation/, client/; cached in .mypy_cache) before the suite.
+# Lint (ruff, whole tree) and type-check (mypy, all product code, strict on shared/, visualisation/, client/; cached in
+# .mypy_cache) before the suite.
 test: install
 	$(BIN)/ruff check .
 	$(BIN)/mypy

@@ -24,6 +24,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 REPO_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_DIR not in sys.path:
@@ -50,7 +52,7 @@ class BenchDone(Message):
     """Reply to a no-op job."""
 
 
-HANDLERS = {BenchEcho: lambda job: BenchEcho(data=job.data), BenchNoop: lambda job: BenchDone()}
+HANDLERS: dict[type[Message], Callable[[Any], Message]] = {BenchEcho: lambda job: BenchEcho(data=job.data), BenchNoop: lambda job: BenchDone()}
 
 
 # ------------------------------------------------------------------------------------------ processes
@@ -106,7 +108,7 @@ def raw_round_trips(session, worker_id: str, n: int, size: int) -> list[float]:
         replies = list(session.get(key, payload=payload, encoding=encoding, timeout=10.0))
         reply = decode(replies[0].ok.payload.to_bytes(), str(replies[0].ok.encoding), BenchEcho)
         samples.append(time.perf_counter() - t0)
-        assert reply.data == job.data and reply.id == job.id
+        assert isinstance(reply, BenchEcho) and reply.data == job.data and reply.id == job.id
     return samples
 
 
@@ -117,7 +119,7 @@ def dispatcher_round_trips(dispatcher: Dispatcher, n: int, size: int) -> list[fl
         t0 = time.perf_counter()
         reply = dispatcher.call(job, timeout=10.0)
         samples.append(time.perf_counter() - t0)
-        assert reply.data == job.data
+        assert isinstance(reply, BenchEcho) and reply.data == job.data
     return samples
 
 

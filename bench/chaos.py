@@ -42,6 +42,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, cast
 
 REPO_DIR = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if REPO_DIR not in sys.path:
@@ -52,6 +53,11 @@ import numpy as np  # noqa: E402
 from shared.bus import BusConfig, Dispatcher, open_session, run_worker  # noqa: E402
 from shared.bus.worker import check_deadline  # noqa: E402
 from shared.contracts.messages import ErrorReply, Message  # noqa: E402
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from services.robot_bridge.service import Bridge
 
 SERVICE = "chaos"
 STOP_TARGET_S = 0.2  # --stop-target
@@ -251,7 +257,7 @@ class Motion:
 
 
 @contextlib.contextmanager
-def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, Callable[[], None]]]:
+def moving_robot(endpoint: str, lease_holder: LeaseHolder) -> Iterator[tuple[Bridge, Motion, Callable[[], None]]]:
     """A robot bridge (simulated Panda + Allegro) on `endpoint` executing a 4 s move of joint 0 under the
     lease `lease_holder` holds; yields (bridge, motion, start)."""
     from services.robot_bridge.service import Bridge
@@ -280,8 +286,13 @@ def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, 
             time.sleep(0.01)
 
     threads = [threading.Thread(target=run, daemon=True), threading.Thread(target=sample, daemon=True)]
+
+    def start() -> None:
+        for thread in threads:
+            thread.start()
+
     try:
-        yield bridge, motion, lambda: [t.start() for t in threads]
+        yield bridge, motion, start
         threads[0].join(timeout=30.0)
     finally:
         sampling.set()
@@ -294,7 +305,7 @@ def moving_robot(endpoint: str, lease_holder) -> Iterator[tuple[object, Motion, 
 @dataclass
 class LeaseHolder:
     key: str
-    token: object
+    token: zenoh.LivelinessToken
 
 
 @contextlib.contextmanager
@@ -376,7 +387,7 @@ def services_running(endpoint: str, *services: str, record_dir: str | None = Non
     """Real service processes (`python -m services.<name>`) on `endpoint`, registered before the block runs."""
     from shared.bus import live_workers
 
-    procs = []
+    procs: list[subprocess.Popen] = []
     for name in services:
         extra = ["--record-dir", record_dir] if name == "planner" and record_dir else []
         procs.append(subprocess.Popen([sys.executable, "-m", f"services.{name}", "--mode", "client", "--connect", endpoint,
@@ -425,7 +436,7 @@ def client_gone(quick: bool) -> Figure:
     from shared.bus.keys import ROBOT_STATE_KEY
     from shared.bus.lease import lease_key
     from shared.contracts.codec import decode
-    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
+    from shared.contracts.messages import ExecutionState, ObjectRef, PlannerOptions, PushRequest
 
     tries = 4 if quick else 20
     rng = np.random.default_rng(53)
@@ -434,9 +445,13 @@ def client_gone(quick: bool) -> Figure:
                                                                    record_dir=os.path.join("/tmp", "chaos-pushes")):
         with client(endpoint) as observer:
             moving: list[float] = []
-            subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, lambda sample: (
-                decode(sample.payload.to_bytes(), str(sample.encoding)).status == "executing"
-                and moving.append(time.monotonic())))
+
+            def on_state(sample: zenoh.Sample) -> None:
+                state = cast(ExecutionState, decode(sample.payload.to_bytes(), str(sample.encoding)))  # the state key's
+                if state.status == "executing":  # type
+                    moving.append(time.monotonic())
+
+            subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, on_state)
             planner_key = _planner_key(observer)
             for i in range(tries):
                 lease = lease_key("client", f"chaos-gone-{i}")
@@ -710,6 +725,7 @@ def forged_beats(quick: bool) -> Figure:
     with router_process() as (endpoint, router), commander(endpoint) as holder, client(endpoint) as forger_session:
         with moving_robot(endpoint, holder) as (bridge, motion, start):
             watchdog = bridge.watchdog
+            assert watchdog is not None  # moving_robot gives the bridge a probe session
             forger = BeatForger(forger_session, watchdog.key)
             start()
             time.sleep(1.0)  # the motion runs under the forgeries

@@ -96,7 +96,7 @@ def bench_mesh_load(closed: bool) -> dict:
         path = Path(work) / "scan.ply"
         mesh.export(path)
         cache = Path(work) / "cache"
-        timings = {}
+        timings: dict[str, object] = {}
         for phase in ("cold", "warm"):
             start = time.perf_counter()
             obj = load_object(path, cache_dir=cache)
@@ -112,7 +112,7 @@ def bench_fk(repeats: int = 50) -> dict:
         from shared.robots.hands import load_hand
     except ImportError as exc:
         return {"skipped": f"shared.robots.hands not importable: {exc}"}
-    results = {}
+    results: dict[str, dict[str, object]] = {}
     for name in ("allegro", "leap"):
         try:
             hand = load_hand(name)

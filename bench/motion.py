@@ -105,6 +105,7 @@ def bench_planning(repeats: int) -> dict:
             push.append(time.perf_counter() - started)
             stats = planner.stats
             rrt.append(stats.rrt_calls_s[0])  # home -> above the standoff, simplification included
+        assert stats is not None  # repeats >= 1
         out[f"yaw_{yaw:+.0f}"] = {
             "rrtconnect_median_s": round(statistics.median(rrt), 3),
             "plan_push_median_s": round(statistics.median(push), 3),

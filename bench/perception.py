@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -163,7 +163,8 @@ def method_extrude_vhacd(scene: Scene) -> Candidate:
         with _quiet_stdout():
             pybullet.vhacd(source, result, log, resolution=VHACD_RESOLUTION)
         scene.extra_seconds = time.perf_counter() - started
-        pieces = list(trimesh.load(result, force="mesh", process=False).split(only_watertight=False))
+        loaded = cast(trimesh.Trimesh, trimesh.load(result, force="mesh", process=False))  # force="mesh": a mesh
+        pieces = list(loaded.split(only_watertight=False))
     hulls = [piece.convex_hull for piece in pieces]
     mesh = hulls[0] if len(hulls) == 1 else trimesh.boolean.union(hulls, engine="manifold")
     return Candidate(mesh, len(hulls))
@@ -214,7 +215,7 @@ def method_alpha_wrap(scene: Scene, alpha: float = 0.015, offset: float = 0.002)
     with tempfile.TemporaryDirectory() as work:
         path = Path(work) / "wrap.off"
         wrap.write_to_file(str(path))
-        return Candidate(trimesh.load(str(path), file_type="off", process=True, force="mesh"))
+        return Candidate(cast(trimesh.Trimesh, trimesh.load(str(path), file_type="off", process=True, force="mesh")))
 
 
 METHODS: dict[str, Callable[[Scene], Candidate]] = {
@@ -245,7 +246,7 @@ def volume_iou(truth: trimesh.Trimesh, reconstruction: trimesh.Trimesh) -> float
     resolution = int(math.ceil(float(np.max(upper - lower)) / IOU_PITCH_M)) + 1
     axes = node_axes(lower, lower + (resolution - 1) * IOU_PITCH_M, resolution)
     a, b = inside_mask(truth, axes), inside_mask(reconstruction, axes)
-    return float(np.count_nonzero(a & b) / max(np.count_nonzero(a | b), 1))
+    return float(np.count_nonzero(a & b) / max(int(np.count_nonzero(a | b)), 1))
 
 
 def surface_distances(truth: trimesh.Trimesh, reconstruction: trimesh.Trimesh) -> tuple[float, float]:

@@ -252,7 +252,7 @@ def frame_check(truth_d: np.ndarray, reconstruction_d: np.ndarray, pitch: float 
     x, y = np.meshgrid(np.arange(low[0], high[0], pitch), np.arange(low[1], high[1], pitch), indexing="ij")
     grid = np.column_stack([x.ravel(), y.ravel()])
     inside = [outline.contains_points(grid) for outline in outlines]
-    iou = float(np.count_nonzero(inside[0] & inside[1]) / max(np.count_nonzero(inside[0] | inside[1]), 1))
+    iou = float(np.count_nonzero(inside[0] & inside[1]) / max(int(np.count_nonzero(inside[0] | inside[1])), 1))
     offset = float(np.linalg.norm(grid[inside[0]].mean(axis=0) - grid[inside[1]].mean(axis=0))) if all(i.any() for i in inside) else math.inf
     bottom = float(reconstruction_d[:, 2].min())
     ok = bool(iou >= FOOTPRINT_MIN_IOU and offset <= CENTRE_MAX_OFFSET_M and abs(bottom) <= 0.002)
@@ -388,7 +388,7 @@ def time_capture_to_mesh(objects: Sequence[str] = EVALUATION_OBJECTS, repeats: i
     threads = torch.get_num_threads()
     os.sched_setaffinity(0, {min(affinity)})
     torch.set_num_threads(1)
-    per_object = []
+    per_object: list[dict[str, Any]] = []
     try:
         with c_stdout_to_stderr():
             for object_id in objects:

@@ -27,6 +27,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -66,7 +67,7 @@ def candidate_rollouts(object_id: str, direction_deg: float, n_poses: int, max_p
     T_world_hand, q_hands = pose25_to_matrix(poses_d_to_world(poses_d, T_world_D))
     l_dir = ranking.direction_costs(hand, poses_d)
     frame = DirectionFrame(object_pose=object_pose(T_world_O), yaw_deg=direction_deg)
-    rows = []
+    rows: list[dict[str, Any]] = []
     with RobotScene("panda", "allegro") as scene:
         scene.add_object(write_object_urdf(obj), T_world_O)
         planner = MotionPlanner(scene)
@@ -84,6 +85,7 @@ def candidate_rollouts(object_id: str, direction_deg: float, n_poses: int, max_p
                                 physics_draws=rank_draws)
             ranked = rollout(job, DEFAULT_PARAMS)
             truth = rollout(job.model_copy(update={"seed": TRUTH_SEED, "physics_draws": truth_worlds}), DEFAULT_PARAMS)
+            assert truth.draws is not None  # physics_draws > 0
             nominal = ranking.score_rollout(ranked.model_copy(update={"draws": None}), float(l_dir[index]))
             robust = ranking.score_rollout(ranked, float(l_dir[index]))
             rows.append({"l_goal": nominal.l_goal, "l_goal_robust": robust.l_goal, "l_coll": nominal.l_coll,

@@ -103,6 +103,7 @@ def measure_critic_ms(sampler: PoseSampler, hand: str, repeats: int = 10) -> dic
     obj = load_object(LATENCY_OBJECT)
     frame = default_frame(obj, 30.0)
     result = sampler.sample(obj, frame, k=K, sampler="ddim")
+    assert result.bps is not None and result.points_d is not None  # a mesh object: both encoded
     timings = {}
     for name, contact_dim in (("with_contact_features", CONTACT_FEATURES), ("bps_and_pose_only", 0)):
         critic = SuccessCritic(CriticConfig(bps_dim=sampler.bps.n, contact_dim=contact_dim)).eval()
@@ -174,7 +175,7 @@ def measure_quality(sampler: PoseSampler, count: int, poses_per_object: int, nn)
 
     objects = list_object_ids("test")[:count]
     methods = {"ddpm": ("ddpm", None), "ddim": ("ddim", 10)}
-    totals = {name: {"validated": 0, "poses": 0, "objects_with_success": 0} for name in [*methods, *(["nn"] if nn else [])]}
+    totals: dict[str, dict[str, float]] = {name: {"validated": 0, "poses": 0, "objects_with_success": 0} for name in [*methods, *(["nn"] if nn else [])]}
     for object_id in objects:
         obj = load_object(object_id)
         frame = default_frame(obj)

@@ -31,6 +31,7 @@ import os
 import platform
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -211,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = [chosen] + [parse_solver(s) for s in args.candidates.split(",") if s and parse_solver(s) != chosen]
     reference, ref_wall, _ = run_all(episodes, REFERENCE, 1)
     ref_success = _successes(reference)
-    agreement = {"reference": {"setting": f"{REFERENCE[0]}x{REFERENCE[1]}", "ms_per_push": 1000 * ref_wall / total,
+    agreement: dict[str, Any] = {"reference": {"setting": f"{REFERENCE[0]}x{REFERENCE[1]}", "ms_per_push": 1000 * ref_wall / total,
                                "cpu_ms_per_push": _cpu_ms_per_push(reference), "success_rate": float(ref_success.mean())}}
     shifted = [(o, h, p + np.r_[0.0, 1e-4, np.zeros(23)]) for o, h, p in episodes]
     agreement["noise_floor"] = float(np.mean(_successes(run_all(shifted, REFERENCE, 1)[0]) == ref_success))

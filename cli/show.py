@@ -112,6 +112,7 @@ def show_scene(obj, T_D_O: np.ndarray, hand, poses_d: np.ndarray, labels: list[s
         OBJECT_RGBA,
         WORLD_X_RGBA,
         WORLD_Y_RGBA,
+        Item,
         LegendEntry,
         candidate_items,
         hand_item,
@@ -120,7 +121,7 @@ def show_scene(obj, T_D_O: np.ndarray, hand, poses_d: np.ndarray, labels: list[s
     )
 
     T_world_D = direction_frame(np.zeros(3), direction_deg)
-    items = [mesh_item(obj.id, obj.mesh, T_world_D @ T_D_O, OBJECT_RGBA)]
+    items: list[Item] = [mesh_item(obj.id, obj.mesh, T_world_D @ T_D_O, OBJECT_RGBA)]
     legend = [LegendEntry(obj.id, OBJECT_RGBA)]
     alpha = 1.0 if len(poses_d) <= 1 else MULTI_POSE_ALPHA
     for number, (label, pose_d) in enumerate(zip(labels, poses_d, strict=False)):

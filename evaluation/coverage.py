@@ -40,13 +40,14 @@ import dataclasses
 import hashlib
 import math
 import multiprocessing
+import multiprocessing.pool
 import os
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 from tqdm import tqdm
@@ -411,9 +412,10 @@ def coverage_world(obj: Any, settings: CoverageSettings, object_id: str) -> Any:
     """The object's execution world (`sample_world`), drawn around the validator's nominal physics from
     (settings seed, object id): the same for every source measured, so sources pair up object by object."""
     from shared.world.sim.params import PhysicsParams
-    from shared.world.sim.world import half_extents, sample_world
+    from shared.world.sim.world import WorldLevel, half_extents, sample_world
 
-    return sample_world(settings.world, object_seed(settings.seed, object_id, ":world"), half_extents(obj.mesh.vertices),
+    level = cast(WorldLevel, settings.world)  # one of COVERAGE_WORLDS: __post_init__ checks it
+    return sample_world(level, object_seed(settings.seed, object_id, ":world"), half_extents(obj.mesh.vertices),
                         base=PhysicsParams(), cameras=settings.cameras)
 
 
@@ -556,12 +558,12 @@ class CoveragePool:
 
     def __init__(self, workers: int = 2):
         self.workers = max(1, int(workers))
-        self._pool = None
+        self._pool: multiprocessing.pool.Pool | None = None
 
     def __enter__(self) -> CoveragePool:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:

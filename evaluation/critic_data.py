@@ -21,17 +21,20 @@ import hashlib
 import multiprocessing as mp
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
 
 from evaluation.store import ResultStore
 
+if TYPE_CHECKING:
+    from shared.sampling.server import SamplerService
+
 K_SAMPLES = 200  # as a push request (PlannerOptions.k)
 PUSH_DISTANCE_M = 0.20
 
-_sampler = None  # each worker's SamplerService
+_sampler: SamplerService | None = None  # each worker's
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,7 @@ def label_object(unit: CriticObject) -> dict[str, Any]:
     from shared.sampling.critic_train import critic_frame
     from shared.validation.jobs import validate
 
+    assert _sampler is not None  # set by _init_worker
     frame = critic_frame(unit.object_id, unit.yaw_deg)
     ref = ObjectRef(library_id=unit.object_id)
     reply = _sampler.handle(SampleRequest(object=ref, hand=unit.hand, frame=frame, k=K_SAMPLES, seed=unit.seed,

@@ -128,6 +128,7 @@ def run_one(run: Run) -> dict[str, Any]:
     from shared.planning.outcome import PushError
 
     system = protocol._system
+    assert system is not None  # this worker's, set by the protocol's initializer
     system.robot.contacts.reset()
     started = time.perf_counter()
     world = run.execution_world()

@@ -93,7 +93,7 @@ def write_experiment(directory: str | os.PathLike, title: str, body_markdown: st
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     total = wall_time_s + _earlier_wall_time(directory)
-    meta = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
+    meta: dict[str, Any] = {"command": command_line(), "wall_time_s": round(total, 1), "last_invocation_s": round(wall_time_s, 1),
             "machine": machine(), "code": CODE_AT_START, "quick": quick,
             "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
     if records:

@@ -50,7 +50,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -61,6 +61,7 @@ from evaluation.coverage import (
     CoverageSettings,
     DiffusionSource,
     NearestNeighborSource,
+    PoseSource,
     pose_trials,
     summarize,
 )
@@ -68,6 +69,9 @@ from evaluation.report import CODE_AT_START, markdown_table, write_experiment
 from evaluation.sampler_quality import index_fingerprint
 from evaluation.stats import Interval, difference_interval, success_interval
 from evaluation.store import ResultStore
+
+if TYPE_CHECKING:
+    from shared.world.objects import ObjectModel
 
 NAME = "sampler-diagnosis"
 TITLE = "Sampler diagnosis: training objects, shuffled BPS, BPS paths"
@@ -283,7 +287,7 @@ def bps_paths(object_id: str, sampler: Any, index: Any, training_bps: Any = None
     row = index.frame_row(frame)
     features = np.asarray(index.frame_features, dtype=np.float64)
     stored = features[row]
-    obj = object_input(ObjectRef(library_id=object_id))
+    obj = cast("ObjectModel", object_input(ObjectRef(library_id=object_id)))  # a library id loads as a model
 
     def encode(direction_frame: Any) -> np.ndarray:
         encoded, _, _ = sampler.encode(obj, direction_frame)
@@ -410,7 +414,7 @@ def run(out: Path, quick: bool = False, workers: int = 2) -> Path:
     finally:
         service.close()
 
-    sources = {"diffusion": DiffusionSource(str(checkpoint), "ddpm"), "stored": StoredPosesSource(str(nn_index)),
+    sources: dict[str, PoseSource] = {"diffusion": DiffusionSource(str(checkpoint), "ddpm"), "stored": StoredPosesSource(str(nn_index)),
                "shuffled": ShuffledBpsSource(str(checkpoint), "ddpm", donors=tuple(sorted(donors.items())))}
     results: dict[str, list[dict[str, Any]]] = {}
     with CoveragePool(workers) as pool:

@@ -147,19 +147,18 @@ def methods(checkpoint: Path, nn_index: Path, keys: Sequence[str] = DEFAULT_METH
     unknown = [k for k in keys if k not in METHOD_KEYS]
     if unknown or not keys:
         raise CoverageError(f"unknown sampler-quality method(s) {unknown or '(none)'}; known: {', '.join(METHOD_KEYS)}")
-    every: dict[str, PoseSource] = {
-        "ddpm100": DiffusionSource(str(checkpoint), "ddpm", noise_scale=noise_scale),
-        "ddim10": DiffusionSource(str(checkpoint), "ddim", noise_scale=noise_scale),
-        "nn": NearestNeighborSource(str(nn_index)),
-        "nn-fill": NearestNeighborSource(str(nn_index), fill=True),
-    }
+    ddpm100 = DiffusionSource(str(checkpoint), "ddpm", noise_scale=noise_scale)
+    ddim10 = DiffusionSource(str(checkpoint), "ddim", noise_scale=noise_scale)
+    nn = NearestNeighborSource(str(nn_index))
+    nn_fill = NearestNeighborSource(str(nn_index), fill=True)
+    every: dict[str, PoseSource] = {"ddpm100": ddpm100, "ddim10": ddim10, "nn": nn, "nn-fill": nn_fill}
     if any(k in CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS for k in keys):
         if critic is None or not Path(critic).is_file():
             raise CoverageError(f"the methods {', '.join(CRITIC_METHOD_KEYS + GUIDED_METHOD_KEYS)} need a success critic "
                                 f"for {checkpoint.name}; "
                                 f"none at {critic} (set $GD2P_CRITIC_CHECKPOINT_<HAND>)")
-        every["ddpm100-critic"] = CriticOrderedSource(every["ddpm100"], str(checkpoint), str(critic))
-        every["nn-fill-critic"] = CriticOrderedSource(every["nn-fill"], str(checkpoint), str(critic))
+        every["ddpm100-critic"] = CriticOrderedSource(ddpm100, str(checkpoint), str(critic))
+        every["nn-fill-critic"] = CriticOrderedSource(nn_fill, str(checkpoint), str(critic))
     if any(k in GUIDED_METHOD_KEYS for k in keys):
         if guidance is None:
             raise CoverageError(f"the methods {', '.join(GUIDED_METHOD_KEYS)} need the critic guidance's settings "
@@ -182,7 +181,7 @@ def settings_of(object_ids: Sequence[str], checkpoint: Path, nn_index: Path, cov
     """
     from shared.sampling.checkpoint import checkpoint_id
 
-    settings = {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
+    settings: dict[str, Any] = {"objects": list(object_ids), "checkpoint_id": checkpoint_id(checkpoint), "nn_index": index_fingerprint(nn_index),
                 "methods": list(DEFAULT_METHOD_KEYS), "coverage": coverage.to_dict()}
     if noise_scale != 1.0:  # pinned only when set, so stores made before the option existed still resume
         settings["noise_scale"] = float(noise_scale)
@@ -437,7 +436,9 @@ def plot_validated_fractions(results: dict[str, list[dict[str, Any]]], sources: 
     figure, axis = plt.subplots(figsize=(7, 4), dpi=110)
     bins = np.linspace(0.0, 1.0, 21)
     for key, records in results.items():
-        axis.hist([r["validated_fraction"] for r in records], bins=bins, histtype="step", linewidth=1.6,
+        # matplotlib's stubs take bins as a Sequence[float], not an array (the ignore below)
+        axis.hist([r["validated_fraction"] for r in records], bins=bins,  # type: ignore[arg-type]
+                  histtype="step", linewidth=1.6,
                   label=sources[key].label())
     axis.set_xlabel("validated fraction of the object's first 50 poses")
     axis.set_ylabel("objects")

@@ -58,6 +58,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import asdict, dataclass, field
 from importlib import metadata
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -68,6 +69,7 @@ from shared.contracts.messages import (
     ErrorReply,
     GenerationJob,
     GenerationResult,
+    Message,
     ObjectRef,
     PhysicsSettings,
     ValidationJob,
@@ -112,7 +114,7 @@ class BuildSettings:
     max_rounds: int = 1  # ... up to this many rounds
     placement: str = "random"  # "random": a random yaw and a drawn resting pose per round; "default": yaw 0, default pose
     push_distance_m: float = 0.20
-    physics: dict = field(default_factory=lambda: default_physics().model_dump())
+    physics: dict[str, Any] = field(default_factory=lambda: default_physics().model_dump())
 
     def __post_init__(self) -> None:
         if self.per_object < 1:
@@ -126,7 +128,7 @@ class BuildSettings:
         if self.placement not in PLACEMENTS:
             raise BuildError(f"--placement must be one of {', '.join(PLACEMENTS)}, got {self.placement!r}")
 
-    def parameters(self) -> dict:
+    def parameters(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -143,7 +145,7 @@ def derived_seed(seed: int, object_id: str, round_index: int, purpose: str) -> i
     return int.from_bytes(digest[:8], "little") & (2**63 - 1)
 
 
-def physics_defaults() -> dict:
+def physics_defaults() -> dict[str, Any]:
     """Every push-simulation setting of this code (the validator's defaults for what a job does not send)."""
     return dataclasses.asdict(PhysicsParams())
 
@@ -296,7 +298,7 @@ class BuildCounters:
         compute_h = (self.generation_s + self.validation_s) / 3600.0
         return self.successes / compute_h if compute_h else 0.0
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         figures = {k: (round(v, 3) if isinstance(v, float) else v) for k, v in asdict(self).items() if k != "started"}
         rates = {k: round(v, 4) for k, v in self.rates().items()}
         return {**figures, "validated_pushes": self.validated_pushes, "successes": self.successes,
@@ -352,7 +354,7 @@ class DataEngine:
         requested = list(object_ids)
         todo = deque(oid for oid in requested if oid not in done)
         self.counters.objects_skipped = len(requested) - len(todo)
-        in_flight: dict[Future, tuple[_ObjectWork, str]] = {}
+        in_flight: dict[Future[Message], tuple[_ObjectWork, str]] = {}
         while todo or in_flight:
             while todo and sum(stage == "generate" for _, stage in in_flight.values()) < self.generation_in_flight:
                 work = self._start(todo.popleft())
@@ -383,7 +385,7 @@ class DataEngine:
     def _placement(self, work: _ObjectWork) -> Placement:
         return choose_placement(self.settings, work.object_id, work.round, RestingPoses.of(work.model))
 
-    def _advance(self, work: _ObjectWork, stage: str, future: Future) -> tuple[Future, str] | None:
+    def _advance(self, work: _ObjectWork, stage: str, future: Future[Message]) -> tuple[Future[Message], str] | None:
         """Handle a reply; returns the object's next job (future, stage) or None when it is finished."""
         try:
             reply = future.result()
@@ -419,7 +421,7 @@ class DataEngine:
         wanted = work.round + 1 < s.min_rounds or work.stored < s.min_poses
         return wanted and work.round + 1 < s.max_rounds
 
-    def _submit_generation(self, work: _ObjectWork) -> Future:
+    def _submit_generation(self, work: _ObjectWork) -> Future[Message]:
         s, placement = self.settings, work.placement
         job = GenerationJob(object=ObjectRef(library_id=work.object_id),
                             hand=s.hand, batch_size=s.per_object, iterations=s.iterations,
@@ -427,7 +429,7 @@ class DataEngine:
                             pose_index=placement.pose_index, yaw_rad=placement.yaw_rad)
         return self.generators.submit(job)
 
-    def _submit_validation(self, work: _ObjectWork) -> Future:
+    def _submit_validation(self, work: _ObjectWork) -> Future[Message]:
         s, placement = self.settings, work.placement
         assert work.generation is not None
         job = ValidationJob(object=ObjectRef(library_id=work.object_id),
@@ -505,7 +507,7 @@ def empty_rows() -> pa.Table:
 def pose_rows(object_id: str, round_index: int, placement: Placement, generation: GenerationResult,
               validation: ValidationResult, settings: BuildSettings, version: str) -> pa.Table:
     """Every raw candidate and every augmented copy of one round, with its outcome, as store rows."""
-    columns: dict[str, list] = {name: [] for name in SCHEMA.names}
+    columns: dict[str, list[Any]] = {name: [] for name in SCHEMA.names}
     _add_raw_rows(columns, f"{object_id}/r{round_index}", generation, validation)
     if validation.augmented is not None:
         _add_augmented_rows(columns, f"{object_id}/r{round_index}", validation)
@@ -527,7 +529,7 @@ def pose_rows(object_id: str, round_index: int, placement: Placement, generation
     return pa.table(columns, schema=SCHEMA)
 
 
-def _add_raw_rows(columns: dict[str, list], prefix: str, generation: GenerationResult,
+def _add_raw_rows(columns: dict[str, list[Any]], prefix: str, generation: GenerationResult,
                   validation: ValidationResult) -> None:
     """The generator's candidates in order, with their energies and push outcomes."""
     poses = generation.poses.to_numpy()
@@ -544,7 +546,7 @@ def _add_raw_rows(columns: dict[str, list], prefix: str, generation: GenerationR
         columns["palm_normal_x"].append(float(palm_x[i]))
 
 
-def _add_augmented_rows(columns: dict[str, list], prefix: str, validation: ValidationResult) -> None:
+def _add_augmented_rows(columns: dict[str, list[Any]], prefix: str, validation: ValidationResult) -> None:
     """The Halton copies (of successful candidates only) in order, numbered per parent; no generator figures."""
     augmented = validation.augmented
     assert augmented is not None
@@ -559,7 +561,7 @@ def _add_augmented_rows(columns: dict[str, list], prefix: str, validation: Valid
             columns[name].append(None)
 
 
-def _add_row(columns: dict[str, list], stage: str, pose: np.ndarray, pose_id: str, parent: str | None,
+def _add_row(columns: dict[str, list[Any]], stage: str, pose: np.ndarray, pose_id: str, parent: str | None,
              candidate: int, outcome: dict[str, np.generic]) -> None:
     columns["stage"].append(stage)
     columns["pose"].append(pose.astype(np.float32).tolist())
@@ -571,7 +573,7 @@ def _add_row(columns: dict[str, list], stage: str, pose: np.ndarray, pose_id: st
 
 
 def run_record(command: Sequence[str], counters: BuildCounters, workers: dict[str, int],
-               failures: dict[str, str], settings: BuildSettings) -> dict:
+               failures: dict[str, str], settings: BuildSettings) -> dict[str, Any]:
     """The manifest's record of one build run: command line, commit, physics, wall time, machine and figures."""
     return {"command": list(command), "finished_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "machine": {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version()},

@@ -125,7 +125,7 @@ def matrix_to_r6(rotation: A) -> A:
     return _concat([rotation[..., :, 0], rotation[..., :, 1]])
 
 
-def quat_xyzw_to_matrix(quat: np.ndarray) -> np.ndarray:
+def quat_xyzw_to_matrix(quat: ArrayLike) -> np.ndarray:
     """[..., 4] xyzw quaternion -> [..., 3, 3] (normalised by scipy)."""
     quat = np.asarray(quat, dtype=np.float64)
     _check_last_dim(quat, 4, "quaternion")

@@ -264,14 +264,13 @@ class StateListener:
 
 def test_a_push_nobody_confirms_answers_not_confirmed_once_and_the_robot_never_moves(confirm_system):
     from client.push_client import PushFailed, push
-    from shared.contracts.messages import ObjectRef, PushRequest
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
     cfg, session = confirm_system
     held, states = HeldListener(session), StateListener(session)
     try:
         with pytest.raises(PushFailed) as failed:
-            push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed",
-                             choice="random"), cfg, timeout_s=240.0)
+            push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, options=PlannerOptions(method="fixed", choice="random")), cfg, timeout_s=240.0)
         time.sleep(0.3)
     finally:
         held.close()
@@ -284,7 +283,7 @@ def test_a_push_nobody_confirms_answers_not_confirmed_once_and_the_robot_never_m
 
 def test_a_push_an_operator_confirms_runs(confirm_system):
     from client.push_client import push
-    from shared.contracts.messages import ObjectRef, PushRequest
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
     cfg, session = confirm_system
     replies = []
@@ -297,8 +296,7 @@ def test_a_push_an_operator_confirms_runs(confirm_system):
 
     subscriber = session.declare_subscriber(ROBOT_HELD_KEY, operator)
     try:
-        response = push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, method="fixed",
-                                    choice="random"), cfg, timeout_s=240.0)
+        response = push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0, options=PlannerOptions(method="fixed", choice="random")), cfg, timeout_s=240.0)
     finally:
         subscriber.undeclare()
     assert replies and replies[0].accepted

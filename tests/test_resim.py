@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from shared.bus import BusConfig, live_workers, open_session
-from shared.contracts.messages import ObjectRef, Plan, PushRequest
+from shared.contracts.messages import ObjectRef, Plan, PlannerOptions, PushRequest
 from shared.planning.decision import METADATA_NAME, compare_plans
 from visualisation.recording import McapWriter, read_metadata, read_records
 
@@ -44,7 +44,7 @@ def recorded_push(module_router, tmp_path_factory):
             while not all(live_workers(session).get(s) for s in ("planner", "validator", "robot_bridge")):
                 assert time.monotonic() < deadline, "workers did not register"
                 time.sleep(0.2)
-        response = push(PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, method="fixed", seed=7),
+        response = push(PushRequest(object=ObjectRef(library_id=BOX), direction_deg=90.0, seed=7, options=PlannerOptions(method="fixed")),
                         cfg, timeout_s=240.0)
     finally:
         stop.set()

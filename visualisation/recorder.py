@@ -137,7 +137,7 @@ class Recovered:
     note: str  # why reading stopped, or what was done
 
 
-def recover_unfinished(record_dir: str | os.PathLike, *, chunk_bytes: int = 1 << 20) -> list[Recovered]:
+def recover_unfinished(record_dir: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20) -> list[Recovered]:
     """Finalise every unfinished recording in `record_dir` (see the module docstring); what was done, per file.
 
     `<name>.part` files no live writer holds become `<name>.mcap` (or `<name>-recovered.mcap` if that
@@ -229,7 +229,7 @@ def _streams(data: Mapping[str, str]) -> dict[tuple[str, str], StreamCount]:
     return {parse_stream_name(name): StreamCount(**json.loads(value)) for name, value in data.items()}
 
 
-def read_counts(path: str | os.PathLike) -> RecordedCounts:
+def read_counts(path: str | os.PathLike[str]) -> RecordedCounts:
     """The counts and run facts a recorder wrote into `path`'s metadata (RecordingError if unreadable)."""
     metadata = read_metadata(str(path))
     total = metadata.get(METADATA_TOTAL)
@@ -248,7 +248,7 @@ class RotatingRecorder:
     (`recover_unfinished`; the result is in `self.recovered`) unless `recover=False`.
     """
 
-    def __init__(self, record_dir: str | os.PathLike, max_file_bytes: int = int(DEFAULT_MAX_FILE_MB * MIB), *,
+    def __init__(self, record_dir: str | os.PathLike[str], max_file_bytes: int = int(DEFAULT_MAX_FILE_MB * MIB), *,
                  started_at: datetime | None = None, recover: bool = True, run_info: Mapping[str, str] | None = None):
         if max_file_bytes <= 0:
             raise RecorderError(f"max file size must be positive, got {max_file_bytes} bytes")

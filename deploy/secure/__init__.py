@@ -12,6 +12,7 @@ containers read): it goes to `ca_dir`, by default the sibling `<directory>-ca/` 
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,7 +43,7 @@ class SecureProfile:
         return path
 
 
-def prepare(directory: str | Path, listen: list[str], router_hosts: tuple[str, ...] = DEFAULT_ROUTER_HOSTS,
+def prepare(directory: str | os.PathLike[str], listen: list[str], router_hosts: tuple[str, ...] = DEFAULT_ROUTER_HOSTS,
             connect: list[str] | None = None, mounted_at: str | None = None,
             ca_dir: str | Path | None = None) -> SecureProfile:
     """Certificates (generated only if the directory has none yet; an identity added since is issued

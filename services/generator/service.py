@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -130,6 +131,6 @@ def to_result(job: GenerationJob, output: GenerationOutput) -> GenerationResult:
     )
 
 
-def handlers() -> dict[type[Message], Callable[[Message], Message]]:
+def handlers() -> dict[type[Message], Callable[[Any], Message]]:  # each handler takes its key's type
     """Message type -> handler, served by every generator worker."""
     return {GenerationJob: run_job}

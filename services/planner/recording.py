@@ -39,7 +39,7 @@ from shared.world.push_outcome import pose_matrix
 from shared.world.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
 from shared.world.sim.scene import transform_to_pos_quat
 from visualisation.recording import McapWriter
-from visualisation.render import VIEWS, UrdfItem, compose_png, mesh_item, render_views
+from visualisation.render import VIEWS, Item, UrdfItem, compose_png, mesh_item, render_views
 
 WORLD_FRAME = "world"
 OBJECT_FRAME = "object"
@@ -199,7 +199,7 @@ def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, pa
     def render() -> Path:
         rendered = []
         for label, q, T_world_O in frames:
-            items = [UrdfItem("robot", robot_urdf, T_world_base, dict(zip(joint_names, map(float, q), strict=False))),
+            items: list[Item] = [UrdfItem("robot", robot_urdf, T_world_base, dict(zip(joint_names, map(float, q), strict=False))),
                      mesh_item("object", mesh, T_world_O), *obstacle_items]
             view = dataclasses.replace(VIEWS["iso"], label=label)
             rendered += render_views(items, [view], IMAGE_SIZE, heading, supersample=STORYBOARD_SUPERSAMPLE,

@@ -76,7 +76,9 @@ from shared.contracts.messages import ErrorReply, HealthQuery, Message, WorkerSt
 
 log = logging.getLogger("gd2p.bus.worker")
 
-Handler = Callable[[Message], Message]
+# A handler takes the job type it is registered under (a Message subclass), hence Any: Callable is contravariant
+# in its argument, and a mapping cannot tie each key's type to its value's argument.
+Handler = Callable[[Any], Message]
 # Error codes that describe the request, not a passing condition: safe to replay from the cache.
 _CACHEABLE_ERRORS = frozenset({"bad_request", "not_implemented", "infeasible"})
 # A job's budget when neither the service nor the caller says less: the longest legitimate job of the

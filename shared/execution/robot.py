@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from shared.contracts.messages import ObjectPose
+from shared.contracts.messages import ObjectPose, Plan
 
 if TYPE_CHECKING:  # limits.py builds its SafetyRefusal on this module's errors
     from shared.execution.limits import DeviceLimits
@@ -84,7 +84,7 @@ class JointTrajectory:
             raise TrajectoryError("times_s must start at >= 0 and increase strictly")
 
     @classmethod
-    def from_plan(cls, plan, realtime_factor: float = 1.0) -> JointTrajectory:
+    def from_plan(cls, plan: Plan, realtime_factor: float = 1.0) -> JointTrajectory:
         """All joints of a `shared.contracts.messages.Plan`; time is divided by `realtime_factor` (2 = twice as fast)."""
         if realtime_factor <= 0:
             raise TrajectoryError(f"realtime_factor must be > 0, got {realtime_factor}")
@@ -96,7 +96,7 @@ class JointTrajectory:
 
     @property
     def final(self) -> np.ndarray:
-        return self.positions[-1]
+        return np.asarray(self.positions[-1])
 
     def scaled(self, realtime_factor: float) -> JointTrajectory:
         """The same path `realtime_factor` times faster (its times divided by the factor)."""
@@ -117,12 +117,12 @@ class JointTrajectory:
         """Positions at time t (linear interpolation; held at the ends)."""
         times = self.times_s
         if t <= times[0]:
-            return self.positions[0].copy()
+            return np.asarray(self.positions[0].copy())
         if t >= times[-1]:
-            return self.positions[-1].copy()
+            return np.asarray(self.positions[-1].copy())
         k = int(np.searchsorted(times, t, side="right")) - 1
         alpha = (t - times[k]) / (times[k + 1] - times[k])
-        return (1.0 - alpha) * self.positions[k] + alpha * self.positions[k + 1]
+        return np.asarray((1.0 - alpha) * self.positions[k] + alpha * self.positions[k + 1])
 
     def velocities(self) -> np.ndarray:
         """Finite-difference joint velocities [T-1, dof] between consecutive waypoints (rad/s)."""

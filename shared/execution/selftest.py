@@ -18,6 +18,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -54,13 +55,13 @@ def _trajectory(robot: Robot, delta_rad: float, duration_s: float, steps: int = 
     return trajectory
 
 
-def exercise(robot: Robot, delta_rad: float = 0.2, duration_s: float = 0.6) -> dict:
+def exercise(robot: Robot, delta_rad: float = 0.2, duration_s: float = 0.6) -> dict[str, Any]:
     """connect -> send (final error) -> interrupted send (stop) -> recover -> disconnect."""
     started = time.monotonic()
     robot.connect()
     try:
         report = robot.send(_trajectory(robot, delta_rad, duration_s))
-        result = {
+        result: dict[str, Any] = {
             "final_joint_error_rad": round(report.final_joint_error, 5),
             "execute_s": round(report.duration_s, 3),
             "commands_streamed": report.samples,
@@ -88,7 +89,7 @@ def exercise(robot: Robot, delta_rad: float = 0.2, duration_s: float = 0.6) -> d
     return result
 
 
-def check_panda() -> dict:
+def check_panda() -> dict[str, Any]:
     _require(("franky", "franky-control"), ("franky_sim", "franky-sim"))
     from franky_sim import SimulationServer
     from franky_sim.mujoco_simulator import MujocoSimulator
@@ -105,7 +106,7 @@ def check_panda() -> dict:
     return {**result, "transport": f"libfranka protocol to franky-sim at {robot.hostname}"}
 
 
-def check_xarm7() -> dict:
+def check_xarm7() -> dict[str, Any]:
     _require(("xarm", "xarm-python-sdk"))
     from shared.execution.robots.xarm7.config import XArm7Config
     from shared.execution.robots.xarm7.fake import FakeXArmController, fake_xarm_api
@@ -118,7 +119,7 @@ def check_xarm7() -> dict:
     return {**result, "servo_commands_received": servo_commands, "transport": "XArmAPI with a fake UxbusCmd"}
 
 
-def check_leap() -> dict:
+def check_leap() -> dict[str, Any]:
     _require(("dynamixel_sdk", "dynamixel-sdk"))
     from shared.execution.robots.leap.config import LeapConfig
     from shared.execution.robots.leap.fake import DynamixelBus
@@ -131,7 +132,7 @@ def check_leap() -> dict:
     return {**result, "crc_errors": crc_errors, "transport": f"Protocol 2.0 on pty {port}"}
 
 
-def check_allegro() -> dict:
+def check_allegro() -> dict[str, Any]:
     _require(("can", "python-can"))
     from shared.execution.robots.allegro.config import AllegroConfig
     from shared.execution.robots.allegro.fake import SimAllegroHand
@@ -145,17 +146,17 @@ def check_allegro() -> dict:
     return {**result, "transport": f"python-can virtual bus {channel!r}"}
 
 
-CHECKS: dict[str, Callable[[], dict]] = {
+CHECKS: dict[str, Callable[[], dict[str, Any]]] = {
     "panda": check_panda, "xarm7": check_xarm7, "leap": check_leap, "allegro": check_allegro,
 }
 
 
-def run_selftest(devices: tuple[str, ...] = DEVICES) -> dict[str, dict]:
+def run_selftest(devices: tuple[str, ...] = DEVICES) -> dict[str, dict[str, Any]]:
     """Run the chosen device checks; every device gets an entry with "ok"."""
     unknown = [d for d in devices if d not in CHECKS]
     if unknown:
         raise ValueError(f"unknown devices {unknown}; choose from {list(CHECKS)}")
-    results: dict[str, dict] = {}
+    results: dict[str, dict[str, Any]] = {}
     for device in devices:
         try:
             results[device] = CHECKS[device]()

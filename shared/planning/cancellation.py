@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, wait
+from typing import Any
 
 log = logging.getLogger("gd2p.planner.cancellation")
 
@@ -70,7 +71,7 @@ class Cancellation:
         if self._event.is_set():
             raise RequestCancelled(self.reason)
 
-    def wait(self, futures: Sequence[Future], timeout_s: float) -> None:
+    def wait(self, futures: Sequence[Future[Any]], timeout_s: float) -> None:
         """Wait until every future is done or `timeout_s` passed; RequestCancelled as soon as cancelled."""
         deadline = time.monotonic() + timeout_s
         pending = list(futures)

@@ -72,7 +72,7 @@ def seeds(request: PushRequest) -> dict[str, int]:
 def decision_metadata(request: PushRequest, settings: object, models: dict[str, str]) -> dict[str, str]:
     """The `gd2p.decision` metadata record of a push of `request` planned with `settings` and `models`."""
     return {"version": VERSION, "commit": current_commit(), "request_id": request.id, "arm": request.arm,
-            "hand": request.hand, "method": request.method, "models": json.dumps(models, sort_keys=True),
+            "hand": request.hand, "method": request.options.method, "models": json.dumps(models, sort_keys=True),
             "seeds": json.dumps(seeds(request), sort_keys=True), "settings": repr(settings),
             "versions": json.dumps(library_versions(), sort_keys=True),
             "capture": (f"point cloud of {request.object.point_cloud.shape[0]} points (in the request)"

@@ -37,7 +37,9 @@ from __future__ import annotations
 import contextlib
 import math
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from ompl import base as ob
@@ -212,11 +214,11 @@ class MotionPlanner:
         raised = T_world_hand[rows].copy()
         raised[:, 2, 3] += lift[rows]
         q_raised, raised_reasons = self._collision_free_solutions(raised, q_hands[rows])
-        for k, i in enumerate(rows):
+        for k, row in enumerate(rows):
             if raised_reasons[k]:
-                lift[i] = 0.0
+                lift[row] = 0.0
             else:
-                T_world_hand[i], q[i], reasons[i] = raised[k], q_raised[k], ""
+                T_world_hand[row], q[row], reasons[row] = raised[k], q_raised[k], ""
         return lift
 
     def _table_depth(self, q: np.ndarray, q_hand: np.ndarray) -> float | None:
@@ -424,14 +426,14 @@ class MotionPlanner:
         return np.concatenate([back, up[1:]])
 
     @contextlib.contextmanager
-    def _object_moved(self, offset: np.ndarray):
+    def _object_moved(self, offset: np.ndarray) -> Iterator[None]:
         """Temporarily shift the scene's object by `offset` (world), e.g. to where a push leaves it."""
         with self._movable_object() as move:
             move(offset)
             yield
 
     @contextlib.contextmanager
-    def _movable_object(self):
+    def _movable_object(self) -> Iterator[Callable[[np.ndarray], None]]:
         """A function that shifts the scene's object by an offset (world) from where it is; restored after."""
         body = self.scene.object
         if body is None:
@@ -530,7 +532,7 @@ class MotionPlanner:
         if q_hand is not None:
             scene.set_configuration(q_start, q_hand)
 
-        def valid(state) -> bool:
+        def valid(state: Any) -> bool:  # an OMPL state
             return scene.is_collision_free([state[i] for i in range(dof)], clearance_m=clearance) and \
                 self._inside_workspace()
 
@@ -585,7 +587,7 @@ class MotionPlanner:
         self.stats.rrt_calls_s.append(elapsed)
         self.stats.rrt_states.append(len(waypoints))
 
-    def _straight_edge_free(self, q_start: np.ndarray, q_goal: np.ndarray, valid) -> bool:
+    def _straight_edge_free(self, q_start: np.ndarray, q_goal: np.ndarray, valid: Callable[[Any], bool]) -> bool:
         """Whether the straight joint-space edge passes OMPL's own motion check: every state at most
         `check_resolution_rad` (Euclidean) apart valid. Bisection order: a blocked edge fails early."""
         q_start, q_goal = np.asarray(q_start, dtype=np.float64), np.asarray(q_goal, dtype=np.float64)
@@ -651,7 +653,9 @@ class MotionPlanner:
 
     # ----------------------------------------------------------------------------------- timing
 
-    def _assemble(self, q_start, q_hand_start, q_hand, free_path, approach_line, push_line, back, home_path) -> Plan:
+    def _assemble(self, q_start: np.ndarray, q_hand_start: np.ndarray, q_hand: np.ndarray, free_path: np.ndarray,
+                  approach_line: np.ndarray, push_line: np.ndarray, back: np.ndarray, home_path: np.ndarray | None,
+                  ) -> Plan:
         s = self.settings
         limits = self.velocity_limits * s.velocity_scale
         hand_steps = max(2, math.ceil(s.hand_shaping_s / s.sample_dt_s) + 1)
@@ -665,14 +669,17 @@ class MotionPlanner:
         ]
         if home_path is not None:
             arm_pieces.append(time_parameterise(home_path, limits, s.sample_dt_s))
-        arm_q, times, counts, offset = [], [], [], 0.0
+        arm_parts: list[np.ndarray] = []
+        times: list[np.ndarray] = []
+        counts: list[int] = []
+        offset = 0.0
         for i, (q, t) in enumerate(arm_pieces):
             skip = 0 if i == 0 else 1  # the first waypoint of a piece is the last of the previous one
-            arm_q.append(q[skip:])
+            arm_parts.append(q[skip:])
             times.append(offset + t[skip:])
             counts.append(len(q) - skip)
             offset = times[-1][-1]
-        arm_q = np.concatenate(arm_q)
+        arm_q = np.concatenate(arm_parts)
         hand_q = np.repeat(q_hand[None], len(arm_q), axis=0)
         hand_q[:hand_steps] = np.linspace(q_hand_start, q_hand, hand_steps)
         n_approach, n_push = sum(counts[:3]), counts[3]
@@ -719,7 +726,8 @@ def time_parameterise(path: np.ndarray, velocity_limits: np.ndarray, dt: float) 
 
 def _bisection_order(steps: int) -> list[int]:
     """The inner points 1 .. steps-1 of an edge cut in `steps`, middle first, then the quarters, and so on."""
-    order, seen = [], set()
+    order: list[int] = []
+    seen: set[int] = set()
     level = 1
     while len(order) < steps - 1:
         level *= 2
@@ -755,7 +763,7 @@ def _horizontal_unit(direction: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(horizontal)
     if direction.size != 3 or norm < 1e-9:
         raise PlanningError("bad request", f"push direction must be a horizontal 2- or 3-vector, got {direction}")
-    return horizontal / norm
+    return np.asarray(horizontal / norm)
 
 
 def _translated(T: np.ndarray, offset: np.ndarray) -> np.ndarray:

@@ -58,7 +58,7 @@ def direction_costs(hand: HandModel, poses_d: np.ndarray) -> np.ndarray:
     """L_dir = E_dir = -cos(palm normal, +x of D) for poses [K, 25] in D -> [K]."""
     transforms, _ = pose25_to_matrix(np.asarray(poses_d, dtype=np.float64).reshape(-1, 25))
     normals = transforms[:, :3, :3] @ hand.palm_normal_base.double().numpy()
-    return -normals[:, 0] / np.linalg.norm(normals, axis=1)
+    return np.asarray(-normals[:, 0] / np.linalg.norm(normals, axis=1))
 
 
 def goal_cost(position_error_m: float, rotation_deg: float, max_tilt_deg: float) -> float:

@@ -165,8 +165,9 @@ def _capture_chunk(job: tuple[int, list[Frame], CaptureSettings, str, bool]) -> 
                 if points is not None:
                     points[i, v, :len(points_d)], counts[i, v] = points_d, len(points_d)
     buffer = io.BytesIO()
-    np.savez(buffer, bps=out_bps, shift_xy=out_shift, ok=ok,
-             **({"points_d": points, "point_counts": counts} if points is not None else {}))
+    kept: dict[str, Any] = {"points_d": points, "point_counts": counts} if points is not None else {}  # Any: savez's
+    # keywords include allow_pickle (a bool)
+    np.savez(buffer, bps=out_bps, shift_xy=out_shift, ok=ok, **kept)
     atomic_write_bytes(_chunk_path(Path(directory), index), buffer.getvalue())
     return index
 

@@ -17,6 +17,7 @@ broadcast over its poses, so scoring K = 200 poses costs one small MLP pass. Tra
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -47,13 +48,20 @@ class CriticConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> CriticConfig:
+    def from_dict(cls, data: dict[str, Any]) -> CriticConfig:
         return cls(**{k: int(v) for k, v in data.items() if k in cls.__dataclass_fields__})
 
 
 class SuccessCritic(nn.Module):
     """Scores poses [B, 25] of one or more objects (BPS [R, bps_dim], `group` [B] mapping poses to objects),
     with the poses' contact features [B, contact_dim] when the config has them."""
+
+    bps_mean: torch.Tensor  # buffers (register_buffer), declared for the type checker
+    bps_std: torch.Tensor
+    pose_mean: torch.Tensor
+    pose_std: torch.Tensor
+    contact_mean: torch.Tensor  # only with contact features
+    contact_std: torch.Tensor
 
     def __init__(self, config: CriticConfig | None = None):
         super().__init__()
@@ -94,7 +102,8 @@ class SuccessCritic(nn.Module):
 
     def encode_object(self, bps: torch.Tensor) -> torch.Tensor:
         """[R, bps_dim] raw BPS distances -> [R, object_dim]."""
-        return self.object_encoder((bps - self.bps_mean) / self.bps_std)
+        embedding: torch.Tensor = self.object_encoder((bps - self.bps_mean) / self.bps_std)
+        return embedding
 
     def forward(self, poses: torch.Tensor, bps: torch.Tensor, group: torch.Tensor | None = None,
                 contact: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

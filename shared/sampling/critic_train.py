@@ -18,6 +18,7 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -126,7 +127,7 @@ def record_captures(directory: str | Path, records: list[dict[str, Any]], worker
                           workers=workers, progress=progress, keep_points=True, desc="captures of critic objects")
 
 
-def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress=None,
+def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress: Callable[[], object] | None = None,
                    captures: FrameCaptures | None = None) -> CriticData:
     """The records as tensors, each object's BPS computed by `sampler`'s encoder and the poses' contact
     features from the same surface points. With `captures` (of `records`' frames, in order) each record also
@@ -134,7 +135,14 @@ def encode_records(records: list[dict[str, Any]], sampler: PoseSampler, progress
     reconstruction's D, the poses moved into that frame (p + shift), the outcomes the same physical pushes'."""
     from shared.robots.hands import load_hand
 
-    bps, poses, group, success, error, ids, contact, captured = [], [], [], [], [], [], [], []
+    bps: list[np.ndarray] = []
+    poses: list[np.ndarray] = []
+    group: list[np.ndarray] = []
+    success: list[np.ndarray] = []
+    error: list[np.ndarray] = []
+    ids: list[str] = []
+    contact: list[torch.Tensor] = []
+    captured: list[np.ndarray] = []
 
     def add_view(points_d: np.ndarray, poses_d: np.ndarray, record: dict[str, Any], is_capture: bool) -> None:
         group.append(np.full(len(poses_d), len(bps)))
@@ -223,7 +231,7 @@ def top_k_success(scores: np.ndarray, labels: np.ndarray, groups: np.ndarray, k:
 
 
 def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = CriticTraining(),
-                 progress=None) -> tuple[SuccessCritic, dict[str, Any]]:
+                 progress: Callable[[dict[str, Any]], object] | None = None) -> tuple[SuccessCritic, dict[str, Any]]:
     """The critic with the best val ROC AUC seen during training, and the metrics history."""
     torch.manual_seed(settings.seed)
     model = SuccessCritic(settings.config)
@@ -232,7 +240,7 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
     generator = torch.Generator().manual_seed(settings.seed)
     target_error = torch.log(train.error_m + ERROR_FLOOR_M)
     best: tuple[float, dict[str, torch.Tensor], int] = (-1.0, {}, 0)
-    history = []
+    history: list[dict[str, Any]] = []
     draw = _batch_rows(train, settings, generator)
     for step in range(1, settings.steps + 1):
         model.train()
@@ -244,7 +252,7 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
         loss.backward()
         optimiser.step()
         if step % settings.eval_every == 0 or step == settings.steps:
-            metrics = {"step": step, "loss": round(float(loss.detach()), 4), "val": evaluate(model, val)}
+            metrics: dict[str, Any] = {"step": step, "loss": round(float(loss.detach()), 4), "val": evaluate(model, val)}
             history.append(metrics)
             if metrics["val"]["roc_auc"] > best[0]:
                 best = (metrics["val"]["roc_auc"], {k: v.clone() for k, v in model.state_dict().items()}, step)
@@ -254,7 +262,7 @@ def train_critic(train: CriticData, val: CriticData, settings: CriticTraining = 
     return model.eval(), {"best_step": best[2], "history": history}
 
 
-def _batch_rows(train: CriticData, settings: CriticTraining, generator: torch.Generator):
+def _batch_rows(train: CriticData, settings: CriticTraining, generator: torch.Generator) -> Callable[[], torch.Tensor]:
     """A function drawing a batch's rows: `capture_fraction` of them from the capture views, the rest from the
     mesh views (uniform over all rows without captures)."""
     captured = train.captured_rows()

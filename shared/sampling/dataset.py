@@ -28,10 +28,12 @@ import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
+from numpy.typing import DTypeLike
 from tqdm import tqdm
 
 from shared.data.dataset_store import SUCCESS_COLUMN, DatasetStore, StoreError, succeeded
@@ -111,7 +113,7 @@ class PoseDataset:
         return PoseDataset(self.hand, self.poses[keep], self.frame_index[keep], self.frames, self.fingerprint,
                            self.skipped)
 
-    def skipped_summary(self) -> list[dict]:
+    def skipped_summary(self) -> list[dict[str, Any]]:
         """The skipped frames for a manifest: object, resting pose, yaw and how many poses each held."""
         return [{"object_id": f.object_id, "pose_index": f.pose_index, "yaw_rad": f.yaw_rad, "poses": n}
                 for f, n in self.skipped]
@@ -229,7 +231,7 @@ def _pose_matrix(table: pa.Table, directory: Path) -> np.ndarray:
     return poses
 
 
-def _optional_column(table: pa.Table, name: str, default, dtype) -> np.ndarray:
+def _optional_column(table: pa.Table, name: str, default: object, dtype: DTypeLike) -> np.ndarray:
     if name not in table.column_names:
         return np.full(table.num_rows, default, dtype=dtype)
     values = table.column(name).to_pylist()

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
@@ -74,7 +74,8 @@ class GradientGuidance:
         """The normalised poses [n, 25] moved one guided step along `guide`, kept inside [-1, 1]."""
         move = self.scale * guide(normalized)
         move = move * (self.max_step / move.norm(dim=1, keepdim=True).clamp_min(self.max_step))  # long moves shortened
-        return (normalized + move).clamp(-1.0, 1.0)
+        moved: torch.Tensor = (normalized + move).clamp(-1.0, 1.0)
+        return moved
 
 
 def make_noise_scheduler() -> DDPMScheduler:
@@ -146,7 +147,7 @@ class PoseNormalizer:
         return {"low": self.low.clone(), "high": self.high.clone()}
 
     @classmethod
-    def from_dict(cls, data: dict) -> PoseNormalizer:
+    def from_dict(cls, data: dict[str, Any]) -> PoseNormalizer:
         return cls(torch.as_tensor(data["low"], dtype=torch.float32), torch.as_tensor(data["high"], dtype=torch.float32))
 
 
@@ -264,10 +265,12 @@ def default_noise_scale() -> float:
     return value
 
 
-def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, generator: torch.Generator,
-          noise_scale: float = 1.0) -> torch.Tensor:
+def _step(scheduler: DDPMScheduler | DDIMScheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor,
+          generator: torch.Generator, noise_scale: float = 1.0) -> torch.Tensor:
+    sample: torch.Tensor  # diffusers is not analysed (pyproject.toml): its results are Any
     if noise_scale == 1.0 or not isinstance(scheduler, DDPMScheduler) or int(t) == 0:
-        return scheduler.step(epsilon, t, x, generator=generator).prev_sample
+        sample = scheduler.step(epsilon, t, x, generator=generator).prev_sample
+        return sample
     # diffusers' DDPM step draws its noise z from `generator` and returns mean + sigma_t z; replaying the
     # generator gives the same z, so the step with sigma_t scaled is the returned sample minus (1 - scale) sigma_t z.
     state = generator.get_state()
@@ -275,11 +278,12 @@ def _step(scheduler, epsilon: torch.Tensor, t: torch.Tensor, x: torch.Tensor, ge
     z = torch.randn(epsilon.shape, generator=torch.Generator(device=generator.device).set_state(state),
                     device=epsilon.device, dtype=epsilon.dtype)
     sigma = scheduler._get_variance(t) ** 0.5  # the step's "fixed_small" posterior standard deviation
-    return prev_sample - (1.0 - noise_scale) * sigma * z
+    sample = prev_sample - (1.0 - noise_scale) * sigma * z
+    return sample
 
 
-def _steered(scheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: list[tuple[int, int]],
-             guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
+def _steered(scheduler: DDPMScheduler | DDIMScheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor,
+             bounds: list[tuple[int, int]], guides: Sequence[Guide | None], guidance: GradientGuidance) -> torch.Tensor:
     """The noise prediction whose clean pose is the predicted one moved along each request's guide."""
     alpha_bar = scheduler.alphas_cumprod[t].to(x)
     clean = ((x - (1 - alpha_bar).sqrt() * epsilon) / alpha_bar.sqrt()).clamp(-1.0, 1.0)  # the scheduler's clip_sample
@@ -287,7 +291,8 @@ def _steered(scheduler, t: int, x: torch.Tensor, epsilon: torch.Tensor, bounds: 
     for (a, b), guide in zip(bounds, guides, strict=True):
         if guide is not None:
             moved[a:b] = guidance.move(clean[a:b], guide)
-    return (x - alpha_bar.sqrt() * moved) / (1 - alpha_bar).sqrt()
+    steered: torch.Tensor = (x - alpha_bar.sqrt() * moved) / (1 - alpha_bar).sqrt()
+    return steered
 
 
 def _row_bounds(counts: Iterable[int]) -> list[tuple[int, int]]:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -81,8 +82,8 @@ class DenoiserConfig:
         return out
 
     @classmethod
-    def from_dict(cls, data: dict) -> DenoiserConfig:
-        known = {k: (bool(v) if k in FLAGS else int(v)) for k, v in data.items() if k in cls.__dataclass_fields__}
+    def from_dict(cls, data: dict[str, Any]) -> DenoiserConfig:
+        known: dict[str, Any] = {k: (bool(v) if k in FLAGS else int(v)) for k, v in data.items() if k in cls.__dataclass_fields__}
         return cls(**known)
 
 
@@ -117,6 +118,9 @@ class PoseDenoiser(nn.Module):
     The BPS standardisation statistics are buffers, so they travel in the state dict.
     """
 
+    bps_mean: torch.Tensor  # buffers (register_buffer), declared for the type checker
+    bps_std: torch.Tensor
+
     def __init__(self, config: DenoiserConfig | None = None):
         super().__init__()
         self.config = config = config or DenoiserConfig()
@@ -143,14 +147,15 @@ class PoseDenoiser(nn.Module):
 
     def encode_object(self, bps: torch.Tensor) -> torch.Tensor:
         """[R, bps_dim] raw BPS distances -> [R, object_dim]; once per request."""
-        return self.object_encoder((bps - self.bps_mean) / self.bps_std)
+        embedding: torch.Tensor = self.object_encoder((bps - self.bps_mean) / self.bps_std)
+        return embedding
 
     def film(self, object_embedding: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
         """[R, object_dim] + [R] (or scalar) steps -> [R, num_blocks, 2, hidden] FiLM scale and bias."""
         timesteps = torch.as_tensor(timesteps, device=object_embedding.device).reshape(-1)
         time_embedding = self.time_encoder(sinusoidal_embedding(timesteps, self.config.time_dim))
         time_embedding = time_embedding.expand(object_embedding.shape[0], -1)
-        params = self.film_generator(torch.cat([time_embedding, object_embedding], dim=-1))
+        params: torch.Tensor = self.film_generator(torch.cat([time_embedding, object_embedding], dim=-1))
         return params.view(-1, self.config.num_blocks, 2, self.config.hidden_dim)
 
     def denoise(self, noisy_pose: torch.Tensor, film: torch.Tensor, group: torch.Tensor | None = None) -> torch.Tensor:
@@ -166,7 +171,8 @@ class PoseDenoiser(nn.Module):
         h = self.input_layer(noisy_pose)
         for index, block in enumerate(self.blocks):
             h = block(h, film[:, index, 0], film[:, index, 1])
-        return self.output_layer(h)
+        noise: torch.Tensor = self.output_layer(h)
+        return noise
 
     def null_embedding(self, rows: int) -> torch.Tensor:
         """[rows, object_dim] copies of the learned "no object" embedding (an `unconditional` model only)."""

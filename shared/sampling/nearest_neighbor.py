@@ -85,7 +85,7 @@ class NearestNeighborBaseline:
         """[P, 25] every stored pose (in D), grouped by frame; read-only."""
         view = self._poses.view()
         view.flags.writeable = False
-        return view
+        return np.asarray(view)
 
     @classmethod
     def from_dataset(cls, dataset: PoseDataset, bps: BasisPointSet | None = None, progress: bool = False,
@@ -110,7 +110,7 @@ class NearestNeighborBaseline:
         query = np.asarray(features, dtype=np.float64).reshape(-1)
         if query.shape != (self.bps.n,):
             raise NearestNeighborError(f"query BPS must have {self.bps.n} values, got {query.size}")
-        return self._squared_norms - 2.0 * (self.frame_features @ query) + query @ query
+        return np.asarray(self._squared_norms - 2.0 * (self.frame_features @ query) + query @ query)
 
     def nearest(self, features: np.ndarray) -> tuple[int, float]:
         """(row of the nearest training frame, Euclidean BPS distance) for a query BPS vector."""
@@ -131,7 +131,7 @@ class NearestNeighborBaseline:
         order = np.argsort(self._squared_distances(features), kind="stable")
         needed = int(np.searchsorted(np.cumsum(counts[order]), k)) + 1
         rows = order[:needed]
-        return np.concatenate([self._poses[self._starts[r]:self._starts[r + 1]] for r in rows])[:k].copy()
+        return np.asarray(np.concatenate([self._poses[self._starts[r]:self._starts[r + 1]] for r in rows])[:k].copy())
 
     def query(self, features: np.ndarray, k: int | None = None, seed: int = 0) -> NeighborMatch:
         """The nearest frame's poses: all of them, or a seeded random subset of `k` when it has more."""
@@ -151,7 +151,7 @@ class NearestNeighborBaseline:
         poses = self._poses[self._starts[row]:self._starts[row + 1]]
         if k is not None and k < len(poses):
             poses = poses[np.sort(np.random.default_rng(seed).choice(len(poses), size=k, replace=False))]
-        return poses.copy()
+        return np.asarray(poses.copy())
 
     def query_points(self, points_d: np.ndarray, k: int | None = None, seed: int = 0) -> NeighborMatch:
         """Like `query`, for object surface points in D (encoded with this index's basis)."""
@@ -237,7 +237,7 @@ def half_precision_agreement(frame_features: np.ndarray) -> dict[str, Any]:
     half = np.asarray(frame_features, dtype=np.float32).astype(np.float16).astype(np.float64)
 
     def squared_distances(index: np.ndarray) -> np.ndarray:  # [query, frame]
-        return (index ** 2).sum(1)[None] - 2.0 * query @ index.T + (query ** 2).sum(1)[:, None]
+        return np.asarray((index ** 2).sum(1)[None] - 2.0 * query @ index.T + (query ** 2).sum(1)[:, None])
 
     full_d, half_d = squared_distances(query), squared_distances(half)
     top1 = float(np.mean(full_d.argmin(1) == half_d.argmin(1)))

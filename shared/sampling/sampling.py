@@ -98,7 +98,7 @@ class _Job:
     sampler: str
     steps: int
     noise_scale: float
-    future: Future
+    future: Future[np.ndarray]
     guide: Guide | None = None
     guidance: GradientGuidance | None = None
 
@@ -195,7 +195,7 @@ class PoseSampler:
     def __enter__(self) -> PoseSampler:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:

@@ -20,6 +20,7 @@ import logging
 import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -212,7 +213,7 @@ def object_input(ref: ObjectRef) -> ObjectInput:
     except ObjectLoadError as exc:
         raise SamplerInputError(str(exc)) from exc
     assert ref.point_cloud is not None
-    from shared.world.perception import bps_points
+    from shared.world.perception.object_model import bps_points
 
     try:
         captured = captured_object(ref)
@@ -231,6 +232,7 @@ def job_budget(job: Message) -> float:
 
 
 def handlers(checkpoints: Mapping[str, str | Path] | None = None,
-             nn_indexes: Mapping[str, str | Path] | None = None) -> dict[type[Message], Callable[[Message], Message]]:
+             nn_indexes: Mapping[str, str | Path] | None = None,
+             ) -> dict[type[Message], Callable[[Any], Message]]:  # each handler takes its key's type
     """Message type -> handler, served by every sampler worker."""
     return {SampleRequest: SamplerService(checkpoints, nn_indexes=nn_indexes).handle}

@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 # Every energy term by short name, in the order of Eq. 1 (+ the get_a_grip terms).
 TERMS: tuple[str, ...] = ("fc", "dis", "pen", "spen", "joints", "ff", "fp", "tpen", "dir", "arm")
@@ -148,7 +149,7 @@ class GenerationConfig:
         """Weights with the push terms zeroed when `grasp_only`."""
         return {t: (w if t in self.active_terms else 0.0) for t, w in self.weights.as_dict().items()}
 
-    def replace(self, **changes) -> GenerationConfig:
+    def replace(self, **changes: Any) -> GenerationConfig:
         """A copy with some fields changed (None values are ignored, so optional CLI flags pass through)."""
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 

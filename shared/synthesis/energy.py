@@ -15,14 +15,15 @@ so each can be tested on constructed cases.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 import torch
 
 from shared.robots.hands import HandModel, HandState
-from shared.robots.hands.primitives import surface_samples
+from shared.robots.hands.primitives import Primitive, surface_samples
 from shared.synthesis.config import TERMS, GenerationConfig
 
 _FAR_AWAY_M = 1.0e3  # distance reported for points that no primitive's bounding sphere reaches
@@ -31,11 +32,20 @@ _KINDS = ("box", "sphere", "cylinder")  # the primitive kinds shared.robots.hand
 
 
 class ObjectField(Protocol):
-    """The object as the energy sees it, in D (see `shared.synthesis.scene.PushScene`)."""
+    """The object as the energy sees it, in D (see `shared.synthesis.scene.PushScene`). Read-only properties, so
+    that a frozen dataclass matches."""
 
-    surface_points: torch.Tensor  # [N,3] on the object surface
-    centroid: torch.Tensor  # [3] reference point for contact torques
-    distance_error_m: float  # how much `distance` may over-estimate the true distance (grid interpolation)
+    @property
+    def surface_points(self) -> torch.Tensor:
+        """[N,3] on the object surface."""
+
+    @property
+    def centroid(self) -> torch.Tensor:
+        """[3] reference point for contact torques."""
+
+    @property
+    def distance_error_m(self) -> float:
+        """How much `distance` may over-estimate the true distance (grid interpolation)."""
 
     def distance(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance [...] (negative inside, differentiable) and unit outward normal [..., 3]."""
@@ -134,7 +144,8 @@ def contact_spread(points: torch.Tensor, min_distance_m: float) -> torch.Tensor:
 
 def finger_palm(points: torch.Tensor, base_position: torch.Tensor) -> torch.Tensor:
     """E_fp = -sum_i |x_i - p_base|: get_a_grip's "finger palm distance" (weight 0 in the paper). [B,K,3] -> [B]."""
-    return -torch.linalg.vector_norm(points - base_position.unsqueeze(1), dim=-1).sum(-1)
+    result: torch.Tensor = -torch.linalg.vector_norm(points - base_position.unsqueeze(1), dim=-1).sum(-1)
+    return result
 
 
 def table_penetration(heights: torch.Tensor, clearance_m: float = 0.0) -> torch.Tensor:
@@ -150,7 +161,8 @@ def table_penetration(heights: torch.Tensor, clearance_m: float = 0.0) -> torch.
 
 def palm_direction(palm_normal: torch.Tensor) -> torch.Tensor:
     """E_dir = -cos(v_palm, +x) = -v_x / |v|: lowest when the palm faces the push direction. [B,3] -> [B]."""
-    return -palm_normal[:, 0] / torch.linalg.vector_norm(palm_normal, dim=-1)
+    result: torch.Tensor = -palm_normal[:, 0] / torch.linalg.vector_norm(palm_normal, dim=-1)
+    return result
 
 
 def arm_feasibility(palm_normal: torch.Tensor) -> torch.Tensor:
@@ -193,7 +205,7 @@ def evaluate_energy(hand: HandModel, geometry: HandGeometry, scene: ObjectField,
         "arm": arm_feasibility(palm),
     }
     weights = config.effective_weights()
-    total = sum(weights[name] * terms[name] for name in TERMS)
+    total = cast(torch.Tensor, sum(weights[name] * terms[name] for name in TERMS))  # TERMS is not empty: not 0
     return EnergyTerms(terms, total)
 
 
@@ -305,16 +317,19 @@ class HandGeometry:
     # The standard primitive SDFs (the formulas of HandModel.signed_distance; tests pin the agreement).
     def _box_distance(self, local: torch.Tensor, prim: torch.Tensor) -> torch.Tensor:
         q = local.abs() - self.box_half[prim]
-        return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+        result: torch.Tensor = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+        return result
 
     def _sphere_distance(self, local: torch.Tensor, prim: torch.Tensor) -> torch.Tensor:
-        return torch.linalg.vector_norm(local, dim=-1) - self.sphere_radius[prim]
+        result: torch.Tensor = torch.linalg.vector_norm(local, dim=-1) - self.sphere_radius[prim]
+        return result
 
     def _cylinder_distance(self, local: torch.Tensor, prim: torch.Tensor) -> torch.Tensor:
         radial = torch.linalg.vector_norm(local[:, :2], dim=-1) - self.cylinder_radius[prim]
         axial = local[:, 2].abs() - self.cylinder_half_length[prim]
         q = torch.stack((radial, axial), dim=-1)
-        return torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+        result: torch.Tensor = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+        return result
 
     def surface_points(self, state: HandState, count: int | None = None) -> torch.Tensor:
         """The first `count` (default all) area-uniform samples on the hand's surface [B,S,3], pose's frame."""
@@ -333,7 +348,7 @@ class HandGeometry:
         return (rows * self._sample_points_h[sample, None, :]).sum(-1)
 
 
-def _bounding_radius(prim) -> float:
+def _bounding_radius(prim: Primitive) -> float:
     if prim.kind == "box":
         return 0.5 * float(np.linalg.norm(prim.size))
     if prim.kind == "sphere":
@@ -341,7 +356,7 @@ def _bounding_radius(prim) -> float:
     return float(np.hypot(prim.radius, prim.length / 2))
 
 
-def _hand_surface_samples(prims, total: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _hand_surface_samples(prims: Sequence[Primitive], total: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Samples spread over primitives by area: primitive index [S] and point in its link frame [S,3].
 
     Fixed seed (the samples are part of the model) and shuffled, so any prefix is area-uniform too.

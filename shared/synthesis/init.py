@@ -46,7 +46,8 @@ def inflated_hull(vertices_d: np.ndarray, inflation_m: float) -> trimesh.Trimesh
     """Convex hull of the object (vertices in D) grown outward by about `inflation_m`."""
     hull = trimesh.Trimesh(vertices=np.asarray(vertices_d, dtype=np.float64)).convex_hull
     grown = hull.vertices + inflation_m * hull.vertex_normals
-    return trimesh.Trimesh(vertices=grown).convex_hull
+    hull_grown: trimesh.Trimesh = trimesh.Trimesh(vertices=grown).convex_hull  # trimesh's cached property is untyped
+    return hull_grown
 
 
 def sample_hull_points(hull: trimesh.Trimesh, count: int, generator: torch.Generator,
@@ -108,7 +109,8 @@ def random_unit_perpendicular(axis: torch.Tensor, generator: torch.Generator) ->
         u = u - (u * axis).sum(-1, keepdim=True) * axis
         norm = torch.linalg.vector_norm(u, dim=-1, keepdim=True)
         if bool((norm > 1e-6).all()):
-            return u / norm
+            result: torch.Tensor = u / norm
+            return result
     raise InitialisationError("could not draw a vector perpendicular to the palm axis")  # pragma: no cover
 
 
@@ -133,7 +135,8 @@ def truncated_normal_joints(hand: HandModel, count: int, jitter: float, generato
     normal = torch.distributions.Normal(0.0, 1.0)
     cdf_low, cdf_high = normal.cdf((lower - mean) / sigma), normal.cdf((upper - mean) / sigma)
     u = cdf_low + (cdf_high - cdf_low) * torch.rand(count, hand.dof, generator=generator)
-    return (mean + sigma * torch.special.ndtri(u.clamp(1e-7, 1 - 1e-7))).clamp(lower, upper)
+    result: torch.Tensor = (mean + sigma * torch.special.ndtri(u.clamp(1e-7, 1 - 1e-7))).clamp(lower, upper)
+    return result
 
 
 def initial_poses(hand: HandModel, hull_vertices_d: np.ndarray, count: int, settings: InitSettings,

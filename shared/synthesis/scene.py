@@ -38,8 +38,8 @@ class PushScene:
             raise ValueError(f"{obj.id} has {len(obj.resting_poses)} resting poses; pose index {index} does not exist")
         transform = obj.T_D_O(index, yaw_rad)
         # One sample set: its first `surface_points` are themselves area-uniform (trimesh draws i.i.d.).
-        samples, _ = obj.surface_points(max(surface_points, check_points), seed=SURFACE_SAMPLE_SEED, T_D_O=transform)
-        samples = torch.tensor(samples, dtype=torch.float32)
+        points, _ = obj.surface_points(max(surface_points, check_points), seed=SURFACE_SAMPLE_SEED, T_D_O=transform)
+        samples = torch.tensor(points, dtype=torch.float32)
         hull = obj.mesh.convex_hull.vertices @ transform[:3, :3].T + transform[:3, 3]
         return cls(
             object=obj, pose_index=index, yaw_rad=float(yaw_rad), transform_d=transform,

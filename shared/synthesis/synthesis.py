@@ -150,7 +150,8 @@ def finalise_poses(hand: HandModel, pose: torch.Tensor) -> torch.Tensor:
     return torch.cat((pose[:, :3], matrix_to_r6(rotation), joints), dim=1).detach()
 
 
-def _energy_and_gradient(hand, geometry, scene, pose, contacts, config) -> tuple[EnergyTerms, torch.Tensor]:
+def _energy_and_gradient(hand: HandModel, geometry: HandGeometry, scene: PushScene, pose: torch.Tensor,
+                         contacts: torch.Tensor, config: GenerationConfig) -> tuple[EnergyTerms, torch.Tensor]:
     pose = pose.detach().requires_grad_(True)
     energy = evaluate_energy(hand, geometry, scene, pose, contacts, config)
     (gradient,) = torch.autograd.grad(energy.total.sum(), pose)

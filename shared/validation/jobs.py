@@ -27,8 +27,10 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from shared.bus.worker import check_deadline
 from shared.contracts.errors import ServiceError
@@ -155,7 +157,7 @@ def placement(job: ValidationJob, obj: ObjectModel) -> tuple[int | None, float]:
 
 def outcome_arrays(outcomes: list[PushOutcome]) -> dict[str, np.ndarray]:
     """PushOutcome list -> the column arrays of PushOutcomes."""
-    def column(name: str, dtype) -> np.ndarray:
+    def column(name: str, dtype: DTypeLike) -> np.ndarray:
         return np.array([getattr(o, name) for o in outcomes], dtype=dtype)
 
     return {
@@ -178,7 +180,7 @@ def to_result(job: ValidationJob, object_id: str, run: ValidationRun, elapsed_s:
                             elapsed_s=elapsed_s, **outcome_arrays(run.outcomes))
 
 
-def handlers() -> dict[type[Message], Callable[[Message], Message]]:
+def handlers() -> dict[type[Message], Callable[[Any], Message]]:  # each handler takes its key's type
     """Message type -> handler, served by every validator worker (called once at worker start-up)."""
     _limit_torch_threads()
     return {ValidationJob: validate}

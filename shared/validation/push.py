@@ -17,6 +17,7 @@ saved; every episode restores that snapshot (bit-identical outcomes whatever ran
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -131,7 +132,7 @@ class PushSimulator:
     def __enter__(self) -> PushSimulator:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def run(self, pose: np.ndarray, push_distance_m: float = DEFAULT_PUSH_DISTANCE_M,
@@ -190,11 +191,12 @@ def _parse_pose(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise PushInputError(f"a hand pose has an invalid rotation: {exc}") from exc
 
 
-def _up_z(quat, up_in_object: np.ndarray) -> float:
+def _up_z(quat: Sequence[float], up_in_object: np.ndarray) -> float:
     """z component of the object's initial up direction after rotating by `quat` (cos of the tilt).
 
     Runs every step, so it is the third row of the rotation matrix written out, not a library call.
     """
     x, y, z, w = quat
     row = (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y))
-    return row[0] * up_in_object[0] + row[1] * up_in_object[1] + row[2] * up_in_object[2]
+    up_z: float = row[0] * up_in_object[0] + row[1] * up_in_object[1] + row[2] * up_in_object[2]
+    return up_z

@@ -113,6 +113,7 @@ def _play(scene: RobotScene, job: ValidationJob, urdf: Path, T_world_O: np.ndarr
             run = run_plan(scene, job.plan, params, _window(job))
         except PlanRunError as exc:
             raise ServiceError("bad_request", f"validator: {exc}") from exc
+        assert scene.object is not None  # just added
         final = object_pose(scene.object.pose())
     finally:
         scene.clear_environment()
@@ -139,7 +140,7 @@ def _outcomes(played: list[_Played], hand_link_names: set[str]) -> PushOutcomes:
 
 def _scene(arm: str, hand: str, params: PhysicsParams) -> RobotScene:
     """This thread's robot scene for (arm, hand, params), empty (PyBullet clients are per thread here)."""
-    scenes = getattr(_local, "scenes", None)
+    scenes: dict[tuple[str, str, PhysicsParams], RobotScene] | None = getattr(_local, "scenes", None)
     if scenes is None:
         scenes = _local.scenes = {}
     key = (arm, hand, params)
@@ -152,6 +153,7 @@ def _scene(arm: str, hand: str, params: PhysicsParams) -> RobotScene:
 
 def _window(job: ValidationJob) -> tuple[float, float] | None:
     """Plan times to simulate: around the push segment (the whole plan if it has none)."""
+    assert job.plan is not None  # a rollout job carries its plan (checked by `rollout`)
     push = next((s for s in job.plan.segments if s.label == "push"), None)
     if push is None:
         return None
@@ -161,6 +163,7 @@ def _window(job: ValidationJob) -> tuple[float, float] | None:
 
 def _initial_penetration(scene: RobotScene, job: ValidationJob) -> float:
     """How deep the hand is in the object at the start of the push segment (m, >= 0)."""
+    assert job.plan is not None and scene.object is not None  # called with the job's object in the scene
     push = next((s for s in job.plan.segments if s.label == "push"), None)
     if push is None:
         return 0.0

@@ -10,6 +10,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -70,7 +71,8 @@ class Validator:
 
     def __init__(self, params: PhysicsParams | None = None):
         self.default_params = params or PhysicsParams()
-        self._simulators: OrderedDict[tuple, PushSimulator] = OrderedDict()
+        # (object id, URDF, T_D_O bytes, hand, physics)
+        self._simulators: OrderedDict[tuple[str, Path, bytes, str, PhysicsParams], PushSimulator] = OrderedDict()
 
     def close(self) -> None:
         while self._simulators:
@@ -79,7 +81,7 @@ class Validator:
     def __enter__(self) -> Validator:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def validate(

@@ -50,7 +50,7 @@ class SimAllegroHand:
     def __enter__(self) -> SimAllegroHand:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def fault(self, status_bits: int = proto.STATUS_OVER_TEMPERATURE) -> None:

@@ -57,11 +57,11 @@ def encode_joints(values_rad: np.ndarray) -> bytes:
     return struct.pack("<4h", *counts)
 
 
-def decode_joints(data: bytes) -> np.ndarray:
+def decode_joints(data: bytes | bytearray) -> np.ndarray:
     return np.array(struct.unpack("<4h", bytes(data[:8])), dtype=np.float64) * RAD_PER_COUNT
 
 
-def decode_counts(data: bytes) -> np.ndarray:
+def decode_counts(data: bytes | bytearray) -> np.ndarray:
     return np.array(struct.unpack("<4h", bytes(data[:8])), dtype=np.float64)
 
 

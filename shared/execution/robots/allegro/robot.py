@@ -69,7 +69,7 @@ class AllegroRobot(StreamingRobot):
         if self.connected:
             return
         can = _can()
-        kwargs = {"interface": self.interface, "channel": self.channel}
+        kwargs: dict[str, Any] = {"interface": self.interface, "channel": self.channel}
         if self.bitrate and self.interface not in ("virtual", "socketcan"):
             kwargs["bitrate"] = self.bitrate  # socketcan's bitrate is set on the link (ip link set can0 ...)
         try:
@@ -109,6 +109,7 @@ class AllegroRobot(StreamingRobot):
         if not self._info_event.wait(self.connect_timeout_s):
             raise DeviceUnavailable(f"no Allegro hand answers on {self.interface}:{self.channel} "
                                     f"(power, CAN wiring, bitrate)")
+        assert self._info is not None  # set before the event
         return self._info[6]
 
     def _check_status(self, status: int) -> None:
@@ -147,7 +148,7 @@ class AllegroRobot(StreamingRobot):
             raise DeviceUnavailable(f"Allegro hand: CAN send failed: {exc}") from None
 
     # ---------------------------------------------------------------- frames from the hand
-    def _on_frame(self, msg) -> None:
+    def _on_frame(self, msg: Any) -> None:  # a can.Message
         if msg.is_error_frame or msg.is_remote_frame:
             return
         mid = proto.message_id(msg.arbitration_id)

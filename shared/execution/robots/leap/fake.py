@@ -21,7 +21,9 @@ import struct
 import threading
 import time
 import tty
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 # Protocol 2.0 instruction codes and status error numbers (ROBOTIS e-Manual, "Protocol 2.0").
 INST_PING, INST_READ, INST_WRITE, INST_REBOOT = 0x01, 0x02, 0x03, 0x08
@@ -172,7 +174,8 @@ class SimMotor:
 class DynamixelBus:
     """The responder thread on a pty's master side; `port_name` is the slave device path."""
 
-    def __init__(self, motor_ids=range(16), initial_rad: float = math.pi, **motor_kwargs):
+    def __init__(self, motor_ids: Iterable[int] = range(16), initial_rad: float = math.pi,
+                 **motor_kwargs: Any) -> None:  # SimMotor fields
         self.motors = {int(i): SimMotor(int(i), initial_rad, **motor_kwargs) for i in motor_ids}
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line discipline: bytes pass through as on a USB serial port
@@ -188,7 +191,7 @@ class DynamixelBus:
     def __enter__(self) -> DynamixelBus:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:
@@ -227,7 +230,7 @@ class DynamixelBus:
                 if reply:
                     os.write(self._master, reply)
 
-    def _frames(self):
+    def _frames(self) -> Iterator[bytes]:
         while True:
             start = self._buffer.find(HEADER)
             if start < 0:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -95,7 +96,7 @@ class LeapRobot(StreamingRobot):
             raise DeviceUnavailable(f"LEAP hand: cannot open {self.port} at {self.baudrate} baud")
         self._port, self._packets = port, sdk.PacketHandler(2.0)
 
-    def _configure(self, sdk) -> None:
+    def _configure(self, sdk: Any) -> None:
         missing = [i for i in self.motor_ids if not self._ping(sdk, i)]
         if missing:
             raise DeviceUnavailable(f"LEAP hand: motors {missing} do not answer on {self.port} "
@@ -114,9 +115,9 @@ class LeapRobot(StreamingRobot):
         for motor in self.motor_ids:
             self._reader.addParam(motor)
 
-    def _ping(self, sdk, motor: int) -> bool:
+    def _ping(self, sdk: Any, motor: int) -> bool:
         _, result, _ = self._transaction(self._packets.ping, motor)
-        return result == sdk.COMM_SUCCESS
+        return bool(result == sdk.COMM_SUCCESS)
 
     def _hold_here(self) -> None:
         """Goal Position := present position before torque goes on, so enabling torque does not jump."""
@@ -125,7 +126,7 @@ class LeapRobot(StreamingRobot):
             self._check(result, error, motor, "read present position")
             self._write(motor, ADDR_GOAL_POSITION, 4, ticks)
 
-    def _transaction(self, fn, *args):
+    def _transaction(self, fn: Callable[..., Any], *args: int) -> Any:
         """One instruction/status exchange; retried when the status packet is lost (writes and reads are
         idempotent), as a lost packet on a loaded host or a noisy RS-485 line is not a dead motor."""
         for _ in range(self.retries + 1):

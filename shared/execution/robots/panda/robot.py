@@ -29,7 +29,7 @@ from shared.execution.robot import (
 from shared.execution.robots.panda.config import PandaConfig, limits
 
 
-def _franky():
+def _franky() -> Any:
     try:
         import franky
     except ImportError:
@@ -97,7 +97,7 @@ class PandaRobot(Robot):
         return Observation(time.time(), self.joint_names, np.asarray(joint_state.position, dtype=np.float64),
                            np.asarray(joint_state.velocity, dtype=np.float64), torques)
 
-    def _motion(self, trajectory: JointTrajectory):
+    def _motion(self, trajectory: JointTrajectory) -> Any:
         franky = _franky()
         q, t = trajectory.positions, trajectory.times_s
         velocity = np.gradient(q, t, axis=0) if len(q) > 2 else np.zeros_like(q)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,8 +36,8 @@ class _ConnectedStream:
 class FakeXArmController:
     """Records commands; tracks servo targets with a first-order response while enabled, mode 1, state 0."""
 
-    def __init__(self, initial_rad=(0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0), time_constant_s: float = 0.02,
-                 max_speed_rad_s: float = 3.14, torque_per_rad: float = 20.0):
+    def __init__(self, initial_rad: Sequence[float] = (0.0, -0.4, 0.0, 0.9, 0.0, 1.3, 0.0),
+                 time_constant_s: float = 0.02, max_speed_rad_s: float = 3.14, torque_per_rad: float = 20.0) -> None:
         self.positions = np.asarray(initial_rad, dtype=np.float64).copy()
         self.targets = self.positions.copy()
         self.velocities = np.zeros(7)
@@ -47,14 +49,14 @@ class FakeXArmController:
         self.state = 4  # stopped until set_state(0)
         self.error_code = 0
         self.warn_code = 0
-        self.commands: list[tuple] = []
+        self.commands: list[tuple[Any, ...]] = []
         self._lock = threading.Lock()
         self._last = time.monotonic()
         self.state_is_ready = True  # read by XArmAPI._check_code for motion commands
         self.version = "7,7,XI1300000000,AC1300000000,v2.5.5"  # axis, type, robot SN, control box SN, firmware
-        self._sdk_arm = None
+        self._sdk_arm: Any = None  # the SDK's XArm (untyped)
 
-    def attach(self, sdk_arm) -> None:
+    def attach(self, sdk_arm: Any) -> None:
         """Mirror mode/state/error codes into the SDK object, as the controller's report socket does."""
         self._sdk_arm = sdk_arm
         self._report()
@@ -74,27 +76,27 @@ class FakeXArmController:
             self._report()
 
     # ---- the UxbusCmd methods the SDK calls
-    def set_debug(self, debug) -> None:
+    def set_debug(self, debug: bool) -> None:
         pass
 
-    def get_version(self):
+    def get_version(self) -> list[int]:
         return [0, *self.version.encode(), 0]
 
-    def motion_en(self, axis_id, enable):
+    def motion_en(self, axis_id: int, enable: int) -> list[int]:
         with self._lock:
             self.commands.append(("motion_en", axis_id, enable))
             self.enabled = bool(enable)
             self._report()
             return [0]
 
-    def set_mode(self, mode, detection_param=-1):
+    def set_mode(self, mode: int, detection_param: int = -1) -> list[int]:
         with self._lock:
             self.commands.append(("set_mode", mode))
             self.mode = mode
             self._report()
             return [0]
 
-    def set_state(self, value):
+    def set_state(self, value: int) -> list[int]:
         with self._lock:
             self.commands.append(("set_state", value))
             self._integrate()
@@ -106,28 +108,28 @@ class FakeXArmController:
             self._report()
             return [0]
 
-    def get_state(self):
+    def get_state(self) -> list[int]:
         with self._lock:
             return [0, self.state]
 
-    def get_err_code(self):
+    def get_err_code(self) -> list[int]:
         with self._lock:
             return [0, self.error_code, self.warn_code]
 
-    def clean_err(self):
+    def clean_err(self) -> list[int]:
         with self._lock:
             self.commands.append(("clean_err",))
             self.error_code = 0
             self._report()
             return [0]
 
-    def clean_war(self):
+    def clean_war(self) -> list[int]:
         with self._lock:
             self.commands.append(("clean_war",))
             self.warn_code = 0
             return [0]
 
-    def move_servoj(self, mvjoint, mvvelo, mvacc, mvtime):
+    def move_servoj(self, mvjoint: Sequence[float], mvvelo: float, mvacc: float, mvtime: float) -> list[int]:
         with self._lock:
             self.commands.append(("move_servoj", tuple(mvjoint)))
             self._integrate()
@@ -136,12 +138,12 @@ class FakeXArmController:
             self.targets = np.asarray(mvjoint[:7], dtype=np.float64)
             return [0]
 
-    def get_joint_pos(self):
+    def get_joint_pos(self) -> list[float]:
         with self._lock:
             self._integrate()
             return [0, *self.positions.tolist()]
 
-    def get_joint_states(self, num=3):
+    def get_joint_states(self, num: int = 3) -> list[float]:
         with self._lock:
             self._integrate()
             return [0, *self.positions.tolist(), *self.velocities.tolist(), *self.torques.tolist()]
@@ -158,7 +160,7 @@ class FakeXArmController:
         self.torques = self.torque_per_rad * error + self.external_torques
 
 
-def fake_xarm_api(controller: FakeXArmController, ip: str = "192.168.1.201"):
+def fake_xarm_api(controller: FakeXArmController, ip: str = "192.168.1.201") -> Any:
     """A real XArmAPI whose transport is `controller` (see the module docstring)."""
     from xarm.wrapper import XArmAPI
 

@@ -75,7 +75,7 @@ class XArm7Robot(StreamingRobot):
             self._api = None
             raise
 
-    def _call(self, what: str, fn, *args, **kwargs):
+    def _call(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         with self._io:
             result = fn(*args, **kwargs)
         code = result[0] if isinstance(result, (tuple, list)) else result
