@@ -97,6 +97,7 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
                  tag: str | None = None) -> Protocol:
     if split not in OBJECT_SETS:
         raise ValueError(f"unknown split {split!r}; known: {', '.join(OBJECT_SETS)}")
+    objects: tuple[str, ...]
     if split == "val":
         objects = VAL_OBJECTS[:2] if quick else VAL_OBJECTS
     elif split == "unseen":
@@ -182,7 +183,7 @@ def exact_rates(out: Path, spec: Protocol, pose_models: dict[str, str]) -> dict[
     existed (`<name>`, the models then shipped)."""
     if spec.world == "exact":
         return {}
-    candidates = [(out / replace(spec, world="exact", cameras=0).directory_name, {})]
+    candidates: list[tuple[Path, dict[str, str]]] = [(out / replace(spec, world="exact", cameras=0).directory_name, {})]
     if not spec.cameras and spec.split == "test" and not spec.tag:
         candidates.append((out / spec.name, LEGACY_EXACT_NAMES))
     for directory, names in candidates:

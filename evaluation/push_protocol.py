@@ -118,7 +118,8 @@ def load_methods(path: Path = METHODS_FILE) -> dict[str, Method]:
         entry = dict(entry or {})
         try:
             options = PlannerOptions(**entry.pop("options", {}) or {})
-            fields = {key: tuple(value) if isinstance(value, list) else value for key, value in entry.items()}
+            fields: dict[str, Any] = {key: tuple(value) if isinstance(value, list) else value
+                                      for key, value in entry.items()}
             methods[name] = Method(name=name, options=options, **fields)
         except ValidationError as exc:
             problems = "; ".join(f"options.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
@@ -237,7 +238,9 @@ def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest
     from shared.world.object_refs import captured_object
     from shared.world.push_outcome import pose_matrix
 
-    robot = _system.robot
+    system = _system
+    assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
+    robot = system.robot
     if request.object.point_cloud is not None:
         T_told = captured_object(request.object).T_world_O
     else:
@@ -302,18 +305,20 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     """Plan and execute one trial; a record with the outcome ("infeasible" when no plan exists)."""
     from shared.planning.outcome import PushError
 
+    system = _system
+    assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
     started = time.perf_counter()
     method = METHODS[episode.method]
     source = _grasp if method.source == "grasp" else None
     weights = None if method.weights is None else _ranking_weights(*method.weights)
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
-    pipeline = _system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                                prescreen=prescreen, max_plans=max_plans)
+    pipeline = system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
+                               prescreen=prescreen, max_plans=max_plans)
     world = execution_world(episode)
-    _system.robot.execution_world = world
+    system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
-    _system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
+    system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record()}
     request = push_request(episode)  # with cameras: rendered once (the capture is seeded by the trial)
     try:
@@ -324,7 +329,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     except Exception as exc:  # a crash in one trial is recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:  # judged where the object truly is: the system only knows what its tracker saw
-        result = judge_episode(episode, world, _system.robot.true_object_pose(episode.arm, episode.hand))
+        result = judge_episode(episode, world, system.robot.true_object_pose(episode.arm, episode.hand))
         record.update(outcome="success" if result.success else "failure", success=bool(result.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
@@ -375,20 +380,25 @@ def pose_model_ids(hand: str) -> dict[str, str | float | None]:
 
 def _pose_model(hand: str, source: str) -> str | None:
     """The weights (diffusion checkpoint) or index (Nearest Neighbor) the trial's poses came from."""
+    system = _system  # this worker's, set by _init_worker (the pool's initializer) for the sources that use it
     if source == "gd2p":
         from shared.sampling.diffusion import default_noise_scale
 
+        assert system is not None
         noise_scale = default_noise_scale()  # the temperature the sampler service gives the planner's requests
         temperature = "" if noise_scale == 1.0 else f"@noise{noise_scale:g}"
-        return f"{hand}:{_system.sampler.sampler(hand).checkpoint_id}{temperature}"
+        return f"{hand}:{system.sampler.sampler(hand).checkpoint_id}{temperature}"
     if source == "nearest":
-        return f"{hand}:{_system.sampler.nearest(hand).index_id}"
+        assert system is not None
+        return f"{hand}:{system.sampler.nearest(hand).index_id}"
     return None
 
 
 def _has_critic(hand: str) -> bool:
     """Whether the sampler scores its samples with a success critic for `hand` (the planner then orders by it)."""
-    sampler = _system.sampler
+    system = _system
+    assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
+    sampler = system.sampler
     return sampler.critic(hand, sampler.sampler(hand)) is not None
 
 

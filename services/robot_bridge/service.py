@@ -46,6 +46,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -209,7 +210,7 @@ class Bridge:
             for robot in leased.executor.robots:
                 robot.disconnect()
 
-    def handlers(self) -> dict[type[Message], Callable[[Message], Message]]:
+    def handlers(self) -> dict[type[Message], Callable[[Any], Message]]:
         """Message type -> handler on the worker's job key (commands go to COMMAND_KEY instead)."""
         return {EStop: self.estop}
 

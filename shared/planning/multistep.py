@@ -28,6 +28,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any, Protocol, cast
 
 import numpy as np
 from ompl import base as ob
@@ -41,6 +42,21 @@ RRT_STAR_ITERATIONS = 1000  # measured: 0.681 m against the shortest 0.677 m aro
 MAX_ITERATIONS_FACTOR = 10  # without a path after `iterations`, keep searching up to this many times longer
 SHORTCUT_SLACK_M = 0.01  # a push may cut this far into the obstacle margin to skip a corner of the path
 TURNS_DEG = (15.0, -15.0, 30.0, -30.0)  # the path's push turned by these, in order, when the arm cannot make it
+
+
+class Circle(Protocol):
+    """A circle on the table (world x, y, radius in metres): a Disc or a shared.contracts.messages.CircleObstacle."""
+
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+    @property
+    def radius(self) -> float: ...
+
+
+Obstacle = Circle | tuple[float, float, float]
+"""An obstacle as the planners take it: a Circle or an (x, y, radius) tuple."""
 
 
 class DirectionInfeasible(Exception):
@@ -63,12 +79,13 @@ class Disc:
     radius: float
 
     @classmethod
-    def of(cls, obstacle) -> Disc:
+    def of(cls, obstacle: Obstacle) -> Disc:
         """From a Disc, a shared.contracts.messages.CircleObstacle or an (x, y, radius) tuple."""
         if isinstance(obstacle, Disc):
             return obstacle
         if hasattr(obstacle, "radius"):
-            return cls(float(obstacle.x), float(obstacle.y), float(obstacle.radius))
+            circle = cast(Circle, obstacle)  # what has a radius is a Circle (mypy does not narrow a union by hasattr)
+            return cls(float(circle.x), float(circle.y), float(circle.radius))
         x, y, radius = obstacle
         return cls(float(x), float(y), float(radius))
 
@@ -84,9 +101,9 @@ class ObjectPath:
 
 
 def plan_object_path(
-    start_xy: Sequence[float],
-    goal_xy: Sequence[float],
-    obstacles: Sequence = (),
+    start_xy: Sequence[float] | np.ndarray,
+    goal_xy: Sequence[float] | np.ndarray,
+    obstacles: Sequence[Obstacle] = (),
     *,
     object_radius_m: float,
     margin_m: float = 0.02,
@@ -126,7 +143,8 @@ def plan_object_path(
     return ObjectPath(waypoints=waypoints, length_m=length, min_clearance_m=clearance, planning_s=planning_s)
 
 
-def _bounds(start: np.ndarray, goal: np.ndarray, bounds) -> tuple[np.ndarray, np.ndarray]:
+def _bounds(start: np.ndarray, goal: np.ndarray,
+            bounds: tuple[tuple[float, float], tuple[float, float]] | None) -> tuple[np.ndarray, np.ndarray]:
     if bounds is None:
         return np.minimum(start, goal) - DEFAULT_PADDING_M, np.maximum(start, goal) + DEFAULT_PADDING_M
     low, high = np.asarray(bounds[0], dtype=np.float64), np.asarray(bounds[1], dtype=np.float64)
@@ -135,7 +153,8 @@ def _bounds(start: np.ndarray, goal: np.ndarray, bounds) -> tuple[np.ndarray, np
     return low, high
 
 
-def _rrt_star(start, goal, centres, radii, low, high, iterations: int, seed: int) -> np.ndarray:
+def _rrt_star(start: np.ndarray, goal: np.ndarray, centres: np.ndarray, radii: np.ndarray, low: np.ndarray,
+              high: np.ndarray, iterations: int, seed: int) -> np.ndarray:
     seed_ompl(seed)
     space = ob.RealVectorStateSpace(2)
     limits = ob.RealVectorBounds(2)
@@ -148,7 +167,7 @@ def _rrt_star(start, goal, centres, radii, low, high, iterations: int, seed: int
 
     discs = [(float(x), float(y), float(r) ** 2) for (x, y), r in zip(centres, radii, strict=True)]
 
-    def valid(state) -> bool:  # plain floats: called thousands of times per plan, numpy's overhead dominates
+    def valid(state: Any) -> bool:  # plain floats: called thousands of times per plan, numpy's overhead dominates
         x, y = state[0], state[1]
         return all((x - cx) ** 2 + (y - cy) ** 2 > r2 for cx, cy, r2 in discs)
 
@@ -222,9 +241,9 @@ PushStep = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 def push_along_path(
-    start_xy: Sequence[float],
-    goal_xy: Sequence[float],
-    obstacles: Sequence,
+    start_xy: Sequence[float] | np.ndarray,
+    goal_xy: Sequence[float] | np.ndarray,
+    obstacles: Sequence[Obstacle],
     push: PushStep,
     *,
     object_radius_m: float,
@@ -246,7 +265,9 @@ def push_along_path(
     tried; when none can be made either, the first push's DirectionInfeasible is raised).
     """
     goal = np.asarray(goal_xy, dtype=np.float64)[:2]
-    positions, paths, turns = [np.asarray(start_xy, dtype=np.float64)[:2]], [], []
+    positions: list[np.ndarray] = [np.asarray(start_xy, dtype=np.float64)[:2]]
+    paths: list[ObjectPath] = []
+    turns: list[float] = []
     for _ in range(max_steps):
         if np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m:
             return MultiStepResult(positions, paths, True, f"reached the goal in {len(paths)} push(es)", turns)
@@ -267,7 +288,7 @@ def push_along_path(
                            f"({np.linalg.norm(positions[-1] - goal):.3f} m away)", turns)
 
 
-def next_push_target(waypoints: np.ndarray, obstacles: Sequence, object_radius_m: float, margin_m: float,
+def next_push_target(waypoints: np.ndarray, obstacles: Sequence[Obstacle], object_radius_m: float, margin_m: float,
                      max_push_m: float, slack_m: float = SHORTCUT_SLACK_M) -> np.ndarray:
     """Where the next push goes: the farthest end of a piece of the path (`split_into_pushes`) that one straight
     push from the path's start reaches (<= `max_push_m`) keeping the object `object_radius_m + margin_m - slack_m`
@@ -289,7 +310,7 @@ def next_push_target(waypoints: np.ndarray, obstacles: Sequence, object_radius_m
     return target
 
 
-def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, object_radius_m: float,
+def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence[Obstacle], object_radius_m: float,
                   margin_m: float, turns_deg: Sequence[float] = TURNS_DEG) -> list[tuple[float, np.ndarray]]:
     """(turn, target): the push from `from_xy` to `to_xy` turned about its start by each of `turns_deg`,
     same length, kept when its straight line stays `object_radius_m + margin_m` clear of every obstacle."""
@@ -305,7 +326,7 @@ def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence, o
     return kept
 
 
-def _centres_and_radii(obstacles: Sequence) -> tuple[np.ndarray, np.ndarray]:
+def _centres_and_radii(obstacles: Sequence[Obstacle]) -> tuple[np.ndarray, np.ndarray]:
     """The obstacles' centres [n, 2] and radii [n] (metres)."""
     discs = [Disc.of(o) for o in obstacles]
     return np.array([[d.x, d.y] for d in discs]).reshape(-1, 2), np.array([d.radius for d in discs])
@@ -313,17 +334,19 @@ def _centres_and_radii(obstacles: Sequence) -> tuple[np.ndarray, np.ndarray]:
 
 def _first_pushable(push: PushStep, start: np.ndarray, options: list[tuple[float, np.ndarray]]) -> tuple[float, np.ndarray]:
     """(turn, observed position) of the first of `options` the arm can push; the first refusal when none."""
-    first_refusal = None
+    first_refusal: DirectionInfeasible | None = None
     for turn, target in options:
         try:
             return turn, np.asarray(push(start, target), dtype=np.float64)[:2]
         except DirectionInfeasible as refusal:
             first_refusal = first_refusal or refusal
+    if first_refusal is None:  # no push was tried (else it returned or was refused): never `raise None`
+        raise ValueError("no push to try: `options` is empty")
     first_refusal.turns_tried = [turn for turn, _ in options[1:]]
     raise first_refusal
 
 
-def _margin_left(position: np.ndarray, obstacles: Sequence, object_radius_m: float) -> float:
+def _margin_left(position: np.ndarray, obstacles: Sequence[Obstacle], object_radius_m: float) -> float:
     """How much margin `position` keeps beyond every obstacle's radius + the object's radius (>= 0)."""
     gaps = [np.hypot(position[0] - d.x, position[1] - d.y) - d.radius - object_radius_m
             for d in map(Disc.of, obstacles)]

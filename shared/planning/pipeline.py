@@ -50,7 +50,7 @@ from shared.contracts.messages import ExecutionResult, PushRequest, PushResponse
 from shared.frames import direction_xy, make_transform
 from shared.planning import stages
 from shared.planning.cancellation import Cancellation
-from shared.planning.candidates import Feasible, Push, RankedPlan
+from shared.planning.candidates import Candidates, Feasible, Push, RankedPlan
 from shared.planning.ik import ArmIK
 from shared.planning.motion import MotionPlanner, PlanningError
 from shared.planning.multistep import DirectionInfeasible, push_along_path
@@ -100,6 +100,7 @@ class PushPipeline:
         state = self._start(request, cancel or Cancellation())
         try:
             if request.goal_xy is None:
+                assert request.direction_deg is not None  # PushRequest holds exactly one of direction_deg, goal_xy
                 push = Push(state.T_world_O.copy(), direction_xy(request.direction_deg), request.distance_m)
                 self._push_once(state, push)
                 final = self._corrected(state, push)
@@ -137,6 +138,7 @@ class PushPipeline:
 
     def _multi_step(self, state: RequestState) -> ExecutionResult:
         request = state.request
+        assert request.goal_xy is not None  # run() makes a multi-step push of goal_xy requests only
         start_T = state.T_world_O.copy()
 
         def push(_from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
@@ -165,6 +167,8 @@ class PushPipeline:
                                       margin_m=self.settings.obstacle_margin_m, max_steps=request.options.max_steps,
                                       seed=request.seed)
         except DirectionInfeasible as refusal:
+            # `push` above raises DirectionInfeasible only around a PushError
+            assert isinstance(refusal.error, PushError)
             turned = ", ".join(f"{t:+.0f}" for t in refusal.turns_tried)
             also = f"; turned {turned} deg off the object path it could not be made either" if turned else ""
             raise PushError(refusal.error.code, f"{refusal.error.message}{also}") from refusal.error
@@ -232,7 +236,7 @@ class PushPipeline:
                                      self._limits(request.arm, request.hand), reason))
 
     def _screened(self, state: RequestState, planner: MotionPlanner,
-                  push: Push) -> tuple[stages.Candidates, PipelineSettings, Feasible]:
+                  push: Push) -> tuple[Candidates, PipelineSettings, Feasible]:
         """The push's candidates, its settings and the kinematically feasible candidates. When none of a
         diffusion draw's K samples is feasible, K more are drawn (another seed), up to `sample_draws` draws."""
         request = state.request
@@ -254,7 +258,7 @@ class PushPipeline:
                             "either") from exc
 
     def _screened_draw(self, state: RequestState, planner: MotionPlanner, push: Push,
-                       draw: int) -> tuple[stages.Candidates, PipelineSettings, Feasible]:
+                       draw: int) -> tuple[Candidates, PipelineSettings, Feasible]:
         """Draw `draw`'s candidates, their settings and the feasible ones (PushError "infeasible" if none)."""
         candidates = stages.candidate_poses(state, push, self.services.sample, draw)
         settings = self.settings.for_push(state.request)

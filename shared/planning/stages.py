@@ -36,6 +36,7 @@ from shared.contracts.messages import (
     PushStep,
     SampleRequest,
     SampleResponse,
+    ScoreTerms,
     SimWorld,
     ValidationJob,
     ValidationResult,
@@ -63,7 +64,7 @@ PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 job
 Sample = Callable[[SampleRequest], SampleResponse]
 # A validation job (floating-hand pushes or an arm rollout) sent to the validator farm; the future
 # holds its result, or the error that stopped it.
-Validate = Callable[[ValidationJob], Future]
+Validate = Callable[[ValidationJob], Future[ValidationResult]]
 # Execute a plan on the robot bridge (resetting its world to the SimWorld first, when one is given); cancelling
 # the request must stop the motion, and so must the monitor (closed loop), when it finds a reason to stop.
 Execute = Callable[[Plan, SimWorld | None, Cancellation, PushMonitor | None], Execution]
@@ -155,6 +156,7 @@ class RequestState:
         """After an executed push: record it; the object and the robot are where the bridge saw them."""
         self.records.append(record)
         state = record.execution.final
+        assert state.object_pose is not None  # `execute` makes no record of a push without an observed object pose
         self.T_world_O = pose_matrix(state.object_pose)
         self.q_robot = state.positions.to_numpy().astype(np.float64)
 
@@ -183,6 +185,7 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
         R_D_O = (invert_transform(push.T_world_D) @ push.T_world_O)[:3, :3]  # how the object sits in D
         reusable = state.sampled is not None and rotation_between_deg(state.sampled[0], R_D_O) <= REUSE_SAMPLES_DEG
         if draw == 0 and reusable:
+            assert state.sampled is not None  # `reusable` says so
             _, poses_d, p_success = state.sampled  # a later push sees the object in D as the last one did
         else:
             sampler = "nearest" if request.options.method == "nearest" else request.options.sampler
@@ -351,7 +354,7 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
 # ------------------------------------------------------------------------------- 4. planning
 
 
-def within_limits(make: Callable[[], Plan], limits: RobotLimits, attempts: int, failures: Counter,
+def within_limits(make: Callable[[], Plan], limits: RobotLimits, attempts: int, failures: Counter[str],
                   what: str) -> Plan | None:
     """`make()`'s plan if the robot bridge will accept it (joint, velocity, workspace limits), else None.
 
@@ -385,7 +388,7 @@ class ArmPlanning:
         self.limits, self.settings = limits, settings
         self.q_arm_start, self.q_hand_start = robot_start(state, planner)
 
-    def plans(self, feasible: Feasible, failures: Counter,
+    def plans(self, feasible: Feasible, failures: Counter[str],
               on_plan: Callable[[CandidatePlan], None] | None = None) -> tuple[list[CandidatePlan], Feasible]:
         """Plans for up to `max_plans` candidates taken in `feasible.order` (one plan for a random choice),
         and the candidates after those tried; `on_plan(plan)` is called as each plan is made.
@@ -408,7 +411,7 @@ class ArmPlanning:
         raise PushError("infeasible", f"no collision-free arm plan for any of the {sum(failures.values())} "
                         f"feasible pose(s) tried ({_counted(failures)}){_reach_hint(failures)}")
 
-    def _round(self, feasible: Feasible, failures: Counter,
+    def _round(self, feasible: Feasible, failures: Counter[str],
                on_plan: Callable[[CandidatePlan], None] | None) -> tuple[list[CandidatePlan], int]:
         """One round of `plans`: the plans of the first `max_plan_attempts` poses of the order (stopping at
         `max_plans`, or one for a random choice) and how many poses were tried."""
@@ -438,7 +441,7 @@ class ArmPlanning:
 
     def with_way_back(self, ranked: list[RankedPlan]) -> RankedPlan:
         """The best-ranked plan completed with its way back to the start (the next best if that fails)."""
-        failures: Counter = Counter()
+        failures: Counter[str] = Counter()
         for choice in ranked:
             full = within_limits(functools.partial(self.planner.plan_return, choice.plan, self.q_arm_start,
                                                    self.push.offset),
@@ -457,11 +460,11 @@ def robot_start(state: RequestState, planner: MotionPlanner) -> tuple[np.ndarray
     return state.q_robot[:n_arm], state.q_robot[n_arm:]
 
 
-def _counted(failures: Counter) -> str:
+def _counted(failures: Counter[str]) -> str:
     return ", ".join(f"{n}× {reason}" for reason, n in failures.most_common())
 
 
-def _reach_hint(failures: Counter) -> str:
+def _reach_hint(failures: Counter[str]) -> str:
     """Why, when every pose tried was reached but no way in to it was. Seen on the xArm7's pulls toward itself,
     with the object at 0.36 m as at 0.40 m: a hand facing the robot folds the wrist near its joint stop."""
     if failures and all(reason.startswith("no approach (from behind: no IK solution") for reason in failures):
@@ -483,7 +486,7 @@ def rollout_job(request: PushRequest, push: Push, pose_d: np.ndarray, plan: Plan
 # ------------------------------------------------------------------------------- 6. ranking
 
 
-def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future], l_dir: np.ndarray,
+def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future[ValidationResult]], l_dir: np.ndarray,
          settings: PipelineSettings) -> list[RankedPlan]:
     """Score every plan by its arm rollout (`rollouts[i]` is plan i's); the plans from best (lowest V) to worst.
 
@@ -510,7 +513,13 @@ def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future]
 
 def best_first(ranked: list[RankedPlan]) -> list[RankedPlan]:
     """`ranked` from the lowest V to the highest (stable on ties)."""
-    return [ranked[i] for i in ranking.order([r.score for r in ranked])] if ranked else []
+    return [ranked[i] for i in ranking.order([_score(r) for r in ranked])] if ranked else []
+
+
+def _score(plan: RankedPlan) -> ScoreTerms:
+    """The score of a plan that `rank` scored (by its arm rollout)."""
+    assert plan.score is not None  # `rank`'s plans are rolled out: each has its rollout's score
+    return plan.score
 
 
 def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible, validate: Validate,
@@ -521,14 +530,14 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
     rolls out while the planner plans the next pose; "rollouts" times only the wait after planning.
     """
     ranked: list[RankedPlan] = []
-    failures: Counter = Counter()  # over all rounds
+    failures: Counter[str] = Counter()  # over all rounds
     rolled_out = 0
     for _ in range(settings.max_plan_rounds):
-        rollouts: list[Future] = []
+        rollouts: list[Future[ValidationResult]] = []
 
         # This round's `feasible` and `rollouts`, bound now: the loop rebinds both for the next round.
         def roll_out(candidate: CandidatePlan, feasible: Feasible = feasible,
-                     rollouts: list[Future] = rollouts) -> None:
+                     rollouts: list[Future[ValidationResult]] = rollouts) -> None:
             pose_d = feasible.candidates.poses_d[candidate.index]
             rollouts.append(validate(rollout_job(state.request, planning.push, pose_d, candidate.plan)))
 
@@ -542,7 +551,7 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
         rolled_out += len(plans)
         ranked = best_first(ranked + rank(state, plans, rollouts, feasible.candidates.l_dir, settings))
         feasible = rest
-        if (ranked and ranking.predicts_success(ranked[0].score)) or feasible.order.size == 0:
+        if (ranked and ranking.predicts_success(_score(ranked[0]))) or feasible.order.size == 0:
             break
     if not ranked:
         raise PushError("infeasible", f"each of the {rolled_out} rolled-out plan(s) made the robot or the object "
@@ -550,7 +559,7 @@ def plan_and_rank(state: RequestState, planning: ArmPlanning, feasible: Feasible
     return ranked
 
 
-def wait_for_results(futures: list[Future], timeout_s: float,
+def wait_for_results(futures: list[Future[ValidationResult]], timeout_s: float,
                      cancel: Cancellation) -> list[ValidationResult | Exception]:
     """Each future's result, or the exception it ended with (one failed job does not fail the others);
     a job unfinished after `timeout_s` counts as a TimeoutError. RequestCancelled when cancelled first."""
@@ -588,6 +597,7 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
     state.cancel.check()  # a motion stopped by the cancellation is the cancellation's outcome
     stopped = monitor.stop_reason if monitor is not None and execution.final.status == "stopped" else None
     if stopped is not None:
+        assert monitor is not None  # only a monitor stops a push
         execution = _backed_out(state, chosen.plan, monitor, execution, run_plan, limits)
     state.time("execution", time.perf_counter() - started)
     final = execution.final
