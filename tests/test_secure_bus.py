@@ -535,6 +535,9 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                             ("ingress", "declare_subscriber", keys.ROBOT_STATE_KEY, ALL)],
         "OBJECT_TRACK_KEY": [("ingress", "put", keys.OBJECT_TRACK_KEY, frozenset({"robot_bridge", "tracker"})),
                              ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
+        # The live view's push decisions: in the planner's namespace, so only the planner publishes them.
+        "PLANNER_DECISION_KEY": [("ingress", "put", keys.PLANNER_DECISION_KEY, frozenset({"planner"})),
+                                 ("ingress", "declare_subscriber", keys.PLANNER_DECISION_KEY, ALL)],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
         # Router watchdog beats (shared/bus/lease.py): the bridge's own (issue 53), see profile.WATCHDOG_BEATERS.
