@@ -138,6 +138,98 @@ def _cloud_request(**overrides) -> PushRequest:
     return PushRequest(object=ObjectRef(point_cloud=cloud), **(settings | overrides))
 
 
+# ------------------------------------------------------------------------------ without a system
+
+def _plan(n: int = 5, offset: float = 0.0):
+    from shared.contracts.messages import Plan, PlanSegment
+
+    positions = np.linspace(0.0, 1.0, n)[:, None] * np.ones((n, 2)) + offset
+    return Plan(arm="panda", hand="allegro", joint_names=["a", "b"], positions=positions,
+                times_s=np.arange(n, dtype=float), segments=[PlanSegment(label="push", start=0, stop=n)])
+
+
+def test_the_decision_tap_reports_candidates_scores_rollouts_and_the_chosen_plan():
+    """What crosses the pipeline's service boundary is enough: the sampler's reply, the arm rollouts, the plan."""
+    from concurrent.futures import Future
+
+    from shared.contracts.messages import (
+        DirectionFrame,
+        ExecutionState,
+        ObjectPath,
+        ObjectPose,
+        SampleRequest,
+        SampleResponse,
+        ValidationJob,
+        ValidationResult,
+    )
+    from shared.planning.decision import DecisionTap
+    from shared.planning.outcome import Execution
+    from shared.planning.pipeline import PushServices
+
+    frame = DirectionFrame(object_pose=ObjectPose(position=(0.55, 0.0, 0.04)), yaw_deg=90.0)
+    poses = np.zeros((3, 25))
+    poses[:, 3], poses[:, 7] = 1.0, 1.0  # r6: identity
+    poses[:, 0] = [-0.1, -0.2, -0.3]  # behind the object in D (x along the push)
+    ref = ObjectRef(library_id=BOX)
+
+    def sample(request):
+        return SampleResponse(request_id=request.id, hand="allegro", poses_d=poses, poses_world=poses, latency_s=0.1,
+                              checkpoint_id="c", success_probability=np.array([0.1, 0.9, 0.5]))
+
+    def validate(job):
+        f: Future = Future()
+        ok = np.array([True])
+        path = ObjectPath(times_s=np.array([0.0, 1.0]), positions=np.array([[0.55, 0.0, 0.04], [0.55, 0.2, 0.04]]),
+                          quaternions_xyzw=np.array([[0, 0, 0, 1.0], [0, 0, 0, 1.0]]))
+        zeros = np.zeros(1)
+        f.set_result(ValidationResult(job_id=job.id, hand="allegro", object_id=BOX, success=ok, position_error_m=zeros,
+                                      rotation_deg=zeros, max_tilt_deg=zeros, contact_kept=ok, hand_table_contact=~ok,
+                                      initial_penetration_m=zeros, goal_error_m=np.array([0.01]),
+                                      collision_cost=zeros, obstacle_contact=~ok, object_paths=[path]))
+        return f
+
+    final = ExecutionState(stamp=0.0, joint_names=["a", "b"], positions=np.zeros(2), velocities=np.zeros(2), status="done")
+    seen = []
+    tap = DecisionTap(PushServices(sample=sample, validate=validate, execute=lambda *a: Execution(final=final)),
+                      seen.append)
+    services = tap.services()
+    tap.begin("r1")
+    services.sample(SampleRequest(object=ref, hand="allegro", frame=frame, k=3))
+    rolled = [_plan(5, 0.0), _plan(5, 0.5)]
+    for plan in rolled:
+        services.validate(ValidationJob(object=ref, hand="allegro", poses=poses[:1], with_arm=True, arm="panda",
+                                        plan=plan, frame=frame))
+    chosen = rolled[1].model_validate(rolled[1].model_dump() | {  # the rolled-out plan with its way back
+        "positions": np.vstack([rolled[1].positions.to_numpy(), [[2.0, 2.0]]]), "times_s": np.arange(6, dtype=float)})
+    services.execute(chosen, None, None, None)
+    (decision,) = seen
+    assert decision.request_id == "r1" and decision.push_index == 0 and decision.chosen == 1
+    assert list(decision.candidates_world.shape) == [3, 25] and list(decision.critic_scores.shape) == [3]
+    world = decision.candidates_world.to_numpy()
+    assert np.allclose(world[:, :2], [[0.55, -0.1], [0.55, -0.2], [0.55, -0.3]])  # D turned 90 deg onto the world
+    assert [r.goal_error_m for r in decision.rollouts] == [0.01, 0.01] and decision.rollouts[1].object_path is not None
+    assert tap.decisions == [decision]
+
+
+def test_the_view_keeps_up_with_a_tracker_at_20_hz():
+    from shared.contracts.messages import ObjectPose, ObjectTrack
+    from visualisation.live import LiveView
+
+    view = LiveView(port=_free_port())
+    try:
+        started = time.monotonic()
+        for i in range(60):  # 3 s at 20 Hz
+            view.show_track(ObjectTrack(stamp=time.time(), pose=ObjectPose(position=(0.5, 0.001 * i, 0.04)), source="t"))
+            time.sleep(max(0.0, started + (i + 1) / 20.0 - time.monotonic()))
+        time.sleep(0.2)
+        stats = view.track_stats()
+    finally:
+        view.close()
+    assert stats["tracks"] == 60
+    assert stats["rate_hz"] >= 18.0, stats  # every tracked pose drawn in its own frame, or nearly
+    assert stats["lag_max_s"] < 0.2, stats
+
+
 def test_the_browser_shows_the_cloud_the_candidates_and_the_robot_of_a_push(view_system, browser):
     cfg, view = view_system
     browser.get(view.url)

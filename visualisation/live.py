@@ -202,6 +202,7 @@ class LiveView:
         self._counts: dict[str, int] = {"cloud_points": 0, "candidates": 0, "rollouts": 0, "robot_links": 0,
                                          "robot_states": 0, "tracks": 0, "decisions": 0, "obstacles": 0}
         self._confirmations: queue.Queue[str] = queue.Queue()
+        self._track_frames: list[tuple[float, float]] = []  # (when drawn, lag behind the newest track's stamp)
         self.server.on_client_connect(lambda _client: self._show_counts())
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         self._thread.start()
@@ -238,6 +239,23 @@ class LiveView:
         """What is drawn now: cloud points, candidate poses, rolled-out plans, robot link meshes, ..."""
         with self._lock:
             return dict(self._counts)
+
+    def track_stats(self) -> dict[str, float]:
+        """How the view kept up with the tracker: frames drawn with new tracked poses, their rate over the span
+        of those frames (Hz), and the lag from a pose's stamp to its drawing (median and max, s)."""
+        with self._lock:
+            frames = list(self._track_frames)
+            received = self._counts["tracks"]
+        if len(frames) < 2:
+            return {"frames": float(len(frames)), "tracks": float(received)}
+        span = frames[-1][0] - frames[0][0]
+        lags = sorted(lag for _, lag in frames)
+        return {"frames": float(len(frames)), "tracks": float(received), "rate_hz": (len(frames) - 1) / max(span, 1e-9),
+                "lag_median_s": lags[len(lags) // 2], "lag_max_s": lags[-1]}
+
+    def reset_track_stats(self) -> None:
+        with self._lock:
+            self._track_frames = []
 
     def clients(self) -> int:
         return len(self.server.get_clients())
@@ -416,8 +434,11 @@ class LiveView:
         self._trail = self._trail[-TRAIL_POINTS:]
         self.server.scene.add_point_cloud("/track", np.array(self._trail, dtype=np.float32), (255, 120, 0),
                                           point_size=0.004, point_shape="circle")
+        now = time.time()
         with self._lock:
             self._counts["tracks"] += len(tracks)
+            self._track_frames.append((now, now - tracks[-1].stamp))
+            del self._track_frames[:-10_000]
 
     def _draw_state(self, state: ExecutionState) -> None:
         if self._robot is None:

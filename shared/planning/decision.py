@@ -51,14 +51,16 @@ class DecisionTap:
     `begin(request_id)` starts a request (its pushes are numbered from 0); `decisions` are those of the
     current request, for its recording. A failing `on_decision` is logged, never raised into the push."""
 
-    def __init__(self, services: PushServices, on_decision: OnDecision | None = None):
+    def __init__(self, services: PushServices, on_decision: OnDecision | None = None, keep: int | None = None):
         self.inner = services
+        self.keep = keep  # decisions kept for the recording (None: all of the request's; an evaluation keeps 1)
         self.on_decision = on_decision
         self.decisions: list[PushDecision] = []
         self._lock = threading.Lock()
         self._request_id: str | None = None
         self._sample: tuple[SampleRequest, SampleResponse] | None = None
         self._rollouts: list[_Rollout] = []
+        self._pushes = 0  # decisions made for the current request
         self._stopped = False  # the last execution was a push the closed-loop monitor stopped: a back-out follows
 
     def services(self) -> PushServices:
@@ -68,6 +70,7 @@ class DecisionTap:
         with self._lock:
             self._request_id = request_id
             self.decisions = []
+            self._pushes = 0
             self._sample = None
             self._rollouts = []
             self._stopped = False
@@ -119,11 +122,14 @@ class DecisionTap:
             chosen = next((i for i, r in enumerate(previews) if _is_prefix(r.plan, plan)), None)
             job = rollouts[-1].job if rollouts else None
             decision = PushDecision(
-                request_id=self._request_id, push_index=len(self.decisions), hand=request.hand, arm=plan.arm,
+                request_id=self._request_id, push_index=self._pushes, hand=request.hand, arm=plan.arm,
                 object=request.object, frame=frame, distance_m=job.push_distance_m if job else None,
                 obstacles=list(job.obstacles) if job else [], candidates_world=candidates,
                 critic_scores=reply.success_probability, rollouts=previews, chosen=chosen, plan=plan)
             self.decisions.append(decision)
+            self._pushes += 1
+            if self.keep is not None:
+                del self.decisions[:-self.keep]
             return decision
 
 
