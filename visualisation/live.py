@@ -112,7 +112,7 @@ class RobotModel:
             mesh = _visual_mesh(geom, dims, filename.decode() if isinstance(filename, bytes) else str(filename))
             if mesh is None:
                 continue
-            color = tuple(int(255 * c) for c in rgba[:3]) if rgba[:3] != (1.0, 1.0, 1.0) else ROBOT_RGB
+            color = (int(255 * rgba[0]), int(255 * rgba[1]), int(255 * rgba[2])) if rgba[:3] != (1.0, 1.0, 1.0) else ROBOT_RGB
             server.scene.add_mesh_simple(f"/robot/{self.link_names[link]}/visual{meshes}", mesh.vertices.astype(np.float32),
                                          mesh.faces.astype(np.uint32), color=color, position=tuple(local_pos),
                                          wxyz=_wxyz(local_orn))
@@ -154,12 +154,14 @@ def _visual_mesh(geom: int, dims: Any, filename: str) -> trimesh.Trimesh | None:
             mesh = trimesh.load(str(path), force="mesh")
             mesh.apply_scale(np.asarray(dims[:3], dtype=np.float64))
             return mesh if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) else None
+        shape: trimesh.Trimesh | None = None
         if geom == pb.GEOM_BOX:
-            return trimesh.creation.box(np.asarray(dims[:3]))
-        if geom == pb.GEOM_SPHERE:
-            return trimesh.creation.icosphere(2, float(dims[0]))
-        if geom in (pb.GEOM_CYLINDER, pb.GEOM_CAPSULE):
-            return trimesh.creation.cylinder(float(dims[1]), float(dims[0]))
+            shape = trimesh.creation.box(np.asarray(dims[:3]))
+        elif geom == pb.GEOM_SPHERE:
+            shape = trimesh.creation.icosphere(2, float(dims[0]))
+        elif geom in (pb.GEOM_CYLINDER, pb.GEOM_CAPSULE):
+            shape = trimesh.creation.cylinder(float(dims[1]), float(dims[0]))
+        return shape
     except Exception as exc:  # a missing asset: the link is drawn without it
         log.debug("no visual mesh for %s: %s", filename, exc)
     return None
