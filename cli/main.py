@@ -25,6 +25,7 @@ COMMAND_MODULES: list[str] = [
     "cli.bridge",  # bridge selftest, bridge estop (robot bridge hardware adapters)
     "cli.dataset",  # dataset build, dataset stats (data engine pose store)
     "cli.push",  # push (push / pull requests to the running system)
+    "cli.confirm",  # confirm (release a plan the robot bridge holds: gd2p up --confirm)
     "cli.eval",  # eval (the paper's experiments in simulation), compare (two runs, trial by trial)
     "cli.capture",  # capture (simulated depth-camera capture of an object to a point cloud)
     "cli.critic",  # critic data, critic train (the success critic that orders sampled poses)

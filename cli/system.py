@@ -1,6 +1,6 @@
 """`gd2p up | status | health | demo`: run the local system and look at it over the bus.
 
-    gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447]
+    gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447] [--confirm [--confirm-timeout S]]
     gd2p status [--json] [bus flags]          live workers per service (liveliness)
     gd2p health --service S [--worker-id ID | --this-host] [bus flags]   exit 0 iff it answers
     gd2p demo                                  bring the system up, push an object 0.20 m, shut it down
@@ -43,6 +43,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     help="keys, certificates and Zenoh configs of the secure profile (created once; default %(default)s)")
     up.add_argument("--view", nargs="?", type=int, const=8090, default=None, metavar="PORT",
                     help="also serve the live view in the browser on PORT (default 8090): `gd2p view` attached")
+    up.add_argument("--confirm", action="store_true",
+                    help="preview and confirm: the robot bridge holds each plan until an operator confirms it "
+                         "(gd2p confirm ID); a plan not confirmed in time is dropped (the push answers not_confirmed)."
+                         " Off by default for the simulated robot; a hardware bridge confirms by default")
+    up.add_argument("--confirm-timeout", type=float, default=None, metavar="S",
+                    help="with --confirm: drop a plan not confirmed within S seconds (default 60, at most 240)")
     up.set_defaults(func=run_up)
 
     status = subparsers.add_parser("status", help="live worker count per service",
@@ -176,6 +182,18 @@ def run_up(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM stops like Ctrl-C
+    from shared.execution.confirm import DEFAULT_TIMEOUT_S, MAX_TIMEOUT_S
+
+    confirm = getattr(args, "confirm", False)
+    confirm_timeout = getattr(args, "confirm_timeout", None)
+    if confirm_timeout is not None and not confirm:
+        print("gd2p up: --confirm-timeout needs --confirm", file=sys.stderr)
+        return 2
+    confirm_timeout = DEFAULT_TIMEOUT_S if confirm_timeout is None else confirm_timeout
+    if confirm and not 0.0 < confirm_timeout <= MAX_TIMEOUT_S:
+        print(f"gd2p up: --confirm-timeout must be in (0, {MAX_TIMEOUT_S:g}] s (the planner waits 300 s for a command)",
+              file=sys.stderr)
+        return 2
     try:
         secure = getattr(args, "secure", False)
         listen = SECURE_LISTEN if secure and args.listen == DEFAULT_LISTEN else args.listen
@@ -183,7 +201,8 @@ def run_up(args: argparse.Namespace) -> int:
         os.environ.setdefault("GD2P_PUSH_RECORD_DIR", os.path.join(os.path.abspath(args.record_dir), "pushes"))
         launcher = Launcher(validators=args.validators, listen=listen, record_dir=args.record_dir,
                             log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None,
-                            view_port=getattr(args, "view", None))
+                            view_port=getattr(args, "view", None),
+                            confirm_timeout_s=confirm_timeout if confirm else None)
     except LaunchError as exc:
         print(f"gd2p up: {exc}", file=sys.stderr)
         return 2
@@ -199,12 +218,15 @@ def run_up(args: argparse.Namespace) -> int:
             print(f"live view: {launcher.view_url}")
         tools = scale = f"--connect {launcher.endpoint}"
         if launcher.secure is not None:
-            # The operator's everyday tools join as "cli"; only the "operator" identity may scale.
+            # The operator's everyday tools join as "cli"; only the "operator" identity may scale (and confirm).
             tools += f" --zenoh-config {launcher.secure.client_config('cli')}"
             scale += f" --zenoh-config {launcher.secure.client_config('operator')}"
             print(f"secure profile: mTLS + access control from {launcher.secure.directory} "
                   f"(CA key in {launcher.secure.ca_dir}: keep it offline)")
         print(f"status: gd2p status {tools}   scale: python deploy/scale_validators.py N {scale}")
+        if confirm:
+            print(f"preview and confirm: each plan waits up to {confirm_timeout:g} s for "
+                  f"`gd2p confirm ID {scale}` (held plans: gd2p confirm --list {scale})")
         print("Ctrl-C (or SIGTERM) stops everything.", flush=True)
         while True:
             time.sleep(3600)  # the launcher's threads supervise; a signal ends the wait

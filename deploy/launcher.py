@@ -194,6 +194,7 @@ class Launcher:
         secure_dir: str | os.PathLike | None = None,
         max_scale: Mapping[str, int] | None = None,
         view_port: int | None = None,
+        confirm_timeout_s: float | None = None,
     ):
         # The most workers per scalable service (defaults, GD2P_MAX_SCALE, then `max_scale`).
         self.max_scale = scale_limits(max_scale)
@@ -216,6 +217,8 @@ class Launcher:
             from deploy.secure import prepare
 
             self.secure = prepare(secure_dir, [listen])
+        # Preview and confirm (issue 52): the bridge holds each plan for an operator, at most this long (None: off).
+        self.confirm_timeout_s = confirm_timeout_s
         self.initial_counts = {svc: 1 for svc in SERVICES} | {"validator": n_validators}
         self.exits: list[ChildExit] = []
         self._children: dict[str, Child] = {}  # worker id -> child
@@ -403,6 +406,9 @@ class Launcher:
                "--mode", "client", "--connect", self.endpoint, "--worker-id", worker_id]
         if service == "recorder":
             cmd += ["--record-dir", str(self.record_dir)]
+        if service == "robot_bridge":  # the simulated robot: confirm only when asked (`gd2p up --confirm`)
+            cmd += (["--confirm", "--confirm-timeout", f"{self.confirm_timeout_s:g}"] if self.confirm_timeout_s
+                    else ["--no-confirm"])
         if self.secure is not None:
             cmd += ["--zenoh-config", str(self.secure.client_config(service))]
         return cmd

@@ -77,6 +77,8 @@ def test_every_key_of_keys_py_has_its_row():
         "ROBOT_ESTOP_KEY": lambda: interface(keys.ROBOT_ESTOP_KEY),
         "OBJECT_TRACK_KEY": lambda: interface(keys.OBJECT_TRACK_KEY),
         "PLANNER_DECISION_KEY": lambda: interface(keys.PLANNER_DECISION_KEY),
+        "ROBOT_HELD_KEY": lambda: interface(keys.ROBOT_HELD_KEY),
+        "ROBOT_CONFIRM_KEY": lambda: interface(keys.ROBOT_CONFIRM_KEY),
         "alive_key": lambda: interface(keys.alive_key("sampler", "w-1")),
         "alive_pattern": lambda: next(r for r in INTERFACES if r.pattern == keys.alive_pattern("sampler")),
         "job_key": lambda: interface(keys.job_key("sampler", "w-1")),
@@ -98,6 +100,7 @@ def test_every_key_of_keys_py_has_its_row():
         with pytest.raises(LookupError):
             interface(lease_key(role, "h-1", "validator"))
     assert interface(keys.ROBOT_COMMAND_KEY).callers == {"planner"}
+    assert interface(keys.ROBOT_CONFIRM_KEY).callers == {"operator"}  # issue 52: only the operator confirms
     with pytest.raises(LookupError):
         interface("gd2p/unknown/key")
 

@@ -283,12 +283,12 @@ class BusBridge:
     """A Bridge on `endpoint` (with a router watchdog if asked: what `service.run` builds), its simulated robot
     built, and a commander session."""
 
-    def __init__(self, endpoint: str, watchdog: bool = False):
+    def __init__(self, endpoint: str, watchdog: bool = False, confirm_timeout_s: float | None = None):
         from services.robot_bridge.service import Bridge
 
         self.session, self.commander = bus_session(endpoint), bus_session(endpoint)
         self.probe = bus_session(endpoint) if watchdog else None
-        self.bridge = Bridge(self.session, probe=self.probe)
+        self.bridge = Bridge(self.session, probe=self.probe, confirm_timeout_s=confirm_timeout_s)
         self.backend = self.bridge.executor("panda", "allegro").executor.robots[0]
         self.stopped_at: list[float] = []
         send = self.backend.send

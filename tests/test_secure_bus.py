@@ -189,6 +189,52 @@ def test_another_identity_cannot_command_the_robot(secure, bridge):
     assert "put:from-validator" not in received
 
 
+def test_only_the_operator_identity_may_release_a_held_plan(secure, bridge):
+    """Issue 52 (`gd2p up --confirm`): the bridge holds the planner's command; a confirmation from cli, the
+    planner or a validator is dropped by the router (no answer: ConfirmError) and the arm does not move; the
+    operator's releases it."""
+    from client.confirm import ConfirmError, confirm, held_plans
+    from services.robot_bridge.bus_safety import ConfirmServer
+    from shared.execution.confirm import ConfirmGate
+
+    profile, _ = secure
+    controller, executor, _ = bridge
+    gate = ConfirmGate(executor.estop, timeout_s=30.0)
+    with session_as(profile, "robot_bridge") as bridge_session:
+        server = ConfirmServer(bridge_session, gate)
+        executor.executor.hold = gate.hold
+        try:
+            with session_as(profile, "planner") as planner:
+                token = planner.liveliness().declare_token(lease_key("planner", "planner-held"))
+                time.sleep(0.3)
+                before = servo_commands(controller)
+                command = command_from_here(controller, lease_key("planner", "planner-held"))
+                states: list[ExecutionState] = []
+                sender = threading.Thread(target=lambda: states.extend(send(planner, command, timeout=40.0)),
+                                          daemon=True)
+                sender.start()
+                deadline = time.monotonic() + 10.0
+                while not gate.held() and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                with session_as(profile, "cli") as cli:
+                    assert [h.command_id for h in held_plans(cli)] == [command.id]  # anyone may see what waits
+                for identity in ("cli", "planner", "validator"):
+                    with session_as(profile, identity) as other:
+                        with pytest.raises(ConfirmError, match="no robot bridge answered"):
+                            confirm(other, command.id, operator=identity, timeout_s=1.0)
+                assert servo_commands(controller) == before and [h.command_id for h in gate.held()] == [command.id]
+                with session_as(profile, "operator") as operator:
+                    reply = confirm(operator, command.id, operator="alice")
+                sender.join(15.0)
+                token.undeclare()
+        finally:
+            executor.executor.hold = None
+            server.close()
+    assert reply.accepted, reply.reason
+    assert [s.status for s in states] == ["done"] and "confirmed by alice" in states[0].message, states
+    assert servo_commands(controller) > before
+
+
 def test_a_session_without_a_client_certificate_cannot_connect(secure):
     profile, endpoint = secure
     cfg = zenoh.Config()
@@ -538,6 +584,13 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
         # The live view's push decisions: in the planner's namespace, so only the planner publishes them.
         "PLANNER_DECISION_KEY": [("ingress", "put", keys.PLANNER_DECISION_KEY, frozenset({"planner"})),
                                  ("ingress", "declare_subscriber", keys.PLANNER_DECISION_KEY, ALL)],
+        # Preview and confirm (issue 52): the bridge publishes held plans; only the operator confirms.
+        "ROBOT_HELD_KEY": [("ingress", "put", keys.ROBOT_HELD_KEY, frozenset({"robot_bridge"})),
+                           ("ingress", "declare_subscriber", keys.ROBOT_HELD_KEY, ALL)],
+        "ROBOT_CONFIRM_KEY": [("ingress", "query", keys.ROBOT_CONFIRM_KEY, frozenset({"operator"})),
+                              ("egress", "reply", keys.ROBOT_CONFIRM_KEY, frozenset({"operator"})),
+                              ("ingress", "declare_queryable", keys.ROBOT_CONFIRM_KEY, frozenset({"robot_bridge"})),
+                              ("egress", "query", keys.ROBOT_CONFIRM_KEY, frozenset({"robot_bridge"}))],
         "ROBOT_ESTOP_KEY": [("ingress", "put", keys.ROBOT_ESTOP_KEY, ALL),
                             ("egress", "put", keys.ROBOT_ESTOP_KEY, ALL)],
         # Router watchdog beats (shared/bus/lease.py): the bridge's own (issue 53), see profile.WATCHDOG_BEATERS.

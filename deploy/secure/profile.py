@@ -22,6 +22,9 @@ rules are default-deny, and each key space has an owner:
   the "cli" certificate that every push/dataset client carries); the launcher identity serves it.
 - `gd2p/robot_bridge/object_track`: besides the bridge (its namespace), CN "tracker" may put: a user's
   object tracker beside real hardware.
+- `gd2p/robot_bridge/confirm` (`gd2p up --confirm`): only CN "operator" queries it (CONFIRMERS: releasing
+  a held plan moves the robot; the "cli" certificate of every push client may not); the bridge serves it
+  and publishes the held plans on `gd2p/robot_bridge/held` (its namespace; every identity may subscribe).
 - `gd2p/robot_bridge/estop`: every authenticated identity may put (stopping must never need the planner).
 - `gd2p/watchdog/*` (router watchdog beats, shared/bus/lease.py RouterWatchdog): only CN robot_bridge puts
   (WATCHDOG_BEATERS: the bridge's probe session beats to its main session). A beat from anyone else is
@@ -34,7 +37,7 @@ rules are default-deny, and each key space has an owner:
 `allowed(identity, flow, message, key)` evaluates the same rules the way Zenoh does (a rule applies
 when one of its key expressions includes the message's), for tests and for docs/safety.md.
 A key outside every rule is dropped for everyone: a new key (shared/bus/keys.py) needs an owner here.
-The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS, WATCHDOG_BEATERS) come from the interface registry,
+The tables (WORKER_IDENTITIES, CALLS, LEASE_HOLDERS, OPEN_PUT_KEYS, WATCHDOG_BEATERS, CONFIRMERS) come from the interface registry,
 shared/bus/interfaces.py; tests/test_interfaces.py checks every registry entry against these rules.
 """
 from __future__ import annotations
@@ -54,6 +57,7 @@ from shared.bus.keys import (
     OBJECT_TRACK_KEY,
     PREFIX,
     ROBOT_COMMAND_KEY,
+    ROBOT_CONFIRM_KEY,
     STATUS_PREFIX,
 )
 
@@ -82,6 +86,10 @@ OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge
 _WATCHDOG = interfaces.interface(interfaces.WATCHDOG_KEY, "publication")
 WATCHDOG_KEYS = _WATCHDOG.pattern  # gd2p/watchdog/*
 WATCHDOG_BEATERS: tuple[str, ...] = tuple(sorted(_WATCHDOG.declarers))  # robot_bridge
+# Preview and confirm (`gd2p up --confirm`): the identities that may confirm a held plan (operator).
+_CONFIRM = interfaces.interface(ROBOT_CONFIRM_KEY, "queryable")
+CONFIRM_KEY = _CONFIRM.pattern  # gd2p/robot_bridge/confirm
+CONFIRMERS: tuple[str, ...] = tuple(sorted(_CONFIRM.callers))  # operator
 # Tokens every identity may declare: a Dispatcher's presence (gd2p/caller/*), whose only power is to keep
 # its own jobs from being cancelled before their deadline.
 OPEN_TOKEN_KEYS: tuple[str, ...] = interfaces.open_token_keys()
@@ -140,6 +148,11 @@ def _rules_by_subject() -> dict[str, list[dict[str, Any]]]:
         _rule("launcher-control", "ingress", ["query"], [LAUNCHER_KEYS]),
         _rule("launcher-hear-replies", "egress", ["reply"], [LAUNCHER_KEYS]),
     ]
+    for confirmer in CONFIRMERS:
+        by_subject[confirmer] += [
+            _rule(f"{confirmer}-confirm", "ingress", ["query"], [CONFIRM_KEY]),
+            _rule(f"{confirmer}-confirm-replies", "egress", ["reply"], [CONFIRM_KEY]),
+        ]
     by_subject[TRACKER_IDENTITY].append(_rule("object-track", "ingress", ["put"], [OBJECT_TRACK_KEY]))
     for beater in WATCHDOG_BEATERS:
         by_subject[beater].append(_rule(f"{beater}-watchdog-beats", "ingress", ["put"], [WATCHDOG_KEYS]))

@@ -68,6 +68,7 @@ SAMPLE_TIMEOUT_S = 60.0
 ROLLOUT_TIMEOUT_S = 120.0
 EXECUTION_TIMEOUT_S = 300.0
 MAX_QUEUED = 4  # push requests waiting behind the running one; more are answered "busy" at once
+NOT_CONFIRMED = "not_confirmed:"  # how the bridge's refusal of a plan nobody confirmed starts (`--confirm`)
 REALTIME_FACTOR = 1000.0  # the simulated robot runs as fast as it can (physics keeps the plan's timing)
 
 log = logging.getLogger("gd2p.planner")
@@ -161,6 +162,9 @@ class BusServices:
             raise PushError("internal", f"robot bridge reply: {exc}") from exc
         if isinstance(reply, ErrorReply):
             raise PushError(reply.code if reply.code in ErrorReply.CODES else "internal", f"robot bridge: {reply.message}")
+        if isinstance(reply, ExecutionState) and reply.status == "refused" and reply.message.startswith(NOT_CONFIRMED):
+            # Held for an operator (`--confirm`) who did not confirm: nothing moved, and nobody asked for it again.
+            raise PushError("not_confirmed", f"robot bridge: the plan was not confirmed: {reply.message}")
         return Execution(final=reply, states=states)
 
     @contextlib.contextmanager

@@ -1,14 +1,20 @@
-"""`python -m services.robot_bridge [bus flags] [--worker-id ID] [--hardware ARM+HAND ...]`: run the robot bridge until SIGTERM.
+"""`python -m services.robot_bridge [bus flags] [--worker-id ID] [--hardware ARM+HAND ...] [--confirm | --no-confirm]
+[--confirm-timeout S]`: run the robot bridge until SIGTERM.
 
-Without --hardware it drives the simulated robot (PyBullet); with it, the real devices.
+Without --hardware it drives the simulated robot (PyBullet); with it, the real devices. --confirm holds each
+plan until an operator confirms it (`gd2p confirm ID`) within --confirm-timeout seconds: the default with
+--hardware (--no-confirm turns it off, with a warning), off for the simulated robot.
 """
 from __future__ import annotations
 
+import argparse
+import logging
 import sys
 
 from services.robot_bridge.service import run
 from shared.bus import BusConfig
 from shared.bus.service_cli import configure_service_logging, service_arg_parser
+from shared.execution.confirm import DEFAULT_TIMEOUT_S, MAX_TIMEOUT_S
 from shared.execution.hardware import HardwareConfigError, HardwareSpec
 from shared.execution.robot import RobotError
 
@@ -16,18 +22,39 @@ from shared.execution.robot import RobotError
 def main(argv: list[str] | None = None) -> int:
     parser = service_arg_parser("robot_bridge", __doc__)
     HardwareSpec.add_cli_args(parser)
+    add_confirm_args(parser)
     args = parser.parse_args(argv)
     try:
         hardware = HardwareSpec.from_args(args)  # every address given? (connecting happens in run)
     except HardwareConfigError as exc:
         parser.error(str(exc))
+    if not 0.0 < args.confirm_timeout <= MAX_TIMEOUT_S:
+        parser.error(f"--confirm-timeout must be in (0, {MAX_TIMEOUT_S:g}] s (the planner waits 300 s for a command)")
     configure_service_logging()
+    confirm = args.confirm if args.confirm is not None else hardware is not None
+    if hardware is not None and not confirm:
+        logging.getLogger("gd2p.robot_bridge").warning(
+            "--no-confirm on hardware: every plan that passes the checks moves the robot at once, without an "
+            "operator's confirmation")
     try:
-        run(BusConfig.from_args(args), worker_id=args.worker_id, hardware=hardware)
+        run(BusConfig.from_args(args), worker_id=args.worker_id, hardware=hardware,
+            confirm_timeout_s=args.confirm_timeout if confirm else None)
     except RobotError as exc:
         print(f"robot_bridge: cannot drive the hardware: {exc}", file=sys.stderr)
         return 1
     return 0
+
+
+def add_confirm_args(parser: argparse.ArgumentParser) -> None:
+    """--confirm / --no-confirm (default: on with --hardware, off for the simulated robot), --confirm-timeout S."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--confirm", dest="confirm", action="store_true", default=None,
+                       help="hold each plan until an operator confirms it (gd2p confirm ID); default with --hardware")
+    group.add_argument("--no-confirm", dest="confirm", action="store_false",
+                       help="run plans without confirmation, also on hardware (warned)")
+    parser.add_argument("--confirm-timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
+                        help=f"drop a plan not confirmed within S seconds (default {DEFAULT_TIMEOUT_S:g}, at most "
+                             f"{MAX_TIMEOUT_S:g}); the push answers not_confirmed")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,10 @@ the bus adapter gives it:
   a wrong encoding, another message type — starts stopping every robot of its `executor.EStopLatch`
   *before* it is decoded or logged, then latches.
 - `LeasedExecutor`: an `executor.Executor` whose commands each get their `CommandLease`.
+- `ConfirmServer` (`--confirm`): the bus side of a `confirm.ConfirmGate`: it publishes each held plan
+  (`PlanHeld`) on `HELD_KEY` and answers `PlanConfirm` queries on `CONFIRM_KEY` (the secure profile lets
+  only the operator identity query it) with a `PlanConfirmReply`. The lease and the e-stop above keep
+  watching a held command: either ends the hold, and nothing moves.
 """
 from __future__ import annotations
 
@@ -22,15 +26,26 @@ from collections.abc import Callable
 
 import zenoh
 
-from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_ESTOP_KEY
+from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_CONFIRM_KEY, ROBOT_ESTOP_KEY, ROBOT_HELD_KEY
 from shared.bus.lease import LeaseError, LeaseMonitor, RouterWatchdog, parse_lease_key
-from shared.contracts.codec import decode
-from shared.contracts.messages import EStop, ExecutionCommand, ExecutionState, Message
+from shared.contracts.codec import CodecError, decode, encode
+from shared.contracts.messages import (
+    ErrorReply,
+    EStop,
+    ExecutionCommand,
+    ExecutionState,
+    Message,
+    PlanConfirm,
+    PlanHeld,
+)
+from shared.execution.confirm import ConfirmGate
 from shared.execution.executor import EStopLatch, Executor
 from shared.execution.limits import SafetyRefusal
 
 ESTOP_KEY = ROBOT_ESTOP_KEY
 COMMAND_KEY = ROBOT_COMMAND_KEY
+HELD_KEY = ROBOT_HELD_KEY
+CONFIRM_KEY = ROBOT_CONFIRM_KEY
 COMMAND_LEASE_ROLE = "planner"  # the only role whose lease may command motion
 
 
@@ -166,3 +181,38 @@ def describe_estop(sample: zenoh.Sample) -> EStop:
     if isinstance(msg, EStop):
         return msg
     return EStop(reason=f"a {type(msg).__name__} on the e-stop key (not an EStop): treated as a stop")
+
+
+# ------------------------------------------------------------------------------------------ confirm
+class ConfirmServer:
+    """Publishes `gate`'s held plans on HELD_KEY and answers PlanConfirm queries on CONFIRM_KEY."""
+
+    def __init__(self, session: zenoh.Session, gate: ConfirmGate):
+        self.gate = gate
+        self._publisher = session.declare_publisher(HELD_KEY)
+        gate.announce = self.publish
+        self._queryable = session.declare_queryable(CONFIRM_KEY, self._on_query)
+
+    def publish(self, held: PlanHeld) -> None:
+        payload, encoding = encode(held)
+        self._publisher.put(payload, encoding=encoding)
+
+    def _on_query(self, query: zenoh.Query) -> None:  # zenoh callback: the gate answers at once
+        try:
+            reply: Message
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                request = decode(payload, str(query.encoding) if query.encoding is not None else None, PlanConfirm)
+                if not isinstance(request, PlanConfirm):
+                    raise CodecError(f"{CONFIRM_KEY} accepts PlanConfirm, got {type(request).__name__}")
+                reply = self.gate.confirm(request)
+            except CodecError as exc:
+                reply = ErrorReply(code="bad_request", message=str(exc), service="robot_bridge")
+            payload, encoding = encode(reply)
+            query.reply(CONFIRM_KEY, payload, encoding=encoding)
+        finally:
+            query.drop()
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+        self._publisher.undeclare()

@@ -29,8 +29,15 @@
   latest pose (if under `TRACK_FRESH_S` old) into the states it publishes, where the planner's
   closed-loop monitor reads it.
 
+- With confirm on (`--confirm`, the default with `--hardware`; `confirm_timeout_s` here), a command that
+  passed every check before motion is held (`shared.execution.confirm.ConfirmGate`): its `PlanHeld` is
+  published on `gd2p/robot_bridge/held` and it runs only when an operator confirms it on
+  `gd2p/robot_bridge/confirm` (`bus_safety.ConfirmServer`; `gd2p confirm ID`, client/confirm.py) within the
+  timeout; otherwise it is refused "not_confirmed: ..." (the planner answers ErrorReply "not_confirmed").
+  The lease and the e-stop rules hold while it waits.
+
 Each command runs on a thread of its own, so a second command is answered ("refused: busy") while
-one executes.
+one executes (or waits for confirmation).
 """
 from __future__ import annotations
 
@@ -43,7 +50,7 @@ from collections.abc import Callable
 import numpy as np
 import zenoh
 
-from services.robot_bridge.bus_safety import COMMAND_KEY, EStopSubscriber, LeasedExecutor
+from services.robot_bridge.bus_safety import COMMAND_KEY, ConfirmServer, EStopSubscriber, LeasedExecutor
 from shared.bus import STREAM_QUEUE, BusConfig, OpenCancelled, RecordedPublisher, Worker, open_session
 from shared.bus.keys import OBJECT_TRACK_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import RouterWatchdog
@@ -57,6 +64,7 @@ from shared.contracts.messages import (
     ObjectPose,
     ObjectTrack,
 )
+from shared.execution.confirm import ConfirmGate
 from shared.execution.executor import EStopLatch, Executor, StatePublisher
 from shared.execution.hardware import HardwareSpec, connect_all
 from shared.execution.limits import SafetyRefusal
@@ -104,10 +112,14 @@ class Bridge:
     `probe`: a second session to the same router; with it a `RouterWatchdog` stops motion when the
     router stops forwarding (hung, or a link that drops packets without closing). The caller keeps
     both sessions.
+
+    `confirm_timeout_s` (None = confirm off): hold every command that passed its checks until an operator
+    confirms it, at most this long (`ConfirmGate`).
     """
 
     def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0,
-                 probe: zenoh.Session | None = None, publish_track: Callable[[ObjectTrack], None] | None = None):
+                 probe: zenoh.Session | None = None, publish_track: Callable[[ObjectTrack], None] | None = None,
+                 confirm_timeout_s: float | None = None):
         self.session = session
         self.publish = publish
         self.publish_track = publish_track  # the simulated robots' tracker frames
@@ -115,6 +127,9 @@ class Bridge:
         self.lease_timeout_s = lease_timeout_s
         self.estop_latch = EStopLatch()
         self._estop_subscriber = EStopSubscriber(session, self.estop_latch)
+        self.confirm_gate = (ConfirmGate(self.estop_latch, confirm_timeout_s) if confirm_timeout_s is not None
+                             else None)
+        self._confirm_server = ConfirmServer(session, self.confirm_gate) if self.confirm_gate is not None else None
         self.watchdog = (RouterWatchdog(session, probe, f"{SERVICE}-{session.zid()}") if probe is not None
                          else None)
         self._executors: dict[tuple[str, str], LeasedExecutor] = {}
@@ -125,6 +140,8 @@ class Bridge:
         self._seen_commands: OrderedDict[str, None] = OrderedDict()
 
     def _leased(self, executor: Executor) -> LeasedExecutor:
+        if self.confirm_gate is not None:
+            executor.hold = self.confirm_gate.hold
         return LeasedExecutor(self.session, executor, watchdog=self.watchdog, lease_timeout_s=self.lease_timeout_s)
 
     def attach_hardware(self, spec: HardwareSpec) -> None:
@@ -178,6 +195,8 @@ class Bridge:
 
     def close(self) -> None:
         self._estop_subscriber.close()
+        if self._confirm_server is not None:
+            self._confirm_server.close()
         if self.tracks is not None:
             self.tracks.close()
         if self.watchdog is not None:
@@ -222,8 +241,9 @@ class Bridge:
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
-        hardware: HardwareSpec | None = None) -> None:
-    """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`.
+        hardware: HardwareSpec | None = None, confirm_timeout_s: float | None = None) -> None:
+    """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`; with
+    `confirm_timeout_s`, each command waits for an operator's confirmation (`Bridge`).
 
     `hardware` (None = the simulated robot) is connected before the worker registers, so a bridge
     whose devices are absent fails at start with the device's error instead of announcing itself.
@@ -249,7 +269,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
             payload, encoding = encode(track)
             track_publisher.put(payload, encoding=encoding)
 
-        bridge = Bridge(session, publish, probe=probe, publish_track=None if hardware is not None else publish_track)
+        bridge = Bridge(session, publish, probe=probe, publish_track=None if hardware is not None else publish_track,
+                        confirm_timeout_s=confirm_timeout_s)
         if hardware is not None:
             bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()

@@ -51,6 +51,9 @@ from shared.contracts.messages import (
     HealthQuery,
     Message,
     ObjectTrack,
+    PlanConfirm,
+    PlanConfirmReply,
+    PlanHeld,
     PushDecision,
     PushRequest,
     PushResponse,
@@ -315,6 +318,28 @@ _ROBOT = (
                   " settings (not a numbered, blocking publisher: nothing may hold a stop back); the recorder counts"
                   " its samples as received, without sequence numbers.",
               code=("services/robot_bridge/bus_safety.py: EStopSubscriber", "cli/bridge.py: _estop")),
+    Interface("held plans", keys.ROBOT_HELD_KEY, "publication",
+              "With `--confirm`: a plan the bridge holds until an operator confirms it (the plan, its command id,"
+              " when it expires), and once more when the hold ends, with `reason` (confirmed by whom, expired,"
+              " dropped: lease lost or e-stop).",
+              frozenset({"robot_bridge"}), EVERYONE, message=PlanHeld,
+              used_by="The live view and `gd2p confirm --list` (client/confirm.py: held_plans) subscribe; the"
+                      " recorder records it.",
+              qos="Published when a command is held, again every 1 s while it waits (a late subscriber sees it),"
+                  " and when the hold ends (reason set). A plain put from a declared publisher.",
+              code=("services/robot_bridge/bus_safety.py: ConfirmServer", "shared/execution/confirm.py: ConfirmGate",
+                    "client/confirm.py: held_plans")),
+    Interface("plan confirm", keys.ROBOT_CONFIRM_KEY, "queryable",
+              "With `--confirm`: an operator's go for one held command. The reply says accepted (the plan runs"
+              " now) or why not (unknown id, expired, already confirmed, dropped).",
+              frozenset({"robot_bridge"}), frozenset({"operator"}),
+              exchanges=(Exchange(PlanConfirm, (PlanConfirmReply, ErrorReply)),),
+              used_by="`gd2p confirm ID` and the live view's confirm button, both through client/confirm.py: confirm;"
+                      " `PlanConfirm.operator` is logged and named in the command's final ExecutionState.",
+              liveliness="None: no answer means no bridge runs with --confirm (or the caller is not the operator).",
+              qos="Answered at once (never waits for the motion). Only the operator identity may query it under the"
+                  " secure profile: another identity's query is dropped by the router (no answer at all).",
+              code=("services/robot_bridge/bus_safety.py: ConfirmServer", "client/confirm.py: confirm")),
 )
 _INFRASTRUCTURE = (
     Interface("caller presence", keys.caller_key("<id>"), "liveliness",

@@ -245,7 +245,8 @@ class ErrorReply(Message):
 
     `code` is machine-readable: bad_request (malformed / unknown payload), not_implemented,
     infeasible, internal, timeout, unavailable, cancelled (the caller gave up: its lease was lost), busy (the
-    worker's queue is full: nothing was queued, try again later).
+    worker's queue is full: nothing was queued, try again later), not_confirmed (the robot bridge held the plan
+    for an operator's confirmation (`gd2p up --confirm`) and none came in time: nothing moved; not retried).
     """
 
     code: str
@@ -254,7 +255,7 @@ class ErrorReply(Message):
     service: str | None = None
 
     CODES: ClassVar[tuple[str, ...]] = ("bad_request", "not_implemented", "infeasible", "internal", "timeout", "unavailable",
-                                         "cancelled", "busy")
+                                         "cancelled", "busy", "not_confirmed")
 
 
 class HealthQuery(Message):

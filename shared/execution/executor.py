@@ -16,6 +16,11 @@ and the hardware robots (an arm + a hand) alike:
 3. The outcome is an `ExecutionState`: "done", "stopped" (why, and for a lost lease how long the halt
    took after the loss was noticed), "error" or "refused".
 
+With a `hold` (preview and confirm, `gd2p up --confirm`: confirm.py's `ConfirmGate.hold`), a command that
+passed every check of 1. waits there for an operator's confirmation; a lost lease, an engaged e-stop or no
+confirmation in time refuse it (nothing moves). Once confirmed, the e-stop, the start state and the lease
+are checked again, then it runs; its final state names who confirmed it.
+
 The lease and the e-stop are small interfaces. `Lease`: the bus adapter gives a command's Zenoh lease
 (`bus_safety.CommandLease`), the evaluation a `LocalLease` its cancellation releases. `EmergencyStop`:
 `EStopLatch` (here) stops every robot it guards and latches; the bus adapter's e-stop subscriber
@@ -222,7 +227,8 @@ class Executor:
                  workspace: WorkspaceBox | None = DEFAULT_WORKSPACE, T_world_base: np.ndarray | None = None,
                  start_tolerance_rad: float = START_TOLERANCE_RAD, state_rate_hz: float = 50.0,
                  publish: StatePublisher | None = None, reset_world: Callable[[SimWorld], None] | None = None,
-                 tracked_object: Callable[[], ObjectPose | None] | None = None):
+                 tracked_object: Callable[[], ObjectPose | None] | None = None,
+                 hold: Callable[[ExecutionCommand, Lease], str] | None = None):
         self.arm, self.hand = arm, hand
         self.robots = list(robots)
         self.limits = plan_limits(arm, hand, [r.limits for r in self.robots], workspace, T_world_base)
@@ -240,6 +246,9 @@ class Executor:
         self.tracked_object = tracked_object
         self._streams = any(r.streams_states for r in self.robots)
         self._busy = threading.Lock()
+        # Preview and confirm: called after every check, before motion; returns who confirmed, or raises
+        # SafetyRefusal (not confirmed in time, lease lost, e-stop) and nothing moves.
+        self.hold = hold
 
     def execute(self, command: ExecutionCommand, lease: Lease) -> ExecutionState:
         """Check, then run every robot's part of the plan at once; stop all on lease loss, e-stop or effort."""
@@ -249,7 +258,13 @@ class Executor:
             watch = _Watch()
             lease.on_lost(watch.lease_lost)
             trajectory = self.check(command, lease)
+            confirmed = None
+            if self.hold is not None:
+                confirmed = f"confirmed by {self.hold(command, lease) or 'an unnamed operator'}"
+                self._recheck(trajectory, lease)  # the wait may have been long: nothing may have changed
             state = self._run(command, trajectory, lease, watch)
+            if confirmed is not None:
+                state = state.model_copy(update={"message": "; ".join(m for m in (state.message, confirmed) if m)})
             if self._streams and self.publish is not None:
                 self.publish(state)  # the last of the states the robot published while it moved
             return state
@@ -285,6 +300,14 @@ class Executor:
             self._check_start(robot, trajectory)
         lease.require()
         return trajectory
+
+    def _recheck(self, trajectory: JointTrajectory, lease: Lease) -> None:
+        """The checks that can change while a plan waits for confirmation: the e-stop, the start, the lease."""
+        if self.estop.engaged:
+            raise SafetyRefusal("estop", f"e-stop is latched ({self.estop.reason}); the confirmed plan does not run")
+        for robot in self.robots:
+            self._check_start(robot, trajectory)
+        lease.require()
 
     def _check_start(self, robot: Robot, trajectory: JointTrajectory) -> None:
         start = trajectory.select(robot.joint_names).positions[0]
