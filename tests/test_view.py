@@ -2,8 +2,9 @@
 simulated robot bridge, as tests/test_push.py's `system`, plus the view's bus adapter), the view is opened in
 headless Chromium (Debian's `chromium` and `chromium-driver`: `make install`), a push runs, and the page itself
 shows the cloud, the candidates and the robot (the counts the view prints in its "Scene" panel, and the pixels
-of a screenshot). A second viewer and a viewer that disconnects mid-push change nothing for the push or the
-others. Without Chromium the browser tests are skipped.
+of a screenshot). The bridge runs with preview and confirm (`gd2p up --confirm`): the robot does not move until
+the page's Confirm button is clicked. A second viewer and a viewer that disconnects mid-push change nothing
+for the push or the others. Without Chromium the browser tests are skipped.
 """
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ from shared.contracts.messages import ObjectRef, PushRequest
 BOX = "proc-box-013"
 ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = ROOT / "docs" / "img" / "live_view.png"
+# A system with the sampler and a browser on 2 shared cores: start-up alone can take minutes under load.
+BROWSER_TIMEOUT_S = 900
 CHROME_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                 "--disable-component-update", "--disable-sync", "--no-first-run", "--window-size=1280,800")
 
@@ -57,7 +60,8 @@ def view_system(module_router, tmp_path_factory):
     record_dir = tmp_path_factory.mktemp("pushes")
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-v", stop), daemon=True),
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-v", stop), kwargs={"confirm_timeout_s": 60.0},
+                         daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-v"),
                          kwargs={"stop": stop}, daemon=True),
         threading.Thread(target=run_worker, args=(sampler.SERVICE, sampler.handlers(), cfg, "sampler-v"),
@@ -230,21 +234,34 @@ def test_the_view_keeps_up_with_a_tracker_at_20_hz():
     assert stats["lag_max_s"] < 0.2, stats
 
 
+@pytest.mark.timeout(BROWSER_TIMEOUT_S)
 def test_the_browser_shows_the_cloud_the_candidates_and_the_robot_of_a_push(view_system, browser):
     cfg, view = view_system
     browser.get(view.url)
     _wait_page(browser, lambda c: "candidates" in c, 60)  # the page is up and connected
     request = _cloud_request()
-    response = push(request, cfg, timeout_s=300.0)
-    assert response.result is not None
+    done: dict = {}
+    pushing = threading.Thread(target=lambda: done.update(response=push(request, cfg, timeout_s=300.0)))
+    pushing.start()
+    button = _wait_confirmable(browser)
+    held = _page_counts(browser)
+    assert held["candidates"] == 64 and held["robot states drawn"] == 0  # shown before the robot may move
+    assert "A plan waits for your confirmation" in browser.find_element("tag name", "body").text
+    time.sleep(1.0)
+    png = browser.get_screenshot_as_png()  # the view as an operator sees it before confirming
+    if os.environ.get("GD2P_VIEW_SCREENSHOT"):
+        SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
+        SCREENSHOT.write_bytes(png)
+    button.click()
+    pushing.join(timeout=300)
+    assert done["response"].result is not None
+    assert "confirmed: the robot runs it" in browser.find_element("tag name", "body").text
     counts = _wait_page(browser, lambda c: c.get("robot states drawn", 0) > 0 and c.get("candidates", 0) > 0)
     assert counts["cloud points"] == request.object.point_cloud.shape[0]  # the captured cloud, every point
     assert counts["candidates"] == 64  # every sampled pose of the push, coloured by the critic
     assert counts["rolled-out plans"] >= 1
     assert counts["robot links"] >= 20  # the panda + allegro link meshes
     assert counts["decisions"] >= 1
-    time.sleep(1.0)  # let the last frame render
-    png = browser.get_screenshot_as_png()
     from io import BytesIO
 
     from PIL import Image
@@ -254,13 +271,50 @@ def test_the_browser_shows_the_cloud_the_candidates_and_the_robot_of_a_push(view
     orange = ((pixels[:, 0] > 200) & (pixels[:, 1] > 100) & (pixels[:, 1] < 170) & (pixels[:, 2] < 90)).sum()
     assert blue > 50, "no point-cloud blue on the page"
     assert orange > 50, "no object orange on the page"
-    if os.environ.get("GD2P_VIEW_SCREENSHOT"):
-        SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
-        SCREENSHOT.write_bytes(png)
+    green = ((pixels[:, 1] > 180) & (pixels[:, 0] < 110) & (pixels[:, 2] < 120)).sum()
+    assert green > 5, "no well-scored (green) candidate or chosen path on the page"
 
 
+def _wait_confirmable(driver, timeout_s: float = 240.0):
+    """The page's Confirm button once it is enabled (a plan is held)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for button in driver.find_elements("xpath", "//button[contains(., 'Confirm held plan')]"):
+            if button.is_enabled():
+                return button
+        time.sleep(0.3)
+    raise AssertionError("the Confirm button was never enabled")
+
+
+class _AutoConfirm:
+    """Confirms every held plan from the bus (`client.confirm`), for tests about something else."""
+
+    def __init__(self, cfg: BusConfig):
+        from client.confirm import confirm
+        from shared.bus.keys import ROBOT_HELD_KEY
+        from shared.contracts.codec import decode
+        from shared.contracts.messages import PlanHeld
+
+        self.session = open_session(cfg)
+        self.confirmed: set[str] = set()
+
+        def on_held(sample) -> None:
+            held = decode(sample.payload.to_bytes(), str(sample.encoding), PlanHeld)
+            if held.reason is None and held.command_id not in self.confirmed:
+                self.confirmed.add(held.command_id)
+                threading.Thread(target=confirm, args=(self.session, held.command_id), daemon=True).start()
+
+        self.subscriber = self.session.declare_subscriber(ROBOT_HELD_KEY, on_held)
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+        self.session.close()
+
+
+@pytest.mark.timeout(BROWSER_TIMEOUT_S)
 def test_a_second_viewer_and_one_that_leaves_mid_push_change_nothing(view_system, browser):
     cfg, view = view_system
+    confirmer = _AutoConfirm(cfg)
     browser.get(view.url)
     leaving = _browser()
     leaving.get(view.url)
@@ -275,9 +329,10 @@ def test_a_second_viewer_and_one_that_leaves_mid_push_change_nothing(view_system
     deadline = time.monotonic() + 120
     while view.counts()["decisions"] == before and time.monotonic() < deadline:
         time.sleep(0.05)
-    leaving.quit()  # the browser goes away while the robot moves
+    leaving.quit()  # the browser goes away while the plan waits and the robot moves
     pushing.join(timeout=300)
-    assert done["response"].success
+    confirmer.close()
+    assert done["response"].success and confirmer.confirmed
     counts = _wait_page(browser, lambda c: c.get("decisions", 0) > before)
     assert counts["candidates"] == 1  # the fixed pose
     deadline = time.monotonic() + 10
