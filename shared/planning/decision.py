@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from shared.contracts.messages import (
-    DirectionFrame,
     ObjectPath,
     Plan,
     PushDecision,
@@ -108,24 +107,38 @@ class DecisionTap:
 
     def decision(self, plan: Plan) -> PushDecision | None:
         """The decision behind executing `plan`, from what the services saw since the last execution (None when
-        nothing was sampled)."""
+        nothing says where the object is: neither a sample nor a rollout, e.g. a fixed pose chosen at random).
+
+        Candidates: the sampler's poses (in D, placed by this push's frame); without a sample (the fixed
+        spatula pose), the poses the rollouts pushed from, without scores."""
         with self._lock:
             sampled, rollouts = self._sample, self._rollouts
             self._rollouts = []
-            if sampled is None:
+            job = rollouts[-1].job if rollouts else None
+            if sampled is None and job is None:
                 return None
-            request, reply = sampled
-            frame: DirectionFrame = rollouts[-1].job.frame if rollouts and rollouts[-1].job.frame else request.frame
-            poses_d = reply.poses_d.to_numpy().astype(np.float64)
+            frame = job.frame if job is not None and job.frame is not None else None
+            if sampled is not None:
+                request, reply = sampled
+                frame = frame or request.frame
+                poses_d = reply.poses_d.to_numpy().astype(np.float64)
+                scores = reply.success_probability
+                obj, hand = request.object, request.hand
+            else:
+                assert job is not None
+                poses_d = np.unique(np.concatenate([r.job.poses.to_numpy() for r in rollouts]).astype(np.float64), axis=0)
+                scores = None
+                obj, hand = job.object, job.hand
+            if frame is None:
+                return None
             candidates = poses_d_to_world(poses_d, frame_transform(frame))
             previews = [_preview(r) for r in rollouts]
             chosen = next((i for i, r in enumerate(previews) if _is_prefix(r.plan, plan)), None)
-            job = rollouts[-1].job if rollouts else None
             decision = PushDecision(
-                request_id=self._request_id, push_index=self._pushes, hand=request.hand, arm=plan.arm,
-                object=request.object, frame=frame, distance_m=job.push_distance_m if job else None,
+                request_id=self._request_id, push_index=self._pushes, hand=hand, arm=plan.arm,
+                object=obj, frame=frame, distance_m=job.push_distance_m if job else None,
                 obstacles=list(job.obstacles) if job else [], candidates_world=candidates,
-                critic_scores=reply.success_probability, rollouts=previews, chosen=chosen, plan=plan)
+                critic_scores=scores, rollouts=previews, chosen=chosen, plan=plan)
             self.decisions.append(decision)
             self._pushes += 1
             if self.keep is not None:
