@@ -85,7 +85,7 @@ def view_system(module_router, tmp_path_factory):
             time.sleep(0.2)
         else:
             pytest.fail(f"workers did not register: {live}")
-    yield cfg, views[0]
+    yield cfg, views[0], record_dir
     stop.set()
     for w in workers:
         w.join(timeout=15.0)
@@ -236,7 +236,7 @@ def test_the_view_keeps_up_with_a_tracker_at_20_hz():
 
 @pytest.mark.timeout(BROWSER_TIMEOUT_S)
 def test_the_browser_shows_the_cloud_the_candidates_and_the_robot_of_a_push(view_system, browser):
-    cfg, view = view_system
+    cfg, view, _ = view_system
     browser.get(view.url)
     _wait_page(browser, lambda c: "candidates" in c, 60)  # the page is up and connected
     request = _cloud_request()
@@ -314,7 +314,7 @@ class _AutoConfirm:
 
 @pytest.mark.timeout(BROWSER_TIMEOUT_S)
 def test_a_second_viewer_and_one_that_leaves_mid_push_change_nothing(view_system, browser):
-    cfg, view = view_system
+    cfg, view, _ = view_system
     confirmer = _AutoConfirm(cfg)
     browser.get(view.url)
     leaving = _browser()
@@ -340,3 +340,55 @@ def test_a_second_viewer_and_one_that_leaves_mid_push_change_nothing(view_system
     while view.clients() > 1 and time.monotonic() < deadline:
         time.sleep(0.1)
     assert view.clients() == 1
+
+
+@pytest.mark.timeout(BROWSER_TIMEOUT_S)
+def test_gd2p_replay_view_plays_a_push_recording_in_the_view(view_system, capsys):
+    """The pushes above were recorded with their decisions: `gd2p replay FILE --view` plays one in a view."""
+    from cli.main import main
+    from visualisation.live import LiveView
+    from visualisation.live_replay import ReplayPlayer
+
+    _, _, record_dir = view_system
+    recordings = sorted(Path(record_dir).glob("push-*.mcap"), key=lambda p: p.stat().st_mtime)
+    if not recordings:
+        pytest.skip("no push was recorded (the browser tests did not run)")
+    view = LiveView(port=_free_port())
+    try:
+        player = ReplayPlayer(view, [str(recordings[0])], speed=10.0)
+        shown = player.play()
+        deadline = time.monotonic() + 20
+        while view.counts()["robot_states"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        counts = view.counts()
+    finally:
+        view.close()
+    assert shown > 2 and counts["decisions"] >= 1 and counts["candidates"] >= 1 and counts["robot_states"] >= 1
+    assert main(["replay", str(recordings[-1]), "--view", "--port", str(_free_port()), "--rate", "10", "--exit"]) == 0
+    assert "played" in capsys.readouterr().out
+
+
+def test_gd2p_up_view_starts_the_view_beside_the_services(zenoh_router, tmp_path):
+    """The launcher's view process (`gd2p up --view PORT`) serves the page on its port, and stops with it."""
+    import urllib.request
+
+    from deploy.launcher import Launcher
+
+    port = _free_port()
+    launcher = Launcher(validators=0, listen=zenoh_router, log_dir=tmp_path, view_port=port)
+    launcher._start_view(port)
+    assert launcher._view is not None and launcher.view_url == f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        page = b""
+        while time.monotonic() < deadline:
+            try:
+                page = urllib.request.urlopen(launcher.view_url, timeout=2).read()
+                break
+            except OSError:
+                assert launcher._view.poll() is None, (tmp_path / "view.log").read_text()
+                time.sleep(0.5)
+        assert b"<html" in page.lower(), (tmp_path / "view.log").read_text()
+    finally:
+        launcher._view.terminate()
+        assert launcher._view.wait(timeout=20) is not None
