@@ -178,8 +178,8 @@ class LiveView:
         scene = self.server.scene
         scene.set_up_direction("+z")
         scene.add_grid("/table", width=1.6, height=1.6, cell_size=0.1, section_size=0.5, position=(0.5, 0.0, 0.0))
-        self.server.initial_camera.position = (1.6, -1.1, 1.0)
-        self.server.initial_camera.look_at = (0.5, 0.0, 0.1)
+        self.server.initial_camera.position = (1.25, -0.75, 0.75)
+        self.server.initial_camera.look_at = (0.45, 0.0, 0.1)
         gui = self.server.gui
         self._status = gui.add_markdown("**Waiting for a push…**")
         self._held_md = gui.add_markdown("")
@@ -415,7 +415,7 @@ class LiveView:
         cloud = d.object.point_cloud
         if cloud is not None:
             points = cloud.to_numpy().astype(np.float32)
-            scene.add_point_cloud("/cloud", points, CLOUD_RGB, point_size=0.003, point_shape="circle")
+            scene.add_point_cloud("/cloud", points, CLOUD_RGB, point_size=0.0018, point_shape="circle")
             self._set_count(cloud_points=len(points))
             mesh = captured_object(d.object).model.mesh
         else:
