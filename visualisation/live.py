@@ -171,7 +171,7 @@ class LiveView:
     """A browser view served on `host:port` (see the module docstring)."""
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", on_confirm: OnConfirm | None = None,
-                 title: str = "GD2P live view"):
+                 title: str = "GD2P live view", preload: tuple[tuple[str, str], ...] = (("panda", "allegro"),)):
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.port = self.server.get_port()
         self.on_confirm = on_confirm
@@ -206,6 +206,8 @@ class LiveView:
         self._confirmations: queue.Queue[str] = queue.Queue()
         self._track_frames: list[tuple[float, float]] = []  # (when drawn, lag behind the newest track's stamp)
         self.server.on_client_connect(lambda _client: self._show_counts())
+        # Robots loaded when the view starts (link meshes: a second or two of CPU), not during a push.
+        self._preload = preload
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         self._thread.start()
         self._confirmer = threading.Thread(target=self._run_confirmations, name="live-view-confirm", daemon=True)
@@ -284,6 +286,11 @@ class LiveView:
 
     def _run(self) -> None:
         period = 1.0 / RATE_HZ
+        for arm, hand in self._preload:
+            try:
+                self._robot_for(arm, hand)
+            except Exception:
+                log.exception("live view: could not load the %s + %s", arm, hand)
         while not self._stop.is_set():
             self._wake.wait(timeout=0.5)
             self._wake.clear()
