@@ -247,6 +247,11 @@ def test_the_browser_shows_the_cloud_the_candidates_and_the_robot_of_a_push(view
     held = _page_counts(browser)
     assert held["candidates"] == 64 and held["robot states drawn"] == 0  # shown before the robot may move
     assert "A plan waits for your confirmation" in browser.find_element("tag name", "body").text
+    for close in browser.find_elements("css selector", "[class*='Notification'] button"):
+        try:  # headless Chromium renders WebGL in software, and the page says so in a notice
+            close.click()
+        except Exception:
+            pass
     time.sleep(1.0)
     png = browser.get_screenshot_as_png()  # the view as an operator sees it before confirming
     if os.environ.get("GD2P_VIEW_SCREENSHOT"):

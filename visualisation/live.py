@@ -476,6 +476,7 @@ class LiveView:
         self._held_md.content = (f"**A plan waits for your confirmation** (`{held.command_id[:12]}`, "
                                  f"{held.plan.positions.shape[0]} waypoints, {left:.0f} s left)")
         self._confirm.disabled = self.on_confirm is None
+        self._status.content = "**Held**: the robot waits for an operator's confirmation"
         robot = self._robot_for(held.plan.arm, held.plan.hand)
         robot.pose(held.plan.joint_names, held.plan.positions.to_numpy()[0])
 
