@@ -397,3 +397,35 @@ def test_gd2p_up_view_starts_the_view_beside_the_services(zenoh_router, tmp_path
     finally:
         launcher._view.terminate()
         assert launcher._view.wait(timeout=20) is not None
+
+
+def test_gd2p_eval_view_feeds_the_in_process_system(monkeypatch):
+    """`gd2p eval --view`: the evaluation's in-process system hands its decisions and robot states to the view."""
+    from evaluation import local_system
+    from shared.planning.decision import DecisionTap
+
+    class Sink:
+        def __init__(self):
+            self.decisions, self.states = [], []
+
+        def show_decision(self, decision):
+            self.decisions.append(decision)
+
+        def show_state(self, state):
+            self.states.append(state)
+
+    sink = Sink()
+    monkeypatch.setattr(local_system, "_view", None)
+    local_system.set_view(sink)
+    system = local_system.LocalSystem()
+    try:
+        pipeline = system.pipeline("fake", source=lambda request: None)
+        assert isinstance(pipeline.services.sample.__self__, DecisionTap)
+        assert pipeline.services.sample.__self__.on_decision == sink.show_decision
+        assert system.robot.view is sink
+    finally:
+        local_system.set_view(None)
+        system.close()
+    other = local_system.LocalSystem()
+    assert other.robot.view is None
+    other.close()
