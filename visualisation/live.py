@@ -430,7 +430,7 @@ class LiveView:
             self._set_count(cloud_points=0)
             mesh = load_object_ref(d.object).mesh
         self._object = scene.add_mesh_simple("/object", mesh.vertices.astype(np.float32), mesh.faces.astype(np.uint32),
-                                             color=OBJECT_RGB, opacity=0.6 if cloud is not None else None)
+                                             color=OBJECT_RGB)
 
     def _place_object(self, pose: ObjectPose) -> None:
         if self._object is not None:
