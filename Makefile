@@ -4,9 +4,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test bench chaos clean
+.PHONY: install browser demo test bench chaos clean
 
-install: $(STAMP)
+install: $(STAMP) browser
+
+# The live view's browser test (tests/test_view.py) drives headless Chromium: Debian's chromium and
+# chromium-driver, installed when missing (needs root or sudo; skipped with a note otherwise).
+browser:
+	@if command -v chromium >/dev/null && command -v chromedriver >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ]; then apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y chromium chromium-driver; \
+	elif command -v sudo >/dev/null; then sudo apt-get update && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y chromium chromium-driver; \
+	else echo "note: chromium / chromium-driver missing and no root: tests/test_view.py's browser tests will skip"; fi
 
 # torch first: the pinned CPU wheel is on local disk; any other resolution pulls a multi-GB CUDA build.
 $(STAMP): pyproject.toml

@@ -65,6 +65,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", type=Path, default=Path("results"), help="results directory (default results/)")
     parser.add_argument("--quick", action="store_true", help="a small slice of the protocol (minutes, for CI)")
     parser.add_argument("--workers", type=int, default=2, help="worker processes (default 2: one per core here)")
+    parser.add_argument("--view", nargs="?", type=int, const=8090, default=None, metavar="PORT",
+                        help="watch the trials in the live view on PORT (default 8090): one trial at a time, in this "
+                             "process (--workers 1)")
     parser.add_argument("--trials", type=int, default=None,
                         help="methods / leap / closed-loop: trials per object and direction (default: the paper's 5); a run can "
                              "later be extended to more trials in the same --out")
@@ -237,6 +240,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"gd2p eval: --tag names a directory: letters, digits, '.', '_', '-' (got {args.tag!r})", file=sys.stderr)
         return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    if args.view is not None:
+        from evaluation import local_system
+        from visualisation.live import LiveView
+
+        if args.workers != 1:
+            print("gd2p eval: --view runs one trial at a time in this process (--workers 1)", file=sys.stderr)
+            args.workers = 1
+        view = LiveView(port=args.view, title="GD2P evaluation")
+        print(f"live view: {view.url}", file=sys.stderr, flush=True)
+        local_system.set_view(view)
+        import atexit
+
+        atexit.register(view.close)
     data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
                                                ("--lr", args.lr), ("--seeds", args.seeds)) if value is not None]
     if args.split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):

@@ -15,6 +15,7 @@ import sys
 COMMAND_MODULES: list[str] = [
     "cli.system",  # up, status, demo, health (platform)
     "cli.recording",  # replay
+    "cli.view",  # view (the live view of a running system, in the browser)
     "cli.hands",  # hands info
     "cli.objects",  # objects list
     "cli.validate",  # validate (push validation in PyBullet)

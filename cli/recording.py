@@ -1,6 +1,7 @@
 """`gd2p replay FILE.mcap ...`: republish a recording on the bus, each sample on its key with its encoding.
 `gd2p replay FILE.mcap --resim`: plan a push recording's request again in this process (no bus) and say
 whether the same plan comes out, bit for bit (exit 0 identical, 1 different, 2 an unusable recording).
+`gd2p replay FILE.mcap --view [--port PORT]`: play it in the live view instead (no bus), with pause and speed.
 `gd2p recording-info FILE.mcap ...`: what the recorder counted (received, missing) and the run it recorded.
 """
 from __future__ import annotations
@@ -28,6 +29,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--resim", action="store_true",
                         help="re-decide a push recording (push-<id>.mcap): plan its request again in this process "
                              "and compare the plans bit for bit; exit 0 identical, 1 different, 2 unusable")
+    parser.add_argument("--view", action="store_true",
+                        help="play the recording in the live view (browser; pause and speed controls) instead of the bus")
+    parser.add_argument("--port", type=int, default=None, help="the view's HTTP port (with --view; default 8090)")
+    parser.add_argument("--exit", action="store_true", help="with --view: stop serving when the recording is played")
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_replay)
 
@@ -125,6 +130,8 @@ def run_replay(args: argparse.Namespace) -> int:
     if missing:
         print(f"gd2p replay: no such recording: {', '.join(missing)}", file=sys.stderr)
         return 2
+    if args.view:
+        return _replay_in_view(args)
     try:
         wanted = zenoh.KeyExpr(args.keys)
     except zenoh.ZError as exc:
@@ -154,4 +161,28 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"gd2p replay: {exc}", file=sys.stderr)
         return 1
     print(f"replayed {count} messages on {len(publishers)} keys in {time.monotonic() - started:.2f} s")
+    return 0
+
+
+def _replay_in_view(args: argparse.Namespace) -> int:
+    from visualisation.live import DEFAULT_PORT, LiveView
+    from visualisation.live_replay import ReplayPlayer
+
+    view = LiveView(port=args.port or DEFAULT_PORT, title="GD2P replay")
+    print(f"live view: {view.url}  (Ctrl-C to stop)", flush=True)
+    try:
+        player = ReplayPlayer(view, args.files, speed=args.rate if args.rate > 0 else 10.0)
+        count = player.play()
+        print(f"played {count} messages in the view")
+        if not args.exit:
+            while True:  # keep serving: the view's Restart plays it again
+                if player.restart_requested.wait(1.0):
+                    player.play()
+    except KeyboardInterrupt:
+        pass
+    except RecordingError as exc:
+        print(f"gd2p replay: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        view.close()
     return 0

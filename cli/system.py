@@ -41,6 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          f"(router on {SECURE_LISTEN} unless --listen names another tls/ endpoint)")
     up.add_argument("--secure-dir", default="gd2p-secure",
                     help="keys, certificates and Zenoh configs of the secure profile (created once; default %(default)s)")
+    up.add_argument("--view", nargs="?", type=int, const=8090, default=None, metavar="PORT",
+                    help="also serve the live view in the browser on PORT (default 8090): `gd2p view` attached")
     up.add_argument("--confirm", action="store_true",
                     help="preview and confirm: the robot bridge holds each plan until an operator confirms it "
                          "(gd2p confirm ID); a plan not confirmed in time is dropped (the push answers not_confirmed)."
@@ -199,6 +201,7 @@ def run_up(args: argparse.Namespace) -> int:
         os.environ.setdefault("GD2P_PUSH_RECORD_DIR", os.path.join(os.path.abspath(args.record_dir), "pushes"))
         launcher = Launcher(validators=args.validators, listen=listen, record_dir=args.record_dir,
                             log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None,
+                            view_port=getattr(args, "view", None),
                             confirm_timeout_s=confirm_timeout if confirm else None)
     except LaunchError as exc:
         print(f"gd2p up: {exc}", file=sys.stderr)
@@ -211,6 +214,8 @@ def run_up(args: argparse.Namespace) -> int:
         print(f"all {len(launcher.children())} workers registered in {time.monotonic() - t0:.1f} s\n")
         print(launcher.table())
         print(f"\nrouter: {launcher.listen}   recordings: {launcher.record_dir}   logs: {launcher.log_dir}")
+        if launcher.view_url is not None:
+            print(f"live view: {launcher.view_url}")
         tools = scale = f"--connect {launcher.endpoint}"
         if launcher.secure is not None:
             # The operator's everyday tools join as "cli"; only the "operator" identity may scale (and confirm).

@@ -193,6 +193,7 @@ class Launcher:
         restart: bool = True,
         secure_dir: str | os.PathLike | None = None,
         max_scale: Mapping[str, int] | None = None,
+        view_port: int | None = None,
         confirm_timeout_s: float | None = None,
     ):
         # The most workers per scalable service (defaults, GD2P_MAX_SCALE, then `max_scale`).
@@ -232,6 +233,9 @@ class Launcher:
         # One long-lived thread spawns every child: child_guard's parent-death signal follows the
         # spawning thread, so a short-lived caller thread must never be the one that forks.
         self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gd2p-spawner")
+        # The live view (`gd2p up --view [PORT]`, cli/view.py): a process beside the services, not a worker.
+        self.view_port = view_port
+        self._view: subprocess.Popen | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -254,6 +258,8 @@ class Launcher:
                 for _ in range(count):
                     self._spawn(service)
         self._start_thread(self._supervise, "gd2p-launcher-supervisor")
+        if self.view_port is not None:
+            self._start_view(self.view_port)
         log.info("router on %s; services starting (logs in %s)", self.listen, self.log_dir)
 
     def wait_ready(self, timeout: float = 60.0) -> dict[str, list[str]]:
@@ -292,6 +298,8 @@ class Launcher:
         workers = [c.process for c in children if c.service != "recorder"]
         recorders = [c.process for c in children if c.service == "recorder"]
         deadline = t0 + max(1.0, timeout - 1.0)  # keep a second for SIGKILL, reaping and the router
+        if self._view is not None:
+            workers.append(self._view)
         killed = terminate(workers, grace_s=max(0.2, (deadline - time.monotonic()) / 2))
         killed += terminate(recorders, grace_s=max(0.2, deadline - time.monotonic()))
         if killed:
@@ -404,6 +412,21 @@ class Launcher:
         if self.secure is not None:
             cmd += ["--zenoh-config", str(self.secure.client_config(service))]
         return cmd
+
+    @property
+    def view_url(self) -> str | None:
+        return None if self.view_port is None else f"http://127.0.0.1:{self.view_port}"
+
+    def _start_view(self, port: int) -> None:
+        """The live view's process (cli/view.py) on `port`, joined as the operator (its Confirm button)."""
+        cmd = [sys.executable, "-m", "deploy.child_guard", str(os.getpid()), "cli.view", "--port", str(port),
+               "--mode", "client", "--connect", self.endpoint]
+        if self.secure is not None:
+            cmd += ["--zenoh-config", str(self.secure.client_config("operator"))]
+        with open(self.log_dir / "view.log", "ab") as out:
+            self._view = self._spawner.submit(subprocess.Popen, cmd, stdin=subprocess.DEVNULL, stdout=out,
+                                              stderr=subprocess.STDOUT, env=self._environment(),
+                                              start_new_session=True).result()
 
     def _environment(self) -> dict[str, str]:
         env = dict(os.environ)

@@ -12,13 +12,17 @@ bus bridge reports robot contacts only); multi-step evaluation needs both. It ex
 trial's execution world (`LocalRobot.execution_world`, `shared.world.sim.world`): physics and an object
 pose the planner was not told. The simulated robot is always reset to the truth, and this module
 computes it (`true_world`): the true object at its true pose, with the world's physics.
+
+`gd2p eval --view` (one trial at a time, in this process) feeds a live view directly, without the bus:
+`set_view(view)` before the system is built hands every push's `PushDecision` (shared/planning/decision_tap.py)
+and every robot state to it.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -29,6 +33,7 @@ from shared.contracts.messages import (
     ObjectPose,
     ObjectRef,
     Plan,
+    PushDecision,
     SampleRequest,
     SampleResponse,
     SimWorld,
@@ -39,6 +44,7 @@ from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 from shared.frames import invert_transform
 from shared.planning.cancellation import Cancellation
+from shared.planning.decision_tap import DecisionTap
 from shared.planning.monitor import PushMonitor
 from shared.planning.outcome import Execution, PushError
 from shared.planning.pipeline import PushPipeline, PushServices
@@ -51,6 +57,23 @@ from shared.world.sim.world import ExecutionWorld
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 
 PoseSource = Callable[[SampleRequest], SampleResponse]
+
+
+class ViewSink(Protocol):
+    """What the in-process system feeds a live view (visualisation.live.LiveView)."""
+
+    def show_decision(self, decision: PushDecision) -> None: ...
+
+    def show_state(self, state: ExecutionState) -> None: ...
+
+
+_view: ViewSink | None = None
+
+
+def set_view(view: ViewSink | None) -> None:
+    """Feed `view` from the LocalSystems built from now on in this process (`gd2p eval --view`)."""
+    global _view
+    _view = view
 
 
 @dataclass
@@ -111,6 +134,7 @@ class LocalRobot:
         # reconstruction from a camera cloud): a reset puts this object there. None: the planner's object.
         self.true_object: tuple[ObjectRef, np.ndarray] | None = None
         self._watching: tuple[PushMonitor, LocalLease] | None = None  # the executing push's monitor, and its lease
+        self.view: ViewSink | None = _view  # a live view shown every state (`gd2p eval --view`)
 
     def executor(self, arm: str, hand: str) -> Executor:
         key = (arm, hand)
@@ -156,6 +180,8 @@ class LocalRobot:
     def _on_state(self, robot: SimRobot, state: ExecutionState) -> None:
         """Each state the robot publishes while it moves (on its thread): does the object touch an obstacle;
         closed loop, does the monitor stop the push?"""
+        if self.view is not None:
+            self.view.show_state(state)
         if robot.scene is not None and not self.contacts.object_obstacle:
             self.contacts.object_obstacle = robot.scene.object_touches_obstacle()
         if self._watching is not None:
@@ -211,6 +237,8 @@ class LocalSystem:
         if key not in self._pipelines:
             services = PushServices(sample=source or sampler_source(self.sampler), validate=validate_here,
                                     execute=self.robot.execute)
+            if _view is not None:  # each push's decision to the live view, before the robot moves
+                services = DecisionTap(services, _view.show_decision, keep=1).services()
             self._pipelines[key] = PushPipeline(services, settings)
         return self._pipelines[key]
 

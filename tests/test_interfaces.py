@@ -52,7 +52,7 @@ PRODUCING = {*(("ingress", m) for m in ("put", "delete", "declare_queryable", "r
 # anywhere in its namespace gd2p/<S>/** (only the bridge publishes there: its state), the launcher has a
 # worker's token and status spaces, and the planner may put on the command keys. Listed, so a new one fails.
 UNUSED_GRANTS = {
-    *((s, "ingress", m, f"gd2p/{s}/**") for s in ("generator", "validator", "sampler", "planner", "recorder", "launcher")
+    *((s, "ingress", m, f"gd2p/{s}/**") for s in ("generator", "validator", "sampler", "recorder", "launcher")
       for m in ("put", "delete")),
     *(("launcher", "ingress", m, "gd2p/status/launcher/**") for m in ("put", "delete")),
     ("launcher", "ingress", "liveliness_token", "gd2p/alive/launcher/**"),
@@ -76,6 +76,7 @@ def test_every_key_of_keys_py_has_its_row():
         "ROBOT_STATE_KEY": lambda: interface(keys.ROBOT_STATE_KEY),
         "ROBOT_ESTOP_KEY": lambda: interface(keys.ROBOT_ESTOP_KEY),
         "OBJECT_TRACK_KEY": lambda: interface(keys.OBJECT_TRACK_KEY),
+        "PLANNER_DECISION_KEY": lambda: interface(keys.PLANNER_DECISION_KEY),
         "ROBOT_HELD_KEY": lambda: interface(keys.ROBOT_HELD_KEY),
         "ROBOT_CONFIRM_KEY": lambda: interface(keys.ROBOT_CONFIRM_KEY),
         "alive_key": lambda: interface(keys.alive_key("sampler", "w-1")),

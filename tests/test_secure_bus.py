@@ -581,6 +581,9 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
                             ("ingress", "declare_subscriber", keys.ROBOT_STATE_KEY, ALL)],
         "OBJECT_TRACK_KEY": [("ingress", "put", keys.OBJECT_TRACK_KEY, frozenset({"robot_bridge", "tracker"})),
                              ("ingress", "declare_subscriber", keys.OBJECT_TRACK_KEY, ALL)],
+        # The live view's push decisions: in the planner's namespace, so only the planner publishes them.
+        "PLANNER_DECISION_KEY": [("ingress", "put", keys.PLANNER_DECISION_KEY, frozenset({"planner"})),
+                                 ("ingress", "declare_subscriber", keys.PLANNER_DECISION_KEY, ALL)],
         # Preview and confirm (issue 52): the bridge publishes held plans; only the operator confirms.
         "ROBOT_HELD_KEY": [("ingress", "put", keys.ROBOT_HELD_KEY, frozenset({"robot_bridge"})),
                            ("ingress", "declare_subscriber", keys.ROBOT_HELD_KEY, ALL)],

@@ -8,7 +8,8 @@ rules are default-deny, and each key space has an owner:
   only identity S declares liveliness tokens, publishes, declares queryables and replies there, and
   only S is handed the queries sent there. S is one of SERVING_IDENTITIES (the six services and the
   launcher). So the robot state (`gd2p/robot_bridge/state`) and the command replies come from the
-  bridge only, and nobody but a planner can announce itself as a planner or answer a push.
+  bridge only, and nobody but a planner can announce itself as a planner, answer a push or publish the
+  live view's push decisions (`gd2p/planner/decision`).
 - worker keys are queried only by the callers that really call S (CALLS: the planner calls the sampler
   and validators; the operator's tools, CN "cli", call the planner, generator, validator and sampler
   and health-query everyone) and by S itself (its container healthcheck asks its own worker).

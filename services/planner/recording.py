@@ -5,8 +5,8 @@
   its reconstruction -, the table, the obstacles), `/cloud` (PointCloud: the received point cloud,
   world frame, when the object came as one), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
   robot state), `/joint_states` (JointStates);
-- the bus messages as they travel (msgpack, `visualisation.recording`): the PushRequest, every executed
-  Plan, the robot's ExecutionStates and the PushResponse;
+- the bus messages as they travel (msgpack, `visualisation.recording`): the PushRequest, each push's
+  PushDecision (candidates, rollouts: what `gd2p replay --view` draws), every executed Plan, the robot's ExecutionStates and the PushResponse;
 - the metadata record `gd2p.decision` (`shared.planning.decision`): what the decision depended on beyond the
   request (its capture included): the commit, the models' SHA-256, the seeds, the pipeline's settings.
   `gd2p replay FILE.mcap --resim` plans it again from these.
@@ -28,7 +28,7 @@ import pybullet as pb
 import trimesh
 from foxglove import messages as fg
 
-from shared.contracts.messages import ExecutionState, PushRequest
+from shared.contracts.messages import ExecutionState, PushDecision, PushRequest
 from shared.planning.decision import METADATA_NAME, decision_metadata
 from shared.planning.outcome import PushOutcome, StepRecord
 from shared.robots.arms import combined_urdf
@@ -51,12 +51,14 @@ STORYBOARD_SUPERSAMPLE = 1
 
 
 def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, scene: RobotScene,
-                defer: Callable[[Callable[[], Path]], object] | None = None, settings: object = None) -> Path:
+                defer: Callable[[Callable[[], Path]], object] | None = None, settings: object = None,
+                decisions: list[PushDecision] | None = None) -> Path:
     """Write the MCAP and the storyboard PNG of a served request (`outcome`: its response and the
     records of its executed pushes); returns the MCAP's path.
 
     `scene` is an empty robot scene of the request's arm and hand (forward kinematics; the object and
-    obstacles are added to it here). `defer`, when given, is handed the storyboard's rendering (about
+    obstacles are added to it here). `decisions`: what the planner chose for each push (candidates, rollouts:
+    `shared.planning.decision_tap`), written before that push's plan, for `gd2p replay --view`. `defer`, when given, is handed the storyboard's rendering (about
     as long as a push, measured 3-4 s on 2 loaded cores) to run later, e.g. on a background thread,
     so the request can be answered first. `settings`: the pipeline's (`PipelineSettings`), for the
     decision's metadata.
@@ -73,7 +75,11 @@ def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, sc
         _write_scene(writer, obj.mesh, request, start_ns)
         if request.object.point_cloud is not None:
             _write_cloud(writer, request.object.point_cloud.to_numpy(), start_ns)
+        decided = list(decisions or [])
         for record in records:
+            for decision in [d for d in decided if d.plan is record.step.plan or _same_plan(d, record)][:1]:
+                writer.write_message("gd2p/planner/decision", decision, _first_stamp(record, start_ns))
+                decided.remove(decision)
             writer.write_message("gd2p/planner/plan", record.step.plan, start_ns)
             for state in record.execution.states + [record.execution.final]:
                 _write_state(writer, scene, state)
@@ -85,6 +91,17 @@ def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, sc
     else:
         defer(render)
     return mcap_path
+
+
+def _same_plan(decision: PushDecision, record: StepRecord) -> bool:
+    a, b = decision.plan.positions.to_numpy(), record.step.plan.positions.to_numpy()
+    return a.shape == b.shape and bool(np.array_equal(a, b))
+
+
+def _first_stamp(record: StepRecord, default_ns: int) -> int:
+    """Just before the push's first robot state (its decision came before the robot moved)."""
+    states = record.execution.states
+    return int(states[0].stamp * 1e9) - 1 if states else default_ns
 
 
 # ------------------------------------------------------------------------------------- Foxglove

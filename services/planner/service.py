@@ -36,8 +36,9 @@ import zenoh
 from services.planner.recording import record_push
 from shared.bus import BusConfig, Dispatcher, OpenCancelled, RemoteError, Worker, open_session
 from shared.bus.errors import DispatchError
-from shared.bus.keys import ROBOT_COMMAND_KEY, ROBOT_STATE_KEY
+from shared.bus.keys import PLANNER_DECISION_KEY, ROBOT_COMMAND_KEY, ROBOT_STATE_KEY
 from shared.bus.lease import LeaseError, LeaseMonitor, lease_key, parse_lease_key
+from shared.bus.recorded import RecordedPublisher
 from shared.contracts.codec import CodecError, decode, encode
 from shared.contracts.errors import ServiceError
 from shared.contracts.messages import (
@@ -46,6 +47,7 @@ from shared.contracts.messages import (
     ExecutionState,
     Message,
     Plan,
+    PushDecision,
     PushRequest,
     PushResponse,
     SampleRequest,
@@ -56,6 +58,7 @@ from shared.contracts.messages import (
 )
 from shared.execution.confirm import MAX_TIMEOUT_S as MAX_HOLD_S
 from shared.planning.cancellation import Cancellation, RequestCancelled
+from shared.planning.decision_tap import DecisionTap
 from shared.planning.monitor import PushMonitor
 from shared.planning.outcome import Execution, PushError
 from shared.planning.pipeline import PushPipeline, PushServices
@@ -90,9 +93,16 @@ class BusServices:
         self._monitors: dict[str, tuple[PushMonitor, Cancellation]] = {}  # command id -> closed-loop monitor, lease
         self._lock = threading.Lock()
         self._subscriber = session.declare_subscriber(ROBOT_STATE_KEY, self._on_state)
+        self._decisions = RecordedPublisher(session, PLANNER_DECISION_KEY, queue_size=16)
+
+    def publish_decision(self, decision: PushDecision) -> None:
+        """What the planner chose for a push, for the live view (gd2p/planner/decision); never waits."""
+        payload, encoding = encode(decision)
+        self._decisions.put(payload, encoding)
 
     def close(self) -> None:
         self._subscriber.undeclare()
+        self._decisions.close()
         self.sampler.close()
         self.validator.close()
 
@@ -237,8 +247,11 @@ class PlannerService:
     """
 
     def __init__(self, services: PushServices, record_dir: str | os.PathLike | None = None,
-                 watch_client: ClientWatch = _no_watch):
-        self.pipeline = PushPipeline(services)
+                 watch_client: ClientWatch = _no_watch, on_decision: Callable[[PushDecision], None] | None = None):
+        # Each push's decision (candidates, rollouts, the chosen plan) goes to `on_decision` before the robot
+        # moves (the live view) and into the recording.
+        self.tap = DecisionTap(services, on_decision)
+        self.pipeline = PushPipeline(self.tap.services())
         self.watch_client = watch_client
         self.record_dir = Path(record_dir or os.environ.get(RECORD_DIR_ENV, DEFAULT_RECORD_DIR)).resolve()
         self._lock = threading.Lock()  # one robot: one push request at a time
@@ -251,7 +264,9 @@ class PlannerService:
         cancel = Cancellation()
         try:
             with self.watch_client(request, cancel), self._lock:
+                self.tap.begin(request.id)
                 outcome = self.pipeline.run(request, cancel)
+                decisions = list(self.tap.decisions)
         except PushError as exc:
             raise ServiceError(exc.code, exc.message) from exc
         except RequestCancelled as exc:
@@ -261,7 +276,7 @@ class PlannerService:
         started = time.perf_counter()
         try:
             with self.pipeline.scene(request.arm, request.hand) as scene:
-                path = record_push(self.record_dir, request, outcome, scene,
+                path = record_push(self.record_dir, request, outcome, scene, decisions=decisions,
                                    defer=lambda render: self._storyboards.submit(_render_logged, render),
                                    settings=self.pipeline.settings)
         except OSError as exc:
@@ -313,7 +328,8 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
     bus = service = None
     try:
         bus = BusServices(session, worker_id)
-        service = PlannerService(bus.services(), record_dir, watch_client=bus.watch_client)
+        service = PlannerService(bus.services(), record_dir, watch_client=bus.watch_client,
+                                 on_decision=bus.publish_decision)
         Worker(SERVICE, service.handlers(), cfg, worker_id, stop=stop, session=session, max_queued=MAX_QUEUED,
                job_budget=job_budget).run()
     finally:

@@ -55,6 +55,7 @@ from shared.contracts.messages import (
     PlanConfirm,
     PlanConfirmReply,
     PlanHeld,
+    PushDecision,
     PushRequest,
     PushResponse,
     SampleRequest,
@@ -297,6 +298,18 @@ _ROBOT = (
                   " its states; examples/object_tracker.py numbers its own.",
               code=("shared/execution/robots/sim/robot.py: SimRobot._track_frame",
                     "services/robot_bridge/service.py: TrackSubscriber")),
+    Interface("push decision", keys.PLANNER_DECISION_KEY, "publication",
+              "What the planner considered and chose for one push — the candidate hand poses (world) with the"
+              " critic's scores, the rolled-out plans with their predicted object paths, the chosen plan — sent"
+              " just before that plan goes to the robot bridge.",
+              frozenset({"planner"}), EVERYONE, message=PushDecision,
+              used_by="The live view (`gd2p view`, `gd2p up --view`: cli/view.py, visualisation/live.py) draws it;"
+                      " the recorder records it. The planner also writes it into the push's own MCAP, which"
+                      " `gd2p replay FILE --view` plays.",
+              qos=f"One per push (corrections and multi-step pushes included), some 50-200 kB. {_RECORDED_QOS}"
+                  " The planner sends them from a queue of 16 so a push never waits on a slow viewer.",
+              code=("shared/planning/decision_tap.py: DecisionTap", "services/planner/service.py: BusServices.publish_decision",
+                    "cli/view.py: ViewBus")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
               "Stop every robot at once. Anything published here stops the robot — a valid EStop, an empty"
               " payload, garbage — and latches: later commands are refused until the bridge restarts.",

@@ -9,6 +9,7 @@
     gd2p/robot_bridge/object_track               ObjectTrack stream                  OBJECT_TRACK_KEY
     gd2p/robot_bridge/held                       PlanHeld (--confirm)                ROBOT_HELD_KEY
     gd2p/robot_bridge/confirm                    PlanConfirm queries (--confirm)     ROBOT_CONFIRM_KEY
+    gd2p/planner/decision                        PushDecision (live view)            PLANNER_DECISION_KEY
     gd2p/lease/<role>/<holder>                   a lease token (lease.py)            LEASE_PREFIX
     gd2p/watchdog/<name>                         router watchdog beats (lease.py)    WATCHDOG_PREFIX
     gd2p/caller/<id>                             a Dispatcher's presence (jobs)      CALLER_PREFIX, caller_key
@@ -32,6 +33,7 @@ ROBOT_ESTOP_KEY = f"{PREFIX}/robot_bridge/estop"
 OBJECT_TRACK_KEY = f"{PREFIX}/robot_bridge/object_track"
 ROBOT_HELD_KEY = f"{PREFIX}/robot_bridge/held"
 ROBOT_CONFIRM_KEY = f"{PREFIX}/robot_bridge/confirm"
+PLANNER_DECISION_KEY = f"{PREFIX}/planner/decision"  # in the planner's namespace: only the planner publishes
 LEASE_PREFIX = f"{PREFIX}/lease"
 WATCHDOG_PREFIX = f"{PREFIX}/watchdog"
 CALLER_PREFIX = f"{PREFIX}/caller"

@@ -987,3 +987,51 @@ class ScaleReply(Message):
     count: int = Field(ge=0)
     started: list[str] = Field(default_factory=list)
     stopped: list[str] = Field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------------
+# Live view (`gd2p up --view`, `gd2p view`): what the planner decided, for people to watch
+# ---------------------------------------------------------------------------------------------
+
+
+class RolloutPreview(Value):
+    """One rolled-out plan of a push: the plan, its rollout's L_goal / L_coll, and the object path it predicted."""
+
+    plan: Plan
+    goal_error_m: FiniteFloat | None = None
+    collision_cost: FiniteFloat | None = None
+    obstacle_contact: bool = False
+    success: bool | None = None  # the rollout's push succeeded (nominal world)
+    object_path: ObjectPath | None = None  # world frame, plan times
+
+
+class PushDecision(Message):
+    """What the planner considered and chose for one push, published just before the chosen plan goes to the
+    robot bridge (the live view draws it; the push recording keeps it).
+
+    `candidates_world`: the sampled hand poses of this push in the world ([N, 25]), `critic_scores` the success
+    critic's P(success) per candidate (None when the sampler did not score them); `rollouts` the plans rolled out
+    and ranked (empty for choice "random"); `chosen` the index among them of the executed plan (None: not one of
+    them, e.g. a random choice), whose full plan (with its way back) is `plan`."""
+
+    request_id: str | None = Field(default=None, max_length=128)
+    push_index: int = Field(default=0, ge=0)  # the request's n-th push (corrections and multi-step pushes count)
+    hand: Hand
+    arm: Arm
+    object: ObjectRef  # the library object, mesh or captured point cloud (reconstructed by whoever draws it)
+    frame: DirectionFrame  # where the object is at the push's start and which way it is pushed
+    distance_m: PositiveFloat | None = None  # how far it should go (None when unknown: a random choice)
+    obstacles: list[CircleObstacle] = Field(default_factory=list)
+    candidates_world: PoseArray
+    critic_scores: FloatVector | None = None
+    rollouts: list[RolloutPreview] = Field(default_factory=list)
+    chosen: int | None = Field(default=None, ge=0)
+    plan: Plan
+
+    @model_validator(mode="after")
+    def _consistent(self) -> PushDecision:
+        _check_pair(self.hand, self.arm)
+        _require_rows("PushDecision", _rows(self.candidates_world), critic_scores=self.critic_scores)
+        if self.chosen is not None and self.chosen >= len(self.rollouts):
+            raise ValueError(f"PushDecision: chosen {self.chosen} but {len(self.rollouts)} rollouts")
+        return self
