@@ -29,7 +29,9 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -71,7 +73,7 @@ def wait_for_storyboard(recording_path: str | None, timeout_s: float = 60.0) -> 
         time.sleep(0.1)
 
 
-def percentile(values: list[float], q: float) -> float:
+def percentile(values: Sequence[float], q: float) -> float:
     return round(float(np.percentile(values, q)), 3) if values else float("nan")
 
 
@@ -86,7 +88,7 @@ class ViewBench:
         self.session = open_session(cfg)
         self.view = LiveView(port=0)
         self._make_bus = lambda: ViewBus(self.session, self.view)
-        self.bus = None
+        self.bus: Any = None  # the view's bus adapter while attached (cli.view.ViewBus)
         self.driver = None
         if browser:
             self.driver = _browser()
@@ -101,7 +103,7 @@ class ViewBench:
 
     def summary(self, rows: list[dict]) -> dict:
         self.attach(False)
-        pairs = {}
+        pairs: dict[tuple[str, float], dict[bool, float]] = {}
         for r in rows:
             if "stages_s" in r:
                 pairs.setdefault((r["object"], r["direction_deg"]), {})[r["view"]] = r["total_s"]
@@ -186,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     if method == "auto":
         method = "gd2p" if default_checkpoint_path("allegro").is_file() else "fixed"
     launcher, cfg = start_system(args.record_dir, args.validators)
-    rows = []
+    rows: list[dict[str, Any]] = []
     watch = ViewBench(cfg, args.browser) if args.view else None
     try:
         options = PlannerOptions(k=args.k, method=method, sampler=args.sampler, critic=args.critic,

@@ -182,7 +182,7 @@ def _methods_refusal(methods: tuple[str, ...] | None, experiments: list[str]) ->
         known = METHOD_KEYS if name == "sampler-quality" else METHODS if name in TRIAL_EXPERIMENTS else None
         wrong = [m for m in methods if known is not None and m not in known]
         if wrong:
-            return f"{name} has no method(s) {', '.join(wrong)}; its methods: {', '.join(known)}"
+            return f"{name} has no method(s) {', '.join(wrong)}; its methods: {', '.join(known or ())}"
     return None
 
 

@@ -18,6 +18,7 @@ import signal
 import socket
 import sys
 import time
+from collections.abc import Sequence
 
 CLI_CONNECT_TIMEOUT_MS = 3000  # a CLI must fail clearly, not wait forever, when no router is up
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -100,14 +101,14 @@ def _cli_bus_config(args: argparse.Namespace):
 
 
 def _status_rows(statuses: list) -> list[tuple[str, ...]]:
-    rows = [("SERVICE", "WORKER", "PID", "HOST", "STATE", "UPTIME_S", "DONE", "FAILED")]
+    rows: list[tuple[str, ...]] = [("SERVICE", "WORKER", "PID", "HOST", "STATE", "UPTIME_S", "DONE", "FAILED")]
     for s in statuses:
         rows.append((s.service, s.worker_id, str(s.pid), s.host, s.state, f"{s.uptime_s:.1f}",
                      str(s.jobs_done), str(s.jobs_failed)))
     return rows
 
 
-def _print_table(rows: list[tuple[str, ...]], indent: str = "") -> None:
+def _print_table(rows: Sequence[tuple[str, ...]], indent: str = "") -> None:
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for row in rows:
         print(indent + "  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)).rstrip())

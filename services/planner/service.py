@@ -111,11 +111,14 @@ class BusServices:
 
     def sample(self, request: SampleRequest) -> SampleResponse:
         try:
-            return self.sampler.call(request, timeout=SAMPLE_TIMEOUT_S * 2)
+            reply = self.sampler.call(request, timeout=SAMPLE_TIMEOUT_S * 2)
         except RemoteError as exc:
             raise PushError(exc.code, f"sampler: {exc.message}") from exc
         except (DispatchError, TimeoutError) as exc:
             raise PushError("unavailable", f"no sampler answered: {exc}") from exc
+        if not isinstance(reply, SampleResponse):  # an ErrorReply comes back as RemoteError: anything else is a bug
+            raise PushError("internal", f"the sampler answered with a {type(reply).__name__}, not a SampleResponse")
+        return reply
 
     def validate(self, job: ValidationJob) -> Future:
         """Send `job` to the validator farm; the future's result is the ValidationResult (a RemoteError
@@ -172,6 +175,8 @@ class BusServices:
         if isinstance(reply, ExecutionState) and reply.status == "refused" and reply.message.startswith(NOT_CONFIRMED):
             # Held for an operator (`--confirm`) who did not confirm: nothing moved, and nobody asked for it again.
             raise PushError("not_confirmed", f"robot bridge: the plan was not confirmed: {reply.message}")
+        if not isinstance(reply, ExecutionState):
+            raise PushError("internal", f"robot bridge: answered with a {type(reply).__name__}, not an ExecutionState")
         return Execution(final=reply, states=states)
 
     @contextlib.contextmanager
@@ -202,6 +207,8 @@ class BusServices:
         try:
             state = decode(sample.payload.to_bytes(), str(sample.encoding), ExecutionState)
         except CodecError:
+            return
+        if not isinstance(state, ExecutionState):  # an ErrorReply has no place on the state key
             return
         with self._lock:
             if state.command_id in self._states:
