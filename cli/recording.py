@@ -1,6 +1,7 @@
 """`gd2p replay FILE.mcap ...`: republish a recording on the bus, each sample on its key with its encoding.
 `gd2p replay FILE.mcap --resim`: plan a push recording's request again in this process (no bus) and say
-whether the same plan comes out, bit for bit (exit 0 identical, 1 different, 2 an unusable recording).
+whether the same plan comes out, bit for bit (exit 0 identical, 1 different, 2 an unusable recording); with
+`--view`, a decision that differs is shown in the live view beside the recorded one.
 `gd2p replay FILE.mcap --view [--port PORT]`: play it in the live view instead (no bus), with pause and speed.
 `gd2p recording-info FILE.mcap ...`: what the recorder counted (received, missing) and the run it recorded.
 """
@@ -12,9 +13,14 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from cli.args import non_negative_float
 from visualisation.recording import Record, RecordingError, read_records, replay
+
+if TYPE_CHECKING:
+    from evaluation.resim import ResimResult
+    from shared.contracts.messages import PushDecision
 
 CLI_CONNECT_TIMEOUT_MS = 5000
 
@@ -28,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--keys", default="gd2p/**", metavar="KEYEXPR", help="replay only samples whose key matches (default %(default)s)")
     parser.add_argument("--resim", action="store_true",
                         help="re-decide a push recording (push-<id>.mcap): plan its request again in this process "
-                             "and compare the plans bit for bit; exit 0 identical, 1 different, 2 unusable")
+                             "and compare the plans bit for bit; exit 0 identical, 1 different, 2 unusable; with "
+                             "--view, show a decision that differs beside the recorded one")
     parser.add_argument("--view", action="store_true",
                         help="play the recording in the live view (browser; pause and speed controls) instead of the bus")
     parser.add_argument("--port", type=int, default=None, help="the view's HTTP port (with --view; default 8090)")
@@ -94,6 +101,7 @@ def run_resim(args: argparse.Namespace) -> int:
     from evaluation.resim import UnusableRecording, resim
 
     worst = 0
+    compared: dict[str, PushDecision] = {}
     for path in args.files:
         print(f"{path}: planning the recorded request again ...", flush=True)
         try:
@@ -112,7 +120,38 @@ def run_resim(args: argparse.Namespace) -> int:
         for difference in result.differences:
             print(f"  {difference}")
         worst = max(worst, 1)
+        compared |= _first_different(path, result)
+    if getattr(args, "view", False) and compared:
+        _show_in_view(compared, args)
+    elif getattr(args, "view", False):
+        print("every decision came out the same: nothing to compare in the view")
     return worst
+
+
+def _first_different(path: str, result: ResimResult) -> dict[str, PushDecision]:
+    """The recorded and re-decided decisions of the first push whose plan differs (none without decisions)."""
+    for i, (recorded, replanned) in enumerate(zip(result.recorded_decisions, result.replanned_decisions,
+                                                  strict=False)):
+        if recorded.plan != replanned.plan:
+            name = os.path.basename(path)
+            return {f"{name} push {i + 1}: recorded": recorded, f"{name} push {i + 1}: decided again": replanned}
+    return {}
+
+
+def _show_in_view(decisions: dict[str, PushDecision], args: argparse.Namespace) -> None:
+    """Serve the differing decisions in the live view until Ctrl-C (or at once with --exit)."""
+    from visualisation.live import DEFAULT_PORT, LiveView
+
+    view = LiveView(port=args.port or DEFAULT_PORT, title="GD2P re-decided")
+    try:
+        view.show_comparison(decisions)
+        print(f"live view: {view.url}  (the Decision selector switches between them; Ctrl-C to stop)", flush=True)
+        while not args.exit:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.close()
 
 
 def run_replay(args: argparse.Namespace) -> int:

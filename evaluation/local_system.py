@@ -70,10 +70,12 @@ class ViewSink(Protocol):
 _view: ViewSink | None = None
 
 
-def set_view(view: ViewSink | None) -> None:
-    """Feed `view` from the LocalSystems built from now on in this process (`gd2p eval --view`)."""
+def set_view(view: ViewSink | None) -> ViewSink | None:
+    """Feed `view` from the LocalSystems built from now on in this process (`gd2p eval --view`); the view fed
+    before, so a caller can restore it."""
     global _view
-    _view = view
+    previous, _view = _view, view
+    return previous
 
 
 @dataclass

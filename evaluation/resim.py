@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from shared.contracts.codec import CodecError
-from shared.contracts.messages import Plan, PushRequest, PushResponse
+from shared.contracts.messages import ExecutionState, Plan, PushDecision, PushRequest, PushResponse
 from shared.planning.decision import METADATA_NAME, REQUIRED, Mismatch, compare_plans, context_mismatches
 from shared.planning.outcome import PushError
 from shared.planning.stages import PipelineSettings
@@ -23,6 +23,7 @@ from visualisation.recording import RecordingError, read_metadata, read_records
 
 REQUEST_KEY = "gd2p/planner/request"
 RESPONSE_KEY = "gd2p/planner/response"
+DECISION_KEY = "gd2p/planner/decision"
 
 
 class UnusableRecording(Exception):
@@ -35,6 +36,9 @@ class ResimResult:
     request: PushRequest
     recorded: list[Plan]  # the plan of every push the recording executed
     replanned: list[Plan] = field(default_factory=list)
+    # What the planner chose for each push, as the live view draws it: recorded, and decided again.
+    recorded_decisions: list[PushDecision] = field(default_factory=list)
+    replanned_decisions: list[PushDecision] = field(default_factory=list)
     differences: list[str] = field(default_factory=list)  # [] and a replanned plan per push: identical
     warnings: list[str] = field(default_factory=list)  # missing metadata, another commit, other models ...
     mismatches: list[Mismatch] = field(default_factory=list)
@@ -73,17 +77,42 @@ def read_push_recording(path: str | Path) -> tuple[PushRequest, PushResponse, di
     return request, response, metadata
 
 
+class _Decisions:
+    """A view sink that keeps the decisions of the pushes planned again (their states are not needed)."""
+
+    def __init__(self, into: list[PushDecision]):
+        self.into = into
+
+    def show_decision(self, decision: PushDecision) -> None:
+        self.into.append(decision)
+
+    def show_state(self, state: ExecutionState) -> None:
+        pass
+
+
+def recorded_decisions(path: str | Path) -> list[PushDecision]:
+    """The PushDecisions a push recording holds (none in one made before the planner published them)."""
+    decisions = []
+    for record in read_records(str(path)):
+        if record.key == DECISION_KEY:
+            message = record.decode()
+            if isinstance(message, PushDecision):
+                decisions.append(message)
+    return decisions
+
+
 def executed_plans(response: PushResponse) -> list[Plan]:
     return [step.plan for step in response.steps] or [response.plan]
 
 
 def resim(path: str | Path, settings: PipelineSettings | None = None) -> ResimResult:
     """Plan the recorded request again in this process and compare its plans with the recorded ones."""
+    from evaluation import local_system
     from evaluation.local_system import LocalSystem
 
     request, response, decision = read_push_recording(path)
     settings = settings or PipelineSettings()
-    result = ResimResult(Path(path), request, executed_plans(response))
+    result = ResimResult(Path(path), request, executed_plans(response), recorded_decisions=recorded_decisions(path))
     if decision is None:
         result.warnings.append(f"no {METADATA_NAME} metadata (recorded before recordings carried the commit, models "
                                "and seeds): planning with this checkout's, which may differ")
@@ -93,9 +122,14 @@ def resim(path: str | Path, settings: PipelineSettings | None = None) -> ResimRe
             result.warnings.append(f"the {METADATA_NAME} metadata lacks {', '.join(absent)}")
         result.mismatches = context_mismatches(decision, request, settings, model_ids(request.hand))
         result.warnings += [f"other {m}: the plan may differ for that reason alone" for m in result.mismatches]
-    system = LocalSystem(settings)
+    previous = local_system.set_view(_Decisions(result.replanned_decisions))  # each push's decision, kept
     try:
-        outcome = system.pipeline("sampler").run(request)
+        system = LocalSystem(settings)
+        pipeline = system.pipeline("sampler")  # its services are tapped when it is built
+    finally:
+        local_system.set_view(previous)
+    try:
+        outcome = pipeline.run(request)
     except PushError as exc:
         result.differences.append(f"planning again failed ({exc.code}: {exc.message}); the recording executed "
                                   f"{len(result.recorded)} push(es)")

@@ -162,3 +162,56 @@ def test_a_recording_whose_plan_differs_from_the_replanned_one_exits_1_naming_th
     out = capsys.readouterr().out
     assert "DIFFERENT" in out and "push 1: waypoints: 1 of" in out and "at most 0.01" in out
     assert f"(waypoint 5, joint {plan.joint_names[0]})" in out
+
+
+def test_with_view_a_decision_that_differs_is_shown_beside_the_recorded_one(recorded_push, tmp_path, capsys,
+                                                                            monkeypatch):
+    """`--resim --view`: the recorded decision and the one made again, switched by the view's Decision selector."""
+    import socket
+    import time
+
+    from cli.main import main
+    from shared.contracts.codec import encode
+    from visualisation.live import LiveView
+
+    plan = recorded_push.plan
+    positions = plan.positions.to_numpy().copy()
+    positions[5, 0] += 0.01
+    other_plan = Plan(arm=plan.arm, hand=plan.hand, joint_names=plan.joint_names, positions=positions,
+                      times_s=plan.times_s.to_numpy(), segments=plan.segments)
+    target = tmp_path / "altered-decision.mcap"
+    with McapWriter(str(target)) as writer:
+        for record in read_records(recorded_push.recording_path):
+            if record.key == "gd2p/planner/decision":  # as if the planner had chosen the other plan
+                decision = record.decode().model_copy(update={"plan": other_plan})
+                writer.write(record.key, *encode(decision), record.log_time_ns)
+            elif record.key == "gd2p/planner/request":
+                writer.write(record.key, record.payload, record.encoding, record.log_time_ns)
+        steps = [step.model_copy(update={"plan": other_plan}) for step in recorded_push.steps[:1]]
+        writer.write("gd2p/planner/response", *encode(recorded_push.model_copy(update={"plan": other_plan,
+                                                                                        "steps": steps})))
+        writer.add_metadata(METADATA_NAME, read_metadata(recorded_push.recording_path)[METADATA_NAME])
+    shown: list[tuple[tuple[str, ...], dict[str, int]]] = []
+    compare = LiveView.show_comparison
+
+    def watched(view, decisions):
+        selector = compare(view, decisions)
+        deadline = time.monotonic() + 30.0
+        while view.counts()["decisions"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        selector.value = list(decisions)[1]  # what picking the other one in the panel does
+        while view.counts()["decisions"] < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        shown.append((tuple(selector.options), dict(view.counts())))
+        return selector
+
+    monkeypatch.setattr(LiveView, "show_comparison", watched)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(["replay", str(target), "--resim", "--view", "--exit", "--port", str(port)]) == 1
+    out = capsys.readouterr().out
+    assert "DIFFERENT" in out and "the Decision selector switches between them" in out
+    [(options, counts)] = shown
+    assert options == ("altered-decision.mcap push 1: recorded", "altered-decision.mcap push 1: decided again")
+    assert counts["decisions"] == 2 and counts["rollouts"] > 0

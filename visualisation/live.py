@@ -264,6 +264,17 @@ class LiveView:
     def clients(self) -> int:
         return len(self.server.get_clients())
 
+    def show_comparison(self, decisions: dict[str, PushDecision]) -> Any:
+        """Two or more decisions of the same push (e.g. `gd2p replay --resim --view`: as recorded, and decided
+        again): a selector in the panel switches which one is drawn; the first is drawn now. The selector."""
+        if not decisions:
+            raise ValueError("show_comparison needs at least one decision")
+        names = tuple(decisions)
+        selector = self.server.gui.add_dropdown("Decision", options=names, initial_value=names[0])
+        selector.on_update(lambda _event: self.show_decision(decisions[str(selector.value)]))
+        self.show_decision(decisions[names[0]])
+        return selector
+
     def add_markdown(self, text: str) -> Any:
         """A panel of the caller's own (e.g. the replay's clock)."""
         return self.server.gui.add_markdown(text)
