@@ -65,6 +65,8 @@ def test_a_changed_generator_is_refused_naming_the_object(monkeypatch, tmp_path)
     with pytest.raises(fs.FinalSplitChangedError, match="final-box-00: its generator now makes a different mesh"):
         fs.load_final_split()
     fs.checked_mesh("final-cone-00")  # the other families are untouched
+    with fs.final_split_access(), pytest.raises(fs.FinalSplitChangedError, match="final-box-01"):
+        load_object("final-box-01", cache_dir=tmp_path / "cache")  # a load reads the mesh through the same check
     # a manifest that no longer lists the split's objects is refused too
     manifest = json.loads(fs.MANIFEST_PATH.read_text())
     del manifest["objects"]["final-round-03"]
