@@ -1,6 +1,6 @@
 """`gd2p eval EXPERIMENT [--quick] --out results/`: reproduce the paper's experiments in simulation.
 
-    gd2p eval methods --out results/          # GD2P vs baselines, 14 objects x 3 directions x 5 trials, 3 cameras
+    gd2p eval methods --out results/          # GD2P vs baselines, the 14 development objects x 3 directions x 5 trials, 3 cameras
     gd2p eval methods --cameras 0             # ... the system told the object's mesh (and a pose off by the world's error)
     gd2p eval methods --world exact           # ... executed in the planner's own world (for comparison)
     gd2p eval methods --world exact --tag v2  # the `exact` run beside `methods-real-v2` (same tag, same models)
@@ -14,6 +14,14 @@
     gd2p eval sampler-quality --world exact --split val --yaw random --objects 36 --checkpoint CKPT --tag NAME  # choose
     gd2p eval sampler-diagnosis --out results/  # training objects: samples vs stored poses, shuffled BPS, BPS paths
     gd2p eval all --quick --out /tmp/r        # a small slice of every experiment, a few minutes each
+    gd2p eval methods --split final           # the final split: once per release, settings frozen on val (see below)
+
+Splits (`--split`): `dev` (default) is the development split: the 14 objects every change has been measured
+on (the object library's `test` split; `--split test` still works, as an alias that says so), so its figures
+are development figures. `val` is for choosing settings. `final` is the final split: 72 objects drawn for it
+(5 fresh draws of each procedural family and 12 of `round`, a family nothing trains on), frozen by content
+hash, with placements and world draws of their own; methods / leap / closed-loop only, from a clean tree,
+every run logged in results/final/LOG.md, good or bad. Nothing else can load its objects.
 
 World (`--world`, every experiment but sampler-diagnosis): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
@@ -56,6 +64,9 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
 TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
 WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")  # these also take --cameras and --tag
 COVERAGE_EXPERIMENTS = ("sampler-quality", "data-size")  # --world and --cameras too: where the poses are pushed
+# `dev`: the development split (the library's `test` split, what `test` named before issue 49; `test` stays an
+# alias that says so); `final`: the final split (evaluation/final_run.py).
+SPLIT_CHOICES = ("dev", "test", "val", "unseen", "final")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -79,12 +90,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "(<out>/<experiment>-<world>-cameraN/, multistep-<world>[-closed]-cameraN/); 0 tells it the "
                              "object's mesh and a pose off by the world's pose error (<out>/<experiment>-<world>/). "
                              "Default: 3 under `real`, 0 under `exact`")
-    parser.add_argument("--split", choices=("test", "val", "unseen"), default="test",
-                        help="methods / leap / closed-loop: the 14 test objects (default, for reporting), 14 val objects (for "
-                             "tuning settings, <out>/<experiment>-<world>-val/; tune on val, report on test) or 6 test "
-                             "objects of the mug family that no model trains on (<out>/<experiment>-<world>-unseen/); "
-                             "multistep: test (default) or 3 val objects of the test objects' footprints "
-                             "(<out>/multistep-<world>[-closed][-cameraN]-val/); sampler-quality: the whole test or val split")
+    parser.add_argument("--split", choices=SPLIT_CHOICES, default="dev",
+                        help="methods / leap / closed-loop: the 14 development objects (dev, the default; results in "
+                             "<out>/<experiment>-<world>[-cameraN]/ as before; `test` is an alias), 14 val objects (for tuning "
+                             "settings, <out>/<experiment>-<world>-val/), 6 development objects of the mug family that no "
+                             "model trains on (<out>/<experiment>-<world>-unseen/) or the final split (final: once per "
+                             "release, from a clean tree, logged in results/final/LOG.md; <out>/<experiment>-<world>"
+                             "[-cameraN]-final/); multistep: dev (default) or 3 val objects of the development objects' "
+                             "footprints (<out>/multistep-<world>[-closed][-cameraN]-val/); sampler-quality: the whole "
+                             "development (the library's test split) or val split")
     parser.add_argument("--methods", type=_method_list, default=None,
                         help="methods / leap / closed-loop: comma-separated methods to run (methods' default: every "
                              "method but the tuning candidates; closed-loop's: gd2p, gd2p-corrected, gd2p-closed, "
@@ -201,8 +215,8 @@ def _guidance_refusal(args: argparse.Namespace) -> str | None:
     return None
 
 
-def _sampler_quality_options(args: argparse.Namespace) -> dict:
-    options = {"split": args.split, "checkpoint": args.checkpoint, "nn_index": args.nn_index, "yaw": args.yaw,
+def _sampler_quality_options(args: argparse.Namespace, split: str) -> dict:
+    options = {"split": split, "checkpoint": args.checkpoint, "nn_index": args.nn_index, "yaw": args.yaw,
                "tag": args.tag, "objects": args.objects}
     if args.noise_scale is not None:
         options["noise_scale"] = args.noise_scale
@@ -222,8 +236,9 @@ def experiment_function(name: str):
 
 def run(args: argparse.Namespace) -> int:
     from evaluation.coverage import CoverageError
+    from evaluation.final_run import FinalRunError, run_final
     from evaluation.methods import DEFAULT_CAMERAS
-    from evaluation.report import write_index
+    from evaluation.report import command_line, write_index
     from evaluation.store import ResultStoreError
 
     # A stopped evaluation must not leave its worker processes running: SystemExit unwinds the pool's
@@ -240,6 +255,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"gd2p eval: --tag names a directory: letters, digits, '.', '_', '-' (got {args.tag!r})", file=sys.stderr)
         return 2
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    if args.split == "test":
+        print("gd2p eval: --split test is the development split, now named dev (the same objects, seeds and results "
+              "directories); the held-out measurement is --split final", file=sys.stderr)
+    split = "test" if args.split in ("dev", "test") else args.split  # the object library's name for dev
+    if split == "final" and args.experiment not in TRIAL_EXPERIMENTS:
+        print(f"gd2p eval: --split final applies to {', '.join(TRIAL_EXPERIMENTS)} one at a time (the final split is "
+              "measured by the trial protocol, once per release)", file=sys.stderr)
+        return 2
     if args.view is not None:
         from evaluation import local_system
         from visualisation.live import LiveView
@@ -255,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
         atexit.register(view.close)
     data_size_only = [flag for flag, value in (("--dataset", args.dataset), ("--train-steps", args.train_steps),
                                                ("--lr", args.lr), ("--seeds", args.seeds)) if value is not None]
-    if args.split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):
+    if split == "unseen" and any(name not in TRIAL_EXPERIMENTS for name in names):
         print(f"gd2p eval: --split unseen applies to {', '.join(TRIAL_EXPERIMENTS)} (sampler-quality measures the mugs "
               "within the test split)", file=sys.stderr)
         return 2
@@ -293,19 +316,23 @@ def run(args: argparse.Namespace) -> int:
             options["methods"] = args.methods
         if name in WORLD_EXPERIMENTS + COVERAGE_EXPERIMENTS:
             options["cameras"] = DEFAULT_CAMERAS[args.world] if args.cameras is None else args.cameras
-        if args.split != "test" and (name in TRIAL_EXPERIMENTS or (name == "multistep" and args.split == "val")):
-            options["split"] = args.split
+        if split not in ("test", "final") and (name in TRIAL_EXPERIMENTS or (name == "multistep" and split == "val")):
+            options["split"] = split
         if args.tag is not None and name in WORLD_EXPERIMENTS:
             options["tag"] = args.tag
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
         if name == "sampler-quality":
-            options.update(_sampler_quality_options(args))
+            options.update(_sampler_quality_options(args, split))
         if name == "data-size" and args.experiment == "data-size":
             options.update(_data_size_options(args))
         try:
-            report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
-        except (ResultStoreError, CoverageError) as exc:
+            if split == "final":
+                report = run_final(name, experiment_function(name), args.out, quick=args.quick, workers=args.workers,
+                                   command=command_line(), options=options)
+            else:
+                report = experiment_function(name)(args.out, quick=args.quick, workers=args.workers, **options)
+        except (ResultStoreError, CoverageError, FinalRunError) as exc:
             print(f"gd2p eval {name}: {exc}", file=sys.stderr)
             return 2
         print(f"{name}: {report}")

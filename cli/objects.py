@@ -16,7 +16,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="List library objects. The first run describes the non-procedural objects once "
         "(tens of seconds) and caches the result under $GD2P_CACHE_DIR.",
     )
-    listing.add_argument("--split", choices=("train", "val", "test"), help="only objects of this split")
+    listing.add_argument("--split", choices=("train", "val", "test"),
+                         help="only objects of this split (test: the development split's objects; the final split's "
+                              "objects are not library objects and are never listed)")
     listing.add_argument("--json", action="store_true", help="print a JSON object instead of a table")
     listing.set_defaults(func=_list)
 

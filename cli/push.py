@@ -123,12 +123,15 @@ def build_request(args: argparse.Namespace):
     from shared.contracts.messages import CircleObstacle, PushRequest
     from shared.frames import make_transform
     from shared.world.object_refs import load_object_ref
+    from shared.world.objects.final_split import check_final_access, is_final_id
     from shared.world.push_outcome import object_pose
 
     if args.goal and args.corrections is not None:
         raise ValueError("--corrections: a --goal request already pushes again from where the object was seen, up "
                          "to its step limit; corrections are for --direction-deg")
     ref = object_ref(args)
+    if ref.library_id is not None and is_final_id(ref.library_id):
+        check_final_access(ref.library_id)  # the final split's objects: `gd2p eval --split final` only
     if ref.point_cloud is not None and args.position is not None:
         raise ValueError("--position: the point cloud shows where the object stands; leave --position out")
     pose = None

@@ -14,7 +14,7 @@ import json
 import math
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -35,7 +35,7 @@ VAL_OBJECTS = ("proc-box-010", "proc-box-017", "proc-cylinder-006", "proc-cylind
 # A whole shape family that no model trains on (`--split unseen`, reported beside the 14): the first
 # procedural mugs of the test split (catalog.UNSEEN_FAMILIES; pb-mug, one of the 14, is of it too).
 UNSEEN_OBJECTS = ("proc-mug-000", "proc-mug-001", "proc-mug-002", "proc-mug-003", "proc-mug-004", "proc-mug-005")
-OBJECT_SETS = ("test", "val", "unseen")
+OBJECT_SETS = ("test", "val", "unseen", "final")  # "test": the development split (`--split dev`)
 # The records of the committed `exact` runs made before execution worlds existed (results/methods, results/leap):
 # the same trials, under the methods' earlier names.
 LEGACY_EXACT_NAMES = {"gd2p-no-ranking": "gd2p-random"}
@@ -63,7 +63,9 @@ class Protocol:
     trials: int
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it sees the object with that many depth cameras
-    split: str = "test"  # "val": the tuning objects; "unseen": a whole never-trained family of the test split
+    # "test": the development split's 14 (`--split dev`); "val": the tuning objects; "unseen": a whole never-trained
+    # family of the test split; "final": the final split (evaluation/final_run.py, once per release)
+    split: str = "test"
     tag: str | None = None  # names a run of the same protocol with other models or code (`--tag`)
 
     @property
@@ -74,12 +76,16 @@ class Protocol:
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
         trial k of a method is the same episode whatever else runs, so a run can later be extended."""
-        settings = {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
+        settings: dict[str, Any] = {"hand": self.hand, "arm": protocol.ROBOTS[self.hand], "world": self.world,
                     "objects": list(self.objects), "directions_deg": list(self.directions),
                     "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                     "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M,
                     # the poses' models: a run resumed after the shipped checkpoint or index changed is refused
                     "pose_models": protocol.pose_model_ids(self.hand)}
+        if self.split == "final":  # the frozen objects the run measured, and that they are the final split's
+            from shared.world.objects.final_split import manifest_sha256
+
+            settings.update(split="final", final_manifest_sha256=manifest_sha256())
         return {**settings, "cameras": self.cameras} if self.cameras else settings
 
 
@@ -102,10 +108,16 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
         objects = VAL_OBJECTS[:2] if quick else VAL_OBJECTS
     elif split == "unseen":
         objects = UNSEEN_OBJECTS[:2] if quick else UNSEEN_OBJECTS
+    elif split == "final":  # every final object, hash-checked against the committed manifest
+        from shared.world.objects.final_split import load_final_split
+
+        final = tuple(load_final_split())
+        objects = (final[0], final[-1]) if quick else final
     else:
         objects = QUICK_OBJECTS if quick else protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS
     trials = trials or (1 if quick else protocol.TRIALS)
-    on_val = {"val": ", val objects (tuning)", "unseen": ", a never-trained shape family (mugs)"}.get(split, "")
+    on_val = {"val": ", val objects (tuning)", "unseen": ", a never-trained shape family (mugs)",
+              "final": ", the final split"}.get(split, "")
     on_val += f" ({tag})" if tag else ""
     if name == "methods":
         return Protocol(name, f"Methods × objects × directions (Allegro + Panda), world `{world}`{on_val}", "allegro",
@@ -124,7 +136,10 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
 
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
                  world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                 split: str = "test", tag: str | None = None) -> Path:
+                 split: str = "test", tag: str | None = None,
+                 worker_init: Callable[[str], None] | None = None) -> Path:
+    """One run of a trial protocol into `<out>/<directory_name>/`; `worker_init` replaces the workers' initializer
+    (the final split's, evaluation/final_run.py, opens its access in every worker)."""
     spec = protocol_for(name, quick, trials, world, methods, cameras, split, tag)
     directory = Path(out) / spec.directory_name
     settings = spec.settings()  # hashes the pose models' files: once per run
@@ -133,7 +148,8 @@ def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | 
     todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
                              spec.cameras, spec.split)
     pending = [e for e in todo if not store.done(e.key)]
-    protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name)
+    protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name,
+                            initializer=worker_init)
     spec = with_stored_methods(spec, store)
     records = [store.records[e.key] for e in protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions,
                                                                spec.trials, spec.world, spec.cameras, spec.split)]
@@ -159,20 +175,20 @@ def with_stored_methods(spec: Protocol, store: ResultStore) -> Protocol:
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                split: str = "test", tag: str | None = None) -> Path:
-    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split, tag)
+                split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
 
 
 def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
              world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-             split: str = "test", tag: str | None = None) -> Path:
-    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split, tag)
+             split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
 
 
 def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                     world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                    split: str = "test", tag: str | None = None) -> Path:
-    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag)
+                    split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
+    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
 
 
 def exact_rates(out: Path, spec: Protocol, pose_models: dict[str, str]) -> dict[str, dict[str, Any]]:

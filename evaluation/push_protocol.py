@@ -61,6 +61,7 @@ from shared.contracts.messages import (
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
+from shared.world.objects.final_split import is_final_id
 from shared.world.push_outcome import judge_push, object_pose, rollout_predicts_success
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
@@ -152,7 +153,7 @@ class Episode:
     @property
     def world_seed(self) -> int:
         """The execution world's seed: the same draw for every method, independent of the placement's."""
-        digest = hashlib.sha256(f"world/{self.object_id}/{self.direction_deg:g}/{self.trial}".encode()).digest()
+        digest = hashlib.sha256(f"{_seed_prefix(self.object_id)}world/{self.object_id}/{self.direction_deg:g}/{self.trial}".encode()).digest()
         return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
 
     @property
@@ -162,17 +163,27 @@ class Episode:
     @property
     def seed(self) -> int:
         """The same placement and sampler seed for every method: methods face identical trials."""
-        digest = hashlib.sha256(f"{self.object_id}/{self.direction_deg:g}/{self.trial}".encode()).digest()
+        digest = hashlib.sha256(f"{_seed_prefix(self.object_id)}{self.object_id}/{self.direction_deg:g}/{self.trial}".encode()).digest()
         return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+FINAL_SEED_PREFIX = "gd2p-final-v1/"
+
+
+def _seed_prefix(object_id: str) -> str:
+    """The final split's placements and world draws come from seeds of their own (`FINAL_SEED_PREFIX`): never a
+    development trial's draw. The development, val and unseen trials keep the seeds they always had."""
+    return FINAL_SEED_PREFIX if is_final_id(object_id) else ""
 
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
              trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test") -> list[Episode]:
-    """The trials of a protocol. Objects must be of `split`: "test" to report, "val" to tune, "unseen" (test
-    objects of a family no model trains on) to report on a new family; never train."""
-    if split not in ("test", "val", "unseen"):
-        raise ValueError(f"evaluation runs on the test objects (to report), the val objects (to tune) or a never-trained "
-                         f"family of the test split (unseen), not {split!r}")
+    """The trials of a protocol. Objects must be of `split`: "test" (the development split), "val" to tune,
+    "unseen" (test objects of a family no model trains on), "final" (the final split, measured once per release
+    by `evaluation/final_run.py` only); never train."""
+    if split not in ("test", "val", "unseen", "final"):
+        raise ValueError(f"evaluation runs on the development objects (test), the val objects (to tune), a never-trained "
+                         f"family of the test split (unseen) or the final split (final), not {split!r}")
     for object_id in objects:
         object_split = split_of(object_id)
         if object_split != ("test" if split == "unseen" else split):
@@ -416,20 +427,22 @@ def _keyed(job: tuple[Callable[[Any], dict[str, Any]], Any]) -> tuple[str, dict[
 
 
 def run_in_workers(items: Sequence[Any], work: Callable[[Any], dict[str, Any]], store, workers: int,
-                   grasp_cache: Path, label: str) -> None:
+                   grasp_cache: Path, label: str, initializer: Callable[[str], None] | None = None) -> None:
     """`work(item)` for every item (each with a `.key`) over `workers` spawn processes, each record
-    stored as soon as it arrives (resumable); a progress bar shows the live success rate."""
+    stored as soon as it arrives (resumable); a progress bar shows the live success rate. `initializer`
+    (a module-level function of the grasp cache path) replaces `_init_worker` (the final split's opens its access)."""
+    initializer = initializer or _init_worker
     if not items:
         return
     grasp_cache.mkdir(parents=True, exist_ok=True)
     jobs = [(work, item) for item in items]
     with tqdm(total=len(items), desc=label, unit="trial") as bar:
         if workers <= 1:
-            _init_worker(str(grasp_cache))
+            initializer(str(grasp_cache))
             _consume(map(_keyed, jobs), store, bar)
             return
         context = mp.get_context("spawn")
-        with context.Pool(workers, initializer=_init_worker, initargs=(str(grasp_cache),)) as pool:
+        with context.Pool(workers, initializer=initializer, initargs=(str(grasp_cache),)) as pool:
             _consume(pool.imap_unordered(_keyed, jobs), store, bar)
 
 

@@ -38,9 +38,9 @@ DOCS_MAX_LINES = 150
 CITING = ("README.md", "CONTRIBUTING.md", "docs", "evaluation", "bench", "tests", "cli", "services", "shared", "deploy")
 EXPERIMENT_ORDER = ("methods", "leap", "closed-loop", "multistep", "sampler-quality", "data-size", "sampler-diagnosis",
                     "dataset build")
-SPLIT_ORDER = ("test", "unseen", "val", "train")
+SPLIT_ORDER = ("final", "test", "unseen", "val", "train")
 
-_PROTOCOL = re.compile(r"^(methods|leap|closed-loop)(?:-(real|exact))?(?:-camera(\d))?(?:-(val|unseen))?(?:-(.+))?$")
+_PROTOCOL = re.compile(r"^(methods|leap|closed-loop)(?:-(real|exact))?(?:-camera(\d))?(?:-(val|unseen|final))?(?:-(.+))?$")
 _MULTISTEP = re.compile(r"^multistep(?:-(real|exact))?(?:-closed)?(?:-camera(\d))?(?:-(val))?(?:-(.+))?$")
 _COVERAGE = re.compile(r"^(sampler-quality|data-size)(?:-(real|exact)(?:-camera(\d))?)?(-val)?(-random-yaw)?(?:-(.+))?$")
 
@@ -250,7 +250,8 @@ def describe(path: Path) -> Run:
 
 def read_runs(out: Path = RESULTS) -> list[Run]:
     """Every run directory under `out`, in the index's order."""
-    runs = [describe(p) for p in sorted(Path(out).iterdir()) if p.is_dir()]
+    # results/final/ holds the final split's run log (LOG.md), not a run
+    runs = [describe(p) for p in sorted(Path(out).iterdir()) if p.is_dir() and p.name != "final"]
 
     def order(run: Run) -> tuple[Any, ...]:
         kind = EXPERIMENT_ORDER.index(run.experiment) if run.experiment in EXPERIMENT_ORDER else len(EXPERIMENT_ORDER)
@@ -295,7 +296,8 @@ def _figure(row: Row) -> str:
 
 
 def _split(run: Run) -> str:
-    return {"test": "test", "val": "val (tuning)", "unseen": "unseen family"}.get(run.split, run.split)
+    # the library's test split is the development split (issue 49); final: the final split
+    return {"test": "development", "val": "val (tuning)", "unseen": "unseen family", "final": "final"}.get(run.split, run.split)
 
 
 def _experiment(run: Run) -> str:

@@ -84,6 +84,7 @@ from shared.world.objects import (
     load_object,
     split_of,
 )
+from shared.world.objects.final_split import is_final_id
 from shared.world.objects.geometry import MIN_POSE_PROBABILITY
 from shared.world.push_outcome import TOPPLED_TILT_DEG, object_pose
 from shared.world.sim import PhysicsParams
@@ -231,6 +232,10 @@ def select_objects(split: str, count: int | None = None, object_ids: Sequence[st
                          "may be used for training (test objects never are); pass --allow-split to build "
                          "evaluation data on purpose")
     if object_ids:
+        for oid in object_ids:
+            if is_final_id(oid):  # never: not even inside the final-split evaluation
+                raise BuildError(f"{oid} is an object of the final split: it is measured once per release by "
+                                 "`gd2p eval EXPERIMENT --split final` only, and no data is ever built from it")
         unknown = sorted(set(object_ids) - set(list_object_ids()))
         if unknown:
             raise BuildError(f"unknown library object id(s): {unknown[:8]} (see `gd2p objects list`)")

@@ -6,6 +6,8 @@ Ids
 - `pb-<name>`: pybullet_data's named objects that a robot hand can push (see PYBULLET_OBJECTS).
 - `proc-<family>-<NNN>`: procedural shapes with exact meshes (procedural.py).
 - `mesh-<sha256[:12]>`: a user mesh file, named by its content.
+- `final-<family>-<NN>`: the final split (final_split.py): not library ids, never listed, and loaded only
+  inside the final-split evaluation (any other load is refused with FinalSplitAccessError).
 
 An id is never a path: `resolve_library_id` (what every id from the bus goes through) accepts the
 forms above only. `resolve_source` also takes a mesh file path, for local callers (CLI, benchmarks).
@@ -36,6 +38,7 @@ import trimesh
 
 from . import meshio
 from .errors import ObjectLoadError, SplitError, UnknownObjectError
+from .final_split import FINAL_VERSION, check_final_access, checked_mesh, final_spec, is_final_id, read_manifest
 from .procedural import (
     FAMILIES,
     PER_FAMILY,
@@ -88,7 +91,7 @@ class ObjectSource:
     """Where an object's mesh comes from and how to read it (no geometry loaded yet)."""
 
     object_id: str
-    source: str  # "random_urdfs" | "pybullet_data" | "procedural" | "mesh"
+    source: str  # "random_urdfs" | "pybullet_data" | "procedural" | "final" | "mesh"
     family: str  # "random", the pybullet name, the procedural family, or "user"
     native_upright: bool  # the mesh's own +z is "up" as the object is normally placed
     path: Path | None = None
@@ -155,7 +158,7 @@ def resolve_source(id_or_path: str | Path) -> ObjectSource:
 def _is_library_id(text: str) -> bool:
     """One of the library's ids (a file of that name in the working directory does not shadow it)."""
     return bool(_RND_PATTERN.fullmatch(text)) or (text.startswith("pb-") and text[3:] in PYBULLET_OBJECTS) \
-        or text in procedural_ids()
+        or text in procedural_ids() or is_final_id(text)
 
 
 def _looks_like_path(text: str) -> bool:
@@ -184,6 +187,10 @@ def resolve_library_id(text: str) -> ObjectSource:
     if is_procedural_id(text):
         spec = procedural_spec(text)
         return ObjectSource(text, "procedural", spec.family, True, mass_kg=spec.mass_kg)
+    if is_final_id(text):
+        check_final_access(text)  # the final split's objects: only inside the final-split evaluation
+        spec = final_spec(text)
+        return ObjectSource(text, "final", spec.family, True, mass_kg=spec.mass_kg)
     raise UnknownObjectError(
         f"{text!r}: unknown object; expected rnd-000..rnd-{RANDOM_URDF_COUNT - 1}, pb-<{'|'.join(PYBULLET_OBJECTS)}>, "
         f"proc-<family>-000..{PER_FAMILY - 1:03d}, mesh-<hash> (a mesh loaded before)"
@@ -194,6 +201,9 @@ def read_source_mesh(source: ObjectSource) -> trimesh.Trimesh:
     """The raw mesh in metres, in the source's own frame (upright rotation applied)."""
     if source.source == "procedural":
         return procedural_mesh(procedural_spec(source.object_id))
+    if source.source == "final":
+        check_final_access(source.object_id)
+        return checked_mesh(source.object_id)  # refused if it is not the mesh frozen in the manifest
     assert source.path is not None
     if source.source == "mesh":
         return meshio.read_mesh_file(source.path)
@@ -214,6 +224,9 @@ def source_fingerprint(source: ObjectSource) -> bytes:
     if source.source == "procedural":
         spec = procedural_spec(source.object_id)
         return json.dumps({**generator_version(spec.family), "family": spec.family, "params": spec.params}, sort_keys=True).encode()
+    if source.source == "final":  # keyed by the frozen content: a cached final object is the one in the manifest
+        sha256 = read_manifest().get(source.object_id)
+        return json.dumps({"final": FINAL_VERSION, "id": source.object_id, "sha256": sha256}, sort_keys=True).encode()
     assert source.path is not None
     parts = [source.path.read_bytes()]
     if source.path.suffix == ".urdf":
@@ -227,7 +240,9 @@ def source_fingerprint(source: ObjectSource) -> bytes:
 
 # ----------------------------------------------------------------------------- splits
 def split_of(object_id: str) -> str:
-    """The fixed split of an id: train / val / test (see the module docstring)."""
+    """The fixed split of an id: train / val / test, or final for the final split's ids (see the module docstring)."""
+    if is_final_id(object_id):
+        return "final"
     if object_id.startswith("pb-"):
         return "test"
     if is_procedural_id(object_id):

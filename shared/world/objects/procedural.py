@@ -100,10 +100,18 @@ def is_everyday_id(object_id: str) -> bool:
 def procedural_spec(object_id: str) -> ProceduralSpec:
     """The family, designed class and dimensions (metres) of a procedural id (cached: specs are immutable)."""
     family, index = parse_procedural_id(object_id)
+    everyday = family in EVERYDAY_FAMILIES
+    return draw_spec(object_id, family, index, _everyday_seed(object_id) if everyday else _seed(object_id))
+
+
+def draw_spec(object_id: str, family: str, index: int, seed: int) -> ProceduralSpec:
+    """An object of `family` drawn from `seed`: the shape class follows `index` (as the library's ids), the
+    dimensions the seeded generator. The library's ids draw from their id's hash; the final split
+    (final_split.py) draws the same families from seeds of its own."""
     classes = FAMILY_CLASSES[family]
     target = classes[index % len(classes)]
     everyday = family in EVERYDAY_FAMILIES
-    rng = np.random.default_rng(_everyday_seed(object_id) if everyday else _seed(object_id))
+    rng = np.random.default_rng(seed)
     for _ in range(100_000):
         params, (a, b, height) = EVERYDAY_SAMPLERS[family](rng, index) if everyday else _SAMPLERS[family](rng)
         if _clearly_in_class(a, b, height, target):
