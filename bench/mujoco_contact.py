@@ -19,6 +19,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
@@ -63,16 +64,16 @@ def main() -> None:
 
     box, plan, T_world_O, T_world_D = planned_push()
     trajectory = JointTrajectory.from_plan(plan)  # type: ignore[arg-type]
-    rows = []
-    for cone, impedance, dt, iterations in itertools.product(("pyramidal", "elliptic"), IMPEDANCES, TIME_STEPS,
-                                                             ITERATIONS):
+    cones: tuple[Literal["pyramidal", "elliptic"], ...] = ("pyramidal", "elliptic")
+    rows: list[dict[str, Any]] = []
+    for cone, impedance, dt, iterations in itertools.product(cones, IMPEDANCES, TIME_STEPS, ITERATIONS):
         solref, solimp = IMPEDANCES[impedance]
         contact = replace(ContactConfig(), cone=cone, time_step_s=dt, iterations=iterations, solref=solref,
                           solimp=solimp)
         robot = MujocoRobot(MujocoConfig("panda", "allegro", contact=contact))
         robot.connect()
         robot.add_object(box, T_world_O)  # type: ignore[arg-type]
-        robot.reset(trajectory.positions[0, :7], trajectory.positions[0, 7:])
+        robot.reset(list(trajectory.positions[0, :7]), list(trajectory.positions[0, 7:]))
         deepest = [0.0]
         model, data = robot.model, robot.data
         assert model is not None and data is not None
@@ -98,16 +99,16 @@ def main() -> None:
         print(row, flush=True)
         rows.append(row)
     summary = {}
-    for cone, impedance in itertools.product(("pyramidal", "elliptic"), IMPEDANCES):
-        mine = [r for r in rows if r["cone"] == cone and r["impedance"] == impedance]
-        along = np.array([r["along_m"] for r in mine])
-        across = np.array([r["across_m"] for r in mine])
-        yaw = np.array([r["yaw_deg"] for r in mine])
-        summary[f"{cone}/{impedance}"] = {
-            "along_m_mean": round(float(along.mean()), 4),
-            "along_spread_mm": round(float(np.ptp(along) * 1000), 2),  # over time steps and iterations
-            "across_spread_mm": round(float(np.ptp(across) * 1000), 2),
-            "yaw_spread_deg": round(float(np.ptp(yaw)), 2),
+    for cone_name, impedance in itertools.product(cones, IMPEDANCES):
+        mine = [r for r in rows if r["cone"] == cone_name and r["impedance"] == impedance]
+        along_all = np.array([r["along_m"] for r in mine])
+        across_all = np.array([r["across_m"] for r in mine])
+        yaw_all = np.array([r["yaw_deg"] for r in mine])
+        summary[f"{cone_name}/{impedance}"] = {
+            "along_m_mean": round(float(along_all.mean()), 4),
+            "along_spread_mm": round(float(np.ptp(along_all) * 1000), 2),  # over time steps and iterations
+            "across_spread_mm": round(float(np.ptp(across_all) * 1000), 2),
+            "yaw_spread_deg": round(float(np.ptp(yaw_all)), 2),
             "worst_penetration_mm": max(r["final_penetration_mm"] for r in mine),
             "seconds_at_2ms_50it": next(r["seconds"] for r in mine if r["time_step_s"] == 0.002 and r["iterations"] == 50),
         }

@@ -18,6 +18,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -41,7 +42,9 @@ def vhacd(mesh: trimesh.Trimesh) -> list[trimesh.Trimesh]:
     with tempfile.TemporaryDirectory() as work:
         out = Path(work) / "v.obj"
         _run_vhacd(mesh, out)
-        return list(trimesh.load(str(out), force="mesh", process=False).split(only_watertight=False))
+        loaded = trimesh.load(str(out), force="mesh", process=False)
+        assert isinstance(loaded, trimesh.Trimesh)
+        return list(loaded.split(only_watertight=False))
 
 
 def main() -> None:
@@ -57,7 +60,7 @@ def main() -> None:
         "coacd_0.05": lambda i, m: decompose_mesh(i, m, threshold=0.05),
         "vhacd_pybullet": lambda i, m: vhacd(m),
     }
-    rows = []
+    rows: list[dict[str, Any]] = []
     for object_id in OBJECTS:
         obj = load_object(object_id)
         mesh = obj.mesh

@@ -97,7 +97,7 @@ def test_an_unloadable_world_is_refused_naming_the_check():
     with robot:
         world = SimWorld(object=ObjectRef(library_id="rnd-9999"), object_pose={"position": [0.5, 0, 0.05],
                                                                                  "quaternion_xyzw": [0, 0, 0, 1]})
-        with pytest.raises(SafetyRefusal, match="^world: "):
+        with pytest.raises(SafetyRefusal, match=r"^world: "):
             robot.reset_told(world)
 
 
