@@ -194,3 +194,18 @@ def test_a_convex_library_object_is_one_piece_its_own_hull():
     box = load_object("proc-box-013")
     pieces = convex_pieces(box)
     assert len(pieces) == 1 and pieces[0].volume == pytest.approx(box.volume, rel=0.01)
+
+
+def test_a_lost_lease_stops_the_mujoco_robot_mid_motion():
+    import threading
+
+    with MujocoRobot(MujocoConfig("panda", "allegro")) as robot:
+        start = robot.observe().positions.copy()
+        goal = start.copy()
+        goal[0] += 1.0
+        lease = LocalLease()
+        threading.Timer(0.3, lease.release).start()
+        state = executor_for(robot).execute(
+            ExecutionCommand(plan=straight(robot, start, goal, 4.0), lease_token="test", realtime_factor=1.0), lease)
+    assert state.status == "stopped"
+    assert 0.0 < state.positions.to_numpy()[0] - start[0] < 0.5
