@@ -1,0 +1,180 @@
+"""The MuJoCo model of the world the MuJoCo robot executes in: arm + hand, table, object, obstacles.
+
+- Robot: the project's combined URDF (`shared.robots.arms.combined_urdf`: the arm with the hand fixed to
+  its flange by `mount`, the frames the planner uses), read by `mujoco.MjSpec.from_file` and compiled
+  with `compiler.balanceinertia` (some hand links' URDF inertias break the triangle inequality). Its base
+  stands at `T_world_base`. Every joint gets a position servo (config.ControlConfig) whose force is capped at
+  the URDF effort, and every link gravity compensation through its actuators.
+- Collisions: robot links collide with the table, the object and obstacles but not with each other (as in
+  PyBullet's default, which the planner's validity checks assume: finger self-collision is the pose
+  generator's job). The table is a plane at z = 0.
+- Object: a free body whose frame is O (centre of mass and principal axes: its inertia is diagonal), its
+  collision geoms the convex pieces of `decompose.convex_pieces`, its mass and centre of mass those of the
+  world (a drawn world's may differ from the model's).
+- Contacts: MuJoCo's soft contacts with the cone, impedance and solver of config.ContactConfig.
+
+A model that does not compile raises `ModelError` naming the element MuJoCo blames and its reason.
+"""
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from shared.execution.robots.mujoco.config import MujocoConfig
+from shared.execution.robots.mujoco.decompose import convex_pieces
+from shared.robots.arms import combined_urdf, load_arm
+from shared.robots.hands import load_hand
+from shared.world.objects.model import ObjectModel
+
+OBSTACLE_HEIGHT_M = 0.3  # as the PyBullet world's obstacles
+OBJECT_BODY = "object"
+ROBOT_GROUP, WORLD_GROUP = 1, 2  # contype / conaffinity bits: robot geoms touch the world, not each other
+
+
+class ModelError(ValueError):
+    """A MuJoCo model failed to compile: names the element (body, joint, geom) and MuJoCo's reason."""
+
+
+@dataclass(frozen=True)
+class PlacedObject:
+    """The object as it truly is, where it truly stands."""
+
+    obj: ObjectModel
+    T_world_O: np.ndarray
+    mass_scale: float = 1.0
+    com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def wxyz(rotation: np.ndarray) -> np.ndarray:
+    x, y, z, w = Rotation.from_matrix(rotation).as_quat()
+    return np.array([w, x, y, z])
+
+
+def robot_spec(arm: str, hand: str) -> mujoco.MjSpec:
+    """The arm + hand of the project's combined URDF as an MjSpec (not yet compiled)."""
+    spec = mujoco.MjSpec.from_file(str(combined_urdf(arm, hand)))
+    spec.compiler.balanceinertia = True
+    return spec
+
+
+def compile_spec(spec: mujoco.MjSpec, what: str) -> mujoco.MjModel:
+    """Compile `spec`; ModelError naming `what`, the element MuJoCo blames and its reason."""
+    try:
+        return spec.compile()
+    except ValueError as exc:
+        text = str(exc).strip()
+        reason = re.sub(r"^Error:\s*", "", text.splitlines()[0]) if text else "unknown reason"
+        match = re.search(r"Element name '([^']*)', id (\d+)", text)
+        element = f"element {match.group(1)!r} (id {match.group(2)})" if match else "an unnamed element"
+        raise ModelError(f"{what}: MuJoCo cannot compile {element}: {reason}") from None
+
+
+def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
+               obstacles: Sequence[tuple[float, float, float]] = ()) -> mujoco.MjSpec:
+    """The full world's MjSpec: robot with servos, table, object (if any), obstacles, contact settings."""
+    spec = robot_spec(config.arm, config.hand)
+    _contact_options(spec, config)
+    arm, hand = load_arm(config.arm), load_hand(config.hand)
+    root = spec.worldbody.first_body()
+    T_world_base = np.eye(4) if config.T_world_base is None else np.asarray(config.T_world_base, dtype=np.float64)
+    root.pos, root.quat = T_world_base[:3, 3], wxyz(T_world_base[:3, :3])
+    for geom in spec.geoms:
+        geom.contype, geom.conaffinity = ROBOT_GROUP, 0
+        geom.friction = [config.materials.hand_friction, config.materials.torsional_friction,
+                         config.materials.rolling_friction]
+    for body in spec.bodies:
+        if body.name != "world":
+            body.gravcomp = 1.0
+    _servos(spec, config, arm.joint_names, hand.joint_names)
+    table = spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0.0, 0.0, 0.05])
+    table.contype, table.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+    table.friction = [config.materials.table_friction, config.materials.torsional_friction,
+                      config.materials.rolling_friction]
+    if placed is not None:
+        _add_object(spec, config, placed)
+    for index, (x, y, radius) in enumerate(obstacles):
+        cylinder = spec.worldbody.add_geom(name=f"obstacle {index}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                                           size=[radius, OBSTACLE_HEIGHT_M / 2, 0.0], pos=[x, y, OBSTACLE_HEIGHT_M / 2])
+        cylinder.contype, cylinder.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+    return spec
+
+
+def build_model(config: MujocoConfig, placed: PlacedObject | None = None,
+                obstacles: Sequence[tuple[float, float, float]] = ()) -> mujoco.MjModel:
+    """The compiled world (ModelError naming what failed)."""
+    what = f"{config.arm}+{config.hand}" + (f" with object {placed.obj.id}" if placed is not None else "")
+    return compile_spec(build_spec(config, placed, obstacles), what)
+
+
+def _contact_options(spec: mujoco.MjSpec, config: MujocoConfig) -> None:
+    c = config.contact
+    option = spec.option
+    option.timestep = c.time_step_s
+    option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC if c.cone == "elliptic" else mujoco.mjtCone.mjCONE_PYRAMIDAL
+    option.solver = {"Newton": mujoco.mjtSolver.mjSOL_NEWTON, "CG": mujoco.mjtSolver.mjSOL_CG,
+                     "PGS": mujoco.mjtSolver.mjSOL_PGS}[c.solver]
+    option.iterations = c.iterations
+    option.noslip_iterations = c.noslip_iterations
+    option.impratio = c.impratio
+    option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST  # stiff servos and damping, stable at 2 ms
+    option.o_solref = list(c.solref)
+    option.o_solimp = [*c.solimp, 0.5, 2.0]
+    option.enableflags |= mujoco.mjtEnableBit.mjENBL_OVERRIDE  # every contact uses solref/solimp above
+
+
+def _servos(spec: mujoco.MjSpec, config: MujocoConfig, arm_joints: Sequence[str], hand_joints: Sequence[str]) -> None:
+    """One servo per joint: ctrl is q_ref + (kv / kp) qd_ref, so force = kp (q_ref - q) + kv (qd_ref - qd)."""
+    from shared.execution.robots.sim.config import limits
+
+    device = limits(config.arm, config.hand)
+    effort = dict(zip(device.joint_names, device.effort, strict=True))
+    control = config.control
+    joints = {j.name: j for j in spec.joints}
+    for name in (*arm_joints, *hand_joints):
+        if name not in joints:
+            raise ModelError(f"{config.arm}+{config.hand}: the model has no joint {name!r}")
+        is_arm = name in arm_joints
+        kp, kv = (control.arm_kp, control.arm_kv) if is_arm else (control.hand_kp, control.hand_kv)
+        joint = joints[name]
+        joint.armature = control.arm_armature if is_arm else control.hand_armature
+        # The URDFs' joint friction and damping are not the servos' (the Allegro's says 10 Nm of friction on
+        # a 15 Nm finger): the servo's kv is the damping, the hand keeps a small passive damping of its own.
+        joint.frictionloss = 0.0
+        joint.damping = [0.0 if is_arm else control.hand_damping, 0.0, 0.0]
+        joint.actgravcomp = True
+        actuator = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        actuator.gaintype = mujoco.mjtGain.mjGAIN_FIXED
+        actuator.gainprm[0] = kp
+        actuator.biastype = mujoco.mjtBias.mjBIAS_AFFINE
+        actuator.biasprm[:3] = [0.0, -kp, -kv]
+        actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        actuator.forcerange = [-effort[name], effort[name]]
+
+
+def _add_object(spec: mujoco.MjSpec, config: MujocoConfig, placed: PlacedObject) -> None:
+    obj = placed.obj
+    T = np.asarray(placed.T_world_O, dtype=np.float64)
+    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=T[:3, 3], quat=wxyz(T[:3, :3]))
+    body.add_freejoint(name="object_free")
+    body.explicitinertial = True
+    body.mass = obj.mass * placed.mass_scale
+    body.ipos = list(placed.com_offset_m)
+    body.iquat = [1.0, 0.0, 0.0, 0.0]
+    inertia = np.diag(obj.inertia) if np.ndim(obj.inertia) == 2 else np.asarray(obj.inertia)
+    body.inertia = inertia * placed.mass_scale
+    for index, piece in enumerate(convex_pieces(obj)):
+        mesh = spec.add_mesh(name=f"object_piece{index}")
+        mesh.uservert = np.asarray(piece.vertices, dtype=np.float64).ravel().tolist()
+        mesh.userface = np.asarray(piece.faces, dtype=np.int32).ravel().tolist()
+        mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX
+        geom = body.add_geom(name=f"object_piece{index}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name)
+        geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+        geom.friction = [config.materials.object_friction, config.materials.torsional_friction,
+                         config.materials.rolling_friction]
+        geom.mass = 0.0  # the body's explicit inertia is the object's
