@@ -1,5 +1,7 @@
 """`gd2p replay FILE.mcap ...`: republish a recording on the bus, each sample on its key with its encoding.
 `gd2p replay FILE.mcap --view [--port PORT]`: play it in the live view instead (no bus), with pause and speed.
+`gd2p replay FILE.mcap --resim`: plan a push recording's request again in this process (no bus) and say
+whether the same plan comes out, bit for bit (exit 0 identical, 1 different, 2 an unusable recording).
 `gd2p recording-info FILE.mcap ...`: what the recorder counted (received, missing) and the run it recorded.
 """
 from __future__ import annotations
@@ -28,6 +30,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="play the recording in the live view (browser; pause and speed controls) instead of the bus")
     parser.add_argument("--port", type=int, default=None, help="the view's HTTP port (with --view; default 8090)")
     parser.add_argument("--exit", action="store_true", help="with --view: stop serving when the recording is played")
+    parser.add_argument("--resim", action="store_true",
+                        help="re-decide a push recording (push-<id>.mcap): plan its request again in this process "
+                             "and compare the plans bit for bit; exit 0 identical, 1 different, 2 unusable")
     BusConfig.add_cli_args(parser)
     parser.set_defaults(func=run_replay)
 
@@ -84,8 +89,37 @@ def run_info(args: argparse.Namespace) -> int:
     return 1 if missing_any else 0
 
 
+def run_resim(args: argparse.Namespace) -> int:
+    """Each file: plan again, compare; the worst exit code (2 unusable > 1 different > 0 identical)."""
+    from evaluation.resim import UnusableRecording, resim
+
+    worst = 0
+    for path in args.files:
+        print(f"{path}: planning the recorded request again ...", flush=True)
+        try:
+            result = resim(path)
+        except UnusableRecording as exc:
+            print(f"gd2p replay --resim: unusable recording: {exc}", file=sys.stderr)
+            worst = 2
+            continue
+        for warning in result.warnings:
+            print(f"warning: {warning}", file=sys.stderr)
+        pushes = len(result.recorded)
+        if result.identical:
+            print(f"{path}: identical: the same plan comes out ({pushes} push(es), every waypoint bit for bit)")
+            continue
+        print(f"{path}: DIFFERENT: planning again gives another decision")
+        for difference in result.differences:
+            print(f"  {difference}")
+        worst = max(worst, 1)
+    return worst
+
+
 def run_replay(args: argparse.Namespace) -> int:
     import zenoh
+
+    if getattr(args, "resim", False):
+        return run_resim(args)
 
     from shared.bus import BusConfig, BusError, RecordedPublisher, open_session
 

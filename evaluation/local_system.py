@@ -14,7 +14,7 @@ pose the planner was not told. The simulated robot is always reset to the truth,
 computes it (`true_world`): the true object at its true pose, with the world's physics.
 
 `gd2p eval --view` (one trial at a time, in this process) feeds a live view directly, without the bus:
-`set_view(view)` before the system is built hands every push's `PushDecision` (shared/planning/decision.py)
+`set_view(view)` before the system is built hands every push's `PushDecision` (shared/planning/decision_tap.py)
 and every robot state to it.
 """
 from __future__ import annotations
@@ -44,7 +44,7 @@ from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 from shared.frames import invert_transform
 from shared.planning.cancellation import Cancellation
-from shared.planning.decision import DecisionTap
+from shared.planning.decision_tap import DecisionTap
 from shared.planning.monitor import PushMonitor
 from shared.planning.outcome import Execution, PushError
 from shared.planning.pipeline import PushPipeline, PushServices

@@ -363,3 +363,29 @@ def test_a_confirm_timeout_beyond_the_planners_wait_is_refused(capsys):
     with pytest.raises(SystemExit):
         bridge_main.main(["--confirm", "--confirm-timeout", "900"])
     assert "--confirm-timeout must be in (0, 240] s" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("payload", [b"", b"\xff\x00garbage", "PushRequest"])
+def test_a_malformed_confirmation_gets_a_bad_request_and_releases_nothing(confirming_bridge, payload):
+    from shared.bus.keys import ROBOT_CONFIRM_KEY
+    from shared.contracts.codec import encode
+    from shared.contracts.messages import ErrorReply, ObjectRef, PushRequest
+
+    bridge, listener = confirming_bridge
+    key, _token = bridge.lease("planner-1.held-bad")
+    command = bridge.move(key, duration_s=0.5)
+    thread, result = _execute_in_thread(bridge, command)
+    listener.wait_held()
+    if payload == "PushRequest":
+        data, encoding = encode(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=0.0))
+    else:
+        data, encoding = payload, "application/msgpack;PlanConfirm"
+    replies = [r.ok for r in bridge.commander.get(ROBOT_CONFIRM_KEY, payload=data, encoding=encoding, timeout=5.0)
+               if r.ok is not None]
+    reply = decode(replies[0].payload.to_bytes(), str(replies[0].encoding))
+    assert isinstance(reply, ErrorReply) and reply.code == "bad_request", reply
+    time.sleep(0.3)
+    assert not result and _moved(bridge) < 1e-3  # still held: garbage releases nothing
+    assert confirm(bridge.commander, command.id, operator="alice").accepted
+    thread.join(10.0)
+    assert result[0].status == "done"

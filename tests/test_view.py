@@ -166,7 +166,7 @@ def test_the_decision_tap_reports_candidates_scores_rollouts_and_the_chosen_plan
         ValidationJob,
         ValidationResult,
     )
-    from shared.planning.decision import DecisionTap
+    from shared.planning.decision_tap import DecisionTap
     from shared.planning.outcome import Execution
     from shared.planning.pipeline import PushServices
 
@@ -402,7 +402,7 @@ def test_gd2p_up_view_starts_the_view_beside_the_services(zenoh_router, tmp_path
 def test_gd2p_eval_view_feeds_the_in_process_system(monkeypatch):
     """`gd2p eval --view`: the evaluation's in-process system hands its decisions and robot states to the view."""
     from evaluation import local_system
-    from shared.planning.decision import DecisionTap
+    from shared.planning.decision_tap import DecisionTap
 
     class Sink:
         def __init__(self):

@@ -6,7 +6,10 @@
   world frame, when the object came as one), `/tf` (FrameTransforms: world -> object and world -> every arm and hand link, per
   robot state), `/joint_states` (JointStates);
 - the bus messages as they travel (msgpack, `visualisation.recording`): the PushRequest, each push's
-  PushDecision (candidates, rollouts: what `gd2p replay --view` draws), every executed Plan, the robot's ExecutionStates and the PushResponse.
+  PushDecision (candidates, rollouts: what `gd2p replay --view` draws), every executed Plan, the robot's ExecutionStates and the PushResponse;
+- the metadata record `gd2p.decision` (`shared.planning.decision`): what the decision depended on beyond the
+  request (its capture included): the commit, the models' SHA-256, the seeds, the pipeline's settings.
+  `gd2p replay FILE.mcap --resim` plans it again from these.
 `<record_dir>/push-<request id>.png` is the storyboard: one row per push — start, pre-contact
 (the first waypoint of the push segment) and end — drawn by `visualisation.render` from one camera. The
 planner service renders it after answering (it takes about as long as a push); it appears complete.
@@ -26,8 +29,10 @@ import trimesh
 from foxglove import messages as fg
 
 from shared.contracts.messages import ExecutionState, PushDecision, PushRequest
+from shared.planning.decision import METADATA_NAME, decision_metadata
 from shared.planning.outcome import PushOutcome, StepRecord
 from shared.robots.arms import combined_urdf
+from shared.sampling.models import model_ids
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import write_object_urdf
 from shared.world.push_outcome import pose_matrix
@@ -46,16 +51,18 @@ STORYBOARD_SUPERSAMPLE = 1
 
 
 def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, scene: RobotScene,
-                defer: Callable[[Callable[[], Path]], object] | None = None,
+                defer: Callable[[Callable[[], Path]], object] | None = None, settings: object = None,
                 decisions: list[PushDecision] | None = None) -> Path:
     """Write the MCAP and the storyboard PNG of a served request (`outcome`: its response and the
     records of its executed pushes); returns the MCAP's path.
 
     `scene` is an empty robot scene of the request's arm and hand (forward kinematics; the object and
     obstacles are added to it here). `decisions`: what the planner chose for each push (candidates, rollouts:
-    `shared.planning.decision`), written before that push's plan, for `gd2p replay --view`. `defer`, when given, is handed the storyboard's rendering (about
+    `shared.planning.decision_tap`), written before that push's plan, for `gd2p replay --view`. `defer`, when
+    given, is handed the storyboard's rendering (about
     as long as a push, measured 3-4 s on 2 loaded cores) to run later, e.g. on a background thread,
-    so the request can be answered first.
+    so the request can be answered first. `settings`: the pipeline's (`PipelineSettings`), for the
+    decision's metadata.
     """
     record_dir.mkdir(parents=True, exist_ok=True)
     mcap_path = record_dir / f"push-{request.id[:16]}.mcap"
@@ -78,6 +85,7 @@ def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, sc
             for state in record.execution.states + [record.execution.final]:
                 _write_state(writer, scene, state)
         writer.write_message("gd2p/planner/response", outcome.response, time.time_ns())
+        writer.add_metadata(METADATA_NAME, decision_metadata(request, settings, model_ids(request.hand)))
     render = storyboard(scene, records, obj.mesh, request.obstacles, mcap_path.with_suffix(".png"))
     if defer is None:
         render()

@@ -270,7 +270,8 @@ class PlannerService:
         try:
             with self.pipeline.scene(request.arm, request.hand) as scene:
                 path = record_push(self.record_dir, request, outcome, scene, decisions=decisions,
-                                   defer=lambda render: self._storyboards.submit(_render_logged, render))
+                                   defer=lambda render: self._storyboards.submit(_render_logged, render),
+                                   settings=self.pipeline.settings)
         except OSError as exc:
             log.warning("could not record push %s: %s", request.id, exc)
             return response

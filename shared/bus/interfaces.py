@@ -307,7 +307,7 @@ _ROBOT = (
                       " `gd2p replay FILE --view` plays.",
               qos=f"One per push (corrections and multi-step pushes included), some 50-200 kB. {_RECORDED_QOS}"
                   " The planner sends them from a queue of 16 so a push never waits on a slow viewer.",
-              code=("shared/planning/decision.py: DecisionTap", "services/planner/service.py: BusServices.publish_decision",
+              code=("shared/planning/decision_tap.py: DecisionTap", "services/planner/service.py: BusServices.publish_decision",
                     "cli/view.py: ViewBus")),
     Interface("e-stop", keys.ROBOT_ESTOP_KEY, "publication",
               "Stop every robot at once. Anything published here stops the robot — a valid EStop, an empty"

@@ -1,171 +1,143 @@
-"""What the planner decided for each push, for the live view and the recording: a `PushDecision`.
+"""What a push's decision depended on, written into its recording, and how two decisions compare.
 
-`DecisionTap` wraps a pipeline's services (`PushServices`) and watches them work: the sampler's reply (the
-candidates and the critic's scores), the arm rollouts sent to the validators (each plan with its predicted
-object path) and the plan sent to the robot. Just before a plan is executed it hands a `PushDecision` to
-`on_decision` (the planner service publishes it on the bus; an in-process evaluation feeds a view directly).
-It needs nothing from the pipeline's internals: only what crosses its service boundary.
+A push recording (services/planner/recording.py) carries the request (with its point cloud, when the
+object came as a capture) as a bus message, and this module's metadata record `gd2p.decision`:
+- `commit`: the code that decided ($GD2P_COMMIT, else `git rev-parse HEAD`, "-dirty" when tracked files
+  differ from it, else "unknown");
+- `models`: JSON {"diffusion", "critic", "nn_index": "sha256:<hex>" | "none" | "missing: <path>"} as a
+  sampler on the planner's host resolves them (shared/sampling/models.py);
+- `seeds`: JSON {"request": the request's seed (sampling, rollout worlds, random choices), "motion_planner":
+  the OMPL seed of every RRTConnect call, "ik": the IK solver's start configurations};
+- `settings`: the pipeline's settings (`PipelineSettings`, repr), `versions` of the numeric libraries, the
+  request id, arm, hand and method.
+`gd2p replay FILE.mcap --resim` (evaluation/resim.py) plans the request again in process and compares the
+chosen plans bit for bit (`compare_plans`).
 """
 from __future__ import annotations
 
-import logging
-import threading
-from collections.abc import Callable
-from concurrent.futures import Future
+import functools
+import json
+import os
+import platform
+import subprocess
 from dataclasses import dataclass
+from importlib import metadata as importlib_metadata
+from pathlib import Path
 
 import numpy as np
 
-from shared.contracts.messages import (
-    ObjectPath,
-    Plan,
-    PushDecision,
-    RolloutPreview,
-    SampleRequest,
-    SampleResponse,
-    SimWorld,
-    ValidationJob,
-    ValidationResult,
-)
-from shared.frames import frame_transform, poses_d_to_world
-from shared.planning.cancellation import Cancellation
-from shared.planning.monitor import PushMonitor
-from shared.planning.outcome import Execution
-from shared.planning.pipeline import PushServices
+from shared.contracts.messages import Plan, PushRequest
 
-log = logging.getLogger("gd2p.decision")
-
-OnDecision = Callable[[PushDecision], None]
+METADATA_NAME = "gd2p.decision"
+VERSION = "1"
+COMMIT_ENV = "GD2P_COMMIT"  # where there is no git checkout (a container image)
+IK_SEED = 0  # ArmIK's default seed, which the pipeline uses (shared/planning/ik.py)
+LIBRARIES = ("numpy", "torch", "pybullet", "ompl", "pytorch_kinematics", "scipy")
+REQUIRED = ("commit", "models", "seeds", "settings")
 
 
-@dataclass
-class _Rollout:
-    job: ValidationJob
-    result: Future
-
-
-class DecisionTap:
-    """Wraps `PushServices`; calls `on_decision(PushDecision)` before each execution (see the module docstring).
-
-    `begin(request_id)` starts a request (its pushes are numbered from 0); `decisions` are those of the
-    current request, for its recording. A failing `on_decision` is logged, never raised into the push."""
-
-    def __init__(self, services: PushServices, on_decision: OnDecision | None = None, keep: int | None = None):
-        self.inner = services
-        self.keep = keep  # decisions kept for the recording (None: all of the request's; an evaluation keeps 1)
-        self.on_decision = on_decision
-        self.decisions: list[PushDecision] = []
-        self._lock = threading.Lock()
-        self._request_id: str | None = None
-        self._sample: tuple[SampleRequest, SampleResponse] | None = None
-        self._rollouts: list[_Rollout] = []
-        self._pushes = 0  # decisions made for the current request
-        self._stopped = False  # the last execution was a push the closed-loop monitor stopped: a back-out follows
-
-    def services(self) -> PushServices:
-        return PushServices(sample=self.sample, validate=self.validate, execute=self.execute)
-
-    def begin(self, request_id: str | None) -> None:
-        with self._lock:
-            self._request_id = request_id
-            self.decisions = []
-            self._pushes = 0
-            self._sample = None
-            self._rollouts = []
-            self._stopped = False
-
-    def sample(self, request: SampleRequest) -> SampleResponse:
-        reply = self.inner.sample(request)
-        with self._lock:
-            self._sample = (request, reply)
-        return reply
-
-    def validate(self, job: ValidationJob) -> Future:
-        future = self.inner.validate(job)
-        if job.with_arm:
-            with self._lock:
-                self._rollouts.append(_Rollout(job, future))
-        return future
-
-    def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation,
-                monitor: PushMonitor | None = None) -> Execution:
-        backing_out = self._stopped and monitor is None
-        if self.on_decision is not None and not backing_out:
-            try:
-                decision = self.decision(plan)
-            except Exception:  # never let the view break a push
-                log.exception("could not build the push decision")
-                decision = None
-            if decision is not None:
-                try:
-                    self.on_decision(decision)
-                except Exception:
-                    log.exception("could not hand on the push decision")
-        execution = self.inner.execute(plan, world, cancel, monitor)
-        self._stopped = monitor is not None and execution.final.status == "stopped"
-        return execution
-
-    def decision(self, plan: Plan) -> PushDecision | None:
-        """The decision behind executing `plan`, from what the services saw since the last execution (None when
-        nothing says where the object is: neither a sample nor a rollout, e.g. a fixed pose chosen at random).
-
-        Candidates: the sampler's poses (in D, placed by this push's frame); without a sample (the fixed
-        spatula pose), the poses the rollouts pushed from, without scores."""
-        with self._lock:
-            sampled, rollouts = self._sample, self._rollouts
-            self._rollouts = []
-            job = rollouts[-1].job if rollouts else None
-            if sampled is None and job is None:
-                return None
-            frame = job.frame if job is not None and job.frame is not None else None
-            if sampled is not None:
-                request, reply = sampled
-                frame = frame or request.frame
-                poses_d = reply.poses_d.to_numpy().astype(np.float64)
-                scores = reply.success_probability
-                obj, hand = request.object, request.hand
-            else:
-                assert job is not None
-                poses_d = np.unique(np.concatenate([r.job.poses.to_numpy() for r in rollouts]).astype(np.float64), axis=0)
-                scores = None
-                obj, hand = job.object, job.hand
-            if frame is None:
-                return None
-            candidates = poses_d_to_world(poses_d, frame_transform(frame))
-            previews = [_preview(r) for r in rollouts]
-            chosen = next((i for i, r in enumerate(previews) if _is_prefix(r.plan, plan)), None)
-            decision = PushDecision(
-                request_id=self._request_id, push_index=self._pushes, hand=hand, arm=plan.arm,
-                object=obj, frame=frame, distance_m=job.push_distance_m if job else None,
-                obstacles=list(job.obstacles) if job else [], candidates_world=candidates,
-                critic_scores=scores, rollouts=previews, chosen=chosen, plan=plan)
-            self.decisions.append(decision)
-            self._pushes += 1
-            if self.keep is not None:
-                del self.decisions[:-self.keep]
-            return decision
-
-
-def _preview(rollout: _Rollout) -> RolloutPreview:
-    plan = rollout.job.plan
-    assert plan is not None  # an arm rollout carries its plan (ValidationJob's validator)
+@functools.lru_cache(maxsize=1)
+def current_commit() -> str:
+    """$GD2P_COMMIT, else this checkout's `git rev-parse HEAD` ("-dirty" with tracked changes), else "unknown"."""
+    if os.environ.get(COMMIT_ENV):
+        return os.environ[COMMIT_ENV]
+    here = Path(__file__).resolve().parent
     try:
-        result = rollout.result.result(timeout=0) if rollout.result.done() else None
-    except Exception:
-        result = None
-    if not isinstance(result, ValidationResult):
-        return RolloutPreview(plan=plan)
-    path: ObjectPath | None = result.object_paths[0] if result.object_paths else None
-    return RolloutPreview(
-        plan=plan, object_path=path,
-        goal_error_m=None if result.goal_error_m is None else float(result.goal_error_m.to_numpy()[0]),
-        collision_cost=None if result.collision_cost is None else float(result.collision_cost.to_numpy()[0]),
-        obstacle_contact=bool(result.obstacle_contact.to_numpy()[0]) if result.obstacle_contact is not None else False,
-        success=bool(result.success.to_numpy()[0]))
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+                               text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (f"{commit}-dirty" if dirty else commit) or "unknown"
 
 
-def _is_prefix(rolled: Plan, executed: Plan) -> bool:
-    """Whether `executed` begins with `rolled`'s waypoints (the chosen plan is its rollout plus the way back)."""
-    a, b = rolled.positions.to_numpy(), executed.positions.to_numpy()
-    return a.shape[1] == b.shape[1] and a.shape[0] <= b.shape[0] and bool(np.allclose(a, b[: a.shape[0]]))
+@functools.lru_cache(maxsize=1)
+def library_versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in LIBRARIES:
+        try:
+            versions[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            continue
+    return versions
 
+
+def seeds(request: PushRequest) -> dict[str, int]:
+    from shared.planning.motion import MotionSettings
+
+    return {"request": int(request.seed), "motion_planner": int(MotionSettings().seed), "ik": IK_SEED}
+
+
+def decision_metadata(request: PushRequest, settings: object, models: dict[str, str]) -> dict[str, str]:
+    """The `gd2p.decision` metadata record of a push of `request` planned with `settings` and `models`."""
+    return {"version": VERSION, "commit": current_commit(), "request_id": request.id, "arm": request.arm,
+            "hand": request.hand, "method": request.method, "models": json.dumps(models, sort_keys=True),
+            "seeds": json.dumps(seeds(request), sort_keys=True), "settings": repr(settings),
+            "versions": json.dumps(library_versions(), sort_keys=True),
+            "capture": (f"point cloud of {request.object.point_cloud.shape[0]} points (in the request)"
+                        if request.object.point_cloud is not None else f"library object {request.object.library_id}")}
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """One way a recorded decision's context differs from this process's: `what` and both values."""
+
+    what: str
+    recorded: str
+    here: str
+
+    def __str__(self) -> str:
+        return f"{self.what}: recorded {self.recorded}, here {self.here}"
+
+
+def context_mismatches(recorded: dict[str, str], request: PushRequest, settings: object,
+                       models: dict[str, str]) -> list[Mismatch]:
+    """Where the recording's decision context (`gd2p.decision`) differs from planning it again here."""
+    here = decision_metadata(request, settings, models)
+    found = []
+    for key in ("commit", "settings", "seeds"):
+        if key in recorded and recorded[key] != here[key]:
+            found.append(Mismatch(key, recorded[key], here[key]))
+    if "models" in recorded:
+        then, now = json.loads(recorded["models"]), models
+        found += [Mismatch(f"model {name}", str(then.get(name)), str(now.get(name)))
+                  for name in sorted(set(then) | set(now)) if then.get(name) != now.get(name)]
+    if "versions" in recorded:
+        then, now = json.loads(recorded["versions"]), library_versions()
+        found += [Mismatch(f"library {name}", str(then.get(name)), str(now.get(name)))
+                  for name in sorted(set(then) | set(now)) if then.get(name) != now.get(name)]
+    return found
+
+
+def compare_plans(recorded: Plan, replanned: Plan) -> list[str]:
+    """How `replanned` differs from `recorded` ([] when identical bit for bit: names, segments, every waypoint
+    and time as float64 bytes), with where and by how much."""
+    differences = []
+    if (recorded.arm, recorded.hand) != (replanned.arm, replanned.hand):
+        differences.append(f"robot: {recorded.arm}+{recorded.hand} vs {replanned.arm}+{replanned.hand}")
+    if list(recorded.joint_names) != list(replanned.joint_names):
+        differences.append("joint names differ")
+    if [s.model_dump() for s in recorded.segments] != [s.model_dump() for s in replanned.segments]:
+        differences.append(f"segments: {_segments(recorded)} vs {_segments(replanned)}")
+    for what, a, b in (("waypoints", recorded.positions.to_numpy(), replanned.positions.to_numpy()),
+                       ("times", recorded.times_s.to_numpy(), replanned.times_s.to_numpy())):
+        if a.shape != b.shape:
+            differences.append(f"{what}: shape {a.shape} vs {b.shape}")
+            continue
+        if a.dtype == b.dtype and a.tobytes() == b.tobytes():
+            continue
+        gap = np.abs(a.astype(np.float64) - b.astype(np.float64))
+        where = np.unravel_index(int(np.nanargmax(gap)), gap.shape)
+        differing = int(np.count_nonzero(a != b))
+        detail = f"{what}: {differing} of {a.size} values differ, at most {float(np.nanmax(gap)):.3g}"
+        if what == "waypoints":
+            detail += f" (waypoint {where[0]}, joint {recorded.joint_names[where[1]]})"
+        else:
+            detail += f" (waypoint {where[0]})"
+        differences.append(detail)
+    return differences
+
+
+def _segments(plan: Plan) -> str:
+    return ", ".join(f"{s.label}[{s.start}:{s.stop}]" for s in plan.segments)
