@@ -56,7 +56,7 @@ from shared.contracts.messages import (
     new_id,
 )
 from shared.planning.cancellation import Cancellation, RequestCancelled
-from shared.planning.decision import DecisionTap
+from shared.planning.decision_tap import DecisionTap
 from shared.planning.monitor import PushMonitor
 from shared.planning.outcome import Execution, PushError
 from shared.planning.pipeline import PushPipeline, PushServices
