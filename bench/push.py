@@ -202,28 +202,27 @@ def main(argv: list[str] | None = None) -> int:
             if watch is not None:
                 viewed = viewed != bool((i // 2) % 2)  # alternate which of the pair runs first
                 watch.attach(viewed)
-            if True:
-                request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, k=args.k,
-                                      method=method, sampler=args.sampler, critic=args.critic,
-                                      prescreen=args.prescreen)
-                started = time.perf_counter()
-                try:
-                    response = push(request, cfg, timeout_s=300.0)
-                    row = {"object": object_id, "direction_deg": direction, "success": response.success,
-                           "position_error_m": round(response.result.position_error_m, 4),
-                           "rotation_deg": round(response.result.rotation_deg, 1),
-                           "stages_s": {k: round(v, 3) for k, v in response.timings_s.items()}}
-                except PushFailed as exc:
-                    row = {"object": object_id, "direction_deg": direction, "success": False, "error": exc.code,
-                           "message": exc.message[:200]}
-                row["total_s"] = round(time.perf_counter() - started, 3)
-                if watch is not None:
-                    row["view"] = viewed
-                rows.append(row)
-                if "stages_s" in row:
-                    wait_for_storyboard(response.recording_path)
-                if not args.json:
-                    print(json.dumps(row))
+            request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, k=args.k,
+                                  method=method, sampler=args.sampler, critic=args.critic,
+                                  prescreen=args.prescreen)
+            started = time.perf_counter()
+            try:
+                response = push(request, cfg, timeout_s=300.0)
+                row = {"object": object_id, "direction_deg": direction, "success": response.success,
+                       "position_error_m": round(response.result.position_error_m, 4),
+                       "rotation_deg": round(response.result.rotation_deg, 1),
+                       "stages_s": {k: round(v, 3) for k, v in response.timings_s.items()}}
+            except PushFailed as exc:
+                row = {"object": object_id, "direction_deg": direction, "success": False, "error": exc.code,
+                       "message": exc.message[:200]}
+            row["total_s"] = round(time.perf_counter() - started, 3)
+            if watch is not None:
+                row["view"] = viewed
+            rows.append(row)
+            if "stages_s" in row:
+                wait_for_storyboard(response.recording_path)
+            if not args.json:
+                print(json.dumps(row))
         view_summary = watch.summary(rows) if watch is not None else None
     finally:
         if watch is not None:
