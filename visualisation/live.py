@@ -132,6 +132,20 @@ class RobotModel:
             frame.position = np.asarray(st[4])
             frame.wxyz = _wxyz(st[5])
 
+    def hand_path(self, joint_names: list[str], positions: np.ndarray, max_points: int = 120) -> np.ndarray:
+        """[T, 3] world positions of the hand's base link (the palm) along a joint trajectory."""
+        palm = next((j for j, name in self.link_names.items() if "palm" in name), max(self.link_names))
+        rows = positions[np.unique(np.linspace(0, len(positions) - 1, min(max_points, len(positions))).astype(int))]
+        path = []
+        for q in rows:
+            for name, value in zip(joint_names, q, strict=False):
+                j = self.joint_index.get(name)
+                if j is not None:
+                    self.pb.resetJointState(self.robot, j, float(value), physicsClientId=self.client)
+            state = self.pb.getLinkState(self.robot, palm, computeForwardKinematics=True, physicsClientId=self.client)
+            path.append(state[4])
+        return np.asarray(path, dtype=np.float64)
+
     def close(self) -> None:
         try:
             self.pb.disconnect(self.client)
@@ -409,7 +423,12 @@ class LiveView:
             for k, o in enumerate(d.obstacles)]
         # The chosen plan: the robot at its first waypoint (it moves with the states).
         robot = self._robot_for(d.arm, d.hand)
-        robot.pose(d.plan.joint_names, d.plan.positions.to_numpy()[0])
+        waypoints = d.plan.positions.to_numpy()
+        palm = robot.hand_path(d.plan.joint_names, waypoints)
+        if len(palm) >= 2:
+            scene.add_spline_catmull_rom("/chosen/hand_path", palm.astype(np.float32), color=CHOSEN_RGB, thickness=2.5,
+                                         thickness_units="screen")
+        robot.pose(d.plan.joint_names, waypoints[0])
         chosen_score = ""
         if d.chosen is not None:
             r = d.rollouts[d.chosen]

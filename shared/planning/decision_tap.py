@@ -1,4 +1,5 @@
-"""What the planner decided for each push, for the live view and the recording: a `PushDecision`.
+"""What the planner decided for each push, for the live view and the recording: a `PushDecision`
+(the decision's reproducibility metadata for `--resim` is shared/planning/decision.py).
 
 `DecisionTap` wraps a pipeline's services (`PushServices`) and watches them work: the sampler's reply (the
 candidates and the critic's scores), the arm rollouts sent to the validators (each plan with its predicted
