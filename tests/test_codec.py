@@ -220,6 +220,30 @@ def execution_states(draw) -> m.ExecutionState:
     )
 
 
+@st.composite
+def object_paths(draw) -> m.ObjectPath:
+    n = draw(st.integers(1, 6))
+    times = np.cumsum(draw(st.lists(st.floats(0.01, 1.0), min_size=n, max_size=n)))
+    quaternions = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return m.ObjectPath(times_s=times, positions=draw(float_array((n, 3))), quaternions_xyzw=quaternions)
+
+
+@st.composite
+def push_decisions(draw) -> m.PushDecision:
+    hand, arm = draw(pairs)
+    n = draw(st.integers(0, 5))
+    rollouts = draw(st.lists(st.builds(m.RolloutPreview, plan=plans(), goal_error_m=st.none() | non_negative,
+                                       collision_cost=st.none() | non_negative, obstacle_contact=st.booleans(),
+                                       success=st.none() | st.booleans(), object_path=st.none() | object_paths()),
+                             max_size=3))
+    return m.PushDecision(
+        request_id=draw(st.none() | ids), push_index=draw(st.integers(0, 20)), hand=hand, arm=arm,
+        object=draw(object_refs), frame=draw(direction_frames), distance_m=draw(st.none() | st.floats(1e-3, 1.0)),
+        obstacles=draw(obstacles), candidates_world=draw(float_array((n, m.POSE_DIM))),
+        critic_scores=draw(st.none() | float_array((n,))), rollouts=rollouts,
+        chosen=draw(st.none() | st.integers(0, len(rollouts) - 1)) if rollouts else None, plan=draw(plans()), id=draw(ids))
+
+
 STRATEGIES: dict[type[m.Message], st.SearchStrategy] = {
     m.ErrorReply: st.builds(m.ErrorReply, code=st.sampled_from(m.ErrorReply.CODES), message=st.text(),
                             request_type=st.none() | text, service=st.none() | text, id=ids),
@@ -243,6 +267,10 @@ STRATEGIES: dict[type[m.Message], st.SearchStrategy] = {
     m.EStop: st.builds(m.EStop, reason=text, issued_by=st.none() | text),
     m.ObjectTrack: st.builds(m.ObjectTrack, stamp=non_negative, pose=object_poses, source=text,
                              command_id=st.none() | ids, plan_time_s=st.none() | non_negative),
+    m.PlanHeld: st.builds(m.PlanHeld, command_id=ids, plan=plans(), expires_at=finite, reason=st.none() | text),
+    m.PlanConfirm: st.builds(m.PlanConfirm, command_id=ids, operator=st.none() | text),
+    m.PlanConfirmReply: st.builds(m.PlanConfirmReply, command_id=ids, accepted=st.booleans(), reason=st.text()),
+    m.PushDecision: push_decisions(),
     m.ScaleRequest: st.builds(m.ScaleRequest, service=text, count=st.integers(0, 1024)),
     m.ScaleReply: st.builds(m.ScaleReply, service=text, count=st.integers(0, 1024), started=st.lists(text, max_size=3),
                             stopped=st.lists(text, max_size=3)),
