@@ -431,8 +431,10 @@ def _rss_mb(pid: int) -> float:
 
 
 def client_gone(quick: bool) -> Figure:
-    """A raw client sends a leased push request and closes its session 0-6 s later; robot motion after it left
-    (beyond the stop bound) counts as a miss. Plus requests without a lease: refused, nothing moves."""
+    """A raw client sends a leased push request and closes its session at a random moment up to 1.5x the time a
+    push takes to start moving (measured first, with a client that stays): before, while or after the robot moves.
+    Robot motion after it left (beyond the stop bound) counts as a miss. Plus requests without a lease: refused,
+    nothing moves."""
     from shared.bus.keys import ROBOT_STATE_KEY
     from shared.bus.lease import lease_key
     from shared.contracts.codec import decode
@@ -448,22 +450,23 @@ def client_gone(quick: bool) -> Figure:
 
             def on_state(sample: zenoh.Sample) -> None:
                 state = cast(ExecutionState, decode(sample.payload.to_bytes(), str(sample.encoding)))  # the state key's
-                if state.status == "executing":  # type
-                    moving.append(time.monotonic())
+                if state.status == "executing":  # type; its own stamp: a state can reach us late, not the robot
+                    moving.append(state.stamp)
 
             subscriber = observer.declare_subscriber(ROBOT_STATE_KEY, on_state)
             planner_key = _planner_key(observer)
+            to_motion_s = _time_to_motion(endpoint, moving)
             for i in range(tries):
                 lease = lease_key("client", f"chaos-gone-{i}")
                 request = PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0 if i % 2 else -90.0,
                                       client_lease=lease, options=PlannerOptions(method="fixed"))
                 session = client(endpoint)
-                session.liveliness().declare_token(lease)
+                token = session.liveliness().declare_token(lease)  # kept: a dropped token is undeclared
                 replies = _raw_push(session, planner_key, request)
-                time.sleep(float(rng.uniform(0.0, 6.0)))  # before, while or after the robot moves
+                time.sleep(float(rng.uniform(0.0, 1.5 * to_motion_s)))  # before, while or after the robot moves
                 session.close()  # the client is gone: its lease token with it
-                gone_at = time.monotonic()
-                del replies
+                gone_at = time.time()  # the states' clock
+                del replies, token
                 _wait_idle(observer, planner_key)
                 late = [t - gone_at for t in moving if t > gone_at + STOP_TARGET_S + 0.3]
                 moved_after += bool(late)
@@ -477,7 +480,8 @@ def client_gone(quick: bool) -> Figure:
             time.sleep(0.5)
             motions_without_lease = len(moving)
             subscriber.undeclare()
-    return Figure("client_gone", {"tries": tries, "robot_moving_when_client_left": moving_when_left,
+    return Figure("client_gone", {"tries": tries, "time_to_motion_s": round(to_motion_s, 2),
+                                  "robot_moving_when_client_left": moving_when_left,
                                   "moved_after_client_left": moved_after,
                                   "latest_motion_after_leaving_s": round(latest_motion, 3),
                                   "refused_without_lease": refused_without_lease,
@@ -485,6 +489,22 @@ def client_gone(quick: bool) -> Figure:
                   {"no motion after the client left": moved_after == 0,
                    "a request without a lease is refused": refused_without_lease == (2 if quick else 5)
                    and motions_without_lease == 0})
+
+
+def _time_to_motion(endpoint: str, moving: list[float]) -> float:
+    """Seconds from sending a push (a client that stays) to the robot's first executing state; `moving` is the
+    observer's list of executing-state times, cleared after."""
+    from client.push_client import push
+    from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
+
+    moving.clear()
+    sent = time.time()  # the states' clock
+    push(PushRequest(object=ObjectRef(library_id="proc-box-013"), direction_deg=90.0,
+                     options=PlannerOptions(method="fixed")),
+         BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000), timeout_s=120.0)
+    started = min(moving, default=time.time()) - sent
+    moving.clear()
+    return started
 
 
 def _ask(session, key: str, request: Message) -> Message:
