@@ -19,7 +19,7 @@ robot bridge with its simulated robot, breaks something mid-work, and prints its
                                                                samples received (target: every one published)
 - `forged_beats`:   another session forges the bridge watchdog's beats (numbered 2^64-1, the probe's zid
                     with a wrong MAC, replays of the beats it saw), then the router is SIGSTOPped mid-motion
-                                                               -> stop latency (target 0.4 s, issue 53),
+                                                               -> stop latency (target 0.4 s),
                                                                   forged beats the watchdog ignored
 Targets (issue "a robot that stops when it should"): 0 jobs lost or duplicated; motion stops <= 0.2 s
 after the lease or the router is lost; no worker starved longer than its deadline. `--quick` (what
@@ -741,7 +741,7 @@ class BeatForger:
 
 
 def forged_beats(quick: bool) -> Figure:
-    target = max(STOP_TARGET_S, 0.4)  # issue 53: the frozen-router stop stays <= 0.4 s whatever is forged
+    target = max(STOP_TARGET_S, 0.4)  # the frozen-router stop stays <= 0.4 s whatever is forged
     with router_process() as (endpoint, router), commander(endpoint) as holder, client(endpoint) as forger_session:
         with moving_robot(endpoint, holder) as (bridge, motion, start):
             watchdog = bridge.watchdog

@@ -7,7 +7,7 @@ each friction cone and contact impedance, at three time steps and two solver ite
 A setting is good when the push's outcome (the box's displacement along and across the push, its yaw)
 does not depend on the time step or the iteration count (the physics has converged, the result is the
 model's and not the integrator's), when the box does not sink into the table or the fingers, and when it
-is cheap. PyBullet's outcome is not a target: the two engines' gap is what issue 48 measures.
+is cheap. PyBullet's outcome is not a target: the two engines' gap is what the cross-engine evaluation measures.
 """
 from __future__ import annotations
 

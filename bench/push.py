@@ -15,7 +15,7 @@ Cartesian segments; the validators roll finished plans out meanwhile), rollouts 
 last arm rollouts after planning), execution (the simulated robot bridge, at full physics speed);
 "total" is the client's wall time per request, `to_plan_s` everything before execution.
 
-`--view`: the live view's cost (issue 52: at most 5 % of a push's end-to-end time). Each request runs twice,
+`--view`: the live view's cost (its budget: at most 5 % of a push's end-to-end time). Each request runs twice,
 without and with the view attached (`cli.view.ViewBus` + `visualisation.live.LiveView` in this process, with
 a headless Chromium watching it when `--browser`), in alternating order; the JSON gives both medians and
 their ratio, and how the view keeps up with a tracker at 20 Hz (`view_tracking`: ObjectTracks at 20 Hz and

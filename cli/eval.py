@@ -64,7 +64,7 @@ EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers)
 TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
 WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")  # these also take --cameras and --tag
 COVERAGE_EXPERIMENTS = ("sampler-quality", "data-size")  # --world and --cameras too: where the poses are pushed
-# `dev`: the development split (the library's `test` split, what `test` named before issue 49; `test` stays an
+# `dev`: the development split (the library's `test` split, what `test` named before the final split existed; `test` stays an
 # alias that says so); `final`: the final split (evaluation/final_run.py).
 SPLIT_CHOICES = ("dev", "test", "val", "unseen", "final")
 

@@ -1,4 +1,4 @@
-"""`gd2p view [--port PORT]`: the live view of a running system, in the browser (issue 52).
+"""`gd2p view [--port PORT]`: the live view of a running system, in the browser.
 
 The bus adapter of `visualisation.live.LiveView`: it subscribes to what the view draws — the planner's
 `PushDecision`s (gd2p/planner/decision), the robot's `ExecutionState`s (gd2p/robot_bridge/state), the

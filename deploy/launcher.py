@@ -217,7 +217,7 @@ class Launcher:
             from deploy.secure import prepare
 
             self.secure = prepare(secure_dir, [listen])
-        # Preview and confirm (issue 52): the bridge holds each plan for an operator, at most this long (None: off).
+        # Preview and confirm: the bridge holds each plan for an operator, at most this long (None: off).
         self.confirm_timeout_s = confirm_timeout_s
         self.initial_counts = {svc: 1 for svc in SERVICES} | {"validator": n_validators}
         self.exits: list[ChildExit] = []

@@ -296,7 +296,7 @@ def _figure(row: Row) -> str:
 
 
 def _split(run: Run) -> str:
-    # the library's test split is the development split (issue 49); final: the final split
+    # the library's test split is the development split; final: the final split
     return {"test": "development", "val": "val (tuning)", "unseen": "unseen family", "final": "final"}.get(run.split, run.split)
 
 

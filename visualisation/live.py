@@ -1,4 +1,4 @@
-"""The live view: a browser view of what the system perceives, considers, chooses and does (issue 52).
+"""The live view: a browser view of what the system perceives, considers, chooses and does.
 
 `LiveView` serves a viser scene (viser ships its own web client, so it works with no internet) and is fed
 messages — it knows nothing of Zenoh: `cli/view.py` subscribes to the bus and hands them on, an

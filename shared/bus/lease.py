@@ -144,7 +144,7 @@ class RouterWatchdog:
     Python (a ring channel, drained by `silence_s()` and the beat thread), so the ones that came back
     while the process was busy count as heard, and none were sent meanwhile.
 
-    Only this watchdog's own beats count (issue 53: one beat numbered 2^64-1 from anyone else used to
+    Only this watchdog's own beats count (a single beat numbered 2^64-1 from anyone else used to
     mark every later beat as heard, so a frozen router went unnoticed). A beat is `BEAT_FORMAT`: the
     beat number, the probe session's id (zid, 16 bytes) and an HMAC-SHA256 of both under a random secret
     made for this watchdog, which never leaves the process. A beat of another length, another zid or a

@@ -6,7 +6,7 @@ hardware and driver stand behind each name — e.g. the arm `panda` is a Franka 
 through franky-control: plans use the Panda model, which has the FR3's kinematic chain.
 
     sim/       the simulated arm + hand (PyBullet), the default robot
-    mujoco/    the simulated arm + hand in MuJoCo, a second engine (issue 48)
+    mujoco/    the simulated arm + hand in MuJoCo, a second engine
     panda/     Franka Research 3 over franky-control (protocol fake: franky-sim, an optional package)
     xarm7/     UFactory xArm7 over xarm-python-sdk (fake: a controller at the SDK's transport boundary)
     leap/      LEAP hand over dynamixel-sdk (fake: a Dynamixel Protocol 2.0 bus on a pty)

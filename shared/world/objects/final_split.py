@@ -4,7 +4,7 @@ readable by one path only.
 Objects. `final-<family>-<NN>`: FINAL_PER_FAMILY fresh draws of every procedural family (the primitives and
 the everyday families, from seeds of their own: none is a library object) and ROUND_COUNT objects of
 `round`, a family no model, index or critic trains on (it is not in the library at all): small round
-objects that roll, as issue 49 found the development split lacks (balls and fruit-like ellipsoids).
+objects that roll, which the development split lacks (balls and fruit-like ellipsoids).
 
 Frozen. `final_split.json` beside this file is the committed manifest: each id with the SHA-256 of its mesh
 as generated (`mesh_sha256`). Loading the split (`load_final_split`) and reading any final object's mesh

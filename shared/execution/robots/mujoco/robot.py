@@ -12,10 +12,10 @@ executor, the evaluation and the bridge can run a plan on either: `connect`, `ob
   compensated), then holds the final waypoint `settle_s`. Physics follows the trajectory's own times; the
   wall clock is paced `realtime_factor` times faster (`time_scale` is 1, as for the PyBullet robot).
 - The object is seen only through a tracker (for now the PyBullet robot's `SimTracker`: late, noisy, at a
-  camera's rate; issue 48 item 3 replaces it by tracking from rendered images). `true_object_pose()` is
+  camera's rate; tracking from rendered images is to replace it). `true_object_pose()` is
   the truth, for the evaluation's judge only, as `SimRobot.true_object_pose`.
 - The PyBullet `PhysicsParams` of a `TrueWorld` are PyBullet's and are not read here: this engine's
-  world is its config's (its own randomisation is issue 48 item 2).
+  world is its config's (its own randomisation is still to come).
 - Collisions: robot contacts with the table, obstacles or (arm links) the object during a motion are
   recorded in `collisions` and named in the report's message, as the PyBullet robot's.
 """
