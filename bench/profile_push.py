@@ -1,4 +1,4 @@
-"""Where a push's time goes: per stage, and per library call, of the planner's default.
+"""Where a push's time goes, per library call, of the planner's default.
 
     python bench/profile_push.py --json      # last line: one JSON object; also writes --out (markdown)
 

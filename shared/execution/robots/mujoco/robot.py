@@ -23,30 +23,29 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import mujoco
 import numpy as np
 
-from shared.contracts.messages import ExecutionState, ObjectPose, ObjectTrack, SimWorld
+from shared.contracts.messages import SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
-from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped, Observation, Robot
+from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
 from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.decompose import DecompositionError
 from shared.execution.robots.mujoco.model import OBJECT_BODY, ModelError, PlacedObject, build_model
 from shared.execution.robots.sim.config import limits
 from shared.execution.robots.sim.robot import TrueWorld
-from shared.execution.robots.sim.tracker import SimTracker
+from shared.execution.robots.simulated import SimulatedRobot
 from shared.robots.arms import load_arm
 from shared.robots.hands import load_hand
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError
 from shared.world.objects.model import ObjectModel
-from shared.world.push_outcome import object_pose
 
 
-class MujocoRobot(Robot):
+class MujocoRobot(SimulatedRobot):
     """A MuJoCo arm + hand on the table; `reset_world` (or `add_object`) places the object."""
 
     name = "mujoco"
@@ -60,10 +59,7 @@ class MujocoRobot(Robot):
         self.T_world_base = config.T_world_base
         self.state_rate_hz = config.state_rate_hz
         self.publish = publish
-        self.tracker = SimTracker(config.tracker)
-        self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
-        self._tracked: ObjectPose | None = None
-        self._T_O_tracked = np.eye(4)
+        self._init_tracking(config.tracker)
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._placed: PlacedObject | None = None
@@ -85,13 +81,6 @@ class MujocoRobot(Robot):
     def disconnect(self) -> None:
         with self._lock:
             self.model, self.data = None, None
-
-    def __enter__(self) -> MujocoRobot:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.disconnect()
 
     def _build(self, q: np.ndarray | None) -> None:
         """(Re)compile the world with the current object and obstacles; the robot at `q` (None: home)."""
@@ -182,23 +171,6 @@ class MujocoRobot(Robot):
         with self._lock:
             return data.qpos[self._qpos].copy(), data.qvel[self._qvel].copy()
 
-    def observe(self) -> Observation:
-        positions, velocities = self._joint_state()
-        return Observation(time.time(), self.joint_names, positions, velocities, object_pose=self._seen())
-
-    def _seen(self) -> ObjectPose | None:
-        with self._lock:
-            if self._tracked is None:
-                true = self._true_pose()
-                if true is not None:
-                    self._tracked = self.tracker.frame(true @ self._T_O_tracked)
-            return self._tracked
-
-    def true_object_pose(self) -> ObjectPose | None:
-        """Where the object's frame O truly is in the world (None without an object): no tracker sees this."""
-        true = self._true_pose()
-        return None if true is None else object_pose(true)
-
     def _true_pose(self) -> np.ndarray | None:
         _, data = self._world()
         if self._object_body < 0:
@@ -208,22 +180,6 @@ class MujocoRobot(Robot):
             T[:3, :3] = data.xmat[self._object_body].reshape(3, 3)
             T[:3, 3] = data.xpos[self._object_body]
             return T
-
-    def _track_frame(self, plan_time_s: float, command_id: str | None) -> None:
-        true = self._true_pose()
-        if true is None:
-            return
-        with self._lock:
-            self._tracked = self.tracker.frame(true @ self._T_O_tracked)
-        if self.track is not None:
-            self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
-                                   command_id=command_id, plan_time_s=plan_time_s))
-
-    def _executing_state(self, command_id: str | None, plan_time_s: float) -> ExecutionState:
-        positions, velocities = self._joint_state()
-        return ExecutionState(stamp=time.time(), joint_names=list(self.joint_names), positions=positions,
-                              velocities=velocities, object_pose=self._tracked, status="executing",
-                              command_id=command_id, plan_time_s=plan_time_s)
 
     def _record_contacts(self, elapsed: float) -> None:
         """Robot contacts besides the push (hand vs object) and the flange's own table: the first time each."""
@@ -245,9 +201,6 @@ class MujocoRobot(Robot):
                 self.collisions.setdefault((self._body_name[robot_body], other), elapsed)
 
     # ------------------------------------------------------------------------------------------ send
-
-    def time_scale(self, realtime_factor: float) -> float:
-        return 1.0  # physics keeps the plan's timing whatever the factor: only the wall clock runs faster
 
     def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
              command_id: str | None = None) -> ExecutionReport:

@@ -28,21 +28,21 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack, SimWorld
+from shared.contracts.messages import ObjectRef, SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
-from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped, Observation, Robot
+from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
 from shared.execution.robots.sim.config import SimConfig, limits
-from shared.execution.robots.sim.tracker import SimTracker
+from shared.execution.robots.simulated import SimulatedRobot
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, write_object_urdf
-from shared.world.push_outcome import object_pose, pose_matrix
+from shared.world.push_outcome import pose_matrix
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.plan_runner import ArmController, prepare_robot
 from shared.world.sim.robot_scene import RobotScene
@@ -71,7 +71,7 @@ class TrueWorld:
         return cls(world.object, pose_matrix(world.object_pose), tuple((o.x, o.y, o.radius) for o in world.obstacles))
 
 
-class SimRobot(Robot):
+class SimRobot(SimulatedRobot):
     """A simulated arm + hand on the table; add an object and obstacles after `connect()`."""
 
     name = "sim"
@@ -87,10 +87,7 @@ class SimRobot(Robot):
         self.params = config.params
         self.state_rate_hz = config.state_rate_hz
         self.publish = publish
-        self.tracker = SimTracker(config.tracker)
-        self.track: Callable[[ObjectTrack], None] | None = None  # gets each tracker frame while a plan runs
-        self._tracked: ObjectPose | None = None  # the tracker's latest frame (what the robot reports)
-        self._T_O_tracked = np.eye(4)  # the frame the tracker follows, in the object's frame O (TrueWorld)
+        self._init_tracking(config.tracker)
         self.scene: RobotScene | None = None
         self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
         # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
@@ -116,13 +113,6 @@ class SimRobot(Robot):
             if self.scene is not None:
                 self.scene.close()
                 self.scene = None
-
-    def __enter__(self) -> SimRobot:
-        self.connect()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.disconnect()
 
     def reset(self, q_arm: Sequence[float] | None = None, q_hand: Sequence[float] | None = None) -> None:
         """Teleport the robot (default: arm home, hand open) and hold it there."""
@@ -179,55 +169,17 @@ class SimRobot(Robot):
         assert self.scene is not None  # require_connected
         return self.scene
 
-    def observe(self) -> Observation:
+    def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         scene = self._scene()
         with self._lock:
-            positions, velocities = scene.joint_state()
-        return Observation(time.time(), self.joint_names, positions, velocities, object_pose=self._seen())
-
-    def _seen(self) -> ObjectPose | None:
-        """The tracker's latest frame, held between frames (the first since the object was placed is taken
-        now). Observing draws no noise of its own: the frames, and so a trial, repeat whoever observes how often."""
-        with self._lock:
-            if self._tracked is None:
-                true = self._true_pose()
-                if true is not None:
-                    self._tracked = self.tracker.frame(true @ self._T_O_tracked)
-            return self._tracked
-
-    def true_object_pose(self) -> ObjectPose | None:
-        """Where the object's frame O truly is in the world (None without an object): no tracker sees this."""
-        true = self._true_pose()
-        return None if true is None else object_pose(true)
+            return scene.joint_state()
 
     def _true_pose(self) -> np.ndarray | None:
         scene = self._scene()
         with self._lock:
             return None if scene.object is None else scene.object.pose()
 
-    def _track_frame(self, plan_time_s: float, command_id: str | None) -> None:
-        """One tracker frame: the pose it reports becomes the robot's, and goes to `track`."""
-        true = self._true_pose()
-        if true is None:
-            return
-        with self._lock:
-            self._tracked = self.tracker.frame(true @ self._T_O_tracked)
-        if self.track is not None:
-            self.track(ObjectTrack(stamp=time.time(), pose=self._tracked, source=self.tracker.source,
-                                   command_id=command_id, plan_time_s=plan_time_s))
-
-    def _executing_state(self, command_id: str | None, plan_time_s: float) -> ExecutionState:
-        scene = self._scene()
-        with self._lock:
-            positions, velocities = scene.joint_state()
-        return ExecutionState(stamp=time.time(), joint_names=list(self.joint_names), positions=positions,
-                              velocities=velocities, object_pose=self._tracked, status="executing",
-                              command_id=command_id, plan_time_s=plan_time_s)
-
     # ------------------------------------------------------------------------------------------ send
-
-    def time_scale(self, realtime_factor: float) -> float:
-        return 1.0  # physics keeps the plan's timing whatever the factor: only the wall clock runs faster
 
     def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
              command_id: str | None = None) -> ExecutionReport:
