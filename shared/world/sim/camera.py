@@ -34,9 +34,16 @@ Noise model: an Intel RealSense D435-class active stereo camera (`StereoDepthNoi
   textureless spots) — an assumption as well.
 Invalid pixels hold 0, as in the RealSense SDK. Everything random is drawn from one seeded
 generator, so a capture is reproducible from its seed.
+
+Extrinsic (calibration) error: with `camera_errors` (an execution world's `camera_errors`,
+`shared.world.sim.world.CameraError`), each camera renders from where it truly stands (its calibrated
+pose composed with its error) while its `DepthFrame` carries the calibrated pose, what the system
+believes: the cloud is off exactly as a miscalibrated camera's is (shifted by the error's translation,
+turned by its rotation about the camera).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -47,6 +54,7 @@ from scipy import ndimage
 
 from shared.frames import matrix_to_quat_xyzw
 from shared.world.perception.depth import DepthFrame, Intrinsics, frames_to_cloud
+from shared.world.sim.world import CameraError
 
 NEAR_M, FAR_M = 0.05, 5.0  # render clip planes (the sensor's own range is applied by the noise model)
 TABLE_HALF_EXTENTS_M = (0.9, 0.9, 0.02)  # a 1.8 m square table top around the object
@@ -88,6 +96,12 @@ class CameraPose:
         out[:3, :3] = np.column_stack([right, np.cross(forward, right), forward])
         out[:3, 3] = eye
         return out
+
+
+def true_camera_pose(camera: CameraPose, error: CameraError | None) -> np.ndarray:
+    """T_world_camera (OpenCV) of where `camera` truly stands: its calibrated pose composed with `error`."""
+    calibrated = camera.T_world_camera()
+    return calibrated if error is None else error.true_pose(calibrated)
 
 
 def default_cameras(object_xy: tuple[float, float], n_cameras: int, object_height_m: float = 0.1) -> list[CameraPose]:
@@ -162,26 +176,33 @@ def capture_object(
     size: tuple[int, int] = DEFAULT_SIZE,
     noise: StereoDepthNoise | None = StereoDepthNoise(),
     cameras: list[CameraPose] | None = None,
+    camera_errors: Sequence[CameraError] | None = None,
 ) -> Capture:
     """Render `obj` (an ObjectModel, or any object with a trimesh `mesh` in its frame O) at T_world_O.
 
     `noise=None` gives ideal depth. The cloud keeps valid points within ROI_RADIUS_M (xy) of the
     object and below ROI_TOP_M: the workspace crop a real pipeline applies before anything else.
+    `camera_errors` (None or empty: cameras exactly where calibrated): the k-th camera truly stands at
+    its pose composed with the k-th error, and its frame carries the calibrated pose (module docstring).
     """
     T_world_O = np.asarray(T_world_O, dtype=np.float64)
     position = T_world_O[:3, 3]
     height = float(np.ptp((obj.mesh.vertices @ T_world_O[:3, :3].T)[:, 2]))
     cameras = cameras or default_cameras((position[0], position[1]), n_cameras, height)
+    errors = list(camera_errors or ())
+    if errors and len(errors) < len(cameras):
+        raise ValueError(f"{len(errors)} camera errors for {len(cameras)} cameras: give one per camera (or none)")
     intrinsics = renderer_intrinsics(size)
     rng = np.random.default_rng(seed)
     frames, ideal, masks = [], [], []
     with _CaptureWorld(obj.mesh, T_world_O) as world:
-        for camera in cameras:
-            depth, mask = world.render(camera, intrinsics)
+        for k, camera in enumerate(cameras):
+            calibrated = camera.T_world_camera()
+            depth, mask = world.render(true_camera_pose(camera, errors[k] if errors else None), intrinsics)
             ideal.append(depth)
             masks.append(mask)
             noisy = depth if noise is None else noise.apply(depth, rng)
-            frames.append(DepthFrame(noisy.astype(np.float32), intrinsics, camera.T_world_camera()))
+            frames.append(DepthFrame(noisy.astype(np.float32), intrinsics, calibrated))
     cloud = crop_to_region(frames_to_cloud(frames), position[:2])
     return Capture(frames, list(cameras), cloud, ideal, masks)
 
@@ -228,9 +249,11 @@ class _CaptureWorld:
     def __exit__(self, *exc: object) -> None:
         pb.disconnect(self.client)
 
-    def render(self, camera: CameraPose, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """(ideal metric depth [H, W] with 0 where nothing is seen, object mask [H, W])."""
-        T_gl = camera.T_world_camera() @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenGL camera looks along -z, y up
+    def render(self, T_world_camera: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(ideal metric depth [H, W] with 0 where nothing is seen, object mask [H, W]) of a camera whose
+        OpenCV frame is at `T_world_camera`."""
+        # The OpenGL camera looks along -z with y up.
+        T_gl = np.asarray(T_world_camera, dtype=np.float64) @ np.diag([1.0, -1.0, -1.0, 1.0])
         view = np.linalg.inv(T_gl)
         projection = pb.computeProjectionMatrixFOV(intrinsics.vfov_deg, intrinsics.width / intrinsics.height, NEAR_M, FAR_M)
         _, _, _, buffer, segmentation = pb.getCameraImage(

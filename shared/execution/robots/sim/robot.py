@@ -46,6 +46,7 @@ from shared.world.push_outcome import pose_matrix
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.plan_runner import ArmController, prepare_robot
 from shared.world.sim.robot_scene import RobotScene
+from shared.world.sim.world import MujocoDraw
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,9 @@ class TrueWorld:
     # tracker follows the model the system has: for a reconstruction from a camera cloud, its own frame
     # (centre of mass and principal axes of what was seen), which may be the true O turned 180 degrees.
     T_O_tracked: np.ndarray | None = None
+    # The MuJoCo world's own draw (level `mujoco`): read by the MuJoCo robot only, which then takes the object's
+    # mass and centre of mass from it (None: its config's nominal world). PyBullet reads `physics`.
+    mujoco: MujocoDraw | None = None
 
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
