@@ -6,12 +6,14 @@ limits). The contact settings are MuJoCo's own, chosen by a measurement (`bench/
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from shared.execution.robots.sim.tracker import TrackerConfig
+from shared.world.sim.world import MujocoDraw
 
 
 @dataclass(frozen=True)
@@ -39,15 +41,34 @@ class ContactConfig:
 
 @dataclass(frozen=True)
 class MaterialConfig:
-    """Sliding friction of the three materials in contact (MuJoCo combines a pair by the larger value).
-    Nominal values of the materials (wood-like table, rubber-tipped fingers, a rigid object): they are
-    the world's, drawn per trial by item 2's randomisation, not engine settings."""
+    """Friction of the materials in contact. Nominal values of the materials (wood-like table,
+    rubber-tipped fingers, a rigid object): they are the world's, drawn per trial at world level `mujoco`
+    (`MujocoConfig.drawn`), not engine settings.
+
+    MuJoCo takes a contact's coefficients from the geom of higher priority (the larger of the two at equal
+    priority): the table and the robot outrank the object, so object-table contacts take `table_friction`
+    and hand-object contacts `hand_friction` (times the finger's scale); `object_friction` acts against
+    obstacles only. `condim` 3 is sliding friction alone (what the contact bench measured); 6 adds the
+    torsional and rolling friction (a drawn world's)."""
 
     table_friction: float = 0.5
     object_friction: float = 0.5
     hand_friction: float = 0.8
     torsional_friction: float = 0.005
     rolling_friction: float = 0.0001
+    finger_friction_scales: tuple[float, ...] = ()  # one per finger (index, middle, ring, thumb); () all 1
+    condim: Literal[3, 4, 6] = 3
+
+    def __post_init__(self) -> None:
+        values = {"table_friction": self.table_friction, "object_friction": self.object_friction,
+                  "hand_friction": self.hand_friction, "torsional_friction": self.torsional_friction,
+                  "rolling_friction": self.rolling_friction,
+                  **{f"finger_friction_scales[{k}]": v for k, v in enumerate(self.finger_friction_scales)}}
+        for name, value in values.items():
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite coefficient >= 0, got {value}")
+        if self.condim not in (3, 4, 6):
+            raise ValueError(f"condim must be 3, 4 or 6, got {self.condim}")
 
 
 @dataclass(frozen=True)
@@ -63,6 +84,17 @@ class ControlConfig:
     hand_armature: float = 0.001
     hand_damping: float = 0.01  # Nm s/rad, passive (the PyBullet robot's nominal hand joint damping)
     settle_s: float = 0.3  # held at the final waypoint after a trajectory (as the PyBullet robot settles)
+    command_latency_s: float = 0.0  # how late each command reaches the servos (a real arm's command path)
+
+    def __post_init__(self) -> None:
+        gains = {"arm_kp": self.arm_kp, "arm_kv": self.arm_kv, "hand_kp": self.hand_kp, "hand_kv": self.hand_kv}
+        for name, value in gains.items():
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be finite and > 0, got {value}")
+        if not (math.isfinite(self.hand_damping) and self.hand_damping >= 0.0):
+            raise ValueError(f"hand_damping must be finite and >= 0, got {self.hand_damping}")
+        if not (math.isfinite(self.command_latency_s) and 0.0 <= self.command_latency_s < self.settle_s):
+            raise ValueError(f"command_latency_s must be in [0, settle_s = {self.settle_s}), got {self.command_latency_s}")
 
 
 @dataclass(frozen=True)
@@ -79,3 +111,19 @@ class MujocoConfig:
     def __post_init__(self) -> None:
         if self.state_rate_hz <= 0:
             raise ValueError(f"state_rate_hz must be positive, got {self.state_rate_hz}")
+
+    def drawn(self, draw: MujocoDraw) -> MujocoConfig:
+        """This config in a drawn world (`shared.world.sim.world.MujocoDraw`): its materials the draw's
+        coefficients with torsional and rolling friction acting (condim 6), its servos' gains scaled, its
+        command latency the draw's. The object's mass and centre of mass are the placed object's."""
+        materials = replace(self.materials, table_friction=draw.table_friction, object_friction=draw.table_friction,
+                            hand_friction=draw.hand_friction, torsional_friction=draw.torsional_friction_m,
+                            rolling_friction=draw.rolling_friction_m,
+                            finger_friction_scales=tuple(draw.finger_friction_scales), condim=6)
+        c = self.control
+        control = replace(c, arm_kp=c.arm_kp * draw.arm_kp_scale, arm_kv=c.arm_kv * draw.arm_kv_scale,
+                          hand_kp=c.hand_kp * draw.finger_stiffness_scale,
+                          hand_kv=c.hand_kv * draw.finger_damping_scale,
+                          hand_damping=c.hand_damping * draw.finger_damping_scale,
+                          command_latency_s=draw.command_latency_s)
+        return replace(self, materials=materials, control=control)

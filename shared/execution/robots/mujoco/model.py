@@ -7,11 +7,15 @@
   the URDF effort, and every link gravity compensation through its actuators.
 - Collisions: robot links collide with the table, the object and obstacles but not with each other (as in
   PyBullet's default, which the planner's validity checks assume: finger self-collision is the pose
-  generator's job). The table is a plane at z = 0.
+  generator's job). The table is a plane at z = 0 (a 3 m square to cameras, infinite to collisions).
 - Object: a free body whose frame is O (centre of mass and principal axes: its inertia is diagonal), its
   collision geoms the convex pieces of `decompose.convex_pieces`, its mass and centre of mass those of the
   world (a drawn world's may differ from the model's).
-- Contacts: MuJoCo's soft contacts with the cone, impedance and solver of config.ContactConfig.
+- Contacts: MuJoCo's soft contacts with the cone, impedance and solver of config.ContactConfig; each pair's
+  friction is set where it is drawn (config.MaterialConfig): the table's and the robot's geoms outrank
+  the object's, each finger's geoms carry the hand's friction times that finger's scale.
+- Rendering: an offscreen framebuffer of `OFFSCREEN_SIZE` (the D435's largest depth mode) for the
+  depth cameras (`cameras.py`).
 
 A model that does not compile raises `ModelError` naming the element MuJoCo blames and its reason.
 """
@@ -34,6 +38,17 @@ from shared.world.objects.model import ObjectModel
 OBSTACLE_HEIGHT_M = 0.3  # as the PyBullet world's obstacles
 OBJECT_BODY = "object"
 ROBOT_GROUP, WORLD_GROUP = 1, 2  # contype / conaffinity bits: robot geoms touch the world, not each other
+# MuJoCo takes a contact's friction from the geom of higher priority: the table's (object-table) and the
+# robot's (hand-object) outrank the object's, so each pair's coefficient is the one drawn for it.
+TABLE_PRIORITY, ROBOT_PRIORITY, OBJECT_PRIORITY = 1, 1, 0
+# The hands' joints are finger after finger, four each (index, middle, ring, thumb: the Allegro's and the
+# LEAP's joint order); a finger's geoms are those of the bodies its joints move.
+JOINTS_PER_FINGER = 4
+# A plane collides as an infinite plane whatever its size; the size is what cameras see. A finite table, not
+# MuJoCo's infinite one: that one is drawn as a patch around where the last camera stood, so a pixel's depth
+# changed by up to 1 mm with the previous render's camera (measured); this one is the same for every camera.
+TABLE_RENDER_HALF_M = 1.5
+OFFSCREEN_SIZE = (1280, 720)  # the D435's largest depth mode; a larger render grows the model's buffer
 
 
 class ModelError(ValueError):
@@ -83,25 +98,58 @@ def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
     root = spec.worldbody.first_body()
     T_world_base = np.eye(4) if config.T_world_base is None else np.asarray(config.T_world_base, dtype=np.float64)
     root.pos, root.quat = T_world_base[:3, 3], wxyz(T_world_base[:3, :3])
+    spec.visual.global_.offwidth, spec.visual.global_.offheight = OFFSCREEN_SIZE
+    materials = config.materials
+    fingers = finger_of_body(spec, hand.joint_names)
+    if materials.finger_friction_scales and len(materials.finger_friction_scales) != max(fingers.values()) + 1:
+        raise ModelError(f"{config.arm}+{config.hand}: {len(materials.finger_friction_scales)} finger friction scales "
+                         f"for a hand of {max(fingers.values()) + 1} fingers")
     for geom in spec.geoms:
         geom.contype, geom.conaffinity = ROBOT_GROUP, 0
-        geom.friction = [config.materials.hand_friction, config.materials.torsional_friction,
-                         config.materials.rolling_friction]
+        finger = fingers.get(geom.parent.name)
+        scale = 1.0 if finger is None or not materials.finger_friction_scales else materials.finger_friction_scales[finger]
+        geom.friction = [materials.hand_friction * scale, materials.torsional_friction, materials.rolling_friction]
+        geom.priority, geom.condim = ROBOT_PRIORITY, materials.condim
     for body in spec.bodies:
         if body.name != "world":
             body.gravcomp = 1.0
     _servos(spec, config, arm.joint_names, hand.joint_names)
-    table = spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0.0, 0.0, 0.05])
+    table = spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_PLANE,
+                                    size=[TABLE_RENDER_HALF_M, TABLE_RENDER_HALF_M, 0.05])
     table.contype, table.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
-    table.friction = [config.materials.table_friction, config.materials.torsional_friction,
-                      config.materials.rolling_friction]
+    table.friction = [materials.table_friction, materials.torsional_friction, materials.rolling_friction]
+    table.priority, table.condim = TABLE_PRIORITY, materials.condim
     if placed is not None:
         _add_object(spec, config, placed)
     for index, (x, y, radius) in enumerate(obstacles):
         cylinder = spec.worldbody.add_geom(name=f"obstacle {index}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
                                            size=[radius, OBSTACLE_HEIGHT_M / 2, 0.0], pos=[x, y, OBSTACLE_HEIGHT_M / 2])
         cylinder.contype, cylinder.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+        cylinder.condim = materials.condim
+    _contact_geoms(spec, config)
     return spec
+
+
+def _contact_geoms(spec: mujoco.MjSpec, config: MujocoConfig) -> None:
+    """Every geom's contact impedance: config.ContactConfig's (a pair of equal values keeps them)."""
+    solref, solimp = list(config.contact.solref), [*config.contact.solimp, 0.5, 2.0]
+    for geom in spec.geoms:
+        geom.solref, geom.solimp = solref, solimp
+
+
+def finger_of_body(spec: mujoco.MjSpec, hand_joints: Sequence[str]) -> dict[str, int]:
+    """Body name -> finger (0 index, 1 middle, 2 ring, 3 thumb) of every body a finger joint moves."""
+    finger_of_joint = {name: k // JOINTS_PER_FINGER for k, name in enumerate(hand_joints)}
+    fingers: dict[str, int] = {}
+    for body in spec.bodies:
+        walk = body
+        while walk is not None and walk.name != "world":
+            moved_by = [finger_of_joint[j.name] for j in walk.joints if j.name in finger_of_joint]
+            if moved_by:
+                fingers[body.name] = moved_by[0]
+                break
+            walk = walk.parent
+    return fingers
 
 
 def build_model(config: MujocoConfig, placed: PlacedObject | None = None,
@@ -122,9 +170,8 @@ def _contact_options(spec: mujoco.MjSpec, config: MujocoConfig) -> None:
     option.noslip_iterations = c.noslip_iterations
     option.impratio = c.impratio
     option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST  # stiff servos and damping, stable at 2 ms
-    option.o_solref = list(c.solref)
-    option.o_solimp = [*c.solimp, 0.5, 2.0]
-    option.enableflags |= mujoco.mjtEnableBit.mjENBL_OVERRIDE  # every contact uses solref/solimp above
+    # Every geom gets the same solref / solimp (`_contact_geoms`), so every contact has them. Not MuJoCo's
+    # override flag: it would also override every contact's friction with o_friction (1 for all pairs).
 
 
 def _servos(spec: mujoco.MjSpec, config: MujocoConfig, arm_joints: Sequence[str], hand_joints: Sequence[str]) -> None:
@@ -175,6 +222,7 @@ def _add_object(spec: mujoco.MjSpec, config: MujocoConfig, placed: PlacedObject)
         mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX
         geom = body.add_geom(name=f"object_piece{index}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name)
         geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
-        geom.friction = [config.materials.object_friction, config.materials.torsional_friction,
-                         config.materials.rolling_friction]
+        materials = config.materials
+        geom.friction = [materials.object_friction, materials.torsional_friction, materials.rolling_friction]
+        geom.priority, geom.condim = OBJECT_PRIORITY, materials.condim
         geom.mass = 0.0  # the body's explicit inertia is the object's

@@ -14,8 +14,15 @@ executor, the evaluation and the bridge can run a plan on either: `connect`, `ob
 - The object is seen only through a tracker (for now the PyBullet robot's `SimTracker`: late, noisy, at a
   camera's rate; tracking from rendered images is to replace it). `true_object_pose()` is
   the truth, for the evaluation's judge only, as `SimRobot.true_object_pose`.
-- The PyBullet `PhysicsParams` of a `TrueWorld` are PyBullet's and are not read here: this engine's
-  world is its config's (its own randomisation is still to come).
+- The world: a `TrueWorld` with a `mujoco` draw (`shared.world.sim.world.MujocoDraw`, world level
+  `mujoco`) sets this engine's own physics: every geom's friction (table, object, each finger's), the
+  servos' gains, the fingers' stiffness and damping, the command latency and the object's mass and
+  centre of mass (`MujocoConfig.drawn`); without one the config's nominal world. The PyBullet
+  `PhysicsParams` of a `TrueWorld` are PyBullet's and are not read here.
+- Command latency: each servo command takes effect `command_latency_s` after it is computed (a delay
+  line of whole physics steps); until the first arrives the servos hold what they held.
+- Depth cameras: `render_depth(cameras, intrinsics)` renders the world as it stands, robot included,
+  with each pixel's robot mask (`cameras.py`).
 - Collisions: robot contacts with the table, obstacles or (arm links) the object during a motion are
   recorded in `collisions` and named in the report's message, as the PyBullet robot's.
 """
@@ -23,6 +30,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 
 import mujoco
@@ -32,6 +40,7 @@ from shared.contracts.messages import SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
 from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
+from shared.execution.robots.mujoco.cameras import RendererSlot, render_depth
 from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.decompose import DecompositionError
 from shared.execution.robots.mujoco.model import OBJECT_BODY, ModelError, PlacedObject, build_model
@@ -43,6 +52,8 @@ from shared.robots.hands import load_hand
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError
 from shared.world.objects.model import ObjectModel
+from shared.world.perception.depth import Intrinsics
+from shared.world.sim.camera import CameraPose
 
 
 class MujocoRobot(SimulatedRobot):
@@ -55,6 +66,7 @@ class MujocoRobot(SimulatedRobot):
         device_limits = limits(config.arm, config.hand)
         super().__init__(device_limits.joint_names, device_limits)
         self.config = config
+        self.world_config = config  # the config of the current world: `config` itself, or drawn from a TrueWorld's
         self.arm_name, self.hand_name = config.arm, config.hand
         self.T_world_base = config.T_world_base
         self.state_rate_hz = config.state_rate_hz
@@ -65,6 +77,7 @@ class MujocoRobot(SimulatedRobot):
         self._placed: PlacedObject | None = None
         self._obstacles: tuple[tuple[float, float, float], ...] = ()
         self._lock = threading.RLock()  # one stepping caller at a time
+        self._renderers = RendererSlot()  # taken before `_lock` when both are
         self.collisions: dict[tuple[str, str], float] = {}
 
     # ------------------------------------------------------------------------------------ lifecycle
@@ -79,12 +92,14 @@ class MujocoRobot(SimulatedRobot):
                 self._build(None)
 
     def disconnect(self) -> None:
+        with self._renderers.lock:
+            self._renderers.close()
         with self._lock:
             self.model, self.data = None, None
 
     def _build(self, q: np.ndarray | None) -> None:
         """(Re)compile the world with the current object and obstacles; the robot at `q` (None: home)."""
-        model = build_model(self.config, self._placed, self._obstacles)
+        model = build_model(self.world_config, self._placed, self._obstacles)
         data = mujoco.MjData(model)
         self._index(model)
         self.model, self.data = model, data
@@ -124,12 +139,15 @@ class MujocoRobot(SimulatedRobot):
 
     def reset_world(self, world: TrueWorld) -> None:
         """A fresh world: the robot at home with the hand open, the object as it truly is at its true pose,
-        the obstacles. ObjectLoadError / DecompositionError / ModelError if the object cannot be placed."""
+        the obstacles, the physics of its `mujoco` draw (none: the config's). ObjectLoadError /
+        DecompositionError / ModelError if the object cannot be placed or the draw does not fit the hand."""
         obj = load_object_ref(world.obj)
-        placed = PlacedObject(obj, np.asarray(world.T_world_O, dtype=np.float64), world.mass_scale,
-                              world.com_offset_m)
+        draw = world.mujoco
+        mass_scale, com = (world.mass_scale, world.com_offset_m) if draw is None else (draw.mass_scale, draw.com_offset_m)
+        placed = PlacedObject(obj, np.asarray(world.T_world_O, dtype=np.float64), mass_scale, com)
         with self._lock:
             self._placed, self._obstacles = placed, tuple(world.obstacles)
+            self.world_config = self.config if draw is None else self.config.drawn(draw)
             self._build(None)
         self.tracker.reset(world.tracker_seed)
         self._T_O_tracked = np.eye(4) if world.T_O_tracked is None else np.asarray(world.T_O_tracked, dtype=np.float64)
@@ -200,6 +218,23 @@ class MujocoRobot(SimulatedRobot):
                     continue  # robot vs robot is not modelled
                 self.collisions.setdefault((self._body_name[robot_body], other), elapsed)
 
+    # ---------------------------------------------------------------------------------------- cameras
+
+    def render_depth(self, cameras: Sequence[CameraPose | np.ndarray],
+                     intrinsics: Intrinsics) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per camera (a CameraPose, or an OpenCV T_world_camera 4x4): ideal metric depth [H, W] along the
+        optical axis, 0 where nothing is seen, and the robot mask [H, W] (pixels on a robot link), of the
+        world as it stands now (`cameras.py`; RenderUnavailable without a usable OpenGL platform)."""
+        with self._renderers.lock:
+            while True:
+                model, _ = self._world()
+                renderer = self._renderers.get(model, intrinsics)  # may take 0.1-0.3 s: not under `_lock`
+                with self._lock:
+                    if self.model is model and self.data is not None:  # no rebuild meanwhile
+                        renderer.update_scene(self.data)
+                        break
+            return render_depth(renderer, cameras, intrinsics)
+
     # ------------------------------------------------------------------------------------------ send
 
     def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
@@ -211,8 +246,12 @@ class MujocoRobot(SimulatedRobot):
         own = self._prepare_send(trajectory, 1.0)
         model, data = self._world()
         dt = float(model.opt.timestep)
-        total = own.duration_s + self.config.control.settle_s
+        control = self.world_config.control
+        total = own.duration_s + control.command_latency_s + control.settle_s
         steps = max(1, int(np.ceil(total / dt)))
+        delay = int(round(control.command_latency_s / dt))
+        in_flight: deque[np.ndarray] = deque()  # commands computed but not yet at the servos
+        held = data.ctrl[self._actuators].copy()
         velocities = own.velocities() if len(own.times_s) > 1 else np.zeros((0, len(self.joint_names)))
         publish_every = max(1, round(1.0 / (self.state_rate_hz * dt)))
         track_every = self.tracker.steps_per_frame(dt)
@@ -226,8 +265,12 @@ class MujocoRobot(SimulatedRobot):
                 with self._lock:
                     data.ctrl[self._actuators] = data.qpos[self._qpos]  # hold where it is
                 raise MotionStopped(f"{self.name}: stopped {t:.2f} s into a {own.duration_s:.2f} s trajectory")
+            command = own.sample(t) + self._ff * _velocity_at(own, velocities, t)
+            if delay:
+                in_flight.append(command)
+                command = in_flight.popleft() if len(in_flight) > delay else held
             with self._lock:
-                data.ctrl[self._actuators] = own.sample(t) + self._ff * _velocity_at(own, velocities, t)
+                data.ctrl[self._actuators] = command
                 mujoco.mj_step(model, data)
                 self._record_contacts(t)
             if step % track_every == 0:
