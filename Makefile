@@ -4,9 +4,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install browser demo test bench chaos clean
+.PHONY: install browser egl demo test bench chaos clean
 
-install: $(STAMP) browser
+install: $(STAMP) browser egl
 
 # The live view's browser test (tests/test_view.py) drives headless Chromium: Debian's chromium and
 # chromium-driver, installed when missing (needs root or sudo; skipped with a note otherwise).
@@ -15,6 +15,14 @@ browser:
 	elif [ "$$(id -u)" = 0 ]; then apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y chromium chromium-driver; \
 	elif command -v sudo >/dev/null; then sudo apt-get update && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y chromium chromium-driver; \
 	else echo "note: chromium / chromium-driver missing and no root: tests/test_view.py's browser tests will skip"; fi
+
+# MuJoCo's depth cameras (shared/execution/robots/mujoco/cameras.py; tests/test_mujoco_world.py) render headless
+# through EGL: Debian's libEGL with Mesa's EGL and software OpenGL, installed when missing (as the browser above).
+egl:
+	@if ldconfig -p | grep -q libEGL_mesa; then :; \
+	elif [ "$$(id -u)" = 0 ]; then apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri; \
+	elif command -v sudo >/dev/null; then sudo apt-get update && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri; \
+	else echo "note: Mesa's EGL missing and no root: MuJoCo's depth rendering (tests/test_mujoco_world.py) will fail"; fi
 
 # torch first: the pinned CPU wheel is on local disk; any other resolution pulls a multi-GB CUDA build.
 $(STAMP): pyproject.toml

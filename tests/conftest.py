@@ -9,6 +9,8 @@ import socket
 import pytest
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+# MuJoCo picks its OpenGL platform when first imported: the tests render its depth cameras headless.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def free_port() -> int:
