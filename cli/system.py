@@ -1,6 +1,7 @@
 """`gd2p up | status | health | demo`: run the local system and look at it over the bus.
 
     gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447] [--confirm [--confirm-timeout S]]
+            [--robot sim|mujoco]
     gd2p status [--json] [bus flags]          live workers per service (liveliness)
     gd2p health --service S [--worker-id ID | --this-host] [bus flags]   exit 0 iff it answers
     gd2p demo                                  bring the system up, push an object 0.20 m, shut it down
@@ -27,6 +28,7 @@ SECURE_LISTEN = "tls/localhost:7447"
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from shared.bus import BusConfig
+    from shared.execution.robots import SIM_ROBOTS
 
     up = subparsers.add_parser("up", help="start the router and every service locally (Ctrl-C stops all)",
                                description="Start an embedded Zenoh router and every service as its own process; "
@@ -50,6 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          " Off by default for the simulated robot; a hardware bridge confirms by default")
     up.add_argument("--confirm-timeout", type=float, default=None, metavar="S",
                     help="with --confirm: drop a plan not confirmed within S seconds (default 60, at most 240)")
+    up.add_argument("--robot", choices=SIM_ROBOTS, default="sim",
+                    help="the simulated robot's physics engine: sim (PyBullet, the planner's own; default) or mujoco "
+                         "(MuJoCo: plans made in PyBullet execute in an engine nobody tuned them to)")
     up.set_defaults(func=run_up)
 
     status = subparsers.add_parser("status", help="live worker count per service",
@@ -203,7 +208,8 @@ def run_up(args: argparse.Namespace) -> int:
         launcher = Launcher(validators=args.validators, listen=listen, record_dir=args.record_dir,
                             log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None,
                             view_port=getattr(args, "view", None),
-                            confirm_timeout_s=confirm_timeout if confirm else None)
+                            confirm_timeout_s=confirm_timeout if confirm else None,
+                            robot=getattr(args, "robot", "sim"))
     except LaunchError as exc:
         print(f"gd2p up: {exc}", file=sys.stderr)
         return 2

@@ -1,6 +1,7 @@
 """The simulated robot bridge: refuses plans outside the limits, executes valid ones, pushes a box."""
 from __future__ import annotations
 
+import os
 import threading
 import time
 from dataclasses import replace
@@ -283,12 +284,13 @@ class BusBridge:
     """A Bridge on `endpoint` (with a router watchdog if asked: what `service.run` builds), its simulated robot
     built, and a commander session."""
 
-    def __init__(self, endpoint: str, watchdog: bool = False, confirm_timeout_s: float | None = None):
+    def __init__(self, endpoint: str, watchdog: bool = False, confirm_timeout_s: float | None = None,
+                 robot: str = "sim"):
         from services.robot_bridge.service import Bridge
 
         self.session, self.commander = bus_session(endpoint), bus_session(endpoint)
         self.probe = bus_session(endpoint) if watchdog else None
-        self.bridge = Bridge(self.session, probe=self.probe, confirm_timeout_s=confirm_timeout_s)
+        self.bridge = Bridge(self.session, probe=self.probe, confirm_timeout_s=confirm_timeout_s, robot=robot)
         self.backend = self.bridge.executor("panda", "allegro").executor.robots[0]
         self.stopped_at: list[float] = []
         send = self.backend.send
@@ -375,6 +377,58 @@ def test_a_command_with_a_world_runs_to_the_end_under_the_router_watchdog(zenoh_
         bridge.close()
     assert [s.status for s in states] == ["done", "done"], [s.message for s in states]
     assert abs(bridge.travel(states[-1]) - MOVE_RAD) < 0.01
+
+
+def test_the_bridge_resets_the_world_and_executes_on_the_mujoco_robot_when_asked(zenoh_router):
+    """`--robot mujoco`: the same commands, leases and checks, executed by MuJoCo's robot."""
+    from shared.execution.robots.mujoco.robot import MujocoRobot
+
+    bridge = BusBridge(zenoh_router, robot="mujoco")
+    try:
+        assert isinstance(bridge.backend, MujocoRobot)
+        key, _token = bridge.lease("planner-1.cmd-m")
+        state = bridge.bridge.execute(bridge.move(key, world=box_world(), duration_s=1.0))
+        truth = bridge.backend.true_object_pose()
+    finally:
+        bridge.close()
+    assert state.status == "done", state.message
+    assert abs(bridge.travel(state) - MOVE_RAD) < 0.01
+    assert truth is not None and np.allclose(truth.position[:2], (0.35, -0.45), atol=2e-3)  # the command's world
+
+
+def test_the_robot_flag_reaches_the_bridge_and_is_refused_with_hardware(monkeypatch, capsys, tmp_path):
+    from deploy.launcher import Launcher, LaunchError
+    from services.robot_bridge import __main__ as bridge_main
+
+    calls: list[dict] = []
+    monkeypatch.setattr(bridge_main, "run", lambda *args, **kwargs: calls.append(kwargs))
+    monkeypatch.setattr(bridge_main, "configure_service_logging", lambda: None)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    assert bridge_main.main([]) == 0 and calls[-1]["robot"] == "sim"
+    assert bridge_main.main(["--robot", "mujoco"]) == 0 and calls[-1]["robot"] == "mujoco"
+    assert os.environ["MUJOCO_GL"] == "egl"  # the service renders headless unless told otherwise
+    with pytest.raises(SystemExit):
+        bridge_main.main(["--robot", "mujoco", "--hardware", "xarm7+leap", "--xarm7-ip", "10.0.0.2",
+                          "--leap-port", "/dev/null"])
+    assert "--robot mujoco chooses the simulated robot's engine" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        bridge_main.main(["--robot", "gazebo"])
+    assert "invalid choice: 'gazebo'" in capsys.readouterr().err
+    launcher = Launcher(validators=0, record_dir=tmp_path, log_dir=tmp_path, robot="mujoco")
+    command = launcher._command("robot_bridge", "robot_bridge-1")
+    assert command[command.index("--robot") + 1] == "mujoco" and command[-1] == "--no-confirm"
+    assert "--robot" not in launcher._command("planner", "planner-1")
+    with pytest.raises(LaunchError, match="unknown simulated robot 'gazebo'"):
+        Launcher(validators=0, record_dir=tmp_path, log_dir=tmp_path, robot="gazebo")
+
+
+def test_gd2p_up_help_says_what_robot_does(capsys):
+    from cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["up", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "--robot {sim,mujoco}" in out and "MuJoCo" in out
 
 
 @pytest.mark.parametrize("key_kind", ["client lease", "a worker's liveliness token", "old-style lease",

@@ -1,7 +1,9 @@
-"""`python -m services.robot_bridge [bus flags] [--worker-id ID] [--hardware ARM+HAND ...] [--confirm | --no-confirm]
-[--confirm-timeout S]`: run the robot bridge until SIGTERM.
+"""`python -m services.robot_bridge [bus flags] [--worker-id ID] [--hardware ARM+HAND ... | --robot sim|mujoco]
+[--confirm | --no-confirm] [--confirm-timeout S]`: run the robot bridge until SIGTERM.
 
-Without --hardware it drives the simulated robot (PyBullet); with it, the real devices. --confirm holds each
+Without --hardware it drives the simulated robot: PyBullet's (`--robot sim`, the default), or MuJoCo's
+(`--robot mujoco`: plans are still made in PyBullet, so they execute in physics nobody tuned them to;
+MUJOCO_GL defaults to egl there, for its headless depth cameras); with --hardware, the real devices. --confirm holds each
 plan until an operator confirms it (`gd2p confirm ID`) within --confirm-timeout seconds: the default with
 --hardware (--no-confirm turns it off, with a warning), off for the simulated robot.
 """
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from services.robot_bridge.service import run
@@ -17,17 +20,25 @@ from shared.bus.service_cli import configure_service_logging, service_arg_parser
 from shared.execution.confirm import DEFAULT_TIMEOUT_S, MAX_TIMEOUT_S
 from shared.execution.hardware import HardwareConfigError, HardwareSpec
 from shared.execution.robot import RobotError
+from shared.execution.robots import SIM_ROBOTS
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = service_arg_parser("robot_bridge", __doc__)
     HardwareSpec.add_cli_args(parser)
     add_confirm_args(parser)
+    add_robot_arg(parser)
     args = parser.parse_args(argv)
     try:
         hardware = HardwareSpec.from_args(args)  # every address given? (connecting happens in run)
     except HardwareConfigError as exc:
         parser.error(str(exc))
+    if hardware is not None and args.robot != "sim":
+        parser.error(f"--robot {args.robot} chooses the simulated robot's engine; --hardware drives the real devices")
+    if args.robot == "mujoco":
+        # MuJoCo reads MUJOCO_GL when it is first imported (in `run`): a service has no display, EGL renders
+        # headless. An operator's own setting (osmesa where EGL is missing) is kept.
+        os.environ.setdefault("MUJOCO_GL", "egl")
     if not 0.0 < args.confirm_timeout <= MAX_TIMEOUT_S:
         parser.error(f"--confirm-timeout must be in (0, {MAX_TIMEOUT_S:g}] s (the planner waits 300 s for a command)")
     configure_service_logging()
@@ -38,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
             "operator's confirmation")
     try:
         run(BusConfig.from_args(args), worker_id=args.worker_id, hardware=hardware,
-            confirm_timeout_s=args.confirm_timeout if confirm else None)
+            confirm_timeout_s=args.confirm_timeout if confirm else None, robot=args.robot)
     except RobotError as exc:
         print(f"robot_bridge: cannot drive the hardware: {exc}", file=sys.stderr)
         return 1
@@ -55,6 +66,13 @@ def add_confirm_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--confirm-timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S",
                         help=f"drop a plan not confirmed within S seconds (default {DEFAULT_TIMEOUT_S:g}, at most "
                              f"{MAX_TIMEOUT_S:g}); the push answers not_confirmed")
+
+
+def add_robot_arg(parser: argparse.ArgumentParser) -> None:
+    """--robot sim|mujoco: the simulated robot's engine (without --hardware)."""
+    parser.add_argument("--robot", choices=SIM_ROBOTS, default="sim",
+                        help="the simulated robot's physics engine: sim (PyBullet, the planner's own; default) or "
+                             "mujoco (MuJoCo: plans made in PyBullet execute in an engine nobody tuned them to)")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 
 - An `ExecutionCommand` queried on `bus_safety.COMMAND_KEY` (the one key the secure profile lets only
   the planner query) runs on the robot of the plan's arm + hand behind `executor.Executor`'s checks:
-  the simulated robot (`robots/sim`, one per arm + hand, built on first use), or with `--hardware
+  the simulated robot (one per arm + hand, built on first use: PyBullet's `robots/sim`, or with `--robot
+  mujoco` MuJoCo's `robots/mujoco`, an engine the planner's PyBullet rollouts are not), or with `--hardware
   ARM+HAND` the real devices (`hardware.HardwareSpec`), when a command for any other robot is
   refused and no simulated world is built. The reply is the final `ExecutionState`: status "done",
   "stopped" (e-stop or lost lease), "error", or "refused" with a message naming the broken limit, joint
@@ -46,7 +47,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
@@ -69,8 +70,12 @@ from shared.execution.confirm import ConfirmGate
 from shared.execution.executor import EStopLatch, Executor, StatePublisher
 from shared.execution.hardware import HardwareSpec, connect_all
 from shared.execution.limits import SafetyRefusal
+from shared.execution.robots import SIM_ROBOTS
 from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot
+
+if TYPE_CHECKING:
+    from shared.execution.robots.mujoco.robot import MujocoRobot
 
 SERVICE = "robot_bridge"
 STATE_KEY = ROBOT_STATE_KEY
@@ -116,11 +121,16 @@ class Bridge:
 
     `confirm_timeout_s` (None = confirm off): hold every command that passed its checks until an operator
     confirms it, at most this long (`ConfirmGate`).
+
+    `robot`: the simulated robots' engine, "sim" (PyBullet) or "mujoco".
     """
 
     def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0,
                  probe: zenoh.Session | None = None, publish_track: Callable[[ObjectTrack], None] | None = None,
-                 confirm_timeout_s: float | None = None):
+                 confirm_timeout_s: float | None = None, robot: str = "sim"):
+        if robot not in SIM_ROBOTS:
+            raise ValueError(f"unknown simulated robot {robot!r}; known: {', '.join(SIM_ROBOTS)}")
+        self.robot = robot
         self.session = session
         self.publish = publish
         self.publish_track = publish_track  # the simulated robots' tracker frames
@@ -157,13 +167,22 @@ class Bridge:
         """The simulated robot of `arm` + `hand` behind its executor (built and connected on first use)."""
         with self._lock:
             if (arm, hand) not in self._executors:
-                robot = SimRobot(SimConfig(arm, hand), publish=self.publish)
+                robot = self._simulated_robot(arm, hand)
                 robot.track = self.publish_track
                 robot.connect()
                 executor = Executor(arm, hand, [robot], self.estop_latch, publish=self.publish,
                                     reset_world=robot.reset_told)
                 self._executors[(arm, hand)] = self._leased(executor)
             return self._executors[(arm, hand)]
+
+    def _simulated_robot(self, arm: str, hand: str) -> SimRobot | MujocoRobot:
+        if self.robot == "mujoco":
+            # Imported on first use: a PyBullet bridge never loads MuJoCo.
+            from shared.execution.robots.mujoco.config import MujocoConfig
+            from shared.execution.robots.mujoco.robot import MujocoRobot
+
+            return MujocoRobot(MujocoConfig(arm, hand), publish=self.publish)
+        return SimRobot(SimConfig(arm, hand), publish=self.publish)
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
         """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal).
@@ -242,9 +261,10 @@ class Bridge:
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
-        hardware: HardwareSpec | None = None, confirm_timeout_s: float | None = None) -> None:
+        hardware: HardwareSpec | None = None, confirm_timeout_s: float | None = None, robot: str = "sim") -> None:
     """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`; with
-    `confirm_timeout_s`, each command waits for an operator's confirmation (`Bridge`).
+    `confirm_timeout_s`, each command waits for an operator's confirmation (`Bridge`); `robot`: the
+    simulated robot's engine ("sim": PyBullet, "mujoco").
 
     `hardware` (None = the simulated robot) is connected before the worker registers, so a bridge
     whose devices are absent fails at start with the device's error instead of announcing itself.
@@ -271,7 +291,7 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
             track_publisher.put(payload, encoding=encoding)
 
         bridge = Bridge(session, publish, probe=probe, publish_track=None if hardware is not None else publish_track,
-                        confirm_timeout_s=confirm_timeout_s)
+                        confirm_timeout_s=confirm_timeout_s, robot=robot)
         if hardware is not None:
             bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()

@@ -17,6 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+# The simulated robot's engines (`--robot`, `gd2p up --robot`): sim/ (PyBullet, the planner's own) and mujoco/.
+SIM_ROBOTS: tuple[str, ...] = ("sim", "mujoco")
+
 
 @dataclass(frozen=True)
 class Device:
