@@ -9,11 +9,13 @@ real system computes from its joint state and its robot model). Noise belongs to
   y down, z forward), e.g. a camera's true pose under an extrinsic error (`CameraError.true_pose`). The
   OpenGL camera MuJoCo renders with looks along -z with y up; its frustum is set from the intrinsics at
   the near plane, pixel edges at -0.5 and W - 0.5 (H - 0.5) around the principal point, so any pinhole
-  with square pixels (fx = fy) renders exactly, whatever its principal point. Measured
-  (tests/test_mujoco_world.py): with `Intrinsics.from_hfov` (cx = (W-1)/2, cy = (H-1)/2),
-  `DepthFrame(depth, intrinsics, T).points_world()` puts table pixels at |z| < 0.1 mm and object pixels on
-  the object's mesh within 1 mm; no other principal point is needed (PyBullet's TinyRenderer needs
-  `renderer_intrinsics`, MuJoCo does not).
+  with square pixels (fx = fy) renders exactly, whatever its principal point. Measured against MuJoCo's
+  own ray casts through the pixel centres (`mj_ray`; tests/test_mujoco_world.py does the same): with
+  `Intrinsics.from_hfov` (cx = (W-1)/2, cy = (H-1)/2) and with a principal point 10 px off centre,
+  `DepthFrame(depth, intrinsics, T).points_world()` lands within 0.1 mm of the rays' hits on the table,
+  the object and the robot, and the object's points on its mesh within 1 mm; a half-pixel shift of the
+  convention would put robot pixels ~3 mm off. No other principal point is needed (PyBullet's TinyRenderer
+  needs `renderer_intrinsics`, MuJoCo does not).
 - Depth: one pass renders depth and segmentation together (MuJoCo's segmentation mode, with which
   `mujoco.Renderer` also renders depth); the reversed-Z depth buffer is turned into metric depth with the
   projection's near / far planes, as `mujoco.Renderer` does. A pixel whose segment is the background
@@ -22,10 +24,10 @@ real system computes from its joint state and its robot model). Noise belongs to
   OpenGL context current on the calling thread and never releases it, so a second thread (a tracker
   beside the control loop) cannot render with it (EGL_BAD_ACCESS, measured). Here the context is current
   only during a render, from whichever thread asks, one at a time.
-- Cost: creating a renderer (OpenGL context, the model's meshes uploaded) takes ~0.1-0.3 s, so it is kept
+- Cost: creating a renderer (OpenGL context, the model's meshes uploaded) takes ~0.15 s, so it is kept
   between calls and rebuilt only for a new model (`reset_world`) or image size; closed on `disconnect`.
-  A 424 x 240 camera costs ~6 ms (Mesa's llvmpipe through EGL on this 2-core machine, Panda + Allegro
-  and a box in view); 848 x 480 ~15 ms.
+  Depth + robot mask of one 424 x 240 camera: 7 ms with the Panda + Allegro, 10 ms with the xArm7 + LEAP,
+  a box in view (848 x 480: 23 / 25 ms); Mesa's software OpenGL through EGL on this 2-core machine, no GPU.
 
 Headless rendering needs an OpenGL platform: MuJoCo picks it from `MUJOCO_GL` when it is first imported.
 If none works (`MUJOCO_GL` unset on a machine without a display, EGL missing) `RenderUnavailable` says so,
