@@ -125,10 +125,19 @@ class Open3dPointToPlane:
         self._estimation = open3d.pipelines.registration.TransformationEstimationPointToPlane()
 
     def __call__(self, source: np.ndarray, T_init: np.ndarray, max_distance_m: float, iterations: int) -> np.ndarray:
-        registration = self._o3d.pipelines.registration
-        cloud = self._o3d.geometry.PointCloud(self._o3d.utility.Vector3dVector(np.asarray(source, dtype=np.float64)))
-        result = registration.registration_icp(cloud, self._target, max_distance_m, T_init, self._estimation,
-                                               registration.ICPConvergenceCriteria(max_iteration=iterations))
+        registration, utility = self._o3d.pipelines.registration, self._o3d.utility
+        cloud = self._o3d.geometry.PointCloud(utility.Vector3dVector(np.asarray(source, dtype=np.float64)))
+        # One thread: Open3D's TBB threads sum the normal equations in a varying order, so a near-degenerate fit
+        # (a cylinder's spin) came out degrees apart from one run to the next; a trial must repeat. A fit of
+        # ~1000 points gains nothing from threads on a shared 2-core machine either. (OMP_NUM_THREADS does not
+        # reach TBB; the limit is process-wide, so the caller's is restored.)
+        threads = utility.get_max_threads()
+        utility.set_max_threads(1)
+        try:
+            result = registration.registration_icp(cloud, self._target, max_distance_m, T_init, self._estimation,
+                                                   registration.ICPConvergenceCriteria(max_iteration=iterations))
+        finally:
+            utility.set_max_threads(threads)
         return np.array(result.transformation, dtype=np.float64)
 
 
