@@ -26,8 +26,12 @@ every run logged in results/final/LOG.md, good or bad. Nothing else can load its
 World (`--world`, every experiment but sampler-diagnosis): `real` (default) executes every plan in a world drawn
 per trial that the planner does not know - friction, mass, centre of mass, the arm's controller, and
 the object off its told pose (shared/world/sim/world.py documents each range), and the system does not get the
-object's mesh: it sees the object through 3 simulated depth cameras (`--cameras`, 0 for the mesh); `exact`
-executes in the planner's own world, told the mesh. Results go to `<out>/<experiment>-<world>[-cameraN]/`
+object's mesh: it sees the object through 3 simulated depth cameras (`--cameras`, 0 for the mesh), each off its
+calibration by a few mm and tenths of a degree; `mujoco` draws the same and executes in MuJoCo, with MuJoCo's own
+contact model and its own draws of the hand (finger stiffness, damping, per-finger friction), while the planner
+still predicts in PyBullet; `exact` executes in the planner's own world, told the mesh. While a plan runs the robot
+sees the object only through its cameras (`--tracking image`, the default): rendered depth frames with the arm and
+hand in view, the model registered in them, or "lost"; each trial records the tracker's error against the truth. Results go to `<out>/<experiment>-<world>[-cameraN]/`
 (`...-<tag>/` with `--tag`); a `real` report of methods / leap / closed-loop gives the `exact` rates of the run
 of the same name and models in `<out>` beside its own. sampler-quality and data-size push their poses by the
 floating hand in a world drawn per object (the same for every pose source) and the sources sample for the
@@ -82,8 +86,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--trials", type=int, default=None,
                         help="methods / leap / closed-loop: trials per object and direction (default: the paper's 5); a run can "
                              "later be extended to more trials in the same --out")
-    parser.add_argument("--world", choices=("real", "exact"), default="real",
-                        help="the execution world, every experiment but sampler-diagnosis (default real; see above)")
+    parser.add_argument("--world", choices=("real", "mujoco", "exact"), default="real",
+                        help="the execution world, every experiment but sampler-diagnosis (default real; mujoco: executed "
+                             "in MuJoCo with its own drawn physics while the planner predicts in PyBullet; see above)")
+    parser.add_argument("--tracking", choices=("image", "truth"), default="image",
+                        help="how the robot sees the object while it pushes (methods, leap, closed-loop): image (default) "
+                             "registers it in depth frames rendered with the arm and hand in view, or reports it lost; "
+                             "truth is the true pose with 2 mm / 1 degree noise (the tracker before images; "
+                             "<out>/<experiment>-<world>[-cameraN]-truthtrack/)")
     parser.add_argument("--cameras", type=int, choices=(0, 1, 2, 3), default=None,
                         help="every experiment but sampler-diagnosis: 1-3: the system sees the object only through that many "
                              "simulated depth cameras and plans (or samples) for its own reconstruction "
@@ -320,6 +330,8 @@ def run(args: argparse.Namespace) -> int:
             options["split"] = split
         if args.tag is not None and name in WORLD_EXPERIMENTS:
             options["tag"] = args.tag
+        if args.tracking != "image" and name in TRIAL_EXPERIMENTS:
+            options["tracking"] = args.tracking
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
         if name == "sampler-quality":

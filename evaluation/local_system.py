@@ -40,8 +40,10 @@ from shared.contracts.messages import (
     ValidationJob,
 )
 from shared.execution.executor import EStopLatch, Executor, LocalLease
+from shared.execution.robots.camera_tracker import CameraRig
 from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot, TrueWorld
+from shared.execution.robots.simulated import SimulatedRobot, TrackingMode
 from shared.frames import invert_transform
 from shared.planning.cancellation import Cancellation
 from shared.planning.decision_tap import DecisionTap
@@ -53,6 +55,12 @@ from shared.sampling.server import SamplerService
 from shared.validation.jobs import validate
 from shared.world.push_outcome import object_pose, pose_matrix
 from shared.world.sim.world import ExecutionWorld
+
+
+def engine_of(world: ExecutionWorld | None) -> str:
+    """The physics engine a trial's world executes in: MuJoCo for the `mujoco` level, PyBullet otherwise (the
+    planner's own engine: its rollouts always run in PyBullet)."""
+    return "mujoco" if world is not None and world.level == "mujoco" else "pybullet"
 
 REALTIME_FACTOR = 1000.0  # as the planner service asks of the simulated bridge: as fast as physics runs
 
@@ -79,6 +87,40 @@ def set_view(view: ViewSink | None) -> ViewSink | None:
 
 
 @dataclass
+class TrackingErrors:
+    """The tracker's error against the truth, frame by frame, per executed push (the judge's, for trial records)."""
+
+    pushes: list[list[tuple[float, float] | None]] = field(default_factory=list)  # (m, deg) per frame; None: lost
+
+    def start_push(self) -> None:
+        self.pushes.append([])
+
+    def add(self, tracked: ObjectPose | None, truth: ObjectPose | None) -> None:
+        if truth is None or not self.pushes:
+            return
+        if tracked is None:
+            self.pushes[-1].append(None)
+            return
+        T_seen, T_true = pose_matrix(tracked), pose_matrix(truth)
+        error_m = float(np.linalg.norm(T_seen[:3, 3] - T_true[:3, 3]))
+        cos = (np.trace(T_true[:3, :3].T @ T_seen[:3, :3]) - 1.0) / 2.0
+        self.pushes[-1].append((error_m, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))))
+
+    def summary(self) -> list[dict[str, float | int]]:
+        """Per push: frames, lost frames, median and worst position (mm) and rotation (deg) error."""
+        out: list[dict[str, float | int]] = []
+        for frames in self.pushes:
+            seen = np.array([f for f in frames if f is not None]).reshape(-1, 2)
+            row: dict[str, float | int] = {"frames": len(frames), "lost": len(frames) - len(seen)}
+            if len(seen):
+                row.update(median_mm=round(float(np.median(seen[:, 0])) * 1000, 2),
+                           worst_mm=round(float(seen[:, 0].max()) * 1000, 2),
+                           median_deg=round(float(np.median(seen[:, 1])), 2), worst_deg=round(float(seen[:, 1].max()), 2))
+            out.append(row)
+        return out
+
+
+@dataclass
 class Contacts:
     """What touched an obstacle during the executions since the last `reset()`."""
 
@@ -95,7 +137,7 @@ class Contacts:
 
 
 def true_world(told: SimWorld, execution: ExecutionWorld | None,
-               true_object: tuple[ObjectRef, np.ndarray] | None = None) -> TrueWorld:
+               true_object: tuple[ObjectRef, np.ndarray] | None = None, rig: CameraRig | None = None) -> TrueWorld:
     """The world the simulated robot is reset to, from the world the planner was told: the object at its
     true pose — `true_object` (a reconstruction was planned on: the library object where it truly
     stands) or the told object moved by the execution world's pose error — with that world's physics,
@@ -103,7 +145,8 @@ def true_world(told: SimWorld, execution: ExecutionWorld | None,
     reconstruction, the tracker reports the reconstruction's frame O, rigidly attached to the true
     object where the capture placed it: later pushes of the request (corrections, the next push of a
     multi-step request) and the closed-loop monitor then see the model they plan around, not the
-    library object's own frame, which may be the reconstruction's turned upside down."""
+    library object's own frame, which may be the reconstruction's turned upside down. The image tracker
+    registers the told model from the told pose, through `rig` (None: the default cameras)."""
     obstacles = tuple((o.x, o.y, o.radius) for o in told.obstacles)
     T_O_tracked = None
     if true_object is not None:
@@ -117,17 +160,20 @@ def true_world(told: SimWorld, execution: ExecutionWorld | None,
         obj, T_world_O = told.object, pose_matrix(told.object_pose)
         if execution is not None:
             T_world_O = execution.pose_error.true_pose(T_world_O)
+    told_object = (told.object, pose_matrix(told.object_pose))
     if execution is None:
-        return TrueWorld(obj, T_world_O, obstacles, T_O_tracked=T_O_tracked)
+        return TrueWorld(obj, T_world_O, obstacles, T_O_tracked=T_O_tracked, told_object=told_object, rig=rig)
     return TrueWorld(obj, T_world_O, obstacles, execution.physics, execution.mass_scale, execution.com_offset_m,
-                     tracker_seed=execution.seed, T_O_tracked=T_O_tracked)
+                     tracker_seed=execution.seed, T_O_tracked=T_O_tracked, mujoco=execution.mujoco,
+                     told_object=told_object, rig=rig)
 
 
 class LocalRobot:
     """Simulated robots (one per arm + hand) executing plans in this process, each behind an executor."""
 
-    def __init__(self) -> None:
-        self._executors: dict[tuple[str, str], Executor] = {}
+    def __init__(self, tracking: TrackingMode = "image") -> None:
+        self.tracking_mode = tracking  # how the robots see the object: rendered images, or the truth with noise
+        self._executors: dict[tuple[str, str, str, TrackingMode], Executor] = {}
         self.contacts = Contacts()
         # The world a reset builds: the physics the robot meets and the object's true pose (None: the
         # planner's own world). Set per trial by the evaluation; the planner never sees it.
@@ -135,22 +181,38 @@ class LocalRobot:
         # The true object and its true pose (T_world_O), when the planner plans around something else (a
         # reconstruction from a camera cloud): a reset puts this object there. None: the planner's object.
         self.true_object: tuple[ObjectRef, np.ndarray] | None = None
+        # The cameras the robot's image tracker sees through (set per trial: the capture's, with their drawn
+        # calibration errors); None: the default rig, calibrated.
+        self.rig: CameraRig | None = None
         self._watching: tuple[PushMonitor, LocalLease] | None = None  # the executing push's monitor, and its lease
         self.view: ViewSink | None = _view  # a live view shown every state (`gd2p eval --view`)
+        self.tracking = TrackingErrors()  # the judge's comparison of every tracked frame with the truth
 
     def executor(self, arm: str, hand: str) -> Executor:
-        key = (arm, hand)
+        """The executor of `arm` + `hand` in the engine of the trial's world (MuJoCo for a `mujoco` world, PyBullet
+        otherwise), seeing the object as `tracking_mode` says; each built and connected on first use."""
+        engine = engine_of(self.execution_world)
+        key = (arm, hand, engine, self.tracking_mode)
         if key not in self._executors:
-            robot = SimRobot(SimConfig(arm, hand))
+            robot = self._build_robot(arm, hand, engine)
             watch = robot.publish = lambda state, robot=robot: self._on_state(robot, state)
+            robot.judge_frame = lambda pose, t, robot=robot: self.tracking.add(pose, robot.true_tracked_pose())
             robot.connect()
             # Nothing here engages the e-stop: only a protective stop could, and the simulated robot measures no effort.
             self._executors[key] = Executor(arm, hand, [robot], EStopLatch(), publish=watch)
         return self._executors[key]
 
-    def robot(self, arm: str, hand: str) -> SimRobot:
+    def _build_robot(self, arm: str, hand: str, engine: str) -> SimulatedRobot:
+        if engine == "mujoco":
+            from shared.execution.robots.mujoco.config import MujocoConfig
+            from shared.execution.robots.mujoco.robot import MujocoRobot
+
+            return MujocoRobot(MujocoConfig(arm, hand, tracking=self.tracking_mode))
+        return SimRobot(SimConfig(arm, hand, tracking=self.tracking_mode))
+
+    def robot(self, arm: str, hand: str) -> SimulatedRobot:
         robot = self.executor(arm, hand).robots[0]
-        assert isinstance(robot, SimRobot)  # what `executor` builds
+        assert isinstance(robot, SimulatedRobot)  # what `executor` builds
         return robot
 
     def execute(self, plan: Plan, world: SimWorld | None, cancel: Cancellation | None = None,
@@ -159,7 +221,8 @@ class LocalRobot:
         finding a reason to stop (closed loop) — stops it."""
         executor, robot = self.executor(plan.arm, plan.hand), self.robot(plan.arm, plan.hand)
         if world is not None:
-            robot.reset_world(true_world(world, self.execution_world, self.true_object))
+            robot.reset_world(true_world(world, self.execution_world, self.true_object, self.rig))
+        self.tracking.start_push()
         lease = LocalLease()
         unregister = cancel.on_cancel(lambda: lease.release("the request was cancelled")) if cancel is not None else (lambda: None)
         self._watching = (monitor, lease) if monitor is not None else None
@@ -179,13 +242,13 @@ class LocalRobot:
             raise RuntimeError(f"the simulated {arm} + {hand} has no object")
         return pose
 
-    def _on_state(self, robot: SimRobot, state: ExecutionState) -> None:
+    def _on_state(self, robot: SimulatedRobot, state: ExecutionState) -> None:
         """Each state the robot publishes while it moves (on its thread): does the object touch an obstacle;
         closed loop, does the monitor stop the push?"""
         if self.view is not None:
             self.view.show_state(state)
-        if robot.scene is not None and not self.contacts.object_obstacle:
-            self.contacts.object_obstacle = robot.scene.object_touches_obstacle()
+        if not self.contacts.object_obstacle:
+            self.contacts.object_obstacle = robot.object_touches_obstacle()
         if self._watching is not None:
             monitor, lease = self._watching
             reason = monitor.observe_state(state)

@@ -23,6 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
+from shared.execution.robots.simulated import TrackingMode
 from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
 
@@ -67,10 +68,12 @@ class Protocol:
     # family of the test split; "final": the final split (evaluation/final_run.py, once per release)
     split: str = "test"
     tag: str | None = None  # names a run of the same protocol with other models or code (`--tag`)
+    tracking: TrackingMode = "image"  # how the robot sees the object while it pushes: rendered images, or "truth"
 
     @property
     def directory_name(self) -> str:
         return (f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
+                + ("-truthtrack" if self.tracking == "truth" else "")
                 + (f"-{self.split}" if self.split != "test" else "") + (f"-{self.tag}" if self.tag else ""))
 
     def settings(self) -> dict[str, Any]:
@@ -80,6 +83,9 @@ class Protocol:
                     "objects": list(self.objects), "directions_deg": list(self.directions),
                     "object_xy": list(protocol.OBJECT_XY), "placement_noise_m": protocol.PLACEMENT_NOISE_M,
                     "placement_noise_deg": protocol.PLACEMENT_NOISE_DEG, "push_distance_m": protocol.PUSH_DISTANCE_M,
+                    # the robot's tracker, and cameras off their calibration by the world's draw: records made before
+                    # either (truth-plus-noise tracking, exact cameras) do not mix with these
+                    "tracking": self.tracking, "camera_calibration_errors": True,
                     # the poses' models: a run resumed after the shipped checkpoint or index changed is refused
                     "pose_models": protocol.pose_model_ids(self.hand)}
         if self.split == "final":  # the frozen objects the run measured, and that they are the final split's
@@ -94,6 +100,7 @@ DEFAULT_CAMERAS: dict[str, int] = {
     # capture it, three views as the paper's test geometry came from multi-view captures. `exact` keeps
     # the behaviour before execution worlds: told the true mesh where it truly stands.
     "real": 3,
+    "mujoco": 3,
     "exact": 0,
 }
 
@@ -137,22 +144,23 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
                  world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
                  split: str = "test", tag: str | None = None,
-                 worker_init: Callable[[str], None] | None = None) -> Path:
+                 worker_init: Callable[[str], None] | None = None, tracking: TrackingMode = "image") -> Path:
     """One run of a trial protocol into `<out>/<directory_name>/`; `worker_init` replaces the workers' initializer
     (the final split's, evaluation/final_run.py, opens its access in every worker)."""
-    spec = protocol_for(name, quick, trials, world, methods, cameras, split, tag)
+    spec = replace(protocol_for(name, quick, trials, world, methods, cameras, split, tag), tracking=tracking)
     directory = Path(out) / spec.directory_name
     settings = spec.settings()  # hashes the pose models' files: once per run
     store = ResultStore(directory, settings)
     started = time.perf_counter()
     todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
-                             spec.cameras, spec.split)
+                             spec.cameras, spec.split, spec.tracking)
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name,
                             initializer=worker_init)
     spec = with_stored_methods(spec, store)
     records = [store.records[e.key] for e in protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions,
-                                                               spec.trials, spec.world, spec.cameras, spec.split)]
+                                                               spec.trials, spec.world, spec.cameras, spec.split,
+                                                               spec.tracking)]
     summary = summarise(records, spec)
     body = report_body(records, spec, summary, exact_rates(Path(out), spec, settings["pose_models"]))
     _plot(records, spec, directory / "success_by_direction.png")
@@ -167,7 +175,8 @@ def with_stored_methods(spec: Protocol, store: ResultStore) -> Protocol:
     time: a run extended by another method (`--methods nearest` into a finished run) keeps the others in its report."""
     def complete(method: str) -> bool:
         return all(store.done(e.key) for e in protocol.episodes((method,), spec.hand, spec.objects, spec.directions,
-                                                                 spec.trials, spec.world, spec.cameras, spec.split))
+                                                                 spec.trials, spec.world, spec.cameras, spec.split,
+                                                                 spec.tracking))
     stored = {record["method"] for record in store.records.values()}
     extra = [m for m in protocol.METHODS if m in stored and m not in spec.methods and complete(m)]
     return replace(spec, methods=(*spec.methods, *extra))
@@ -175,20 +184,24 @@ def with_stored_methods(spec: Protocol, store: ResultStore) -> Protocol:
 
 def run_methods(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                 world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
-    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
+                split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None,
+                tracking: TrackingMode = "image") -> Path:
+    return run_protocol("methods", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init, tracking)
 
 
 def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
              world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-             split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
-    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
+             split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None,
+             tracking: TrackingMode = "image") -> Path:
+    return run_protocol("leap", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init, tracking)
 
 
 def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                     world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
-                    split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None) -> Path:
-    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init)
+                    split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None,
+                    tracking: TrackingMode = "image") -> Path:
+    return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init,
+                        tracking)
 
 
 def exact_rates(out: Path, spec: Protocol, pose_models: dict[str, str]) -> dict[str, dict[str, Any]]:

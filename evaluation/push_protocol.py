@@ -58,6 +58,8 @@ from shared.contracts.messages import (
     PushRequest,
     SimWorld,
 )
+from shared.execution.robots.camera_tracker import CameraRig
+from shared.execution.robots.simulated import TRACKING_MODES, TrackingMode
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
@@ -145,6 +147,7 @@ class Episode:
     trial: int
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it receives a capture from that many cameras
+    tracking: TrackingMode = "image"  # how the robot sees the object while it pushes: rendered images, or "truth"
 
     @property
     def key(self) -> str:
@@ -177,7 +180,8 @@ def _seed_prefix(object_id: str) -> str:
 
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
-             trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test") -> list[Episode]:
+             trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test",
+             tracking: TrackingMode = "image") -> list[Episode]:
     """The trials of a protocol. Objects must be of `split`: "test" (the development split), "val" to tune,
     "unseen" (test objects of a family no model trains on), "final" (the final split, measured once per release
     by `evaluation/final_run.py` only); never train."""
@@ -196,8 +200,18 @@ def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directio
         raise ValueError(f"unknown method(s) {sorted(unknown)}; known: {', '.join(METHODS)}")
     if world not in WORLD_LEVELS:
         raise ValueError(f"unknown world {world!r}; known: {', '.join(WORLD_LEVELS)}")
-    return [Episode(m, hand, o, d, t, world, cameras) for m in methods for o in objects for d in directions
+    if tracking not in TRACKING_MODES:
+        raise ValueError(f"unknown tracking {tracking!r}; known: {', '.join(TRACKING_MODES)}")
+    return [Episode(m, hand, o, d, t, world, cameras, tracking) for m in methods for o in objects for d in directions
             for t in range(trials)]
+
+
+def camera_rig(episode: Episode, world: ExecutionWorld) -> CameraRig:
+    """The depth cameras the robot's image tracker sees the trial through: those that captured the object (told
+    the mesh: the default three), aimed as for the capture, off their calibration by the world's drawn errors."""
+    obj = load_object(episode.object_id)
+    T_true = world.pose_error.true_pose(placement(episode))
+    return CameraRig.around(T_true, obj.mesh, episode.cameras or 3, world.camera_errors)
 
 
 def placement(episode: Episode) -> np.ndarray:
@@ -235,8 +249,10 @@ def captured_cloud(episode: Episode) -> np.ndarray:
     from shared.world.perception import cloud_for_request
     from shared.world.sim.camera import capture_object
 
-    T_true = execution_world(episode).pose_error.true_pose(placement(episode))
-    capture = capture_object(load_object(episode.object_id), T_true, n_cameras=episode.cameras, seed=episode.world_seed)
+    world = execution_world(episode)
+    T_true = world.pose_error.true_pose(placement(episode))
+    capture = capture_object(load_object(episode.object_id), T_true, n_cameras=episode.cameras, seed=episode.world_seed,
+                             camera_errors=world.camera_errors)
     return cloud_for_request(capture.cloud)
 
 
@@ -314,6 +330,7 @@ def _monitor_thresholds(position_m: float, rotation_deg: float, tilt_deg: float)
 
 def run_episode(episode: Episode) -> dict[str, Any]:
     """Plan and execute one trial; a record with the outcome ("infeasible" when no plan exists)."""
+    from evaluation.local_system import TrackingErrors, engine_of
     from shared.planning.outcome import PushError
 
     system = _system
@@ -330,13 +347,18 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     system.robot.execution_world = world
     # The robot pushes the true object where it truly stands, whatever the system was told or saw.
     system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
-    record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record()}
+    system.robot.rig = camera_rig(episode, world)
+    system.robot.tracking = TrackingErrors()
+    system.robot.tracking_mode = episode.tracking
+    record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
+                              "engine": engine_of(world)}
     request = push_request(episode)  # with cameras: rendered once (the capture is seeded by the trial)
     try:
         response = pipeline.run(request).response
     except PushError as exc:
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
-                      error_code=exc.code, message=exc.message[:300])
+                      error_code=exc.code, message=exc.message[:300],
+                      tracker={"mode": system.robot.tracking_mode, "pushes": system.robot.tracking.summary()})
     except Exception as exc:  # a crash in one trial is recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:  # judged where the object truly is: the system only knows what its tracker saw
@@ -344,6 +366,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record.update(outcome="success" if result.success else "failure", success=bool(result.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
+        record["tracker"] = {"mode": system.robot.tracking_mode, "pushes": system.robot.tracking.summary()}
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
             if not result.success and len(response.steps) <= 1 and rollout_predicts_success(response.score.l_goal):

@@ -118,6 +118,21 @@ def test_a_state_repeating_the_last_tracked_pose_is_not_compared_again():
     assert monitor.observe_state(no_time) is None and monitor.observed == 1
 
 
+def test_a_lost_track_during_the_push_stops_it_but_not_before_or_after_it():
+    def lost(t: float) -> ExecutionState:
+        return ExecutionState(stamp=0.0, joint_names=[], positions=np.zeros(0), velocities=np.zeros(0),
+                              object_lost="3 object points, 30 needed", status="executing", plan_time_s=t)
+
+    monitor = _monitor()
+    assert monitor.observe_state(lost(1.0)) is None  # the approach: the hand may hide the object, it is not pushed
+    assert monitor.observe(1.5, _seen(0.5)) is None
+    reason = monitor.observe_state(lost(3.0))
+    assert reason is not None and "lost the object (3 object points, 30 needed)" in reason
+    assert monitor.stop_time_s == 3.0
+    after = _monitor()
+    assert after.observe_state(lost(7.0)) is None  # the retreat: stopping gains nothing
+
+
 def test_backing_out_retraces_the_plan_from_where_the_robot_stopped_to_its_start():
     from shared.planning.monitor import BACK_OUT_LEAD_S, backed_out
 
@@ -189,7 +204,7 @@ def test_the_simulated_robot_publishes_tracked_poses_at_the_tracker_rate_with_th
     from shared.execution.robots.sim.robot import SimRobot, TrueWorld
 
     tracks, states = [], []
-    robot = SimRobot(SimConfig("panda", "allegro"), publish=states.append)
+    robot = SimRobot(SimConfig("panda", "allegro", tracking="truth"), publish=states.append)
     robot.track = tracks.append
     with robot:
         T_true = np.eye(4)
@@ -253,7 +268,7 @@ def _push_with_a_mid_push_slip(closed_loop: bool):
             joints_after.append((plan, execution.final.positions.to_numpy()))
             return execution
 
-    robot = SlippingRobot()
+    robot = SlippingRobot(tracking="truth")  # the slip is a teleport: an image tracker may lose it (tested apart)
     pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate_here, execute=robot.execute),
                             PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
     try:

@@ -253,7 +253,9 @@ class ErrorReply(Message):
     `code` is machine-readable: bad_request (malformed / unknown payload), not_implemented,
     infeasible, internal, timeout, unavailable, cancelled (the caller gave up: its lease was lost), busy (the
     worker's queue is full: nothing was queued, try again later), not_confirmed (the robot bridge held the plan
-    for an operator's confirmation (`gd2p up --confirm`) and none came in time: nothing moved; not retried).
+    for an operator's confirmation (`gd2p up --confirm`) and none came in time: nothing moved; not retried),
+    lost (the robot's object tracker lost the object during or after a push: the system does not know where
+    it is, so it neither judges nor corrects the push; look, and ask again).
     """
 
     code: str
@@ -262,7 +264,7 @@ class ErrorReply(Message):
     service: str | None = None
 
     CODES: ClassVar[tuple[str, ...]] = ("bad_request", "not_implemented", "infeasible", "internal", "timeout", "unavailable",
-                                         "cancelled", "busy", "not_confirmed")
+                                         "cancelled", "busy", "not_confirmed", "lost")
 
 
 class HealthQuery(Message):
@@ -905,6 +907,9 @@ class ExecutionState(Message):
     positions: FloatVector
     velocities: FloatVector
     object_pose: ObjectPose | None = None  # the tracker's latest pose of the object, when one is seen
+    # Why the robot's tracker has no pose of the object now (an image tracker lost it: too few points, a poor
+    # fit); set only when object_pose is None. A closed loop stops a push on it rather than push on a stale pose.
+    object_lost: str | None = Field(default=None, max_length=300)
     status: ExecutionStatus = "idle"
     command_id: str | None = None
     message: str = ""
@@ -925,9 +930,10 @@ class ObjectTrack(Message):
 
     stamp: FiniteFloat  # seconds since the Unix epoch, when the pose was seen
     pose: ObjectPose
-    source: str = Field(min_length=1, max_length=128)  # which tracker: "sim-tracker", or the user's name for it
+    source: str = Field(min_length=1, max_length=128)  # which tracker: "image-tracker", or the user's name for it
     command_id: str | None = None  # the command executing when it was seen, if the publisher knows it
     plan_time_s: NonNegFloat | None = None  # how far into that command's plan, if the publisher knows it
+    fitness: float | None = Field(default=None, ge=0.0, le=1.0)  # a registering tracker's fit (share of points explained)
 
 
 class EStop(Message):

@@ -437,14 +437,16 @@ class Executor:
         names: list[str] = []
         positions: list[float] = []
         velocities: list[float] = []
-        object_pose = None
+        object_pose, object_lost = None, None
         for observation in (observations if observations is not None else self._observe()).values():
             names.extend(observation.joint_names)
             positions.extend(observation.positions.tolist())
             velocities.extend(observation.velocities.tolist())
             object_pose = object_pose or observation.object_pose
+            object_lost = object_lost or observation.object_lost
         if object_pose is None and self.tracked_object is not None:
             object_pose = self.tracked_object()
         return ExecutionState(stamp=time.time(), joint_names=names, positions=np.asarray(positions, dtype=np.float64),
                               velocities=np.asarray(velocities, dtype=np.float64), object_pose=object_pose,
+                              object_lost=None if object_pose is not None else object_lost,
                               status=status, command_id=command_id, message=message, plan_time_s=plan_time_s)

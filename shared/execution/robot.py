@@ -140,6 +140,7 @@ class Observation:
     velocities: np.ndarray
     efforts: np.ndarray | None = None
     object_pose: ObjectPose | None = None
+    object_lost: str | None = None  # why the robot's tracker sees no object pose now (an image tracker lost it)
 
 
 @dataclass(frozen=True)

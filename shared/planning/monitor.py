@@ -72,7 +72,10 @@ class PushMonitor:
 
     def observe_state(self, state: ExecutionState) -> str | None:
         """`observe` for a state the robot bridge published: those with a new tracked pose and a plan time
-        (a state repeats the tracker's latest pose until the next frame)."""
+        (a state repeats the tracker's latest pose until the next frame); a state whose tracker lost the object
+        during the push stops it (`lost`)."""
+        if state.object_pose is None and state.object_lost is not None and state.plan_time_s is not None:
+            return self.lost(state.plan_time_s, state.object_lost)
         if state.object_pose is None or state.plan_time_s is None or state.object_pose == self._last_pose:
             return None
         self._last_pose = state.object_pose
@@ -94,6 +97,15 @@ class PushMonitor:
         self.stop_reason = self._verdict(plan_time_s, seen, expected)
         if self.stop_reason is not None:
             self.stop_time_s = plan_time_s
+        return self.stop_reason
+
+    def lost(self, plan_time_s: float, why: str) -> str | None:
+        """The tracker lost the object at `plan_time_s`: during the push, stop it (pushing on would push on a
+        stale pose); before it the hand has not touched the object, after it stopping gains nothing."""
+        if self.stop_reason is not None or not self.window_s[0] <= plan_time_s <= self.window_s[1]:
+            return None
+        self.stop_reason = f"{plan_time_s - self.window_s[0]:.1f} s into the push the tracker lost the object ({why})"
+        self.stop_time_s = plan_time_s
         return self.stop_reason
 
     def _verdict(self, t: float, seen: _Moved, expected: _Moved) -> str | None:

@@ -605,6 +605,8 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
         code = "infeasible" if final.status == "refused" else "internal"
         raise PushError(code, f"the robot bridge did not execute the plan ({final.status}): {final.message}")
     if final.object_pose is None:
+        if final.object_lost is not None:  # no judging, no correction on a pose nobody saw
+            raise PushError("lost", f"after the push the tracker had lost the object: {final.object_lost}")
         raise PushError("internal", "the robot bridge observed no object pose after the push")
     result = judge_push(push.T_world_O, push.target_xy, final.object_pose)
     index = chosen.index

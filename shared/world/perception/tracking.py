@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .cloud import voxel_downsample
-from .depth import DepthFrame, transform_points_no_blas
+from .depth import DepthFrame, Intrinsics, transform_points_no_blas
 from .errors import PerceptionError
 
 
@@ -203,6 +203,15 @@ class ObjectTracker:
                           if self._since_good == 1 else np.zeros(3))
         self._T_good, self._since_good = T_world_O, 1
         return TrackedPose(T_world_O.copy(), fitness, rmse, len(points), None)
+
+    def search_window(self, intrinsics: Intrinsics, T_world_camera: np.ndarray) -> tuple[slice, slice]:
+        """(rows, columns) of the only pixels the next `update` reads from a camera at T_world_camera: a renderer may
+        draw just these (a simulated camera's cost is per pixel drawn)."""
+        if self._T_good is None:
+            raise PerceptionError("tracker asked for its search window before reset")
+        centre = transform_points_no_blas(self._predicted(), self.centre_O[None])[0]
+        return sphere_window(intrinsics, np.asarray(T_world_camera, dtype=np.float64), centre,
+                             self.radius_m + self._search_margin())
 
     def _predicted(self) -> np.ndarray:
         """Where the object should be now: the last tracked pose, its centre moved on by the last frame's shift.
@@ -398,20 +407,26 @@ def _sphere_window(frame: DepthFrame, centre: np.ndarray, radius_m: float) -> np
     camera is inside or next to the sphere)."""
     k = frame.intrinsics
     window = np.zeros((k.height, k.width), dtype=bool)
-    in_camera = transform_points_no_blas(_inverse(np.asarray(frame.T_world_camera, dtype=np.float64)), centre[None])[0]
+    rows, columns = sphere_window(k, np.asarray(frame.T_world_camera, dtype=np.float64), centre, radius_m)
+    window[rows, columns] = True
+    return window
+
+
+def sphere_window(k: Intrinsics, T_world_camera: np.ndarray, centre: np.ndarray, radius_m: float) -> tuple[slice, slice]:
+    """(rows, columns) of the image box a sphere can project to, clipped to the image (the whole image when the
+    camera is inside or next to the sphere; empty slices when it is out of view)."""
+    in_camera = transform_points_no_blas(_inverse(T_world_camera), np.asarray(centre, dtype=np.float64)[None])[0]
     depth = in_camera[2] - radius_m
     if depth <= 1e-3:
-        window[:] = True
-        return window
+        return slice(0, k.height), slice(0, k.width)
     u, v = k.cx + k.fx * in_camera[0] / in_camera[2], k.cy + k.fy * in_camera[1] / in_camera[2]
     # The sphere's image is inside the circle of radius f * r / (z - r) around the projected centre, plus the
     # shift of that centre across the sphere's depth (x / z varies up to |x| r / (z (z - r))).
     half_u = k.fx * (radius_m + abs(in_camera[0]) * radius_m / in_camera[2]) / depth + 1.0
     half_v = k.fy * (radius_m + abs(in_camera[1]) * radius_m / in_camera[2]) / depth + 1.0
-    columns = slice(max(int(math.floor(u - half_u)), 0), max(int(math.ceil(u + half_u)) + 1, 0))
-    rows = slice(max(int(math.floor(v - half_v)), 0), max(int(math.ceil(v + half_v)) + 1, 0))
-    window[rows, columns] = True
-    return window
+    columns = slice(min(max(int(math.floor(u - half_u)), 0), k.width), min(max(int(math.ceil(u + half_u)) + 1, 0), k.width))
+    rows = slice(min(max(int(math.floor(v - half_v)), 0), k.height), min(max(int(math.ceil(v + half_v)) + 1, 0), k.height))
+    return rows, columns
 
 
 def _drop_isolated(points: np.ndarray, radius_m: float, min_neighbours: int) -> np.ndarray:

@@ -43,6 +43,7 @@ turned by its rotation about the camera).
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -252,16 +253,45 @@ class _CaptureWorld:
     def render(self, T_world_camera: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
         """(ideal metric depth [H, W] with 0 where nothing is seen, object mask [H, W]) of a camera whose
         OpenCV frame is at `T_world_camera`."""
-        # The OpenGL camera looks along -z with y up.
-        T_gl = np.asarray(T_world_camera, dtype=np.float64) @ np.diag([1.0, -1.0, -1.0, 1.0])
-        view = np.linalg.inv(T_gl)
-        projection = pb.computeProjectionMatrixFOV(intrinsics.vfov_deg, intrinsics.width / intrinsics.height, NEAR_M, FAR_M)
-        _, _, _, buffer, segmentation = pb.getCameraImage(
-            intrinsics.width, intrinsics.height, viewMatrix=view.T.reshape(-1).tolist(), projectionMatrix=projection,
-            renderer=pb.ER_TINY_RENDERER, physicsClientId=self.client)
-        buffer = np.asarray(buffer, dtype=np.float64).reshape(intrinsics.height, intrinsics.width)
-        depth = FAR_M * NEAR_M / (FAR_M - (FAR_M - NEAR_M) * buffer)
-        depth = np.where(buffer < 1.0 - 1e-7, depth, 0.0)  # the far plane: nothing there
-        mask = np.asarray(segmentation).reshape(intrinsics.height, intrinsics.width) == self.object_id
-        return depth, mask
+        depth, bodies = render_depth(self.client, T_world_camera, intrinsics)
+        return depth, bodies == self.object_id
 
+
+def render_depth(client: int, T_world_camera: np.ndarray, intrinsics: Intrinsics,
+                 window: tuple[slice, slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """What a camera whose OpenCV frame is at `T_world_camera` sees in PyBullet client `client` (TinyRenderer,
+    every body with a visual shape): ideal metric depth [H, W] along the optical axis (0 where nothing is seen)
+    and the body id under each pixel ([H, W] int, -1 for none). With `window` (rows, columns) only those pixels
+    are drawn (an off-centre frustum over them: TinyRenderer's cost is per pixel); the rest read as nothing."""
+    # The OpenGL camera looks along -z with y up.
+    T_gl = np.asarray(T_world_camera, dtype=np.float64) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    view = np.linalg.inv(T_gl)
+    rows, columns = window or (slice(0, intrinsics.height), slice(0, intrinsics.width))
+    height, width = rows.stop - rows.start, columns.stop - columns.start
+    depth = np.zeros((intrinsics.height, intrinsics.width))
+    bodies = np.full((intrinsics.height, intrinsics.width), -1, dtype=np.int64)
+    if height <= 0 or width <= 0:
+        return depth, bodies
+    _, _, _, buffer, segmentation = pb.getCameraImage(
+        width, height, viewMatrix=view.T.reshape(-1).tolist(), projectionMatrix=_frustum(intrinsics, rows, columns),
+        renderer=pb.ER_TINY_RENDERER, physicsClientId=client)
+    buffer = np.asarray(buffer, dtype=np.float64).reshape(height, width)
+    seen = FAR_M * NEAR_M / (FAR_M - (FAR_M - NEAR_M) * buffer)
+    depth[rows, columns] = np.where(buffer < 1.0 - 1e-7, seen, 0.0)  # the far plane: nothing there
+    bodies[rows, columns] = np.asarray(segmentation).reshape(height, width)
+    return depth, bodies
+
+
+def _frustum(intrinsics: Intrinsics, rows: slice, columns: slice) -> list[float]:
+    """OpenGL projection (column-major) of the part of the image `rows` x `columns` covers: the full image's
+    symmetric frustum (vertical field of view `vfov_deg`, as computeProjectionMatrixFOV) cut at the pixel edges."""
+    top = NEAR_M * math.tan(math.radians(intrinsics.vfov_deg) / 2.0)
+    right = top * intrinsics.width / intrinsics.height
+    per_column, per_row = 2.0 * right / intrinsics.width, 2.0 * top / intrinsics.height
+    left_, right_ = -right + per_column * columns.start, -right + per_column * columns.stop
+    top_, bottom_ = top - per_row * rows.start, top - per_row * rows.stop
+    n, f = NEAR_M, FAR_M
+    return [2.0 * n / (right_ - left_), 0.0, 0.0, 0.0,
+            0.0, 2.0 * n / (top_ - bottom_), 0.0, 0.0,
+            (right_ + left_) / (right_ - left_), (top_ + bottom_) / (top_ - bottom_), -(f + n) / (f - n), -1.0,
+            0.0, 0.0, -2.0 * f * n / (f - n), 0.0]

@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 
 from shared.execution.robots.sim.tracker import TrackerConfig
+from shared.world.perception.tracking import TrackingConfig
 from shared.world.sim.world import MujocoDraw
 
 
@@ -106,7 +107,11 @@ class MujocoConfig:
     materials: MaterialConfig = MaterialConfig()
     control: ControlConfig = ControlConfig()
     state_rate_hz: float = 50.0  # states published per second of robot time
-    tracker: TrackerConfig = TrackerConfig()  # how the robot sees the object (until item 3's image tracker)
+    # How the robot sees the object: "image" (registered in depth frames MuJoCo renders, camera_tracker.py) or
+    # "truth" (the true pose, late and noisy: TrackerConfig).
+    tracking: Literal["image", "truth"] = "image"
+    image_tracking: TrackingConfig = TrackingConfig()
+    tracker: TrackerConfig = TrackerConfig()
 
     def __post_init__(self) -> None:
         if self.state_rate_hz <= 0:

@@ -11,9 +11,9 @@ executor, the evaluation and the bridge can run a plan on either: `connect`, `ob
   feed-forward (force = kp (q_ref - q) + kv (qd_ref - qd), capped at the URDF effort, gravity
   compensated), then holds the final waypoint `settle_s`. Physics follows the trajectory's own times; the
   wall clock is paced `realtime_factor` times faster (`time_scale` is 1, as for the PyBullet robot).
-- The object is seen only through a tracker (for now the PyBullet robot's `SimTracker`: late, noisy, at a
-  camera's rate; tracking from rendered images is to replace it). `true_object_pose()` is
-  the truth, for the evaluation's judge only, as `SimRobot.true_object_pose`.
+- The object is seen only through a tracker (`simulated.py`): by default registered in depth frames this
+  engine renders with the arm and hand in view (`camera_tracker.py`), or "lost"; the truth-plus-noise
+  tracker is a named option. `true_object_pose()` is the truth, for the evaluation's judge only.
 - The world: a `TrueWorld` with a `mujoco` draw (`shared.world.sim.world.MujocoDraw`, world level
   `mujoco`) sets this engine's own physics: every geom's friction (table, object, each finger's), the
   servos' gains, the fingers' stiffness and damping, the command latency and the object's mass and
@@ -71,7 +71,7 @@ class MujocoRobot(SimulatedRobot):
         self.T_world_base = config.T_world_base
         self.state_rate_hz = config.state_rate_hz
         self.publish = publish
-        self._init_tracking(config.tracker)
+        self._init_tracking(config.tracker, config.tracking, config.image_tracking)
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._placed: PlacedObject | None = None
@@ -149,9 +149,7 @@ class MujocoRobot(SimulatedRobot):
             self._placed, self._obstacles = placed, tuple(world.obstacles)
             self.world_config = self.config if draw is None else self.config.drawn(draw)
             self._build(None)
-        self.tracker.reset(world.tracker_seed)
-        self._T_O_tracked = np.eye(4) if world.T_O_tracked is None else np.asarray(world.T_O_tracked, dtype=np.float64)
-        self._tracked = None
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -167,7 +165,7 @@ class MujocoRobot(SimulatedRobot):
             q = self.observe().positions
             self._placed = PlacedObject(obj, np.asarray(T_world_O, dtype=np.float64))
             self._build(q)
-            self._tracked = None
+            self._tracked, self._lost = None, None
             self._T_O_tracked = np.eye(4)
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
@@ -188,6 +186,19 @@ class MujocoRobot(SimulatedRobot):
         _, data = self._world()
         with self._lock:
             return data.qpos[self._qpos].copy(), data.qvel[self._qvel].copy()
+
+    def object_touches_obstacle(self) -> bool:
+        model, data = self._world()
+        if self._object_body < 0:
+            return False
+        with self._lock:
+            for contact in data.contact[: data.ncon]:
+                bodies = {int(model.geom_bodyid[contact.geom1]), int(model.geom_bodyid[contact.geom2])}
+                if self._object_body in bodies:
+                    names = (model.geom(contact.geom1).name, model.geom(contact.geom2).name)
+                    if any(name.startswith("obstacle") for name in names):
+                        return True
+        return False
 
     def _true_pose(self) -> np.ndarray | None:
         _, data = self._world()
@@ -220,11 +231,12 @@ class MujocoRobot(SimulatedRobot):
 
     # ---------------------------------------------------------------------------------------- cameras
 
-    def render_depth(self, cameras: Sequence[CameraPose | np.ndarray],
-                     intrinsics: Intrinsics) -> list[tuple[np.ndarray, np.ndarray]]:
+    def render_depth(self, cameras: Sequence[CameraPose | np.ndarray], intrinsics: Intrinsics,
+                     windows: Sequence[tuple[slice, slice]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per camera (a CameraPose, or an OpenCV T_world_camera 4x4): ideal metric depth [H, W] along the
         optical axis, 0 where nothing is seen, and the robot mask [H, W] (pixels on a robot link), of the
-        world as it stands now (`cameras.py`; RenderUnavailable without a usable OpenGL platform)."""
+        world as it stands now (`cameras.py`; RenderUnavailable without a usable OpenGL platform). The whole
+        image is drawn whatever `windows` asks (MuJoCo's renderer costs ~7 ms per 424 x 240 camera)."""
         with self._renderers.lock:
             while True:
                 model, _ = self._world()
@@ -254,7 +266,7 @@ class MujocoRobot(SimulatedRobot):
         held = data.ctrl[self._actuators].copy()
         velocities = own.velocities() if len(own.times_s) > 1 else np.zeros((0, len(self.joint_names)))
         publish_every = max(1, round(1.0 / (self.state_rate_hz * dt)))
-        track_every = self.tracker.steps_per_frame(dt)
+        track_every = self.steps_per_frame(dt)
         wall_start = time.monotonic()
         self.collisions = {}
         self.tracker.forget()

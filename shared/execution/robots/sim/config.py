@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from shared.execution.limits import DeviceLimits
 from shared.execution.robots.sim.tracker import TrackerConfig
 from shared.robots.robot_limits import JointLimits
+from shared.world.perception.tracking import TrackingConfig
 from shared.world.sim.params import REFERENCE_PARAMS, PhysicsParams
 
 
@@ -22,11 +24,17 @@ class SimConfig:
     T_world_base: np.ndarray | None = None  # the arm's base in the world (None: at the origin)
     params: PhysicsParams = REFERENCE_PARAMS  # the physics of a world reset without its own
     state_rate_hz: float = 50.0  # states published per second of robot time
-    tracker: TrackerConfig = TrackerConfig()  # how the robot sees the object (tracker.py)
+    # How the robot sees the object: "image" (registered in rendered depth frames, camera_tracker.py) or
+    # "truth" (the true pose, late and noisy: tracker.py's TrackerConfig).
+    tracking: Literal["image", "truth"] = "image"
+    image_tracking: TrackingConfig = TrackingConfig()
+    tracker: TrackerConfig = TrackerConfig()
 
     def __post_init__(self) -> None:
         if self.state_rate_hz <= 0:
             raise ValueError(f"state_rate_hz must be positive, got {self.state_rate_hz}")
+        if self.tracking not in ("image", "truth"):
+            raise ValueError(f"tracking must be 'image' or 'truth', got {self.tracking!r}")
 
 
 @functools.cache

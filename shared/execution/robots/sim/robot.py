@@ -18,9 +18,10 @@ checks as on hardware (the bus bridge and the evaluation alike).
 - State: published through `publish` (an ExecutionState with the plan time and the tracked object
   pose) every 1/`state_rate_hz` seconds of robot time; `observe()` (joints and object pose) is safe
   from any thread.
-- The object is seen through a simulated tracker (`tracker.py`: late, noisy, at a camera's rate), as a
-  real bridge sees it: every pose the robot reports is the tracker's, each of its frames also goes to
-  `track` (an ObjectTrack, for the bus). `true_object_pose()` is the truth, for the evaluation's judge.
+- The object is seen through a tracker, as a real bridge sees it (`simulated.py`): by default registered
+  in depth frames rendered here with the arm and hand in view (`camera_tracker.py`), or "lost"; every
+  pose the robot reports is the tracker's, each of its frames also goes to `track` (an ObjectTrack, for
+  the bus). `true_object_pose()` is the truth, for the evaluation's judge.
 - Collisions: robot contacts with the table, obstacles or (arm links) the object during a motion are
   recorded in `collisions` (hand-object contact is the push) and named in the report's message.
 """
@@ -38,11 +39,14 @@ from shared.contracts.messages import ObjectRef, SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
 from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
+from shared.execution.robots.camera_tracker import CameraRig
 from shared.execution.robots.sim.config import SimConfig, limits
 from shared.execution.robots.simulated import SimulatedRobot
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import ObjectLoadError, write_object_urdf
+from shared.world.perception.depth import Intrinsics
 from shared.world.push_outcome import pose_matrix
+from shared.world.sim.camera import render_depth
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.plan_runner import ArmController, prepare_robot
 from shared.world.sim.robot_scene import RobotScene
@@ -64,15 +68,25 @@ class TrueWorld:
     # Where the frame the tracker reports sits in the object's frame O (None: O itself). A model-based
     # tracker follows the model the system has: for a reconstruction from a camera cloud, its own frame
     # (centre of mass and principal axes of what was seen), which may be the true O turned 180 degrees.
+    # The truth tracker reports this frame; the judge compares the image tracker's poses with it.
     T_O_tracked: np.ndarray | None = None
     # The MuJoCo world's own draw (level `mujoco`): read by the MuJoCo robot only, which then takes the object's
     # mass and centre of mass from it (None: its config's nominal world). PyBullet reads `physics`.
     mujoco: MujocoDraw | None = None
+    # The model the system has and where it was told that model stands (the image tracker registers it from
+    # there); None: the true object where it truly stands (all a bus bridge knows).
+    told_object: tuple[ObjectRef, np.ndarray] | None = None
+    rig: CameraRig | None = None  # the depth cameras the image tracker sees through (None: the default, calibrated)
 
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
         """`world` taken as the truth: all a bus bridge knows."""
         return cls(world.object, pose_matrix(world.object_pose), tuple((o.x, o.y, o.radius) for o in world.obstacles))
+
+    @property
+    def tracked_model(self) -> tuple[ObjectRef, np.ndarray]:
+        """The model the image tracker registers and the pose it starts from."""
+        return self.told_object or (self.obj, np.asarray(self.T_world_O, dtype=np.float64))
 
 
 class SimRobot(SimulatedRobot):
@@ -91,7 +105,7 @@ class SimRobot(SimulatedRobot):
         self.params = config.params
         self.state_rate_hz = config.state_rate_hz
         self.publish = publish
-        self._init_tracking(config.tracker)
+        self._init_tracking(config.tracker, config.tracking, config.image_tracking)
         self.scene: RobotScene | None = None
         self._lock = threading.RLock()  # PyBullet is not thread-safe: one caller at a time
         # Robot contacts with the table, obstacles (and arm-object) during the last send(): the first
@@ -140,9 +154,8 @@ class SimRobot(SimulatedRobot):
             self.connect()
         self.add_object(urdf, world.T_world_O)
         self.add_obstacles(world.obstacles)
-        self.tracker.reset(world.tracker_seed)
-        self._T_O_tracked = np.eye(4) if world.T_O_tracked is None else np.asarray(world.T_O_tracked, dtype=np.float64)
-        self._tracked = None  # the next observation is a frame of this world's object
+        # The next observation is a frame of this world's object.
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -157,7 +170,7 @@ class SimRobot(SimulatedRobot):
         scene = self._scene()
         with self._lock:
             scene.add_object(urdf_path, T_world_O)
-            self._tracked = None
+            self._tracked, self._lost = None, None
             self._T_O_tracked = np.eye(4)  # tracked in its own frame, unless the world says otherwise (reset_world)
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
@@ -183,6 +196,21 @@ class SimRobot(SimulatedRobot):
         with self._lock:
             return None if scene.object is None else scene.object.pose()
 
+    def object_touches_obstacle(self) -> bool:
+        with self._lock:
+            return self.scene is not None and self.scene.object_touches_obstacle()
+
+    def render_depth(self, cameras: Sequence[np.ndarray], intrinsics: Intrinsics,
+                     windows: Sequence[tuple[slice, slice]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per camera: ideal depth of the scene as it is now (TinyRenderer: the arm, hand, object and obstacles)
+        and the robot's self-filter mask (the pixels its links cover); only each window is drawn."""
+        scene = self._scene()
+        with self._lock:
+            drawn: Sequence[tuple[slice, slice] | None] = [None] * len(cameras) if windows is None else windows
+            seen = [render_depth(scene.client, T_world_camera, intrinsics, window)
+                    for T_world_camera, window in zip(cameras, drawn, strict=True)]
+        return [(depth, bodies == scene.robot_id) for depth, bodies in seen]
+
     # ------------------------------------------------------------------------------------------ send
 
     def send(self, trajectory: JointTrajectory, stop: threading.Event | None = None, *, realtime_factor: float = 1.0,
@@ -195,7 +223,7 @@ class SimRobot(SimulatedRobot):
         scene = self._scene()
         controller = ArmController(scene, self.params, own.times_s, own.positions)
         publish_every = max(1, round(1.0 / (self.state_rate_hz * self.params.time_step_s)))
-        track_every = self.tracker.steps_per_frame(self.params.time_step_s)
+        track_every = self.steps_per_frame(self.params.time_step_s)
         wall_start = time.monotonic()
         self.collisions = {}
         self.tracker.forget()  # the latency is within a command: its first frame is the object as it is now

@@ -1,0 +1,117 @@
+"""The simulated robots see the object only through their cameras: an image tracker, never the simulator's truth.
+
+What a user relies on: the pose the robot reports (observe, the states a push is watched by) comes from rendered
+depth frames; the planner's side has no way to the true pose; a lost track is reported as lost (never a stale
+pose) and stops a closed-loop push; the judge's comparison with the truth is kept apart, for trial records.
+"""
+from __future__ import annotations
+
+import ast
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shared.contracts.messages import ExecutionState, ObjectRef, ObjectTrack
+from shared.execution.robot import JointTrajectory
+from shared.execution.robots.camera_tracker import CameraRig
+from shared.execution.robots.sim.config import SimConfig
+from shared.execution.robots.sim.robot import SimRobot, TrueWorld
+from shared.frames import make_transform, yaw_rotation
+from shared.world.objects import load_object
+from shared.world.push_outcome import pose_matrix
+from shared.world.sim.camera import CameraPose
+
+ROOT = Path(__file__).resolve().parents[1]
+BOX = "proc-box-001"
+# Everything on the planner's side of the robot contract: what plans, samples, validates and asks.
+PLANNER_SIDE = ("shared/planning", "shared/sampling", "shared/validation", "services/planner", "client", "cli/push.py")
+TRUTH_NAMES = {"true_object_pose", "_true_pose", "true_tracked_pose", "judge_frame", "TrueWorld", "execution_world",
+               "true_object"}
+
+
+def _box_pose(x: float = 0.45, y: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
+    obj = load_object(BOX)
+    return make_transform(yaw_rotation(math.radians(yaw_deg)), np.array([x, y, 0.0])) @ obj.T_D_O()
+
+
+@pytest.fixture(scope="module")
+def robot():
+    with SimRobot(SimConfig("panda", "allegro")) as robot:
+        yield robot
+
+
+def test_nothing_on_the_planner_side_names_the_truth():
+    for part in PLANNER_SIDE:
+        paths = [ROOT / part] if part.endswith(".py") else sorted((ROOT / part).rglob("*.py"))
+        for path in paths:
+            names = {node.attr for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.Attribute)}
+            names |= {node.id for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.Name)}
+            assert not names & TRUTH_NAMES, f"{path.relative_to(ROOT)} reads {sorted(names & TRUTH_NAMES)}"
+
+
+def test_the_reported_pose_comes_from_images_even_with_the_truth_out_of_reach(robot, monkeypatch):
+    T_true = _box_pose()
+    told = T_true.copy()
+    told[:2, 3] += (0.006, -0.004)  # the system was told a pose 7 mm off: the tracker must find the object
+    robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true, told_object=(ObjectRef(library_id=BOX), told)))
+
+    def no_truth():
+        raise AssertionError("the image tracker read the simulator's true pose")
+
+    monkeypatch.setattr(robot, "_true_pose", no_truth)
+    seen = robot.observe().object_pose
+    assert seen is not None
+    assert np.linalg.norm(pose_matrix(seen)[:2, 3] - T_true[:2, 3]) < 0.004  # found where it is, not where told
+
+    states: list[ExecutionState] = []
+    tracks: list[ObjectTrack] = []
+    robot.publish, robot.track = states.append, tracks.append
+    try:
+        q = robot.observe().positions
+        trajectory = JointTrajectory(robot.joint_names, np.stack([q, q]), np.array([0.0, 1.0]))
+        robot.send(trajectory, realtime_factor=1000.0, command_id="c1")
+    finally:
+        robot.publish, robot.track = None, None
+    assert len(tracks) >= 10  # >= 10 Hz of robot time over 1 s of plan (+ settling)
+    assert {t.source for t in tracks} == {"image-tracker"}
+    assert all(t.fitness is not None and t.fitness > 0.5 for t in tracks)
+    assert all(s.object_pose is not None for s in states)
+
+
+def test_a_hidden_object_is_reported_lost_not_at_its_last_pose(robot):
+    T_true = _box_pose()
+    # One camera, looking away from the object: it cannot be seen at all.
+    away = CameraPose("away", (0.0, 0.0, 0.8), (-1.0, 0.5, 0.0))
+    robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true, rig=CameraRig.calibrated([away])))
+    observation = robot.observe()
+    assert observation.object_pose is None
+    assert observation.object_lost is not None and observation.object_lost
+
+
+def test_the_judge_sees_the_trackers_error_without_the_planner(robot):
+    T_true = _box_pose(yaw_deg=10.0)
+    robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true))
+    errors: list[float] = []
+
+    def judge(pose, plan_time_s):
+        truth = robot.true_tracked_pose()
+        errors.append(float(np.linalg.norm(pose_matrix(pose)[:3, 3] - pose_matrix(truth)[:3, 3])))
+
+    robot.judge_frame = judge
+    try:
+        q = robot.observe().positions
+        robot.send(JointTrajectory(robot.joint_names, np.stack([q, q]), np.array([0.0, 0.5])), realtime_factor=1000.0)
+    finally:
+        robot.judge_frame = None
+    assert errors and max(errors) < 0.005
+
+
+def test_truth_tracking_stays_a_named_option():
+    with pytest.raises(ValueError, match="tracking"):
+        SimConfig("panda", "allegro", tracking="oracle")  # type: ignore[arg-type]
+    with SimRobot(SimConfig("panda", "allegro", tracking="truth")) as robot:
+        robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), _box_pose(), tracker_seed=3))
+        assert robot.camera_tracker is None
+        assert robot.observe().object_pose is not None
