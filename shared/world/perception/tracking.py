@@ -9,19 +9,21 @@ Each update (depth frames of the same instant from one or more cameras, with the
 mask for each: the pixels its model covers at its measured joints):
 
 1. Segmentation. Per frame only the pixels inside the projection of a search sphere are back-projected:
-   centred on the last tracked pose's model centre, radius the model's radius + a search margin (wider
-   after each lost frame). Pixels under the robot mask, dilated by `robot_padding_px` as real self-filters
-   pad the robot model, are dropped; so are points within `table_margin_m` of the table plane z = 0 and
-   points outside the sphere. The rest is voxel-downsampled (even density whatever the camera distance)
-   and isolated points (stereo noise of the table above the margin, flying pixels) are dropped.
-2. Registration. Point-to-plane ICP of the segmented points onto the model, from the last tracked pose,
-   coarse (wide correspondence gate) then fine. After a loss a second start, the model moved onto the
-   segmented centroid, is tried too, and the better fit is kept.
+   centred on the predicted model centre (the last tracked one moved on by the last frame's shift), radius
+   the model's radius + a search margin (wider after each lost frame). Pixels under the robot mask, dilated
+   by `robot_padding_px` as real self-filters pad the robot model, are dropped; so are points within
+   `table_margin_m` of the table plane z = 0 and points outside the sphere. The rest is voxel-downsampled
+   (even density whatever the camera distance) and isolated points (stereo noise of the table above the
+   margin, flying pixels) are dropped.
+2. Registration. Point-to-plane ICP of the segmented points onto the model, from the predicted pose, coarse
+   (wide correspondence gate) then fine. After a loss a second start, the model moved onto the segmented
+   centroid, is tried too, and the better fit is kept.
 3. Degenerate views. The point-to-plane Hessian at the solution says which motions the points pin down
-   (rotations measured about the model centre, scaled by its radius so they compare with translations):
-   a direction whose eigenvalue is under `degenerate_ratio` of the largest (the spin of a standing
-   cylinder or a sphere, sliding along a single visible plane) keeps the prior's value instead of what
-   the ICP drifted to.
+   (rotations about the model centre, scaled by its radius so they compare with translations). The change
+   from the predicted pose is damped along each eigen-direction as a prior term weighted `degenerate_ratio`
+   times the strongest would: the spin of a standing cylinder or a sphere, sliding along a single visible
+   plane keep (nearly) the prior's value instead of whatever the ICP drifted to; well observed directions
+   keep the ICP's.
 4. Checks. Fitness (the share of segmented points within `inlier_m` of the model surface), RMSE of those
    points' point-to-plane distances, and the step from the last tracked pose against what an object
    pushed at `max_speed_mps` / `max_turn_deg_s` can do in the frames since: a failed check reports
@@ -35,10 +37,10 @@ update on one thread of a shared 2-core machine:
 
     candidate                   position mm      rotation deg     lost   false   ms
                                 median  p95      median  p95                     median  p95
-    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      13.5    27.6
-    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    11.8    40.6
-    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      21.9    55.6
-    (Open3D, no robot mask      0.88    1.14     8.97   10.04    86%     0%     239     480)
+    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      13.6    27.7
+    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    11.8    40.8
+    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      22.6    56.5
+    (Open3D, no robot mask      0.88    1.14     8.97   10.04    86%     0%     236     475)  errors: the 14% tracked
 
 Open3D (open3d-cpu 0.20, a 105 MB wheel against small_gicp's 0.4 MB) is the most accurate in rotation, where
 it matters (near-round and small objects: ellipsoid p95 5.3 against 14.5 / 7.6 degrees), with no false track
