@@ -141,7 +141,7 @@ def test_robot_hides_part_of_the_object(box_push):
     obj, poses, seen = box_push
     frames, masks = seen[0]
     tracker = ObjectTracker.from_mesh(obj.mesh)
-    centre = poses[0][:3, :3] @ tracker.centre_O + poses[0][:3, 3]
+    centre = tracker.centre(poses[0])
     near_robot = []
     for frame, mask in zip(frames, masks, strict=True):
         robot_only = DepthFrame(np.where(mask, frame.depth_m, 0.0), frame.intrinsics, frame.T_world_camera)
@@ -235,7 +235,7 @@ def test_the_robot_mask_keeps_the_robot_out_of_the_segmentation(box_push):
     truth = poses[3]
     surface = obj.mesh.copy()
     surface.apply_transform(truth)
-    centre = truth[:3, :3] @ tracker.centre_O + truth[:3, 3]
+    centre = tracker.centre(truth)
     frames, masks = seen[3]
     masked = tracker.segment(frames, masks, centre, tracker.radius_m + CONFIG.search_margin_m)
     unmasked = tracker.segment(frames, [None] * len(frames), centre, tracker.radius_m + CONFIG.search_margin_m)

@@ -70,7 +70,7 @@ from .errors import PerceptionError
 class TrackingConfig:
     rate_hz: float = 10.0  # frames per second of robot time (users of the tracker read it)
     image_size: tuple[int, int] = (424, 240)  # the D435's 424x240 depth mode, what tracking renders at
-    # A mesh is sampled this densely: ~3 mm between samples on a 20 cm box, under the fine ICP gate.
+    # A mesh is sampled this densely: ~5 mm between samples on a 20 cm box, well under the fine ICP gate.
     model_points: int = 4000
     # Self-filter padding: TinyRenderer silhouettes are exact, a real robot model is not (cables, calibration);
     # 2 px is ~9 mm at 1 m in the 424 x 240 mode.
@@ -90,7 +90,7 @@ class TrackingConfig:
     min_points: int = 30  # fewer segmented points than this cannot pin 6 degrees of freedom against noise
     coarse_correspondence_m: float = 0.03  # first ICP pass: the motion between two frames
     fine_correspondence_m: float = 0.012  # second pass: noise (7 mm sigma at 1 m) plus model sampling
-    icp_iterations: int = 30
+    icp_iterations: int = 30  # per pass, an upper bound: Open3D stops once the fit changes by under 1e-6
     # The prior term's weight, relative to the point-to-plane Hessian's strongest direction (step 3 above): a
     # direction with eigenvalue l keeps l / (l + 0.01 max l) of the ICP's change per frame. Measured weakest/strongest
     # eigenvalue: a standing faceted cylinder's spin 0.002 (keeps 17%: it stays near the prior), a near-round
@@ -103,7 +103,8 @@ class TrackingConfig:
     inlier_m: float = 0.007
     min_fitness: float = 0.75
     max_rmse_m: float = 0.005  # the explained points of the right pose sit at 2-3.5 mm RMSE at 0.5-1 m
-    # The fastest a pushed object moves: a push at up to 0.3 m/s and a fast turn; plus one frame's slack.
+    # The fastest a pushed object moves: pushes run at up to 0.3 m/s, the rest is room for the noise of the two
+    # poses compared; a fast turn.
     max_speed_mps: float = 0.5
     max_turn_deg_s: float = 180.0
 
@@ -215,7 +216,7 @@ class ObjectTracker:
         if self._T_good is None:
             raise PerceptionError("tracker updated before reset: call reset(T_world_O) with the object's pose first")
         predicted = self._predicted()
-        centre = transform_points_no_blas(predicted, self.centre_O[None])[0]
+        centre = self.centre(predicted)
         points = self.segment(frames, robot_masks, centre, self.radius_m + self._search_margin())
         if len(points) < self.config.min_points:
             return self._lose(f"too few object points ({len(points)} < {self.config.min_points})", len(points))
@@ -224,10 +225,20 @@ class ObjectTracker:
         reason = self._implausible(fitness, rmse, T_world_O)
         if reason is not None:
             return self._lose(reason, len(points), fitness, rmse)
-        self._velocity = (T_world_O[:3, 3] - self._T_good[:3, 3] + (T_world_O[:3, :3] - self._T_good[:3, :3]) @ self.centre_O
-                          if self._since_good == 1 else np.zeros(3))
-        self._T_good, self._since_good = T_world_O, 1
+        self._accept(T_world_O)
         return TrackedPose(T_world_O.copy(), fitness, rmse, len(points), None)
+
+    def centre(self, T_world_O: np.ndarray) -> np.ndarray:
+        """[3] the model centre (the mean of its points) in the world with the model at T_world_O."""
+        return np.asarray(T_world_O[:3, :3] @ self.centre_O + T_world_O[:3, 3], dtype=np.float64)
+
+    def _accept(self, T_world_O: np.ndarray) -> None:
+        """T_world_O becomes the last tracked pose; the centre's shift from the previous one is the velocity
+        when the two were consecutive frames."""
+        assert self._T_good is not None
+        consecutive = self._since_good == 1
+        self._velocity = self.centre(T_world_O) - self.centre(self._T_good) if consecutive else np.zeros(3)
+        self._T_good, self._since_good = T_world_O, 1
 
     def _predicted(self) -> np.ndarray:
         """Where the object should be now: the last tracked pose, its centre moved on by the last frame's shift.
@@ -312,7 +323,7 @@ class ObjectTracker:
             return T_world_O
         rotation = T_world_O[:3, :3]
         normals = self.model_normals[index[matched]] @ rotation.T
-        arm = (points[matched] - (rotation @ self.centre_O + T_world_O[:3, 3])) / self.radius_m
+        arm = (points[matched] - self.centre(T_world_O)) / self.radius_m
         jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)
         eigenvalues, eigenvectors = np.linalg.eigh(jacobian.T @ jacobian / len(jacobian))
         eigenvalues = np.maximum(eigenvalues, 0.0)
@@ -320,13 +331,12 @@ class ObjectTracker:
         if damping <= 0.0:
             return T_world_O
         turn = Rotation.from_matrix(rotation @ T_prior[:3, :3].T).as_rotvec()
-        shift = (rotation - T_prior[:3, :3]) @ self.centre_O + T_world_O[:3, 3] - T_prior[:3, 3]
+        shift = self.centre(T_world_O) - self.centre(T_prior)
         change = np.concatenate([self.radius_m * turn, shift])
         kept = eigenvectors @ (eigenvalues / (eigenvalues + damping) * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
-        prior_centre = T_prior[:3, :3] @ self.centre_O + T_prior[:3, 3]
-        out[:3, 3] = prior_centre + kept[3:] - out[:3, :3] @ self.centre_O
+        out[:3, 3] = self.centre(T_prior) + kept[3:] - out[:3, :3] @ self.centre_O
         return out
 
     # ------------------------------------------------------------------------------------------ checks
@@ -352,8 +362,7 @@ class ObjectTracker:
         if not rmse <= c.max_rmse_m:
             return f"registration RMSE {rmse * 1000:.1f} mm above {c.max_rmse_m * 1000:.1f} mm"
         seconds = self._since_good / c.rate_hz
-        step_m = float(np.linalg.norm(T_world_O[:3, :3] @ self.centre_O + T_world_O[:3, 3]
-                                      - self._T_good[:3, :3] @ self.centre_O - self._T_good[:3, 3]))
+        step_m = float(np.linalg.norm(self.centre(T_world_O) - self.centre(self._T_good)))
         turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
