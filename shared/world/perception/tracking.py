@@ -296,7 +296,7 @@ class ObjectTracker:
         best: tuple[float, np.ndarray] | None = None
         for start in starts:
             T_world_O = self._refine(points, start)
-            fitness, rmse = self.score(points, T_world_O)
+            fitness, _ = self.score(points, T_world_O)
             if best is None or fitness > best[0]:
                 best = (fitness, T_world_O)
         assert best is not None
@@ -316,28 +316,34 @@ class ObjectTracker:
         of the point-to-plane Hessian H in the same terms (eigenvalues l), and each part scaled by
         l / (l + mu), mu = degenerate_ratio * max(l): the solution with a prior term mu |change|^2 added. A well
         observed direction keeps its change, an unobserved one (a cylinder's spin) keeps the prior."""
-        in_O = transform_points_no_blas(_inverse(T_world_O), points)
-        distance, index = self._tree.query(in_O, distance_upper_bound=self.config.fine_correspondence_m)
-        matched = np.isfinite(distance)
-        if np.count_nonzero(matched) < 6:
+        hessian = self._hessian(points, T_world_O)
+        if hessian is None:
             return T_world_O
-        rotation = T_world_O[:3, :3]
-        normals = self.model_normals[index[matched]] @ rotation.T
-        arm = (points[matched] - self.centre(T_world_O)) / self.radius_m
-        jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)
-        eigenvalues, eigenvectors = np.linalg.eigh(jacobian.T @ jacobian / len(jacobian))
+        eigenvalues, eigenvectors = np.linalg.eigh(hessian)
         eigenvalues = np.maximum(eigenvalues, 0.0)
         damping = self.config.degenerate_ratio * eigenvalues[-1]
         if damping <= 0.0:
             return T_world_O
-        turn = Rotation.from_matrix(rotation @ T_prior[:3, :3].T).as_rotvec()
-        shift = self.centre(T_world_O) - self.centre(T_prior)
-        change = np.concatenate([self.radius_m * turn, shift])
+        turn = Rotation.from_matrix(T_world_O[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
+        change = np.concatenate([self.radius_m * turn, self.centre(T_world_O) - self.centre(T_prior)])
         kept = eigenvectors @ (eigenvalues / (eigenvalues + damping) * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
         out[:3, 3] = self.centre(T_prior) + kept[3:] - out[:3, :3] @ self.centre_O
         return out
+
+    def _hessian(self, points: np.ndarray, T_world_O: np.ndarray) -> np.ndarray | None:
+        """[6, 6] point-to-plane Gauss-Newton Hessian per matched point at T_world_O, in (radius * rotation about
+        the model centre, centre shift), world axes; None with under 6 matches."""
+        in_O = transform_points_no_blas(_inverse(T_world_O), points)
+        distance, index = self._tree.query(in_O, distance_upper_bound=self.config.fine_correspondence_m)
+        matched = np.isfinite(distance)
+        if np.count_nonzero(matched) < 6:
+            return None
+        normals = self.model_normals[index[matched]] @ T_world_O[:3, :3].T
+        arm = (points[matched] - self.centre(T_world_O)) / self.radius_m
+        jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)
+        return np.asarray(jacobian.T @ jacobian / len(jacobian), dtype=np.float64)
 
     # ------------------------------------------------------------------------------------------ checks
 
