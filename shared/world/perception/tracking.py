@@ -37,10 +37,10 @@ update on one thread of a shared 2-core machine:
 
     candidate                   position mm      rotation deg     lost   false   ms
                                 median  p95      median  p95                     median  p95
-    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      13.6    27.7
-    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    11.8    40.8
-    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      22.6    56.5
-    (Open3D, no robot mask      0.88    1.14     8.97   10.04    86%     0%     236     475)  errors: the 14% tracked
+    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      14.2    27.4
+    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    12.2    41.3
+    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      21.4    55.4
+    (Open3D, no robot mask      0.90    1.15     9.01    9.81    86%     0%     239     479)  errors: the 14% tracked
 
 Open3D (open3d-cpu 0.20, a 105 MB wheel against small_gicp's 0.4 MB) is the most accurate in rotation, where
 it matters (near-round and small objects: ellipsoid p95 5.3 against 14.5 / 7.6 degrees), with no false track
