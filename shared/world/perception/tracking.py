@@ -9,23 +9,44 @@ Each update (depth frames of the same instant from one or more cameras, with the
 mask for each: the pixels its model covers at its measured joints):
 
 1. Segmentation. Per frame only the pixels inside the projection of a search sphere are back-projected:
-   centred on the last tracked pose's model centre, radius the model's radius + a search margin (wider
-   after each lost frame). Pixels under the robot mask, dilated by `robot_padding_px` as real self-filters
-   pad the robot model, are dropped; so are points within `table_margin_m` of the table plane z = 0 and
-   points outside the sphere. The rest is voxel-downsampled (even density whatever the camera distance)
-   and isolated points (stereo noise of the table above the margin, flying pixels) are dropped.
-2. Registration. Point-to-plane ICP of the segmented points onto the model, from the last tracked pose,
-   coarse (wide correspondence gate) then fine. After a loss a second start, the model moved onto the
-   segmented centroid, is tried too, and the better fit is kept.
+   centred on the predicted model centre (the last tracked one moved on by the last frame's shift), radius
+   the model's radius + a search margin (wider after each lost frame). Pixels under the robot mask, dilated
+   by `robot_padding_px` as real self-filters pad the robot model, are dropped; so are points within
+   `table_margin_m` of the table plane z = 0 and points outside the sphere. The rest is voxel-downsampled
+   (even density whatever the camera distance) and isolated points (stereo noise of the table above the
+   margin, flying pixels) are dropped.
+2. Registration. Point-to-plane ICP of the segmented points onto the model, from the predicted pose, coarse
+   (wide correspondence gate) then fine. After a loss a second start, the model moved onto the segmented
+   centroid, is tried too, and the better fit is kept.
 3. Degenerate views. The point-to-plane Hessian at the solution says which motions the points pin down
-   (rotations measured about the model centre, scaled by its radius so they compare with translations):
-   a direction whose eigenvalue is under `degenerate_ratio` of the largest (the spin of a standing
-   cylinder or a sphere, sliding along a single visible plane) keeps the prior's value instead of what
-   the ICP drifted to.
+   (rotations about the model centre, scaled by its radius so they compare with translations). The change
+   from the predicted pose is damped along each eigen-direction as a prior term weighted `degenerate_ratio`
+   times the strongest would: the spin of a standing cylinder or a sphere, sliding along a single visible
+   plane keep (nearly) the prior's value instead of whatever the ICP drifted to; well observed directions
+   keep the ICP's.
 4. Checks. Fitness (the share of segmented points within `inlier_m` of the model surface), RMSE of those
    points' point-to-plane distances, and the step from the last tracked pose against what an object
    pushed at `max_speed_mps` / `max_turn_deg_s` can do in the frames since: a failed check reports
    lost with the reason, never a pose.
+
+Registration library, chosen by measurement (bench/tracking.py, bench/results/tracking.json): 8 development
+objects each pushed 0.20 m in 16 frames turning 10-30 degrees, the Panda + Allegro hand behind them hiding 2-34%
+of the object, 3 cameras at 424 x 240 with D435 noise, the tracker started 5 mm / 3 degrees off; then 2 frames
+with the object gone. Errors over tracked frames (rotation of the standing cylinder: its axis' tilt), ms per
+update on one thread of a shared 2-core machine:
+
+    candidate                   position mm      rotation deg     lost   false   ms
+                                median  p95      median  p95                     median  p95
+    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      14.2    27.4
+    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    12.2    41.3
+    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      21.4    55.4
+    (Open3D, no robot mask      0.90    1.15     9.01    9.81    86%     0%     239     479)  errors: the 14% tracked
+
+Open3D (open3d-cpu 0.20, a 105 MB wheel against small_gicp's 0.4 MB) is the most accurate in rotation, where
+it matters (near-round and small objects: ellipsoid p95 5.3 against 14.5 / 7.6 degrees), with no false track
+and the lowest p95 time. small_gicp's clouds take no given normals, so its point-to-plane runs on normals
+estimated from the model samples, and its point-to-plane cost weighs the residual per axis rather than along
+the normal: it stops short on a weakly observed rotation. Every object removed was reported lost by all.
 """
 from __future__ import annotations
 
@@ -49,7 +70,7 @@ from .errors import PerceptionError
 class TrackingConfig:
     rate_hz: float = 10.0  # frames per second of robot time (users of the tracker read it)
     image_size: tuple[int, int] = (424, 240)  # the D435's 424x240 depth mode, what tracking renders at
-    # A mesh is sampled this densely: ~3 mm between samples on a 20 cm box, under the fine ICP gate.
+    # A mesh is sampled this densely: ~5 mm between samples on a 20 cm box, well under the fine ICP gate.
     model_points: int = 4000
     # Self-filter padding: TinyRenderer silhouettes are exact, a real robot model is not (cables, calibration);
     # 2 px is ~9 mm at 1 m in the 424 x 240 mode.
@@ -69,16 +90,21 @@ class TrackingConfig:
     min_points: int = 30  # fewer segmented points than this cannot pin 6 degrees of freedom against noise
     coarse_correspondence_m: float = 0.03  # first ICP pass: the motion between two frames
     fine_correspondence_m: float = 0.012  # second pass: noise (7 mm sigma at 1 m) plus model sampling
-    icp_iterations: int = 30
+    icp_iterations: int = 30  # per pass, an upper bound: Open3D stops once the fit changes by under 1e-6
     # The prior term's weight, relative to the point-to-plane Hessian's strongest direction (step 3 above): a
-    # direction with eigenvalue l keeps l / (l + 0.01 max l) of the ICP's change per frame. Measured weakest/strongest
-    # eigenvalue: a standing faceted cylinder's spin 0.002 (keeps 17%: it stays near the prior), a near-round
-    # ellipsoid's spin 0.004 (29%), a small hull's 0.013-0.03 (57-75%), a box's 0.09 (90%).
+    # direction with eigenvalue l keeps l / (l + 0.01 max l) of the ICP's change per frame, so a standing
+    # cylinder's unobservable spin stays near the prior while a box's rotation follows the points (the measured
+    # eigenvalue ratios: docs/architecture.md "Tracking from images only").
     degenerate_ratio: float = 0.01
-    inlier_m: float = 0.010  # a point within this of the model surface is explained (noise of ~1 m views)
-    min_fitness: float = 0.6  # the right pose explains 85-100% (table and hand fringes); a wrong one rarely 60%
-    max_rmse_m: float = 0.006  # inliers of the right pose sit at 2-4 mm RMSE at these depths
-    # The fastest a pushed object moves: a push at up to 0.3 m/s and a fast turn; plus one frame's slack.
+    # Fitness: the share of segmented points within `inlier_m` of the model surface. On the bench's pushes (robot
+    # in view) the right model explains nearly all of them and a wrong model far fewer; one of nearly the same
+    # shape (a sphere for a near-round ellipsoid) can pass: shape is all depth can tell (figures:
+    # docs/architecture.md "Tracking from images only").
+    inlier_m: float = 0.007
+    min_fitness: float = 0.75
+    max_rmse_m: float = 0.005  # the explained points of the right pose sit at 2-3.5 mm RMSE at 0.5-1 m
+    # The fastest a pushed object moves: pushes run at up to 0.3 m/s, the rest is room for the noise of the two
+    # poses compared; a fast turn.
     max_speed_mps: float = 0.5
     max_turn_deg_s: float = 180.0
 
@@ -190,7 +216,7 @@ class ObjectTracker:
         if self._T_good is None:
             raise PerceptionError("tracker updated before reset: call reset(T_world_O) with the object's pose first")
         predicted = self._predicted()
-        centre = transform_points_no_blas(predicted, self.centre_O[None])[0]
+        centre = self.centre(predicted)
         points = self.segment(frames, robot_masks, centre, self.radius_m + self._search_margin())
         if len(points) < self.config.min_points:
             return self._lose(f"too few object points ({len(points)} < {self.config.min_points})", len(points))
@@ -199,9 +225,7 @@ class ObjectTracker:
         reason = self._implausible(fitness, rmse, T_world_O)
         if reason is not None:
             return self._lose(reason, len(points), fitness, rmse)
-        self._velocity = (T_world_O[:3, 3] - self._T_good[:3, 3] + (T_world_O[:3, :3] - self._T_good[:3, :3]) @ self.centre_O
-                          if self._since_good == 1 else np.zeros(3))
-        self._T_good, self._since_good = T_world_O, 1
+        self._accept(T_world_O)
         return TrackedPose(T_world_O.copy(), fitness, rmse, len(points), None)
 
     def search_window(self, intrinsics: Intrinsics, T_world_camera: np.ndarray) -> tuple[slice, slice]:
@@ -209,9 +233,20 @@ class ObjectTracker:
         draw just these (a simulated camera's cost is per pixel drawn)."""
         if self._T_good is None:
             raise PerceptionError("tracker asked for its search window before reset")
-        centre = transform_points_no_blas(self._predicted(), self.centre_O[None])[0]
-        return sphere_window(intrinsics, np.asarray(T_world_camera, dtype=np.float64), centre,
+        return sphere_window(intrinsics, np.asarray(T_world_camera, dtype=np.float64), self.centre(self._predicted()),
                              self.radius_m + self._search_margin())
+
+    def centre(self, T_world_O: np.ndarray) -> np.ndarray:
+        """[3] the model centre (the mean of its points) in the world with the model at T_world_O."""
+        return np.asarray(T_world_O[:3, :3] @ self.centre_O + T_world_O[:3, 3], dtype=np.float64)
+
+    def _accept(self, T_world_O: np.ndarray) -> None:
+        """T_world_O becomes the last tracked pose; the centre's shift from the previous one is the velocity
+        when the two were consecutive frames."""
+        assert self._T_good is not None
+        consecutive = self._since_good == 1
+        self._velocity = self.centre(T_world_O) - self.centre(self._T_good) if consecutive else np.zeros(3)
+        self._T_good, self._since_good = T_world_O, 1
 
     def _predicted(self) -> np.ndarray:
         """Where the object should be now: the last tracked pose, its centre moved on by the last frame's shift.
@@ -269,7 +304,7 @@ class ObjectTracker:
         best: tuple[float, np.ndarray] | None = None
         for start in starts:
             T_world_O = self._refine(points, start)
-            fitness, rmse = self.score(points, T_world_O)
+            fitness, _ = self.score(points, T_world_O)
             if best is None or fitness > best[0]:
                 best = (fitness, T_world_O)
         assert best is not None
@@ -289,29 +324,34 @@ class ObjectTracker:
         of the point-to-plane Hessian H in the same terms (eigenvalues l), and each part scaled by
         l / (l + mu), mu = degenerate_ratio * max(l): the solution with a prior term mu |change|^2 added. A well
         observed direction keeps its change, an unobserved one (a cylinder's spin) keeps the prior."""
-        in_O = transform_points_no_blas(_inverse(T_world_O), points)
-        distance, index = self._tree.query(in_O, distance_upper_bound=self.config.fine_correspondence_m)
-        matched = np.isfinite(distance)
-        if np.count_nonzero(matched) < 6:
+        hessian = self._hessian(points, T_world_O)
+        if hessian is None:
             return T_world_O
-        rotation = T_world_O[:3, :3]
-        normals = self.model_normals[index[matched]] @ rotation.T
-        arm = (points[matched] - (rotation @ self.centre_O + T_world_O[:3, 3])) / self.radius_m
-        jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)
-        eigenvalues, eigenvectors = np.linalg.eigh(jacobian.T @ jacobian / len(jacobian))
+        eigenvalues, eigenvectors = np.linalg.eigh(hessian)
         eigenvalues = np.maximum(eigenvalues, 0.0)
         damping = self.config.degenerate_ratio * eigenvalues[-1]
         if damping <= 0.0:
             return T_world_O
-        turn = Rotation.from_matrix(rotation @ T_prior[:3, :3].T).as_rotvec()
-        shift = (rotation - T_prior[:3, :3]) @ self.centre_O + T_world_O[:3, 3] - T_prior[:3, 3]
-        change = np.concatenate([self.radius_m * turn, shift])
+        turn = Rotation.from_matrix(T_world_O[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
+        change = np.concatenate([self.radius_m * turn, self.centre(T_world_O) - self.centre(T_prior)])
         kept = eigenvectors @ (eigenvalues / (eigenvalues + damping) * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
-        prior_centre = T_prior[:3, :3] @ self.centre_O + T_prior[:3, 3]
-        out[:3, 3] = prior_centre + kept[3:] - out[:3, :3] @ self.centre_O
+        out[:3, 3] = self.centre(T_prior) + kept[3:] - out[:3, :3] @ self.centre_O
         return out
+
+    def _hessian(self, points: np.ndarray, T_world_O: np.ndarray) -> np.ndarray | None:
+        """[6, 6] point-to-plane Gauss-Newton Hessian per matched point at T_world_O, in (radius * rotation about
+        the model centre, centre shift), world axes; None with under 6 matches."""
+        in_O = transform_points_no_blas(_inverse(T_world_O), points)
+        distance, index = self._tree.query(in_O, distance_upper_bound=self.config.fine_correspondence_m)
+        matched = np.isfinite(distance)
+        if np.count_nonzero(matched) < 6:
+            return None
+        normals = self.model_normals[index[matched]] @ T_world_O[:3, :3].T
+        arm = (points[matched] - self.centre(T_world_O)) / self.radius_m
+        jacobian = np.concatenate([np.cross(arm, normals), normals], axis=1)
+        return np.asarray(jacobian.T @ jacobian / len(jacobian), dtype=np.float64)
 
     # ------------------------------------------------------------------------------------------ checks
 
@@ -336,8 +376,7 @@ class ObjectTracker:
         if not rmse <= c.max_rmse_m:
             return f"registration RMSE {rmse * 1000:.1f} mm above {c.max_rmse_m * 1000:.1f} mm"
         seconds = self._since_good / c.rate_hz
-        step_m = float(np.linalg.norm(T_world_O[:3, :3] @ self.centre_O + T_world_O[:3, 3]
-                                      - self._T_good[:3, :3] @ self.centre_O - self._T_good[:3, 3]))
+        step_m = float(np.linalg.norm(self.centre(T_world_O) - self.centre(self._T_good)))
         turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
