@@ -93,6 +93,10 @@ class SimulatedRobot(Robot):
         """A fresh world: the robot at home with the hand open, the object as it truly is where it truly stands."""
         raise NotImplementedError
 
+    def _has_object(self) -> bool:
+        """Whether an object stands in the engine's world (not where: that is the truth): the engine's."""
+        raise NotImplementedError
+
     def _true_pose(self) -> np.ndarray | None:
         """The object's true pose in the world (None without an object): the engine's."""
         raise NotImplementedError
@@ -126,7 +130,11 @@ class SimulatedRobot(Robot):
         """One tracker frame: the robot's reported pose (or loss) becomes the frame's; False without an object."""
         if self.camera_tracker is not None:
             if not self.camera_tracker.ready:
-                return False
+                if not self._has_object():
+                    return False
+                # An object placed without its model (add_object): nothing to register, so no pose, said plainly.
+                self._tracked, self._lost = None, "the image tracker has no model of the object: reset the world with it"
+                return True
             seen = self.camera_tracker.frame()
             pose = None if seen.T_world_O is None else object_pose(seen.T_world_O)
             self._tracked, self._lost, self._fitness = pose, seen.reason, seen.fitness

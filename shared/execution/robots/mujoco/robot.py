@@ -40,6 +40,7 @@ from shared.contracts.messages import SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
 from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
+from shared.execution.robots.camera_tracker import CameraRig
 from shared.execution.robots.mujoco.cameras import RendererSlot, render_depth
 from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.decompose import DecompositionError
@@ -167,6 +168,8 @@ class MujocoRobot(SimulatedRobot):
             self._build(q)
             self._tracked, self._lost = None, None
             self._T_O_tracked = np.eye(4)
+            if self.camera_tracker is not None:  # the model is at hand: the cameras track it from where it stands
+                self.camera_tracker.reset(obj.mesh, T_world_O, CameraRig.around(T_world_O, obj.mesh), 0)
 
     def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
         """Static cylinders (x, y, radius) on the table."""
@@ -186,6 +189,9 @@ class MujocoRobot(SimulatedRobot):
         _, data = self._world()
         with self._lock:
             return data.qpos[self._qpos].copy(), data.qvel[self._qvel].copy()
+
+    def _has_object(self) -> bool:
+        return self._placed is not None
 
     def object_touches_obstacle(self) -> bool:
         model, data = self._world()

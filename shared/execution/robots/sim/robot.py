@@ -196,6 +196,9 @@ class SimRobot(SimulatedRobot):
         with self._lock:
             return None if scene.object is None else scene.object.pose()
 
+    def _has_object(self) -> bool:
+        return self.scene is not None and self.scene.object is not None
+
     def object_touches_obstacle(self) -> bool:
         with self._lock:
             return self.scene is not None and self.scene.object_touches_obstacle()
