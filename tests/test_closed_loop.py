@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 
 from shared.contracts.messages import (
     ExecutionState,
@@ -300,3 +301,25 @@ def test_the_same_slip_open_loop_runs_the_push_to_its_end():
     assert slipped and response.steps[0].stopped is None and not response.notes[:1] == ["push 1 stopped"]
     assert all(s.stopped is None for s in response.steps)
     assert [s.label for s in commands[0][0].segments] == ["approach", "push", "retreat"]
+
+
+def test_a_turn_no_camera_can_see_neither_stops_a_push_nor_counts_against_it():
+    """A standing can's turn about its axis is the tracker's guess: the monitor does not stop on it, and the
+    planner judges the push by position and uprightness; a box's turn it does see."""
+    from shared.planning.monitor import MonitorThresholds, PushMonitor
+    from shared.world.objects import load_object
+    from shared.world.push_outcome import turn_observable
+
+    up = np.array([0.0, 0.0, 1.0])
+    can = trimesh.creation.cylinder(radius=0.03, height=0.12, sections=64)
+    assert not turn_observable(can, up) and not turn_observable(trimesh.creation.icosphere(radius=0.04), up)
+    assert turn_observable(trimesh.creation.box((0.1, 0.05, 0.08)), up)
+    assert turn_observable(can, np.array([1.0, 0.0, 0.0]))  # the same can lying down: its roll shows
+    box = load_object(BOX)
+    assert turn_observable(box.mesh, box.T_D_O()[:3, :3].T @ up)
+    blind = PushMonitor(_plan(), _straight_path(), np.array([1.0, 0.0]), MonitorThresholds(), watch_turn=False)
+    seeing = PushMonitor(_plan(), _straight_path(), np.array([1.0, 0.0]), MonitorThresholds())
+    for monitor in (blind, seeing):
+        monitor.observe(1.5, _seen(0.5))
+    assert blind.observe(3.0, _seen(0.55, yaw_deg=60.0)) is None
+    assert "turned" in (seeing.observe(3.0, _seen(0.55, yaw_deg=60.0)) or "")

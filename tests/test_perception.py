@@ -102,6 +102,20 @@ def test_object_cluster_is_kept_beside_a_distractor(box):
     assert abs(chosen.mesh.centroid[1] - (truth.centroid[1] + 0.5)) < 0.02
 
 
+def test_a_patch_of_table_a_miscalibrated_camera_sees_high_is_not_a_second_object(box):
+    """A camera off its calibration by tenths of a degree sees far table a few mm above z = 0: a wide, dense,
+    flat sheet above the cut. It is table, not an object to choose between; a box of its width is not."""
+    _, _, capture, truth = box
+    rng = np.random.default_rng(2)
+    sheet = np.column_stack([rng.uniform(0.70, 1.10, 6000), rng.uniform(-0.35, -0.05, 6000),
+                             rng.normal(0.009, 0.001, 6000)])  # 40 x 30 cm, 9 mm up
+    recon = reconstruct(np.concatenate([capture.cloud, sheet]))
+    assert np.all(np.abs(recon.mesh.bounds[:, :2] - truth.bounds[:, :2]) < 0.02)
+    block = sheet + np.array([0.0, 0.0, 0.04])  # the same footprint standing 5 cm high: an object
+    with pytest.raises(PerceptionError, match="two separate objects"):
+        reconstruct(np.concatenate([capture.cloud, block, block - np.array([0.0, 0.0, 0.04])]))
+
+
 def test_one_object_seen_sparsely_stays_one_cluster():
     """pb-mug where the evaluation puts it, seen by the head camera alone at 424 x 240 (~1 m away): rim,
     handle and interior are 4-5 mm apart on average and the rim's sides are lost to edge dropouts. The gap

@@ -55,7 +55,7 @@ class PushMonitor:
     """Watches one executed push against `predicted` (the chosen plan's rollout, plan times)."""
 
     def __init__(self, plan: Plan, predicted: ObjectPath, push_direction_xy: np.ndarray,
-                 thresholds: MonitorThresholds = MonitorThresholds()):
+                 thresholds: MonitorThresholds = MonitorThresholds(), watch_turn: bool = True):
         times = plan.times_s.to_numpy()
         push = next((s for s in plan.segments if s.label == "push"), None)
         if push is None:
@@ -64,6 +64,9 @@ class PushMonitor:
         self.predicted = predicted
         self.direction = np.asarray(push_direction_xy, dtype=np.float64) / np.linalg.norm(push_direction_xy)
         self.thresholds = thresholds
+        # False for an object whose turn about the vertical no camera sees (a standing can, a ball): the tracked
+        # turn is the tracker's guess, no reason to stop.
+        self.watch_turn = watch_turn
         self._reference: tuple[float, np.ndarray] | None = None  # the first pose seen: (plan time, T_world_O)
         self._last_pose: ObjectPose | None = None
         self.observed = 0  # poses compared during the push
@@ -123,7 +126,7 @@ class PushMonitor:
         # Turning is judged by how far, not which way: an object that turns less than predicted, or a
         # little the other way, is no reason to stop; one that turns further than predicted heads for the
         # 45° a push cannot undo.
-        if abs(seen.yaw_deg) - abs(expected.yaw_deg) > limits.rotation_deg:
+        if self.watch_turn and abs(seen.yaw_deg) - abs(expected.yaw_deg) > limits.rotation_deg:
             return (f"{when} the object had turned {seen.yaw_deg:+.0f}° against a predicted "
                     f"{expected.yaw_deg:+.0f}°")
         if seen.tilt_deg - expected.tilt_deg > limits.tilt_deg:

@@ -60,7 +60,7 @@ from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits
 from shared.world.object_refs import captured_object, load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel, write_object_urdf
-from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix
+from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix, turn_observable
 from shared.world.sim.robot_scene import RobotScene
 
 DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base: sideways pushes reach well; pulls toward the robot need
@@ -134,7 +134,9 @@ class PushPipeline:
             T_world_O = pose_matrix(request.object_pose)
         else:
             T_world_O = make_transform(np.eye(3), np.array([*DEFAULT_OBJECT_XY, 0.0])) @ obj.T_D_O()
-        return RequestState(request, obj, urdf, load_hand(request.hand), T_world_O, cancel)
+        up_O = T_world_O[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        return RequestState(request, obj, urdf, load_hand(request.hand), T_world_O, cancel,
+                            turn_observable=turn_observable(obj.mesh, up_O))
 
     def _multi_step(self, state: RequestState) -> ExecutionResult:
         request = state.request
@@ -195,9 +197,10 @@ class PushPipeline:
         cannot be planned: the pushes made stand, and the outcome is judged as they left it.
         """
         start = state.records[0].T_world_O_start
-        final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose)
+        final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose,
+                           max_rotation_deg=state.max_turn_deg)
         for _ in range(state.request.options.corrections):
-            if final.success or not correctable(final):
+            if final.success or not correctable(final, state.turn_observable):
                 break
             offset = push.target_xy - state.T_world_O[:2, 3]
             last = len(state.records)
@@ -211,7 +214,8 @@ class PushPipeline:
                     raise
                 state.notes.append(f"no correction after push {len(state.records)}: {exc.message}")
                 break
-            final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose)
+            final = judge_push(start, push.target_xy, state.records[-1].step.result.final_object_pose,
+                               max_rotation_deg=state.max_turn_deg)
         return final
 
     # ------------------------------------------------------------------------------- one push
@@ -323,10 +327,10 @@ class PushPipeline:
         self._scenes.clear()
 
 
-def correctable(result: ExecutionResult) -> bool:
+def correctable(result: ExecutionResult, turn_observable: bool = True) -> bool:
     """Whether another push can still make `result` a success: the object stands and has not turned past
-    the success bound (a push moves it, it does not turn it back)."""
-    return not result.toppled and result.rotation_deg <= SUCCESS_MAX_ROTATION_DEG
+    the success bound (a push moves it, it does not turn it back; a turn nobody can see does not count)."""
+    return not result.toppled and (not turn_observable or result.rotation_deg <= SUCCESS_MAX_ROTATION_DEG)
 
 
 def _footprint_radius(obj: ObjectModel) -> float:

@@ -52,7 +52,13 @@ from shared.robots.hands import HandModel
 from shared.robots.robot_limits import LimitViolation, RobotLimits
 from shared.world.fixed_poses import FixedPoseError, spatula_pose
 from shared.world.objects import ObjectModel
-from shared.world.push_outcome import judge_push, object_pose, pose_matrix, rotation_between_deg
+from shared.world.push_outcome import (
+    SUCCESS_MAX_ROTATION_DEG,
+    judge_push,
+    object_pose,
+    pose_matrix,
+    rotation_between_deg,
+)
 
 # A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
 # this from how it sat in the last one's (the sampler would be asked the same question).
@@ -133,6 +139,14 @@ class RequestState:
     # The last sampled candidates of the request: how the object sat in their D (R_D_O), the poses in D and
     # the critic's P(success) of each (None: no critic).
     sampled: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+    # Whether a camera can see the object turn about its vertical axis (push_outcome.turn_observable): for a body
+    # of revolution the tracked turn is a guess, so it neither stops a push nor counts against one.
+    turn_observable: bool = True
+
+    @property
+    def max_turn_deg(self) -> float | None:
+        """The turn a push of this object may make and succeed (None: not judged, it cannot be seen)."""
+        return SUCCESS_MAX_ROTATION_DEG if self.turn_observable else None
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -590,7 +604,8 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
         world = SimWorld(object=request.object, object_pose=object_pose(push.T_world_O), obstacles=request.obstacles)
     monitor = None
     if request.options.closed_loop and chosen.predicted is not None:  # unranked choices have no rollout to follow
-        monitor = PushMonitor(chosen.plan, chosen.predicted, push.direction[:2], settings.monitor)
+        monitor = PushMonitor(chosen.plan, chosen.predicted, push.direction[:2], settings.monitor,
+                              watch_turn=state.turn_observable)
     state.cancel.check()
     started = time.perf_counter()
     execution = run_plan(chosen.plan, world, state.cancel, monitor)
@@ -608,7 +623,7 @@ def execute(state: RequestState, push: Push, candidates: Candidates, chosen: Ran
         if final.object_lost is not None:  # no judging, no correction on a pose nobody saw
             raise PushError("lost", f"after the push the tracker had lost the object: {final.object_lost}")
         raise PushError("internal", "the robot bridge observed no object pose after the push")
-    result = judge_push(push.T_world_O, push.target_xy, final.object_pose)
+    result = judge_push(push.T_world_O, push.target_xy, final.object_pose, max_rotation_deg=state.max_turn_deg)
     index = chosen.index
     step = PushStep(chosen_pose=candidates.poses_d[index], chosen_pose_world=candidates.poses_world[index],
                     plan=chosen.plan, score=chosen.score, result=result, reason=reason, stopped=stopped)

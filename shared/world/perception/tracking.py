@@ -96,6 +96,8 @@ class TrackingConfig:
     # cylinder's unobservable spin stays near the prior while a box's rotation follows the points (the measured
     # eigenvalue ratios: docs/architecture.md "Tracking from images only").
     degenerate_ratio: float = 0.01
+    # Below this share of the strongest eigenvalue a direction is not observed and keeps the prior outright.
+    unobserved_ratio: float = 0.005
     # Fitness: the share of segmented points within `inlier_m` of the model surface. On the bench's pushes (robot
     # in view) the right model explains nearly all of them and a wrong model far fewer; one of nearly the same
     # shape (a sphere for a near-round ellipsoid) can pass: shape is all depth can tell (figures:
@@ -334,7 +336,11 @@ class ObjectTracker:
             return T_world_O
         turn = Rotation.from_matrix(T_world_O[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
         change = np.concatenate([self.radius_m * turn, self.centre(T_world_O) - self.centre(T_prior)])
-        kept = eigenvectors @ (eigenvalues / (eigenvalues + damping) * (eigenvectors.T @ change))
+        keep = eigenvalues / (eigenvalues + damping)
+        # A direction the points hardly see at all (a round object's spin) keeps the prior outright: a fraction of
+        # an arbitrary turn each frame adds up to tens of degrees over a push.
+        keep[eigenvalues < self.config.unobserved_ratio * eigenvalues[-1]] = 0.0
+        kept = eigenvectors @ (keep * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
         out[:3, 3] = self.centre(T_prior) + kept[3:] - out[:3, :3] @ self.centre_O
