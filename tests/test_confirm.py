@@ -1,4 +1,4 @@
-"""Preview and confirm (issue 52, `gd2p up --confirm`): the robot bridge holds each plan until an operator confirms it.
+"""Preview and confirm (`gd2p up --confirm`): the robot bridge holds each plan until an operator confirms it.
 
 - the gate alone (shared/execution/confirm.py, no bus): confirmations for unknown, expired, dropped and
   already confirmed commands are answered accepted=False with the reason;

@@ -1,4 +1,4 @@
-"""The final split (issue 49): its objects, the content-hash freeze, the guard that lets only
+"""The final split: its objects, the content-hash freeze, the guard that lets only
 `gd2p eval EXPERIMENT --split final` load them, the clean-tree refusal and the run log."""
 from __future__ import annotations
 

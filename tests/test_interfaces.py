@@ -100,7 +100,7 @@ def test_every_key_of_keys_py_has_its_row():
         with pytest.raises(LookupError):
             interface(lease_key(role, "h-1", "validator"))
     assert interface(keys.ROBOT_COMMAND_KEY).callers == {"planner"}
-    assert interface(keys.ROBOT_CONFIRM_KEY).callers == {"operator"}  # issue 52: only the operator confirms
+    assert interface(keys.ROBOT_CONFIRM_KEY).callers == {"operator"}  # only the operator confirms
     with pytest.raises(LookupError):
         interface("gd2p/unknown/key")
 

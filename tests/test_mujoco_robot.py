@@ -1,4 +1,4 @@
-"""The MuJoCo robot (issue 48 item 1): its model, joint tracking, a push with MuJoCo's contacts, the executor's
+"""The MuJoCo robot: its model, joint tracking, a push with MuJoCo's contacts, the executor's
 checks on it, and its refusals of bad input."""
 from __future__ import annotations
 

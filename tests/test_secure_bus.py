@@ -584,7 +584,7 @@ def key_space_expectations() -> dict[str, list[tuple[str, str, str, frozenset[st
         # The live view's push decisions: in the planner's namespace, so only the planner publishes them.
         "PLANNER_DECISION_KEY": [("ingress", "put", keys.PLANNER_DECISION_KEY, frozenset({"planner"})),
                                  ("ingress", "declare_subscriber", keys.PLANNER_DECISION_KEY, ALL)],
-        # Preview and confirm (issue 52): the bridge publishes held plans; only the operator confirms.
+        # Preview and confirm: the bridge publishes held plans; only the operator confirms.
         "ROBOT_HELD_KEY": [("ingress", "put", keys.ROBOT_HELD_KEY, frozenset({"robot_bridge"})),
                            ("ingress", "declare_subscriber", keys.ROBOT_HELD_KEY, ALL)],
         "ROBOT_CONFIRM_KEY": [("ingress", "query", keys.ROBOT_CONFIRM_KEY, frozenset({"operator"})),

@@ -1,4 +1,4 @@
-"""The live view (issue 52), tested as a person would use it: the system runs (sampler, validator, planner,
+"""The live view, tested as a person would use it: the system runs (sampler, validator, planner,
 simulated robot bridge, as tests/test_push.py's `system`, plus the view's bus adapter), the view is opened in
 headless Chromium (Debian's `chromium` and `chromium-driver`: `make install`), a push runs, and the page itself
 shows the cloud, the candidates and the robot (the counts the view prints in its "Scene" panel, and the pixels
