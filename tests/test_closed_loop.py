@@ -323,3 +323,47 @@ def test_a_turn_no_camera_can_see_neither_stops_a_push_nor_counts_against_it():
         monitor.observe(1.5, _seen(0.5))
     assert blind.observe(3.0, _seen(0.55, yaw_deg=60.0)) is None
     assert "turned" in (seeing.observe(3.0, _seen(0.55, yaw_deg=60.0)) or "")
+
+
+def test_an_object_the_cameras_lose_mid_push_stops_it_and_the_robot_backs_out():
+    """Mid-push the object vanishes from every camera (carried off the table): the image tracker reports it lost,
+    the monitor stops the push on it, the robot backs out the way it came, and the request answers `lost` instead
+    of judging or correcting a pose nobody saw."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
+    from tests.test_push import _spatula_poses
+
+    start = _box_at(0.5, 0.0)
+    carried: list[bool] = []
+    commands = []
+
+    class VanishingRobot(LocalRobot):
+        def _on_state(self, robot, state):
+            if not carried and pose_matrix(robot.true_object_pose())[1, 3] - start[1, 3] > 0.03:
+                gone = np.eye(4)
+                gone[:3, 3] = (3.0, 3.0, 0.5)  # far outside every camera's view
+                robot.scene.object.reset_pose(gone)
+                carried.append(True)
+            super()._on_state(robot, state)
+
+        def execute(self, plan, world, cancel=None, monitor=None):
+            execution = super().execute(plan, world, cancel, monitor)
+            commands.append(([s.label for s in plan.segments], execution.final))
+            return execution
+
+    robot = VanishingRobot()  # the default: the image tracker
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate_here, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=0, max_plan_rounds=1))
+    try:
+        with pytest.raises(PushError) as raised:
+            pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=object_pose(start),
+                                     direction_deg=90.0, options=PlannerOptions(k=8, corrections=1)))
+    finally:
+        pipeline.close()
+        robot.close()
+    assert carried and raised.value.code == "lost", raised.value.message
+    (push_labels, stopped), (back_labels, back) = commands
+    assert push_labels == ["approach", "push", "retreat"] and stopped.status == "stopped"
+    assert back_labels == ["retreat"] and back.object_pose is None and back.object_lost
