@@ -128,7 +128,12 @@ def test_a_trajectory_executes_and_the_joints_track_it(arm, hand):
 
 @pytest.fixture(scope="module")
 def push():
-    """The planner's push of a box 0.15 m sideways with the open Allegro hand (as the PyBullet robot's test)."""
+    return planned_box_push()
+
+
+def planned_box_push():
+    """The planner's push of a box 0.15 m sideways with the open Allegro hand (as the PyBullet robot's test):
+    (box, plan, T_world_O, T_world_D)."""
     from shared.planning.motion import MotionPlanner
     from shared.robots.hands import load_hand
     from shared.world.fixed_poses import spatula_pose

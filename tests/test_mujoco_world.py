@@ -22,7 +22,6 @@ from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.model import ModelError
 from shared.execution.robots.mujoco.robot import MujocoRobot
 from shared.execution.robots.sim.robot import TrueWorld
-from shared.frames import direction_frame, pose25_to_matrix
 from shared.world.objects import load_object
 from shared.world.perception.depth import DepthFrame, Intrinsics
 from shared.world.sim.camera import CameraPose, capture_object, default_cameras
@@ -286,23 +285,10 @@ def test_command_latency_delays_the_arm_by_the_drawn_time():
 
 @pytest.fixture(scope="module")
 def push():
-    """The planner's push of the box 0.15 m sideways with the open Allegro hand (as tests/test_mujoco_robot.py)."""
-    from shared.planning.motion import MotionPlanner
-    from shared.robots.hands import load_hand
-    from shared.world.fixed_poses import spatula_pose
-    from shared.world.objects import write_object_urdf
-    from shared.world.sim.robot_scene import RobotScene
+    """The planner's push of the box 0.15 m sideways with the open Allegro hand (tests/test_mujoco_robot.py's)."""
+    from tests.test_mujoco_robot import planned_box_push
 
-    box = load_object(BOX)
-    T_world_D = direction_frame(np.array([0.55, 0.0, 0.0]), 90.0)
-    T_D_O = box.T_D_O(yaw_rad=np.pi / 2)
-    T_world_O = T_world_D @ T_D_O
-    hand = load_hand("allegro")
-    T_D_hand, q_hand = pose25_to_matrix(spatula_pose(hand, box.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]))
-    with RobotScene("panda", "allegro") as scene:
-        scene.add_object(write_object_urdf(box), T_world_O)
-        plan = MotionPlanner(scene).plan_push(T_world_D @ T_D_hand, q_hand, T_world_D[:3, 0], 0.15,
-                                              q_hand_start=hand.open_joint_positions.numpy())
+    _, plan, T_world_O, T_world_D = planned_box_push()
     return plan, T_world_O, T_world_D
 
 
