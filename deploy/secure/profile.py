@@ -81,7 +81,7 @@ LEASE_HOLDERS: dict[str, tuple[str, ...]] = dict(interfaces.LEASE_HOLDERS)
 # Keys every authenticated identity may put on: the e-stop (stopping must never need the planner).
 OPEN_PUT_KEYS: tuple[str, ...] = interfaces.open_put_keys()  # gd2p/robot_bridge/estop
 # The router watchdogs' beats (shared/bus/lease.py RouterWatchdog): the bridge's probe session beats on
-# gd2p/watchdog/<name> to its main session. Issue 53: a forged beat once hid a frozen router, so only the
+# gd2p/watchdog/<name> to its main session. A forged beat could hide a frozen router, so only the
 # identities of the registry row put there (robot_bridge).
 _WATCHDOG = interfaces.interface(interfaces.WATCHDOG_KEY, "publication")
 WATCHDOG_KEYS = _WATCHDOG.pattern  # gd2p/watchdog/*
