@@ -12,6 +12,7 @@ and the split. A tagged run is another run of the same experiment (other models 
 run of each experiment (by the date its summary records) and the runs the documentation or the code cite by path;
 git history keeps the rest. `gd2p eval` rewrites the index of its `--out` directory after each experiment.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,18 +37,31 @@ COMMAND = "python -m evaluation.results_index"
 DOCS_MAX_LINES = 150
 # Where a run may be cited by path (`--superseded` keeps what these name).
 CITING = ("README.md", "CONTRIBUTING.md", "docs", "evaluation", "bench", "tests", "cli", "services", "shared", "deploy")
-EXPERIMENT_ORDER = ("methods", "leap", "closed-loop", "multistep", "sampler-quality", "data-size", "sampler-diagnosis",
-                    "dataset build")
+EXPERIMENT_ORDER = (
+    "methods",
+    "leap",
+    "closed-loop",
+    "multistep",
+    "sampler-quality",
+    "data-size",
+    "sampler-diagnosis",
+    "dataset build",
+)
 SPLIT_ORDER = ("final", "test", "unseen", "val", "train")
 
-_PROTOCOL = re.compile(r"^(methods|leap|closed-loop)(?:-(real|exact))?(?:-camera(\d))?(?:-(val|unseen|final))?(?:-(.+))?$")
+_PROTOCOL = re.compile(
+    r"^(methods|leap|closed-loop)(?:-(real|exact))?(?:-camera(\d))?(?:-(val|unseen|final))?(?:-(.+))?$"
+)
 _MULTISTEP = re.compile(r"^multistep(?:-(real|exact))?(?:-closed)?(?:-camera(\d))?(?:-(val))?(?:-(.+))?$")
-_COVERAGE = re.compile(r"^(sampler-quality|data-size)(?:-(real|exact)(?:-camera(\d))?)?(-val)?(-random-yaw)?(?:-(.+))?$")
+_COVERAGE = re.compile(
+    r"^(sampler-quality|data-size)(?:-(real|exact)(?:-camera(\d))?)?(-val)?(-random-yaw)?(?:-(.+))?$"
+)
 
 
 @dataclass(frozen=True)
 class Row:
     """One figure of a run: a method (or model, or fraction of the data) and its rate."""
+
     label: str
     rate: Interval | None  # value with its 95% interval clustered by object (low = high = nan: no interval recorded)
     count: int  # trials, runs or objects the rate is over
@@ -120,8 +134,10 @@ class Run:
     def seeds(self) -> str:
         coverage = self.settings.get("coverage", self.settings)
         if self.experiment == "data-size" and self.settings.get("seeds") is not None:
-            return (f"training seeds {', '.join(str(s) for s in self.settings['seeds'])}, "
-                    f"sampling seed {coverage.get('seed', 0)}")
+            return (
+                f"training seeds {', '.join(str(s) for s in self.settings['seeds'])}, "
+                f"sampling seed {coverage.get('seed', 0)}"
+            )
         if self.experiment in ("sampler-quality", "sampler-diagnosis"):
             seed = coverage.get("seed", coverage.get("selection_seed", 0))
             return f"seed {seed} (poses and placement drawn per object from it)"
@@ -176,8 +192,13 @@ def _coverage_rows(run: Run) -> list[Row]:
         entry = methods[label]
         ci = entry.get("pooled_validated_fraction_ci")
         value = float(entry["pooled_validated_fraction"])
-        rows.append(Row(label, Interval(value, float(ci[0]), float(ci[1])) if ci else _no_interval(value),
-                        int(entry.get("objects", 0))))
+        rows.append(
+            Row(
+                label,
+                Interval(value, float(ci[0]), float(ci[1])) if ci else _no_interval(value),
+                int(entry.get("objects", 0)),
+            )
+        )
     return rows
 
 
@@ -189,8 +210,11 @@ def _data_size_rows(run: Run) -> list[Row]:
     objects = int(run.settings.get("test_objects", 0))
     rows = []
     for entry in sorted(run.summary.get("per_fraction", ()), key=lambda e: -float(e["fraction"])):
-        rate = (_interval(entry["validated_fraction"]) if isinstance(entry.get("validated_fraction"), dict)
-                else _no_interval(entry["validated_fraction_mean"]))
+        rate = (
+            _interval(entry["validated_fraction"])
+            if isinstance(entry.get("validated_fraction"), dict)
+            else _no_interval(entry["validated_fraction_mean"])
+        )
         rows.append(Row(f"{float(entry['fraction']):.0%} of the data", rate, objects))
     return rows
 
@@ -201,8 +225,13 @@ def _diagnosis_rows(run: Run) -> list[Row]:
         question = run.summary.get("question_1", {}).get(group, {})
         for source in ("diffusion", "stored"):
             if source in question:
-                rows.append(Row(f"{source}, {group.replace('_', '-')} objects", _interval(question[source]["interval_95"]),
-                                int(question.get("objects", 0))))
+                rows.append(
+                    Row(
+                        f"{source}, {group.replace('_', '-')} objects",
+                        _interval(question[source]["interval_95"]),
+                        int(question.get("objects", 0)),
+                    )
+                )
     return rows
 
 
@@ -214,27 +243,49 @@ def describe(path: Path) -> Run:
     run = Run(path.name, path, summary, settings)
     name = path.name
     if match := _PROTOCOL.match(name):
-        run.experiment, run.world, cameras, split, run.tag = match[1], match[2] or "exact", match[3], match[4], match[5] or ""
+        run.experiment, run.world, cameras, split, run.tag = (
+            match[1],
+            match[2] or "exact",
+            match[3],
+            match[4],
+            match[5] or "",
+        )
         run.cameras, run.split = int(settings.get("cameras") or cameras or 0), split or "test"
         run.hand = str(settings.get("hand", "leap" if run.experiment == "leap" else "allegro"))
         run.rows = _protocol_rows(run)
     elif match := _MULTISTEP.match(name):
-        run.experiment, run.world, cameras, split, run.tag = "multistep", match[1] or "exact", match[2], match[3], match[4] or ""
+        run.experiment, run.world, cameras, split, run.tag = (
+            "multistep",
+            match[1] or "exact",
+            match[2],
+            match[3],
+            match[4] or "",
+        )
         run.cameras, run.split = int(settings.get("cameras") or cameras or 0), split or "test"
         closed = bool(settings.get("closed_loop"))
         run.variant = "closed loop" if closed else "open loop"
         run.unit = "runs"
         if "success_rate" in summary:
-            rate = (_interval(summary["interval_95"]) if "interval_95" in summary
-                    else _no_interval(summary["success_rate"]))
+            rate = (
+                _interval(summary["interval_95"]) if "interval_95" in summary else _no_interval(summary["success_rate"])
+            )
             run.rows = [Row("gd2p, every push watched" if closed else "gd2p", rate, int(summary.get("runs", 0)))]
     elif match := _COVERAGE.match(name):
-        run.experiment, run.world, cameras, val, random_yaw, run.tag = (match[1], match[2] or "exact", match[3], match[4],
-                                                                        match[5], match[6] or "")
+        run.experiment, run.world, cameras, val, random_yaw, run.tag = (
+            match[1],
+            match[2] or "exact",
+            match[3],
+            match[4],
+            match[5],
+            match[6] or "",
+        )
         run.cameras, run.split = int(cameras or 0), "val" if val else "test"
         coverage = settings.get("coverage", settings)
-        run.hand = str(summary.get("hand") or coverage.get("hand")
-                       or ("leap" if "leap" in run.tag or "leap" in str(summary.get("checkpoint", "")) else "allegro"))
+        run.hand = str(
+            summary.get("hand")
+            or coverage.get("hand")
+            or ("leap" if "leap" in run.tag or "leap" in str(summary.get("checkpoint", "")) else "allegro")
+        )
         run.variant = "random yaw" if random_yaw else "yaw 0"
         run.metric, run.unit = "validated fraction", "objects"
         run.rows = _data_size_rows(run) if run.experiment == "data-size" else _coverage_rows(run)
@@ -248,10 +299,16 @@ def describe(path: Path) -> Run:
     return run
 
 
+def is_run(path: Path) -> bool:
+    """Whether a directory under results/ is a run the index lists."""
+    # results/final/ holds the final split's run log (LOG.md), not a run; an empty directory (a run
+    # that wrote nothing yet) is not in a clone, since git carries no empty directories
+    return path.is_dir() and path.name != "final" and any(path.iterdir())
+
+
 def read_runs(out: Path = RESULTS) -> list[Run]:
     """Every run directory under `out`, in the index's order."""
-    # results/final/ holds the final split's run log (LOG.md), not a run
-    runs = [describe(p) for p in sorted(Path(out).iterdir()) if p.is_dir() and p.name != "final"]
+    runs = [describe(p) for p in sorted(Path(out).iterdir()) if is_run(p)]
 
     def order(run: Run) -> tuple[Any, ...]:
         kind = EXPERIMENT_ORDER.index(run.experiment) if run.experiment in EXPERIMENT_ORDER else len(EXPERIMENT_ORDER)
@@ -291,13 +348,18 @@ def superseded(runs: Sequence[Run], root: Path = ROOT) -> list[str]:
 
 
 def _figure(row: Row) -> str:
-    return f"{row.rate}" if row.rate is not None and row.rate.low == row.rate.low else (
-        f"{row.rate.value:.1%} (no interval recorded)" if row.rate is not None else "–")
+    return (
+        f"{row.rate}"
+        if row.rate is not None and row.rate.low == row.rate.low
+        else (f"{row.rate.value:.1%} (no interval recorded)" if row.rate is not None else "–")
+    )
 
 
 def _split(run: Run) -> str:
     # the library's test split is the development split; final: the final split
-    return {"test": "development", "val": "val (tuning)", "unseen": "unseen family", "final": "final"}.get(run.split, run.split)
+    return {"test": "development", "val": "val (tuning)", "unseen": "unseen family", "final": "final"}.get(
+        run.split, run.split
+    )
 
 
 def _experiment(run: Run) -> str:
@@ -319,54 +381,98 @@ def render_index(runs: Sequence[Run]) -> str:
     rows = []
     for run in runs:
         head = run.rows[0] if run.rows else None
-        methods = "; ".join(r.label for r in run.rows) if run.experiment not in ("data-size",) else (
-            f"{len(run.rows)} data fractions" if run.rows else "–")
+        methods = (
+            "; ".join(r.label for r in run.rows)
+            if run.experiment not in ("data-size",)
+            else (f"{len(run.rows)} data fractions" if run.rows else "–")
+        )
         counts = sorted({r.count for r in run.rows})
-        trials = "–" if not counts else (f"{counts[0]} {run.unit}" + (" each" if len(run.rows) > 1 else "")
-                                          if len(counts) == 1 else f"{counts[0]}-{counts[-1]} {run.unit}")
+        trials = (
+            "–"
+            if not counts
+            else (
+                f"{counts[0]} {run.unit}" + (" each" if len(run.rows) > 1 else "")
+                if len(counts) == 1
+                else f"{counts[0]}-{counts[-1]} {run.unit}"
+            )
+        )
         headline = f"{head.label}: {_figure(head)}" if head else "–"
-        rows.append([f"[{run.name}]({run.link})", _experiment(run), _split(run), run.seen if run.rows else "–",
-                     methods or "–", trials, headline, run.commit if run.summary else "–", run.date[:10] or "–"])
-    table = markdown_table(["run", "experiment", "split", "world", "method(s)", "trials", "headline [95% interval]",
-                            "commit", "date"], rows)
-    return (f"# Evaluation results\n\n"
-            f"Generated by `{COMMAND}` from each run's `{SUMMARY_FILE}`: do not edit "
-            f"(`tests/test_results_index.py` fails when it is stale). The figures a user cares about, per experiment: "
-            f"[docs/results.md](../docs/results.md).\n\n"
-            f"Each run is `<experiment>-<world>[-cameraN][-split][-tag]/`: `{REPORT_FILE}` (the full report), "
-            f"`{SUMMARY_FILE}` (every figure), `{RECORDS_FILE}` (every trial) and `{SETTINGS_FILE}`; `gd2p eval` writes "
-            f"them. The tree keeps the runs the documentation and the code cite and the newest run of each experiment; "
-            f"the others are in git history (`git log --diff-filter=D --stat -- results/`). Headline: the first method "
-            f"of the run's command, its success rate (sampler-quality, data-size, sampler-diagnosis: the share of "
-            f"sampled poses that push the object as asked) with its 95% interval clustered by object. Commit: the "
-            f"commits that ran the trials (trials per commit when several did).\n\n" + table)
+        rows.append(
+            [
+                f"[{run.name}]({run.link})",
+                _experiment(run),
+                _split(run),
+                run.seen if run.rows else "–",
+                methods or "–",
+                trials,
+                headline,
+                run.commit if run.summary else "–",
+                run.date[:10] or "–",
+            ]
+        )
+    table = markdown_table(
+        ["run", "experiment", "split", "world", "method(s)", "trials", "headline [95% interval]", "commit", "date"],
+        rows,
+    )
+    return (
+        f"# Evaluation results\n\n"
+        f"Generated by `{COMMAND}` from each run's `{SUMMARY_FILE}`: do not edit "
+        f"(`tests/test_results_index.py` fails when it is stale). The figures a user cares about, per experiment: "
+        f"[docs/results.md](../docs/results.md).\n\n"
+        f"Each run is `<experiment>-<world>[-cameraN][-split][-tag]/`: `{REPORT_FILE}` (the full report), "
+        f"`{SUMMARY_FILE}` (every figure), `{RECORDS_FILE}` (every trial) and `{SETTINGS_FILE}`; `gd2p eval` writes "
+        f"them. The tree keeps the runs the documentation and the code cite and the newest run of each experiment; "
+        f"the others are in git history (`git log --diff-filter=D --stat -- results/`). Headline: the first method "
+        f"of the run's command, its success rate (sampler-quality, data-size, sampler-diagnosis: the share of "
+        f"sampled poses that push the object as asked) with its 95% interval clustered by object. Commit: the "
+        f"commits that ran the trials (trials per commit when several did).\n\n" + table
+    )
 
 
 def _docs_runs(runs: Sequence[Run]) -> list[Run]:
     """The runs a user cares about: the newest of each experiment in the evaluation's default setting (the `real`
     world seen by 3 cameras) on the test objects and the never-trained family."""
-    default = [r for r in newest(runs).values()
-               if r.rows and r.world == "real" and r.cameras == 3 and r.split in ("test", "unseen")]
+    default = [
+        r
+        for r in newest(runs).values()
+        if r.rows and r.world == "real" and r.cameras == 3 and r.split in ("test", "unseen")
+    ]
     order = {r.name: i for i, r in enumerate(runs)}
     return sorted(default, key=lambda r: order[r.name])
 
 
 def render_docs(runs: Sequence[Run]) -> str:
-    lines = ["# Results", "",
-             (f"Generated by `{COMMAND}` from the runs' `{SUMMARY_FILE}`: do not edit. Each section is the newest run of "
-             "an experiment in the evaluation's default setting: executed in a world drawn per trial that the planner "
-             "does not know (`--world real`), the object seen by 3 simulated depth cameras, on the 14 test objects or "
-             "a shape family no model trains on (`--split unseen`). Every rate has its 95% interval, bootstrapped over "
-             "objects (trials of one object are not independent). Every kept run, with the tuning (`val`) runs, the "
-             "planner's own world and earlier models: [results/README.md](../results/README.md); the protocol: "
-             "`gd2p eval --help`."), ""]
+    lines = [
+        "# Results",
+        "",
+        (
+            f"Generated by `{COMMAND}` from the runs' `{SUMMARY_FILE}`: do not edit. Each section is the newest run of "
+            "an experiment in the evaluation's default setting: executed in a world drawn per trial that the planner "
+            "does not know (`--world real`), the object seen by 3 simulated depth cameras, on the 14 test objects or "
+            "a shape family no model trains on (`--split unseen`). Every rate has its 95% interval, bootstrapped over "
+            "objects (trials of one object are not independent). Every kept run, with the tuning (`val`) runs, the "
+            "planner's own world and earlier models: [results/README.md](../results/README.md); the protocol: "
+            "`gd2p eval --help`."
+        ),
+        "",
+    ]
     for run in _docs_runs(runs):
-        lines += [f"## {_heading(run)}", "",
-                  (f"`{run.command}` · commit {run.commit} · {run.date[:10]} · seeds: {run.seeds} · "
-                  f"[report](../results/{run.link})"), ""]
-        header = {"success": "success [95% interval]", "validated fraction": "poses validated [95% interval]"}[run.metric]
-        lines += markdown_table(["method" if run.experiment != "data-size" else "training data", header, run.unit],
-                                [[r.label, _figure(r), r.count] for r in run.rows]).splitlines()
+        lines += [
+            f"## {_heading(run)}",
+            "",
+            (
+                f"`{run.command}` · commit {run.commit} · {run.date[:10]} · seeds: {run.seeds} · "
+                f"[report](../results/{run.link})"
+            ),
+            "",
+        ]
+        header = {"success": "success [95% interval]", "validated fraction": "poses validated [95% interval]"}[
+            run.metric
+        ]
+        lines += markdown_table(
+            ["method" if run.experiment != "data-size" else "training data", header, run.unit],
+            [[r.label, _figure(r), r.count] for r in run.rows],
+        ).splitlines()
         lines.append("")
     return "\n".join(lines).rstrip("\n") + "\n"
 
@@ -389,10 +495,17 @@ def stale(out: Path = RESULTS, docs: Path = DOCS_RESULTS) -> list[Path]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--check", action="store_true", help="exit 1 when results/README.md or docs/results.md is stale")
-    parser.add_argument("--superseded", action="store_true",
-                        help="print the runs neither cited by path nor the newest of their experiment (to git rm)")
+    parser = argparse.ArgumentParser(
+        prog=COMMAND, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--check", action="store_true", help="exit 1 when results/README.md or docs/results.md is stale"
+    )
+    parser.add_argument(
+        "--superseded",
+        action="store_true",
+        help="print the runs neither cited by path nor the newest of their experiment (to git rm)",
+    )
     args = parser.parse_args(argv)
     if args.superseded:
         print("\n".join(f"results/{name}" for name in superseded(read_runs())))

@@ -1,6 +1,7 @@
 """The results index is generated and cannot go stale: results/README.md and docs/results.md are what
 `python -m evaluation.results_index` writes from the runs in results/, docs/results.md stays short, and every run
 either links exists."""
+
 from __future__ import annotations
 
 import json
@@ -13,6 +14,7 @@ from evaluation.results_index import (
     DOCS_RESULTS,
     RESULTS,
     describe,
+    is_run,
     newest,
     read_runs,
     render_docs,
@@ -39,7 +41,7 @@ def test_every_run_linked_exists_and_every_kept_run_is_listed():
     for page in (RESULTS / "README.md", DOCS_RESULTS):
         for target in LINK.findall(page.read_text()):
             assert (page.parent / target).exists(), f"{page.name} links {target}, which is not in the tree"
-    for run in (p for p in RESULTS.iterdir() if p.is_dir() and p.name != "final"):  # final/: the final split's LOG.md
+    for run in filter(is_run, RESULTS.iterdir()):
         assert f"[{run.name}]({run.name}/" in index
 
 
@@ -52,12 +54,23 @@ def test_a_run_is_grouped_with_the_other_runs_of_its_experiment_and_the_newest_i
 
     methods = {"gd2p": {"success_rate": 0.9, "trials": 42, "interval_95": {"value": 0.9, "low": 0.8, "high": 1.0}}}
     protocol = {"hand": "allegro", "cameras": 3, "objects": ["a", "b"], "directions_deg": [0.0, 90.0, 180.0]}
-    old = run("methods-real-camera3-v1", "2026-12-01T00:00:00Z", protocol, methods=methods,
-              command="gd2p eval methods --cameras 3 --trials 7 --methods gd2p --tag v1 --out /somewhere --workers 2")
+    old = run(
+        "methods-real-camera3-v1",
+        "2026-12-01T00:00:00Z",
+        protocol,
+        methods=methods,
+        command="gd2p eval methods --cameras 3 --trials 7 --methods gd2p --tag v1 --out /somewhere --workers 2",
+    )
     new = run("methods-real-camera3-v2", "2026-12-02T00:00:00Z", protocol, methods=methods)
     val = run("methods-real-camera3-val-v3", "2026-12-03T00:00:00Z", protocol, methods=methods)
-    closed = run("multistep-real-v2-ahead-closed", "2026-12-01T00:00:00Z", {"closed_loop": True}, runs=18,
-                 success_rate=0.5, interval_95={"value": 0.5, "low": 0.2, "high": 0.8})
+    closed = run(
+        "multistep-real-v2-ahead-closed",
+        "2026-12-01T00:00:00Z",
+        {"closed_loop": True},
+        runs=18,
+        success_rate=0.5,
+        interval_95={"value": 0.5, "low": 0.2, "high": 0.8},
+    )
     opened = run("multistep-real-v2-ahead", "2026-12-01T00:00:00Z", {}, runs=18, success_rate=0.5)
 
     described = {p.name: describe(p) for p in (old, new, val, closed, opened)}
