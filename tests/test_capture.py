@@ -140,3 +140,31 @@ def test_cli_rejects_bad_input_clearly(tmp_path, capsys):
     for argv, message in cases:
         assert main(["capture", *argv]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_each_camera_is_levelled_to_the_table_it_sees(cylinder):
+    """Cameras off by tenths of a degree and millimetres see the table tilted and raised by up to a centimetre;
+    levelled against the table in their own frames it lies on z = 0 again, and the object's points come closer
+    to its surface. A frame showing too little table keeps its calibrated pose."""
+    from shared.world.perception.depth import DepthFrame, Intrinsics, level_to_table
+    from shared.world.sim.camera import true_camera_pose
+    from shared.world.sim.world import CameraError
+
+    obj, T_world_O = cylinder
+    errors = [CameraError((0.003, -0.002, 0.003), (0.3, -0.3, 0.2)), CameraError((-0.002, 0.003, -0.003), (-0.3, 0.3, -0.1))]
+    cameras = default_cameras((0.5, 0.05), 2, 0.1)
+    kept = capture_object(obj, T_world_O, cameras=cameras, noise=None, size=SIZE, camera_errors=errors, level=False)
+    levelled = capture_object(obj, T_world_O, cameras=cameras, noise=None, size=SIZE, camera_errors=errors)
+    truth = obj.mesh.copy()
+    truth.apply_transform(T_world_O)
+    for before, after, mask in zip(kept.frames, levelled.frames, levelled.object_masks, strict=True):
+        table = dataclasses.replace(before, depth_m=np.where(mask, 0.0, before.depth_m))
+        assert np.ptp(table.points_world()[:, 2]) > 0.005  # as calibrated: the table is tilted
+        assert np.abs(level_to_table(table).points_world()[:, 2]).max() < 0.001
+        on_object = [dataclasses.replace(frame, depth_m=np.where(mask, frame.depth_m, 0.0)).points_world()
+                     for frame in (before, after)]
+        off = [np.median(np.abs(trimesh.proximity.signed_distance(truth, points))) for points in on_object]
+        assert off[1] < off[0]
+    far = DepthFrame(np.full((24, 32), 0.3, dtype=np.float32), Intrinsics.from_hfov(32, 24, 60.0),
+                     true_camera_pose(cameras[0], None))
+    assert level_to_table(far) is far  # nothing near the table: nothing to level against

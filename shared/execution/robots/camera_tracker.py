@@ -4,10 +4,10 @@ A real robot learns where the object is from its cameras, with its own arm and h
 ones by default. At each tracking frame the engine renders depth from every camera of the rig as it truly stands
 (`CameraRig.true_poses`: a calibration is never exact), the D435-class noise of `shared.world.sim.camera` is added, and
 the frames go to `shared.world.perception.tracking.ObjectTracker` stamped with the poses the system *believes*
-(`CameraRig.believed`), together with the robot's self-filter mask (the pixels its model covers at its measured
-joints). The tracker segments the object, registers the model the system has (the told mesh, or the
-reconstruction it planned around) and reports a pose with a fitness, or "lost". Nothing here reads the
-simulator's object pose: the engine only draws pictures.
+(`CameraRig.believed`, levelled to the table once per rig as the capture's frames are), together with the robot's
+self-filter mask (the pixels its model covers at its measured joints). The tracker segments the object, registers
+the model the system has (the told mesh, or the reconstruction it planned around) and reports a pose with a
+fitness, or "lost". Nothing here reads the simulator's object pose: the engine only draws pictures.
 
 Engines provide `render(T_world_cameras, intrinsics) -> [(ideal depth, robot mask)]` (PyBullet's TinyRenderer in
 `sim/robot.py`, MuJoCo's renderer in `mujoco/cameras.py`).
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from shared.world.perception.depth import DepthFrame, Intrinsics
+from shared.world.perception.depth import DepthFrame, Intrinsics, level_to_table
 from shared.world.perception.tracking import ObjectTracker, TrackedPose, TrackingConfig
 from shared.world.sim.camera import (
     DEFAULT_SIZE,
@@ -94,15 +94,28 @@ class CameraTracker:
         self.noise = tracking_noise(config.image_size)
         self._tracker: ObjectTracker | None = None
         self._rig: CameraRig | None = None
+        self._believed: list[np.ndarray] = []  # the rig's poses as calibrated, then levelled to the table
         self._rng = np.random.default_rng(0)
 
     def reset(self, model: trimesh.Trimesh, T_world_O: np.ndarray, rig: CameraRig, seed: int) -> None:
         """Track `model` (the system's, in its frame O), which the system was told stands at `T_world_O`, through
-        `rig`; the depth noise drawn from `seed`."""
+        `rig`; the depth noise drawn from `seed`. A new rig is first levelled to the table (`_level`)."""
         self._tracker = ObjectTracker.from_mesh(model, self.config)
         self._tracker.reset(np.asarray(T_world_O, dtype=np.float64))
-        self._rig = rig
         self._rng = np.random.default_rng(seed)
+        if rig != self._rig:
+            self._believed = self._level(rig)
+        self._rig = rig
+
+    def _level(self, rig: CameraRig) -> list[np.ndarray]:
+        """Each camera's pose refined against the table in one whole frame of it (`level_to_table`), as the
+        capture's frames are: the tracker and the model it registers see the table at the same height."""
+        calibrated = [camera.T_world_camera() for camera in rig.believed]
+        whole = (slice(0, self.intrinsics.height), slice(0, self.intrinsics.width))
+        seen = self.render(rig.true_poses(), self.intrinsics, [whole] * len(calibrated))
+        rng = np.random.default_rng(0)  # its own: a trial's noise must not depend on whether its rig was new
+        return [level_to_table(DepthFrame(self.noise.apply(depth, rng).astype(np.float32), self.intrinsics,
+                                          T)).T_world_camera for (depth, _), T in zip(seen, calibrated, strict=True)]
 
     @property
     def ready(self) -> bool:
@@ -112,7 +125,7 @@ class CameraTracker:
         """One tracking frame now: render, add the sensor's noise, segment and register."""
         if self._tracker is None or self._rig is None:
             raise RuntimeError("the image tracker has no object to track: reset it with the object's model first")
-        believed = [camera.T_world_camera() for camera in self._rig.believed]
+        believed = self._believed
         # Only the pixels the tracker will read are drawn and made noisy (a camera's simulation costs per pixel).
         windows = [self._window(T) for T in believed]
         frames, masks = [], []

@@ -39,7 +39,9 @@ Extrinsic (calibration) error: with `camera_errors` (an execution world's `camer
 `shared.world.sim.world.CameraError`), each camera renders from where it truly stands (its calibrated
 pose composed with its error) while its `DepthFrame` carries the calibrated pose, what the system
 believes: the cloud is off exactly as a miscalibrated camera's is (shifted by the error's translation,
-turned by its rotation about the camera).
+turned by its rotation about the camera). Each frame's pose is then refined against the table it shows
+(`shared.world.perception.depth.level_to_table`), as a real pipeline levels its cameras: the height, roll and
+pitch errors go, the horizontal shift and the turn about the vertical stay.
 """
 from __future__ import annotations
 
@@ -54,7 +56,7 @@ import trimesh
 from scipy import ndimage
 
 from shared.frames import matrix_to_quat_xyzw
-from shared.world.perception.depth import DepthFrame, Intrinsics, frames_to_cloud
+from shared.world.perception.depth import DepthFrame, Intrinsics, frames_to_cloud, level_to_table
 from shared.world.sim.world import CameraError
 
 NEAR_M, FAR_M = 0.05, 5.0  # render clip planes (the sensor's own range is applied by the noise model)
@@ -178,13 +180,16 @@ def capture_object(
     noise: StereoDepthNoise | None = StereoDepthNoise(),
     cameras: list[CameraPose] | None = None,
     camera_errors: Sequence[CameraError] | None = None,
+    level: bool = True,
 ) -> Capture:
     """Render `obj` (an ObjectModel, or any object with a trimesh `mesh` in its frame O) at T_world_O.
 
     `noise=None` gives ideal depth. The cloud keeps valid points within ROI_RADIUS_M (xy) of the
     object and below ROI_TOP_M: the workspace crop a real pipeline applies before anything else.
     `camera_errors` (None or empty: cameras exactly where calibrated): the k-th camera truly stands at
-    its pose composed with the k-th error, and its frame carries the calibrated pose (module docstring).
+    its pose composed with the k-th error, and its frame carries the calibrated pose (module docstring), refined
+    against the table the frame shows (`level_to_table`: height, roll and pitch; what a real pipeline does) unless
+    `level` is False.
     """
     T_world_O = np.asarray(T_world_O, dtype=np.float64)
     position = T_world_O[:3, 3]
@@ -203,7 +208,8 @@ def capture_object(
             ideal.append(depth)
             masks.append(mask)
             noisy = depth if noise is None else noise.apply(depth, rng)
-            frames.append(DepthFrame(noisy.astype(np.float32), intrinsics, calibrated))
+            frame = DepthFrame(noisy.astype(np.float32), intrinsics, calibrated)
+            frames.append(level_to_table(frame) if level else frame)
     cloud = crop_to_region(frames_to_cloud(frames), position[:2])
     return Capture(frames, list(cameras), cloud, ideal, masks)
 
