@@ -1,7 +1,7 @@
 """`gd2p up | status | health | demo`: run the local system and look at it over the bus.
 
     gd2p up [--validators N] [--record-dir DIR] [--listen tcp/127.0.0.1:7447] [--confirm [--confirm-timeout S]]
-            [--robot sim|mujoco]
+            [--robot sim|mujoco] [--tracking image|truth]
     gd2p status [--json] [bus flags]          live workers per service (liveliness)
     gd2p health --service S [--worker-id ID | --this-host] [bus flags]   exit 0 iff it answers
     gd2p demo                                  bring the system up, push an object 0.20 m, shut it down
@@ -28,7 +28,7 @@ SECURE_LISTEN = "tls/localhost:7447"
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from shared.bus import BusConfig
-    from shared.execution.robots import SIM_ROBOTS
+    from shared.execution.robots import SIM_ROBOTS, TRACKING_MODES
 
     up = subparsers.add_parser("up", help="start the router and every service locally (Ctrl-C stops all)",
                                description="Start an embedded Zenoh router and every service as its own process; "
@@ -55,6 +55,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     up.add_argument("--robot", choices=SIM_ROBOTS, default="sim",
                     help="the simulated robot's physics engine: sim (PyBullet, the planner's own; default) or mujoco "
                          "(MuJoCo: plans made in PyBullet execute in an engine nobody tuned them to)")
+    up.add_argument("--tracking", choices=TRACKING_MODES, default="image",
+                    help="how the simulated robot sees the object while it pushes: image (its model registered in the "
+                         "depth frames the engine renders; default) or truth (the simulator's pose plus a little "
+                         "noise: quicker, for work on the planner)")
     up.set_defaults(func=run_up)
 
     status = subparsers.add_parser("status", help="live worker count per service",
@@ -209,7 +213,7 @@ def run_up(args: argparse.Namespace) -> int:
                             log_dir=args.log_dir, secure_dir=args.secure_dir if secure else None,
                             view_port=getattr(args, "view", None),
                             confirm_timeout_s=confirm_timeout if confirm else None,
-                            robot=getattr(args, "robot", "sim"))
+                            robot=getattr(args, "robot", "sim"), tracking=getattr(args, "tracking", "image"))
     except LaunchError as exc:
         print(f"gd2p up: {exc}", file=sys.stderr)
         return 2

@@ -41,7 +41,7 @@ from shared.bus.interfaces import LAUNCHER_CONTROL_KEY as CONTROL_KEY  # the con
 from shared.bus.interfaces import SERVICES  # the services the launcher runs, in start order
 from shared.contracts.codec import CodecError, decode, encode
 from shared.contracts.messages import ErrorReply, Message, ScaleReply, ScaleRequest
-from shared.execution.robots import SIM_ROBOTS
+from shared.execution.robots import SIM_ROBOTS, TRACKING_MODES
 
 log = logging.getLogger("gd2p.launcher")
 
@@ -197,6 +197,7 @@ class Launcher:
         view_port: int | None = None,
         confirm_timeout_s: float | None = None,
         robot: str = "sim",
+        tracking: str = "image",
     ):
         # The most workers per scalable service (defaults, GD2P_MAX_SCALE, then `max_scale`).
         self.max_scale = scale_limits(max_scale)
@@ -224,7 +225,9 @@ class Launcher:
         # The simulated robot's engine (`gd2p up --robot`): the bridge builds PyBullet's or MuJoCo's.
         if robot not in SIM_ROBOTS:
             raise LaunchError(f"unknown simulated robot {robot!r}; known: {', '.join(SIM_ROBOTS)}")
-        self.robot = robot
+        if tracking not in TRACKING_MODES:
+            raise LaunchError(f"unknown tracking {tracking!r}; known: {', '.join(TRACKING_MODES)}")
+        self.robot, self.tracking = robot, tracking
         self.initial_counts = {svc: 1 for svc in SERVICES} | {"validator": n_validators}
         self.exits: list[ChildExit] = []
         self._children: dict[str, Child] = {}  # worker id -> child
@@ -413,7 +416,7 @@ class Launcher:
         if service == "recorder":
             cmd += ["--record-dir", str(self.record_dir)]
         if service == "robot_bridge":  # the simulated robot: confirm only when asked (`gd2p up --confirm`)
-            cmd += ["--robot", self.robot]
+            cmd += ["--robot", self.robot, "--tracking", self.tracking]
             cmd += (["--confirm", "--confirm-timeout", f"{self.confirm_timeout_s:g}"] if self.confirm_timeout_s
                     else ["--no-confirm"])
         if self.secure is not None:

@@ -40,10 +40,11 @@ from shared.contracts.messages import (
     ValidationJob,
 )
 from shared.execution.executor import EStopLatch, Executor, LocalLease
+from shared.execution.robots import TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig
 from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot, TrueWorld
-from shared.execution.robots.simulated import SimulatedRobot, TrackingMode
+from shared.execution.robots.simulated import SimulatedRobot
 from shared.frames import invert_transform
 from shared.planning.cancellation import Cancellation
 from shared.planning.decision_tap import DecisionTap

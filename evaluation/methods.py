@@ -23,7 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
-from shared.execution.robots.simulated import TrackingMode
+from shared.execution.robots import TrackingMode
 from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
 

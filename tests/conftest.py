@@ -12,6 +12,12 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 # MuJoCo picks its OpenGL platform when first imported: the tests render its depth cameras headless.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+# The robot bridge of the bus tests about planning, execution, confirmation and the view sees the object through the
+# truth tracker (`--tracking truth`): a third of the time of rendering and registering depth frames at 10 Hz. The
+# image tracker's own path through the bus is tested in test_interfaces.py, test_image_tracking.py and
+# test_closed_loop.py.
+TRUTH_TRACKED = {"tracking": "truth"}
+
 
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from client.confirm import ConfirmError, confirm, held_plans
+from conftest import TRUTH_TRACKED as TRUTH
 from shared.bus.keys import ROBOT_HELD_KEY, ROBOT_STATE_KEY
 from shared.contracts.codec import decode
 from shared.contracts.messages import ExecutionCommand, ExecutionState, PlanConfirm, PlanHeld
@@ -227,7 +228,7 @@ def confirm_system(module_router, tmp_path_factory):
     record_dir = tmp_path_factory.mktemp("pushes")
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-c", stop), kwargs={"confirm_timeout_s": 4.0},
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-c", stop), kwargs={"confirm_timeout_s": 4.0, **TRUTH},
                          daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-c"),
                          kwargs={"stop": stop}, daemon=True),

@@ -202,6 +202,7 @@ def test_a_failed_plan_is_replayed_to_tell_perception_from_physics(tmp_path):
     from shared.world.sim.world import PoseError
 
     protocol._init_worker(str(tmp_path))
+    protocol._system.robot.tracking_mode = "truth"  # physics replayed, not tracking: the quicker tracker
     episode = protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0, world="exact")
     request = protocol.push_request(episode)
     response = protocol._system.pipeline("sampler").run(request).response

@@ -217,3 +217,16 @@ def test_scale_limits_follow_the_cores_and_are_configurable(monkeypatch, tmp_pat
     system = Launcher(log_dir=tmp_path / "logs")  # default: one validator per core, within the maximum
     assert system.max_scale["validator"] == 1 and system.initial_counts["validator"] == 1
     assert system.scale_refusal("validator", 1) is None and "maximum" in system.scale_refusal("validator", 2)
+
+
+def test_the_simulated_robot_s_engine_and_tracking_reach_the_bridge_and_bad_ones_are_refused(tmp_path, capsys):
+    system = Launcher(validators=0, log_dir=tmp_path / "logs", robot="mujoco", tracking="truth")
+    command = system._command("robot_bridge", "robot_bridge-1")
+    assert command[command.index("--robot") + 1] == "mujoco" and command[command.index("--tracking") + 1] == "truth"
+    with pytest.raises(LaunchError, match="unknown tracking 'oracle'; known: image, truth"):
+        Launcher(validators=0, log_dir=tmp_path / "logs", tracking="oracle")
+    from services.robot_bridge.__main__ import main as bridge_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        bridge_main(["--hardware", "panda+allegro", "--panda-host", "10.0.0.2", "--tracking", "truth"])
+    assert exit_info.value.code == 2 and "with --hardware your tracker does" in capsys.readouterr().err

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from client.push_client import PushFailed, push
+from conftest import TRUTH_TRACKED as TRUTH
 from shared.bus import BusConfig, live_workers, open_session
 from shared.contracts.messages import CircleObstacle, ObjectPose, ObjectRef, PlannerOptions, PushRequest, SampleRequest
 
@@ -35,7 +36,7 @@ def system(module_router, tmp_path_factory):
     record_dir = tmp_path_factory.mktemp("pushes")
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-t", stop), daemon=True),
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-t", stop), kwargs=TRUTH, daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-t"),
                          kwargs={"stop": stop}, daemon=True),
         threading.Thread(target=planner.run, args=(cfg, "planner-t", stop, str(record_dir)), daemon=True),

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from conftest import TRUTH_TRACKED as TRUTH
 from shared.bus import BusConfig, live_workers, open_session
 from shared.contracts.messages import ObjectRef, Plan, PlannerOptions, PushRequest
 from shared.planning.decision import METADATA_NAME, compare_plans
@@ -31,7 +32,7 @@ def recorded_push(module_router, tmp_path_factory):
     record_dir = tmp_path_factory.mktemp("pushes")
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-r", stop), daemon=True),
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-r", stop), kwargs=TRUTH, daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-r"),
                          kwargs={"stop": stop}, daemon=True),
         threading.Thread(target=planner.run, args=(cfg, "planner-r", stop, str(record_dir)), daemon=True),

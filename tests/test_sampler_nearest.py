@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
+from conftest import TRUTH_TRACKED as TRUTH
 from pose_store import write_pose_store
 from shared.contracts.messages import (
     DirectionFrame,
@@ -226,7 +227,7 @@ def test_a_push_request_with_method_nearest_executes_a_stored_training_pose(zeno
     cfg = BusConfig(mode="client", connect=[zenoh_router], connect_timeout_ms=5000)
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-nn", stop), daemon=True),
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-nn", stop), kwargs=TRUTH, daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-nn"),
                          kwargs={"stop": stop}, daemon=True),
         threading.Thread(target=run_worker, args=(sampler.SERVICE, sampler.handlers(), cfg, "sampler-nn"),

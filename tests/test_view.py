@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from client.push_client import push
+from conftest import TRUTH_TRACKED as TRUTH
 from shared.bus import BusConfig, live_workers, open_session
 from shared.contracts.messages import ObjectRef, PlannerOptions, PushRequest
 
@@ -60,7 +61,7 @@ def view_system(module_router, tmp_path_factory):
     record_dir = tmp_path_factory.mktemp("pushes")
     stop = threading.Event()
     workers = [
-        threading.Thread(target=bridge.run, args=(cfg, "bridge-v", stop), kwargs={"confirm_timeout_s": 60.0},
+        threading.Thread(target=bridge.run, args=(cfg, "bridge-v", stop), kwargs={"confirm_timeout_s": 60.0, **TRUTH},
                          daemon=True),
         threading.Thread(target=run_worker, args=(validator.SERVICE, validator.handlers(), cfg, "validator-v"),
                          kwargs={"stop": stop}, daemon=True),

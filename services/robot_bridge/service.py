@@ -70,7 +70,7 @@ from shared.execution.confirm import ConfirmGate
 from shared.execution.executor import EStopLatch, Executor, StatePublisher
 from shared.execution.hardware import HardwareSpec, connect_all
 from shared.execution.limits import SafetyRefusal
-from shared.execution.robots import SIM_ROBOTS
+from shared.execution.robots import SIM_ROBOTS, TRACKING_MODES, TrackingMode
 from shared.execution.robots.sim.config import SimConfig
 from shared.execution.robots.sim.robot import SimRobot
 
@@ -122,15 +122,20 @@ class Bridge:
     `confirm_timeout_s` (None = confirm off): hold every command that passed its checks until an operator
     confirms it, at most this long (`ConfirmGate`).
 
-    `robot`: the simulated robots' engine, "sim" (PyBullet) or "mujoco".
+    `robot`: the simulated robots' engine, "sim" (PyBullet) or "mujoco"; `tracking`: how they see the object while a
+    plan runs, "image" (registered in the depth frames they render, as a real robot's cameras would) or "truth"
+    (the simulator's pose with a little noise: quicker, for work on the planner, never for a figure).
     """
 
     def __init__(self, session: zenoh.Session, publish: StatePublisher | None = None, lease_timeout_s: float = 1.0,
                  probe: zenoh.Session | None = None, publish_track: Callable[[ObjectTrack], None] | None = None,
-                 confirm_timeout_s: float | None = None, robot: str = "sim"):
+                 confirm_timeout_s: float | None = None, robot: str = "sim", tracking: TrackingMode = "image"):
         if robot not in SIM_ROBOTS:
             raise ValueError(f"unknown simulated robot {robot!r}; known: {', '.join(SIM_ROBOTS)}")
+        if tracking not in TRACKING_MODES:
+            raise ValueError(f"unknown tracking {tracking!r}; known: {', '.join(TRACKING_MODES)}")
         self.robot = robot
+        self.tracking = tracking
         self.session = session
         self.publish = publish
         self.publish_track = publish_track  # the simulated robots' tracker frames
@@ -181,8 +186,8 @@ class Bridge:
             from shared.execution.robots.mujoco.config import MujocoConfig
             from shared.execution.robots.mujoco.robot import MujocoRobot
 
-            return MujocoRobot(MujocoConfig(arm, hand), publish=self.publish)
-        return SimRobot(SimConfig(arm, hand), publish=self.publish)
+            return MujocoRobot(MujocoConfig(arm, hand, tracking=self.tracking), publish=self.publish)
+        return SimRobot(SimConfig(arm, hand, tracking=self.tracking), publish=self.publish)
 
     def execute(self, command: ExecutionCommand) -> ExecutionState:
         """Run `command.plan` if every check passes, watching its lease throughout; the final state (or the refusal).
@@ -261,10 +266,11 @@ class Bridge:
 
 
 def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | None = None,
-        hardware: HardwareSpec | None = None, confirm_timeout_s: float | None = None, robot: str = "sim") -> None:
+        hardware: HardwareSpec | None = None, confirm_timeout_s: float | None = None, robot: str = "sim",
+        tracking: TrackingMode = "image") -> None:
     """Serve the robot bridge until SIGTERM/SIGINT or `stop`, publishing states on `STATE_KEY`; with
     `confirm_timeout_s`, each command waits for an operator's confirmation (`Bridge`); `robot`: the
-    simulated robot's engine ("sim": PyBullet, "mujoco").
+    simulated robot's engine ("sim": PyBullet, "mujoco"); `tracking`: how it sees the object ("image", "truth": Bridge).
 
     `hardware` (None = the simulated robot) is connected before the worker registers, so a bridge
     whose devices are absent fails at start with the device's error instead of announcing itself.
@@ -291,7 +297,7 @@ def run(cfg: BusConfig, worker_id: str | None = None, stop: threading.Event | No
             track_publisher.put(payload, encoding=encoding)
 
         bridge = Bridge(session, publish, probe=probe, publish_track=None if hardware is not None else publish_track,
-                        confirm_timeout_s=confirm_timeout_s, robot=robot)
+                        confirm_timeout_s=confirm_timeout_s, robot=robot, tracking=tracking)
         if hardware is not None:
             bridge.attach_hardware(hardware)
         commands = bridge.serve_commands()

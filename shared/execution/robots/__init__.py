@@ -19,6 +19,10 @@ from typing import Literal
 
 # The simulated robot's engines (`--robot`, `gd2p up --robot`): sim/ (PyBullet, the planner's own) and mujoco/.
 SIM_ROBOTS: tuple[str, ...] = ("sim", "mujoco")
+# How a simulated robot sees the object while a plan runs (`--tracking`): "image" registers its model in the depth
+# frames the engine renders (a real robot's view), "truth" reads the simulator's pose plus noise (quicker).
+TrackingMode = Literal["image", "truth"]
+TRACKING_MODES: tuple[TrackingMode, ...] = ("image", "truth")
 
 
 @dataclass(frozen=True)

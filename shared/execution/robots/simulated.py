@@ -15,13 +15,14 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Literal, TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack
 from shared.execution.executor import StatePublisher
 from shared.execution.robot import Observation, Robot
+from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig, CameraTracker
 from shared.execution.robots.sim.tracker import SimTracker, TrackerConfig
 from shared.world.object_refs import load_object_ref
@@ -32,8 +33,6 @@ from shared.world.push_outcome import object_pose
 if TYPE_CHECKING:  # sim/robot.py imports this module
     from shared.execution.robots.sim.robot import TrueWorld
 
-TrackingMode = Literal["image", "truth"]
-TRACKING_MODES: tuple[TrackingMode, ...] = ("image", "truth")
 
 SelfRobot = TypeVar("SelfRobot", bound="SimulatedRobot")
 

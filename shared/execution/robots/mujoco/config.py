@@ -12,6 +12,7 @@ from typing import Literal
 
 import numpy as np
 
+from shared.execution.robots import TrackingMode
 from shared.execution.robots.sim.tracker import TrackerConfig
 from shared.world.perception.tracking import TrackingConfig
 from shared.world.sim.world import MujocoDraw
@@ -109,7 +110,7 @@ class MujocoConfig:
     state_rate_hz: float = 50.0  # states published per second of robot time
     # How the robot sees the object: "image" (registered in depth frames MuJoCo renders, camera_tracker.py) or
     # "truth" (the true pose, late and noisy: TrackerConfig).
-    tracking: Literal["image", "truth"] = "image"
+    tracking: TrackingMode = "image"
     image_tracking: TrackingConfig = TrackingConfig()
     tracker: TrackerConfig = TrackerConfig()
 

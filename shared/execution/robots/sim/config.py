@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
 from shared.execution.limits import DeviceLimits
+from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.sim.tracker import TrackerConfig
 from shared.robots.robot_limits import JointLimits
 from shared.world.perception.tracking import TrackingConfig
@@ -26,15 +26,15 @@ class SimConfig:
     state_rate_hz: float = 50.0  # states published per second of robot time
     # How the robot sees the object: "image" (registered in rendered depth frames, camera_tracker.py) or
     # "truth" (the true pose, late and noisy: tracker.py's TrackerConfig).
-    tracking: Literal["image", "truth"] = "image"
+    tracking: TrackingMode = "image"
     image_tracking: TrackingConfig = TrackingConfig()
     tracker: TrackerConfig = TrackerConfig()
 
     def __post_init__(self) -> None:
         if self.state_rate_hz <= 0:
             raise ValueError(f"state_rate_hz must be positive, got {self.state_rate_hz}")
-        if self.tracking not in ("image", "truth"):
-            raise ValueError(f"tracking must be 'image' or 'truth', got {self.tracking!r}")
+        if self.tracking not in TRACKING_MODES:
+            raise ValueError(f"tracking must be one of {', '.join(TRACKING_MODES)}, got {self.tracking!r}")
 
 
 @functools.cache
