@@ -9,6 +9,8 @@ planner predicting in PyBullet in both. For every method both ran, on the trials
 - why trials failed (`failure_cause`): perception (the cameras' cloud could not be reconstructed), planning (no
   feasible plan), tracking (the image tracker lost the object, or the push was stopped on a lost track) or the
   push itself (executed, and the object did not end where it should: physics, or a pose the tracker had wrong);
+- success against the tolerance in each engine (`evaluation.tolerance`: 1-5 cm, 10-45 degrees), drawn beside the
+  report when it is written to a file;
 - the image tracker's error against the truth: the per-push median and worst position (mm) and rotation (degrees),
   pooled as percentiles, and the share of frames lost. Rotation errors of a body of revolution (a standing can)
   are its unobservable spin, reported as measured.
@@ -27,6 +29,7 @@ from evaluation.compare import load_run, request_key
 from evaluation.report import markdown_table
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, read_records
+from evaluation.tolerance import Curves, curves, plot, table
 
 CAUSES = ("perception", "planning", "tracking", "push", "other error")
 
@@ -62,11 +65,13 @@ def tracker_errors(records: list[dict[str, Any]]) -> dict[str, float]:
     return out
 
 
-def report(real_dir: Path, mujoco_dir: Path, command: str | None = None) -> str:
+def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_path: Path | None = None) -> str:
+    """The markdown report; with `plot_path`, the tolerance curves are drawn there and linked."""
     methods = [m for m in _methods(real_dir) if m in _methods(mujoco_dir)]
     if not methods:
         raise ValueError(f"{real_dir} and {mujoco_dir} share no method")
     rows, causes, tracking = [], [], []
+    tolerance: dict[str, Curves] = {}
     for method in methods:
         real, mujoco = load_run(real_dir, method).records, load_run(mujoco_dir, method).records
         by_request = {request_key(r): r for r in mujoco}
@@ -77,6 +82,7 @@ def report(real_dir: Path, mujoco_dir: Path, command: str | None = None) -> str:
         rows.append([method, len(pairs), len({r["object_id"] for r in a}), str(success_interval(a)),
                      str(success_interval(b)), difference_interval(b, a).points()])
         for engine, records in (("PyBullet (`real`)", a), ("MuJoCo", b)):
+            tolerance[f"{method} / {engine.split()[0]}"] = curves(records)
             counted = Counter(failure_cause(r) for r in records)
             causes.append([method, engine] + [counted.get(c, 0) for c in CAUSES])
             t = tracker_errors(records)
@@ -91,7 +97,9 @@ def report(real_dir: Path, mujoco_dir: Path, command: str | None = None) -> str:
             + "\n## Why trials failed\n\n" + markdown_table(["method", "engine", *CAUSES], causes)
             + "\n## The image tracker against the truth (per push)\n\n"
             + markdown_table(["method", "engine", "pushes", "median mm (p50)", "median mm (p95)", "worst mm (p95)",
-                              "median ° (p50)", "worst ° (p95)", "frames lost"], tracking))
+                              "median ° (p50)", "worst ° (p95)", "frames lost"], tracking)
+            + "\n## Success against the tolerance (the same trials; `evaluation.tolerance`)\n\n" + table(tolerance)
+            + (f"\n![success against the tolerance]({plot(tolerance, plot_path).name})\n" if plot_path else ""))
 
 
 def _fmt(values: dict[str, float], key: str) -> str:
@@ -116,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the markdown here (default: print it)")
     args = parser.parse_args(argv)
     try:
-        text = report(args.real, args.mujoco, " ".join(["python -m evaluation.engines", *(argv or sys.argv[1:])]))
+        command = " ".join(["python -m evaluation.engines", *(argv or sys.argv[1:])])
+        text = report(args.real, args.mujoco, command, args.out.with_suffix(".png") if args.out else None)
     except ValueError as exc:
         print(f"evaluation.engines: {exc}", file=sys.stderr)
         return 2
