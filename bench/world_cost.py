@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from evaluation import push_protocol as protocol
-from shared.execution.robots.simulated import TrackingMode
+from shared.execution.robots import TrackingMode
 from shared.world.sim.world import WorldLevel
 
 OBJECTS = ("proc-box-000", "proc-cylinder-001", "pb-mug")  # development split: a box, a round object, a handle

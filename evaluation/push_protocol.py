@@ -58,8 +58,8 @@ from shared.contracts.messages import (
     PushRequest,
     SimWorld,
 )
+from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig
-from shared.execution.robots.simulated import TRACKING_MODES, TrackingMode
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id

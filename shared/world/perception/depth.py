@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .errors import PerceptionError
 
@@ -144,14 +145,8 @@ def level_to_table(frame: DepthFrame, settings: TableLeveling = TableLeveling())
     if math.degrees(tilt) > settings.max_tilt_deg or abs(pivot[2]) > settings.max_offset_m:
         return frame
     axis = np.cross(normal, [0.0, 0.0, 1.0])
-    rotation = _axis_angle(axis / np.linalg.norm(axis), tilt) if tilt > 1e-12 else np.eye(3)
+    rotation = Rotation.from_rotvec(axis / np.linalg.norm(axis) * tilt).as_matrix() if tilt > 1e-12 else np.eye(3)
     fix = np.eye(4)
     fix[:3, :3] = rotation
     fix[:3, 3] = np.array([pivot[0], pivot[1], 0.0]) - rotation @ pivot
     return DepthFrame(frame.depth_m, frame.intrinsics, fix @ np.asarray(frame.T_world_camera, dtype=np.float64))
-
-
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues' rotation matrix about a unit axis."""
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
