@@ -1,6 +1,7 @@
 """End-to-end push requests: latency by stage and success over a fixed set of objects and directions.
 
     python bench/push.py --json      # last line: one JSON object
+    python bench/push.py --base 76ddcd8 --json      # that commit's planner, then this one's: both and their ratio
 
 The system runs as `gd2p up` brings it up (`deploy.launcher`: an embedded router and one process
 per service, one validator per core unless `--validators`); each request goes through the push
@@ -20,18 +21,37 @@ without and with the view attached (`cli.view.ViewBus` + `visualisation.live.Liv
 a headless Chromium watching it when `--browser`), in alternating order; the JSON gives both medians and
 their ratio, and how the view keeps up with a tracker at 20 Hz (`view_tracking`: ObjectTracks at 20 Hz and
 robot states at 500 Hz fed for 5 s; frames drawn per second and the lag from a pose's stamp to its drawing).
+
+`--base COMMIT`: the machines these run on differ in speed by up to 1.7x, so a speed-up is measured within one run.
+A clean checkout of COMMIT in a temporary git worktree (removed afterwards, also on failure or Ctrl-C) runs its own
+bench/push.py first, as a subprocess with the same Python; then this code runs in this process exactly as without
+`--base`. The base gets the flags it understands (read from its `--help`; the JSON lists the ones it does not
+know in `dropped_flags`) and `--record-dir` with `-base` appended. The JSON holds both runs (`base`, `current`:
+each with its commit; `dirty` when this tree has uncommitted changes) and the ratios base / current:
+`speedup_p50` and `speedup_p95` of `to_plan_s`, `speedup_end_to_end_p50` of `latency_s` (the client's total);
+`same_requests` false when the runs pushed different requests (a base without `--objects` pushes all), and
+`speedup_p50_common` the to-plan p50 ratio over the requests both served.
+Without `--json` a short table compares them.
 """
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import json
+import math
 import os
+import shutil
+import signal
 import statistics
+import subprocess
 import sys
+import tempfile
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -164,7 +184,7 @@ def _browser():
     return webdriver.Chrome(service=Service(shutil.which("chromedriver") or "/usr/bin/chromedriver"), options=options)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     parser.add_argument("--k", type=int, default=200)
@@ -181,7 +201,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--view", action="store_true", help="each request without and with the live view attached")
     parser.add_argument("--browser", action="store_true", help="with --view: a headless Chromium watches the view")
     parser.add_argument("--objects", type=int, default=len(OBJECTS), help="the first N objects only (a busy machine)")
+    parser.add_argument("--base", metavar="COMMIT",
+                        help="first run COMMIT's own bench/push.py (a temporary worktree), then this code; "
+                             "the JSON holds both and their ratio (speedup_p50)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
+    if args.base is None:
+        print(json.dumps(run(args)))
+        return 0
+    # Resolved before anything starts: a typo costs no worktree and no system start-up.
+    base_commit = resolve_commit(args.base)
+    if base_commit is None:
+        parser.error(f"--base {args.base!r} is not a commit of the repository at {REPO}")
+    try:
+        result = compare(args, base_commit)
+    except BaseBenchFailed as exc:
+        print(f"bench/push.py: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps(result) if args.json else comparison_table(result))
+    return 0
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """This code's bench: the system started, each request pushed and timed; the summary (printed as JSON)."""
     from shared.sampling.checkpoint import default_checkpoint_path
 
     method = args.method
@@ -253,8 +299,227 @@ def main(argv: list[str] | None = None) -> int:
     }
     if view_summary is not None:
         summary["view"] = view_summary
-    print(json.dumps(summary))
-    return 0
+    return summary
+
+
+# --base: the base commit's bench, then this one, in one run.
+
+REPO = Path(__file__).resolve().parents[1]
+BASE_STOP_S = 60.0  # after Ctrl-C, how long the base's bench gets to stop its system before it is killed
+
+
+class BaseBenchFailed(RuntimeError):
+    """The base commit's bench/push.py could not run, or printed no JSON; the message says why."""
+
+
+def git(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=False)
+
+
+def resolve_commit(ref: str) -> str | None:
+    """The full hash of `ref` when it names a commit, else None (`--quiet`: no git message to parse)."""
+    done = git("rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}")
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def current_commit() -> dict[str, Any]:
+    """HEAD, and whether tracked code differs from it (results/ excluded, as `evaluation.report.code_version`)."""
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results").stdout.strip()
+    return {"commit": git("rev-parse", "HEAD").stdout.strip(), "dirty": bool(changed)}
+
+
+def shared_flags(args: argparse.Namespace) -> list[list[str]]:
+    """The run's settings as flags for the base's bench, each with its values; explicit even when at their
+    defaults, since the base's defaults may differ from this code's."""
+    flags = [["--json"], ["--k", str(args.k)], ["--method", args.method], ["--sampler", args.sampler],
+             ["--objects", str(args.objects)], ["--record-dir", args.record_dir.rstrip("/") + "-base"]]
+    if args.validators is not None:
+        flags.append(["--validators", str(args.validators)])
+    flags += [[flag] for flag, on in (("--no-critic", not args.critic), ("--no-prescreen", not args.prescreen),
+                                      ("--view", args.view), ("--browser", args.browser)) if on]
+    return flags
+
+
+def help_flags(help_text: str) -> set[str]:
+    """The long options an argparse `--help` lists.
+
+    Only option lines of its options section count (two spaces, then a dash): the description above it and
+    the wrapped help texts may mention flags of other commands.
+    """
+    lines = help_text.splitlines()
+    heads = [i for i, line in enumerate(lines) if line.rstrip() in ("options:", "optional arguments:")]
+    flags: set[str] = set()
+    for line in lines[heads[-1] + 1:] if heads else []:
+        if line.startswith("  -"):
+            invocation = line.strip().split("  ")[0]  # the help text follows after two or more spaces
+            flags.update(word.rstrip(",") for word in invocation.split() if word.startswith("--"))
+    return flags
+
+
+def filter_flags(flags: list[list[str]], known: set[str]) -> tuple[list[str], list[str]]:
+    """(argv of the flags `known` accepts, the others as "--flag value" for the JSON)."""
+    argv = [word for flag in flags if flag[0] in known for word in flag]
+    dropped = [" ".join(flag) for flag in flags if flag[0] not in known]
+    return argv, dropped
+
+
+@contextlib.contextmanager
+def base_checkout(commit: str) -> Iterator[Path]:
+    """A clean checkout of `commit` in a temporary worktree, removed on the way out however it is left."""
+    parent = Path(tempfile.mkdtemp(prefix="gd2p-bench-base-"))
+    checkout = parent / "checkout"
+    try:
+        added = git("worktree", "add", "--detach", str(checkout), commit)
+        if added.returncode != 0:
+            raise BaseBenchFailed(f"git worktree add {commit[:12]} failed: {added.stderr.strip()}")
+        yield checkout
+    finally:
+        git("worktree", "remove", "--force", str(checkout))
+        shutil.rmtree(parent, ignore_errors=True)
+        git("worktree", "prune")  # forgets the worktree if its removal failed half way
+
+
+def base_environment(checkout: Path) -> dict[str, str]:
+    # The venv has this repository installed in editable mode: PYTHONPATH puts the base's packages first.
+    return {**os.environ, "PYTHONPATH": str(checkout)}
+
+
+def base_help(checkout: Path) -> str:
+    """The base bench's `--help`; importing it also proves the base's code loads in this Python."""
+    script = checkout / "bench" / "push.py"
+    if not script.is_file():
+        raise BaseBenchFailed("the base commit has no bench/push.py")
+    done = subprocess.run([sys.executable, str(script), "--help"], cwd=checkout, env=base_environment(checkout),
+                          capture_output=True, text=True, check=False, timeout=300)
+    if done.returncode != 0:
+        raise BaseBenchFailed(f"the base's bench/push.py cannot run in this Python ({sys.executable}): "
+                              f"--help exited {done.returncode}:\n{_tail(done.stderr or done.stdout)}")
+    return done.stdout
+
+
+def run_base(checkout: Path, argv: list[str]) -> dict[str, Any]:
+    """Run the base's bench with `argv` to its end; its JSON (its last stdout line).
+
+    Its stderr is passed through as it comes (a full run takes minutes) and its end kept for the error.
+    """
+    with tempfile.TemporaryFile("w+") as out:
+        proc = subprocess.Popen([sys.executable, str(checkout / "bench" / "push.py"), *argv], cwd=checkout,
+                                env=base_environment(checkout), stdout=out, stderr=subprocess.PIPE, text=True,
+                                errors="replace")
+        assert proc.stderr is not None
+        tail: collections.deque[str] = collections.deque(maxlen=20)
+        tee = threading.Thread(target=_tee, args=(proc.stderr, tail), daemon=True)
+        tee.start()
+        try:
+            code = proc.wait()
+        finally:
+            _stop(proc)
+        tee.join(5.0)
+        out.seek(0)
+        lines = out.read().strip().splitlines()
+    if code != 0 or not lines:
+        raise BaseBenchFailed(f"the base's bench/push.py exited {code}:\n{''.join(tail).rstrip()}")
+    try:
+        return dict(json.loads(lines[-1]))
+    except ValueError as exc:
+        raise BaseBenchFailed(f"the base's bench/push.py printed no JSON last: {lines[-1][:200]!r}") from exc
+
+
+def _tee(stream: IO[str], tail: collections.deque[str]) -> None:
+    # Drained to its end on a thread, also after Ctrl-C: a full pipe would block the base's clean stop.
+    for line in stream:
+        sys.stderr.write(line)
+        tail.append(line)
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """Until the base's bench has ended: on Ctrl-C it got the SIGINT too and stops its system itself;
+    a SIGINT of its own when only this process was interrupted; killed when it hangs."""
+    for step in (lambda: None, lambda: proc.send_signal(signal.SIGINT), proc.kill):
+        if proc.poll() is not None:
+            return
+        step()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(BASE_STOP_S / 2)
+
+
+def _tail(text: str, lines: int = 20) -> str:
+    return "\n".join(text.strip().splitlines()[-lines:])
+
+
+def compare(args: argparse.Namespace, base_commit: str) -> dict[str, Any]:
+    """The base's bench, then this code's: always in this order, so that every comparison is made alike, and the
+    temporary worktree is gone before this code runs."""
+    with base_checkout(base_commit) as checkout:
+        argv, dropped = filter_flags(shared_flags(args), help_flags(base_help(checkout)))
+        if dropped:
+            print(f"bench/push.py: the base's bench does not know {', '.join(dropped)}", file=sys.stderr)
+        base = {"commit": base_commit, "dirty": False, "flags": argv, **run_base(checkout, argv)}
+    current = {**current_commit(), **run(args)}
+    return {"order": ["base", "current"], "dropped_flags": dropped, **merge(base, current)}
+
+
+def merge(base: dict[str, Any], current: dict[str, Any]) -> dict[str, Any]:
+    """Both runs and the ratios base / current (above 1: the current code is faster)."""
+    return {"base": base, "current": current,
+            "speedup_p50": ratio(base, current, "to_plan_s", "p50"),
+            "speedup_end_to_end_p50": ratio(base, current, "latency_s", "p50"),
+            "speedup_p95": ratio(base, current, "to_plan_s", "p95"),
+            # Without it the ratio may compare different objects (a base without --objects runs them all).
+            "same_requests": _requests(base) == _requests(current),
+            "speedup_p50_common": common_speedup(base, current)}
+
+
+def ratio(base: dict[str, Any], current: dict[str, Any], figure: str, stat: str) -> float | None:
+    """base[figure][stat] / current[figure][stat]; None when either run served no request (NaN) or lacks it."""
+    return divide(base.get(figure, {}).get(stat), current.get(figure, {}).get(stat))
+
+
+def divide(b: Any, c: Any) -> float | None:
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in (b, c)):
+        return None
+    return round(b / c, 3)
+
+
+def common_speedup(base: dict[str, Any], current: dict[str, Any]) -> float | None:
+    """The to-plan p50 ratio over only the requests both runs served, from their rows: a fair figure when the
+    base pushed more (the same first request pays the one-time loads in both)."""
+    b, c = (_to_plan_by_request(side) for side in (base, current))
+    common = b.keys() & c.keys()
+    if not common:
+        return None
+    return divide(statistics.median(b[k] for k in common), statistics.median(c[k] for k in common))
+
+
+def _to_plan_by_request(side: dict[str, Any]) -> dict[tuple[str, float], float]:
+    # As `run` sums it: every stage but execution.
+    return {(r["object"], r["direction_deg"]): sum(r["stages_s"].get(s, 0.0) for s in STAGES if s != "execution")
+            for r in side.get("rows", []) if "stages_s" in r and not r.get("view")}
+
+
+def _requests(side: dict[str, Any]) -> list[tuple[str, float]]:
+    # With --view each request is pushed twice; once is the request.
+    return sorted((r["object"], r["direction_deg"]) for r in side.get("rows", []) if not r.get("view"))
+
+
+def comparison_table(result: dict[str, Any]) -> str:
+    """A few lines for a person: the p50/p95 figures of both runs and their ratios."""
+    base, current = result["base"], result["current"]
+    head = (f"base {base['commit'][:10]}", f"current {current['commit'][:10]}" + ("-dirty" if current["dirty"] else ""))
+    lines = [f"{'':<16}{head[0]:>20}{head[1]:>26}{'base/current':>14}"]
+    for label, figure, stat, key in (("to plan p50", "to_plan_s", "p50", "speedup_p50"),
+                                     ("to plan p95", "to_plan_s", "p95", "speedup_p95"),
+                                     ("end to end p50", "latency_s", "p50", "speedup_end_to_end_p50")):
+        speedup = result[key]
+        lines.append(f"{label:<16}{base.get(figure, {}).get(stat, '-'):>18} s{current[figure][stat]:>24} s"
+                     f"{'-' if speedup is None else f'{speedup:.2f}x':>14}")
+    lines.append(f"{'requests':<16}{base.get('requests', '-'):>20}{current['requests']:>26}")
+    if result["dropped_flags"]:
+        lines.append(f"not passed to the base (it does not know them): {', '.join(result['dropped_flags'])}")
+    if not result["same_requests"]:
+        lines.append(f"the two runs pushed different requests; to plan p50 over the ones both served: "
+                     f"{result['speedup_p50_common']}x")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
