@@ -2,6 +2,7 @@
 
     gd2p push --object proc-box-013 --direction-deg 90 [--distance 0.2] [--json]
     gd2p push --object mug.obj --position 0.5 0.1 --yaw 30 --goal 0.5 -0.3 --obstacle 0.5 -0.1 0.05
+    gd2p push --object proc-box-013 --goal 0.5 -0.15 --goal-yaw 45   # to a pose: within 2 cm and 15 deg
     gd2p push --object proc-box-013 --direction-deg 180 --method nearest --choice random
     gd2p push --cloud scan.ply --direction-deg 90      # the object as a camera saw it (world frame, metres)
 
@@ -32,8 +33,8 @@ CONNECT_TIMEOUT_MS = 3000
 
 # PushRequest fields -> the flags that set them (errors name what the user typed).
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
-         "goal_xy": "--goal", "distance_m": "--distance", "hand": "--hand", "arm": "--arm", "obstacles": "--obstacle",
-         "seed": "--seed", "options": "the planner options", "options.k": "--k", "options.method": "--method",
+         "goal_xy": "--goal", "goal_yaw_deg": "--goal-yaw", "distance_m": "--distance", "hand": "--hand", "arm": "--arm",
+         "obstacles": "--obstacle", "seed": "--seed", "options": "the planner options", "options.k": "--k", "options.method": "--method",
          "options.sampler": "--sampler", "options.choice": "--choice", "options.physics_draws": "--physics-draws",
          "options.corrections": "--corrections", "options.closed_loop": "--closed-loop", "options.critic": "--no-critic",
          "options.prescreen": "--no-prescreen"}
@@ -54,6 +55,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     target = parser.add_mutually_exclusive_group(required=True)
     target.add_argument("--direction-deg", type=finite_float, help="push direction in the world, degrees (0 = away from the robot)")
     target.add_argument("--goal", nargs=2, type=finite_float, metavar=("X", "Y"), help="goal point: multi-step pushes around obstacles")
+    parser.add_argument("--goal-yaw", type=finite_float, default=None, metavar="DEG",
+                        help="with --goal, a pose goal: the yaw about world z, degrees, the object is to end with, as "
+                             "--yaw places it (its resting pose turned by DEG); the pushes go on until it is within "
+                             "2 cm and 15 deg of the pose (or --goal alone: within 3 cm of the point, any yaw). Goals "
+                             "off the table or out of the arm's reach are refused before the robot moves")
     parser.add_argument("--distance", type=positive_float, default=0.20, help="push distance (with --goal: longest single push), m")
     parser.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     parser.add_argument("--arm", choices=("panda", "xarm7"), default=None, help="default: panda for allegro, xarm7 for leap")
@@ -126,6 +132,8 @@ def build_request(args: argparse.Namespace):
     from shared.world.objects.final_split import check_final_access, is_final_id
     from shared.world.push_outcome import object_pose
 
+    if args.goal_yaw is not None and not args.goal:
+        raise ValueError("--goal-yaw is the yaw of a goal pose: give the goal point with --goal X Y too")
     if args.goal and args.corrections is not None:
         raise ValueError("--corrections: a --goal request already pushes again from where the object was seen, up "
                          "to its step limit; corrections are for --direction-deg")
@@ -147,7 +155,7 @@ def build_request(args: argparse.Namespace):
                    prescreen=args.prescreen, physics_draws=args.physics_draws, **knobs)
     return PushRequest.model_validate(dict(
         object=ref, object_pose=pose, direction_deg=args.direction_deg, goal_xy=tuple(args.goal) if args.goal else None,
-        distance_m=args.distance, hand=args.hand, arm=arm, seed=args.seed, options=options,
+        goal_yaw_deg=args.goal_yaw, distance_m=args.distance, hand=args.hand, arm=arm, seed=args.seed, options=options,
         obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle]))
 
 
@@ -224,8 +232,9 @@ def response_json(response) -> dict:
 def describe(response) -> str:
     """A few human-readable lines about a PushResponse."""
     r = response.result
+    from_yaw = "" if r.yaw_error_deg is None else f", {r.yaw_error_deg:.1f}° from the goal yaw"
     lines = [(f"{'SUCCESS' if response.success else 'MISSED'}: object ended {r.position_error_m * 100:.1f} cm from the "
-              f"target, rotated {r.rotation_deg:.1f}°{', toppled' if r.toppled else ''} "
+              f"target, rotated {r.rotation_deg:.1f}°{from_yaw}{', toppled' if r.toppled else ''} "
               f"({len(response.steps)} push(es))"),
              f"final object position: {', '.join(f'{v:.3f}' for v in r.final_object_pose.position)} m"]
     if response.score is not None:

@@ -769,12 +769,12 @@ PUSH_REQUEST_SCHEMA = 2
 
 
 class PushRequest(Message):
-    """Push or pull an object: a direction and distance, or a goal point (multi-step). The question a user
-    asks; how the planner answers it is `options` (its default when left out)."""
+    """Push or pull an object: a direction and distance, or a goal point or pose (multi-step). The question a
+    user asks; how the planner answers it is `options` (its default when left out)."""
 
     SCHEMA_CHANGE: ClassVar[str] = (
-        "schema 2 keeps the question at the top (object, object_pose, direction_deg or goal_xy, distance_m, hand, "
-        "arm, obstacles, seed, client_lease) and moves every planner knob into `options` (PlannerOptions: "
+        "schema 2 keeps the question at the top (object, object_pose, direction_deg or goal_xy (with goal_yaw_deg), "
+        "distance_m, hand, arm, obstacles, seed, client_lease) and moves every planner knob into `options` (PlannerOptions: "
         f"{', '.join(PlannerOptions.model_fields)}); see docs/interfaces.md")
 
     schema_version: int = PUSH_REQUEST_SCHEMA
@@ -783,6 +783,12 @@ class PushRequest(Message):
     object_pose: ObjectPose | None = None
     direction_deg: FiniteFloat | None = None
     goal_xy: tuple[FiniteFloat, FiniteFloat] | None = None
+    # With goal_xy, a pose goal: the yaw (degrees, about the world z axis) the object is to end with, resting as
+    # it stands at the start: that resting pose turned by this much about world z, the yaw `object_pose` has when
+    # `gd2p push --yaw` places the object (for an object standing as modelled, the yaw of its frame O). The request
+    # then succeeds with the object within 2 cm and 15 deg of that pose instead of within 3 cm of the point
+    # (shared/world/push_outcome.py: YawGoal).
+    goal_yaw_deg: FiniteFloat | None = None
     distance_m: PositiveFloat = Field(default=0.20, le=1.0)  # with goal_xy: the longest single push
     hand: Hand = "allegro"
     arm: Arm = "panda"
@@ -808,6 +814,8 @@ class PushRequest(Message):
     def _target_and_robot(self) -> PushRequest:
         if (self.direction_deg is None) == (self.goal_xy is None):
             raise ValueError("give exactly one of direction_deg or goal_xy")
+        if self.goal_yaw_deg is not None and self.goal_xy is None:
+            raise ValueError("goal_yaw_deg needs goal_xy: a yaw goal is the yaw of a pose goal (goal_xy, goal_yaw_deg)")
         if self.object.point_cloud is not None and self.object_pose is not None:
             raise ValueError("a point cloud shows where the object stands: leave object_pose empty")
         _check_pair(self.hand, self.arm)
@@ -839,6 +847,8 @@ class ExecutionResult(Value):
     toppled: bool
     success: bool
     contact_kept: bool | None = None
+    # A pose goal's (PushRequest.goal_yaw_deg): how far the object's final yaw is from the goal yaw, degrees (0-180).
+    yaw_error_deg: NonNegFloat | None = Field(default=None, le=180.0)
 
 
 class PushStep(Value):

@@ -28,6 +28,10 @@ class Push:
     T_world_O: np.ndarray
     u: np.ndarray
     distance_m: float
+    # How far the push is to turn the object as well (degrees about world z, counterclockwise positive; 0: keep its
+    # yaw): a push of a pose goal (`goals.turn_to_make_deg`). The pose source's candidates are then tried both as
+    # they are and turned to make it (`goals.turning_poses`); None: as they are.
+    turn_deg: float | None = None
 
     @cached_property
     def T_world_D(self) -> np.ndarray:
@@ -60,7 +64,9 @@ class Push:
 class Candidates:
     """K candidate hand poses of one push: [K, 25] in D and in the world, their hand-base transforms
     [K, 4, 4] and finger joints [K, n], each pose's direction cost L_dir [K] and, when the sampler has a
-    success critic, its P(success) [K]."""
+    success critic, its P(success) [K]. A push that is to turn the object also holds turned copies of the
+    pose source's poses (`Push.turn_deg`): `source` [K] is then the index of the pose each candidate was
+    made from (its own for the pose source's), so that a copy is considered beside its pose."""
 
     poses_d: np.ndarray
     poses_world: np.ndarray
@@ -68,14 +74,22 @@ class Candidates:
     q_hands: np.ndarray
     l_dir: np.ndarray
     p_success: np.ndarray | None = None
+    source: np.ndarray | None = None
 
     @classmethod
-    def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel,
-                 p_success: np.ndarray | None = None) -> Candidates:
+    def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel, p_success: np.ndarray | None = None,
+                 source: np.ndarray | None = None) -> Candidates:
         """The candidates for `poses_d` [K, 25], given in the push's frame D."""
         poses_world = poses_d_to_world(poses_d, push.T_world_D)
         T_world_hand, q_hands = pose25_to_matrix(poses_world)
-        return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d), p_success)
+        return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d), p_success,
+                   source)
+
+    @property
+    def order_l_dir(self) -> np.ndarray:
+        """L_dir as the order reads it: a turned copy's is its pose's (a turned palm's alignment is worse by
+        design, and would put every copy behind every pose)."""
+        return self.l_dir if self.source is None else self.l_dir[self.source]
 
     def __len__(self) -> int:
         return len(self.poses_d)

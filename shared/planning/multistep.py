@@ -20,7 +20,12 @@ pose after each push. Here the plane is the table (world x, y):
   for that direction has an IK solution or an arm plan), the same push turned by `TURNS_DEG` is
   tried, each only if its straight line keeps the object clear of every obstacle; re-planning from
   where it lands brings the object back to a path. The object path knows nothing of the arm, and a
-  direction the arm cannot push from one spot is often pushable a few tens of degrees off it.
+  direction the arm cannot push from one spot is often pushable a few tens of degrees off it;
+- a pose goal is reached when `at_goal` says so (its yaw too), not at the goal point alone: an object at the
+  point but not yet at the goal's yaw gets a turning push (`turning_pushes`), sideways off the point as the
+  robot sees it and back along a path planned as any. The loop only says where each push goes; how it turns
+  the object is the push callback's (a pose goal's pushes are ranked by their yaw miss too, and offered hand
+  poses turned about the object's vertical axis: shared/planning/goals.py).
 """
 from __future__ import annotations
 
@@ -42,6 +47,9 @@ RRT_STAR_ITERATIONS = 1000  # measured: 0.681 m against the shortest 0.677 m aro
 MAX_ITERATIONS_FACTOR = 10  # without a path after `iterations`, keep searching up to this many times longer
 SHORTCUT_SLACK_M = 0.01  # a push may cut this far into the obstacle margin to skip a corner of the path
 TURNS_DEG = (15.0, -15.0, 30.0, -30.0)  # the path's push turned by these, in order, when the arm cannot make it
+# A turning push (a pose goal's object at the goal point, its yaw still off) moves it this far off the point:
+# far enough past the hand's approach gap that the push moves and turns the object, and the push back as long.
+TURNING_PUSH_M = 0.08
 
 
 class Circle(Protocol):
@@ -239,6 +247,9 @@ class MultiStepResult:
 PushStep = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """push(from_xy, to_xy) -> the object's observed (x, y) after pushing it toward to_xy."""
 
+AtGoal = Callable[[np.ndarray], bool]
+"""at_goal(xy) -> whether the object, observed at xy after the last push, needs no more pushes."""
+
 
 def push_along_path(
     start_xy: Sequence[float] | np.ndarray,
@@ -255,6 +266,8 @@ def push_along_path(
     iterations: int = RRT_STAR_ITERATIONS,
     seed: int = 0,
     turns_deg: Sequence[float] = TURNS_DEG,
+    at_goal: AtGoal | None = None,
+    robot_xy: Sequence[float] | np.ndarray = (0.0, 0.0),
 ) -> MultiStepResult:
     """Push the object from `start_xy` to `goal_xy` around `obstacles`, each push as far along the path as one reaches.
 
@@ -263,26 +276,40 @@ def push_along_path(
     exists from where the object is; `push` raises its own errors, and `DirectionInfeasible` when the arm
     cannot make a push (then the push turned by each of `turns_deg` that keeps clear of the obstacles is
     tried; when none can be made either, the first push's DirectionInfeasible is raised).
+
+    `at_goal` (default: within `goal_tolerance_m` of the goal) ends the pushes; a pose goal's also asks for
+    the yaw, and an object within `goal_tolerance_m` of the point but not at the goal gets a turning push
+    (`turning_pushes`, sideways as seen from the robot at `robot_xy`).
     """
     goal = np.asarray(goal_xy, dtype=np.float64)[:2]
     positions: list[np.ndarray] = [np.asarray(start_xy, dtype=np.float64)[:2]]
     paths: list[ObjectPath] = []
     turns: list[float] = []
+
+    def at_the_point(xy: np.ndarray) -> bool:
+        return bool(np.linalg.norm(xy - goal) <= goal_tolerance_m)
+
+    arrived = at_goal or at_the_point
     for _ in range(max_steps):
-        if np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m:
+        if arrived(positions[-1]):
             return MultiStepResult(positions, paths, True, f"reached the goal in {len(paths)} push(es)", turns)
         # A push may leave the object inside the margin band around an obstacle (never inside the obstacle
         # plus the object's radius, or it would have hit it): plan the way out with the margin it has left.
         margin = min(margin_m, _margin_left(positions[-1], obstacles, object_radius_m))
-        path = plan_object_path(positions[-1], goal, obstacles, object_radius_m=object_radius_m, margin_m=margin,
-                                bounds=bounds, iterations=iterations, seed=seed + len(paths))
+        if at_the_point(positions[-1]):
+            path, options = _turning_path(positions[-1], robot_xy, obstacles, object_radius_m, margin, turns_deg,
+                                          min(TURNING_PUSH_M, max_push_m))
+        else:
+            path = plan_object_path(positions[-1], goal, obstacles, object_radius_m=object_radius_m, margin_m=margin,
+                                    bounds=bounds, iterations=iterations, seed=seed + len(paths))
+            target = next_push_target(path.waypoints, obstacles, object_radius_m, margin, max_push_m)
+            options = [(0.0, target)] + turned_pushes(positions[-1], target, obstacles, object_radius_m, margin,
+                                                      turns_deg)
         paths.append(path)
-        target = next_push_target(path.waypoints, obstacles, object_radius_m, margin, max_push_m)
-        options = [(0.0, target)] + turned_pushes(positions[-1], target, obstacles, object_radius_m, margin, turns_deg)
         turn, observed = _first_pushable(push, positions[-1], options)
         positions.append(observed)
         turns.append(turn)
-    reached = np.linalg.norm(positions[-1] - goal) <= goal_tolerance_m
+    reached = arrived(positions[-1])
     return MultiStepResult(positions, paths, bool(reached),
                            f"{'reached' if reached else 'did not reach'} the goal after {max_steps} pushes "
                            f"({np.linalg.norm(positions[-1] - goal):.3f} m away)", turns)
@@ -324,6 +351,34 @@ def turned_pushes(from_xy: np.ndarray, to_xy: np.ndarray, obstacles: Sequence[Ob
         if _path_clearance(np.stack([start, target]), centres, radii) >= object_radius_m + margin_m:
             kept.append((float(turn), target))
     return kept
+
+
+def turning_pushes(from_xy: np.ndarray, robot_xy: Sequence[float] | np.ndarray, obstacles: Sequence[Obstacle],
+                   object_radius_m: float, margin_m: float, length_m: float = TURNING_PUSH_M,
+                   turns_deg: Sequence[float] = TURNS_DEG) -> list[tuple[float, np.ndarray]]:
+    """(turn, target): pushes of `length_m` that move an object at its goal point off it so that a push can turn
+    it (a pose goal's yaw), in the order to try: sideways as seen from the robot at `robot_xy` (the robot's
+    front along world +x), toward its centre line where sideways pushes reach well; that push turned by each of
+    `turns_deg`; the other way (turn 180). Only those whose straight line keeps clear of the obstacles."""
+    start = np.asarray(from_xy, dtype=np.float64)[:2]
+    lateral = float(start[1] - np.asarray(robot_xy, dtype=np.float64)[1])
+    toward_centre = np.array([0.0, -1.0 if lateral > 0 else 1.0])
+    return turned_pushes(start, start + length_m * toward_centre, obstacles, object_radius_m, margin_m,
+                         (0.0, *turns_deg, 180.0))
+
+
+def _turning_path(from_xy: np.ndarray, robot_xy: Sequence[float] | np.ndarray, obstacles: Sequence[Obstacle],
+                  object_radius_m: float, margin_m: float, turns_deg: Sequence[float],
+                  length_m: float) -> tuple[ObjectPath, list[tuple[float, np.ndarray]]]:
+    """A turning push's options (`turning_pushes`) and the straight path of the first (what a push's path is)."""
+    options = turning_pushes(from_xy, robot_xy, obstacles, object_radius_m, margin_m, length_m, turns_deg)
+    if not options:
+        raise PlanningError("no turning push", f"every push of {length_m:.2f} m off the goal point "
+                            f"{np.round(from_xy, 3).tolist()} to turn the object passes too close to an obstacle")
+    waypoints = np.stack([np.asarray(from_xy, dtype=np.float64)[:2], options[0][1]])
+    centres, radii = _centres_and_radii(obstacles)
+    return ObjectPath(waypoints=waypoints, length_m=length_m, min_clearance_m=_path_clearance(waypoints, centres, radii),
+                      planning_s=0.0), options
 
 
 def _centres_and_radii(obstacles: Sequence[Obstacle]) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,11 @@ source's quality on its own).
 
 With `goal_xy` the request is multi-step: RRT* plans the object's path around the obstacles
 (`multistep.py`); each push goes to the next piece of the path and is planned from the object pose
-the robot bridge observed after the previous push.
+the robot bridge observed after the previous push. With `goal_yaw_deg` too it is a pose goal: the pushes
+go on until the object is within the pose's tolerance (position and yaw), each ranked by its rollout's yaw
+miss as well and offered hand poses turned about the object's vertical axis, slanted to turn it toward the
+goal yaw or keep it there (`goals.py`); an object at the point but not at the yaw is pushed off it and back. The goal is checked
+before the robot moves (`goals.check_goal`: on the table, within reach).
 
 `run` returns a `PushOutcome`: the response and the record of every executed push. A request that
 cannot be served raises `PushError`, carrying the records of the pushes it did execute.
@@ -46,21 +50,32 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.contracts.messages import ExecutionResult, PushRequest, PushResponse
+from shared.contracts.messages import ExecutionResult, ObjectPose, PushRequest, PushResponse
 from shared.frames import direction_xy, make_transform
 from shared.planning import stages
 from shared.planning.cancellation import Cancellation
 from shared.planning.candidates import Candidates, Feasible, Push, RankedPlan
+from shared.planning.goals import check_goal, turn_to_make_deg
 from shared.planning.ik import ArmIK
 from shared.planning.motion import MotionPlanner, PlanningError
 from shared.planning.multistep import DirectionInfeasible, push_along_path
 from shared.planning.outcome import PushError, PushOutcome
+from shared.planning.ranking import YawTerm
 from shared.planning.stages import PipelineSettings, RequestState
 from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits
 from shared.world.object_refs import captured_object, load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel, write_object_urdf
-from shared.world.push_outcome import SUCCESS_MAX_ROTATION_DEG, judge_push, pose_matrix, turn_observable
+from shared.world.push_outcome import (
+    SUCCESS_MAX_ROTATION_DEG,
+    YawGoal,
+    judge_push,
+    object_pose,
+    pose_matrix,
+    position_tolerance_m,
+    resting_rotation,
+    turn_observable,
+)
 from shared.world.sim.robot_scene import RobotScene
 
 DEFAULT_OBJECT_XY = (0.55, 0.0)  # in front of the robot base: sideways pushes reach well; pulls toward the robot need
@@ -105,6 +120,8 @@ class PushPipeline:
                 self._push_once(state, push)
                 final = self._corrected(state, push)
             else:
+                check_goal(request, _footprint_radius(state.obj), self._limits(request.arm, request.hand).T_world_base,
+                           state.turn_observable)
                 final = self._multi_step(state)
         except PushError as exc:
             exc.records = list(state.records)
@@ -135,41 +152,36 @@ class PushPipeline:
         else:
             T_world_O = make_transform(np.eye(3), np.array([*DEFAULT_OBJECT_XY, 0.0])) @ obj.T_D_O()
         up_O = T_world_O[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+        yaw_goal = yaw_term = None
+        if request.goal_yaw_deg is not None:
+            rest = resting_rotation([pose.rotation for pose in obj.resting_poses], T_world_O[:3, :3])
+            yaw_goal = YawGoal(request.goal_yaw_deg, rest)
+            yaw_term = YawTerm(yaw_goal, 2.0 * _footprint_radius(obj))  # the diameter: ranking.py says why
         return RequestState(request, obj, urdf, load_hand(request.hand), T_world_O, cancel,
-                            turn_observable=turn_observable(obj.mesh, up_O))
+                            turn_observable=turn_observable(obj.mesh, up_O), yaw_goal=yaw_goal, yaw_term=yaw_term)
 
     def _multi_step(self, state: RequestState) -> ExecutionResult:
         request = state.request
         assert request.goal_xy is not None  # run() makes a multi-step push of goal_xy requests only
         start_T = state.T_world_O.copy()
 
-        def push(_from_xy: np.ndarray, to_xy: np.ndarray) -> np.ndarray:
-            state.cancel.check()
-            offset = np.asarray(to_xy) - state.T_world_O[:2, 3]  # from where the object really is
-            distance = float(np.linalg.norm(offset))
-            executed = len(state.records)
-            try:
-                self._push_once(state, Push(state.T_world_O.copy(), offset / np.linalg.norm(offset), distance))
-            except PushError as exc:
-                error = exc
-                if state.records:
-                    where = ", ".join(f"{v:.3f}" for v in state.T_world_O[:2, 3])
-                    error = PushError(exc.code, f"push {len(state.records) + 1}, with the object at ({where}) after "
-                                      f"{len(state.records)} push(es): {exc.message}")
-                if exc.code == "infeasible" and len(state.records) == executed:  # nothing moved: another direction may do
-                    raise DirectionInfeasible(error) from exc
-                if error is exc:
-                    raise
-                raise error from exc
-            return state.T_world_O[:2, 3]
+        def judged(final: ObjectPose) -> ExecutionResult:  # the request's outcome were it to end with `final`
+            return judge_push(start_T, np.asarray(request.goal_xy), final, max_rotation_deg=None,
+                              yaw_goal=state.yaw_goal)
+
+        def at_pose(_xy: np.ndarray) -> bool:
+            return judged(object_pose(state.T_world_O)).success
 
         try:
-            outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles, push,
+            outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles,
+                                      lambda _from_xy, to_xy: self._path_push(state, to_xy),
                                       object_radius_m=_footprint_radius(state.obj), max_push_m=request.distance_m,
                                       margin_m=self.settings.obstacle_margin_m, max_steps=request.options.max_steps,
-                                      seed=request.seed)
+                                      seed=request.seed, goal_tolerance_m=position_tolerance_m(state.yaw_goal),
+                                      at_goal=at_pose if state.yaw_goal is not None else None,
+                                      robot_xy=self._limits(request.arm, request.hand).T_world_base[:2, 3])
         except DirectionInfeasible as refusal:
-            # `push` above raises DirectionInfeasible only around a PushError
+            # `_path_push` raises DirectionInfeasible only around a PushError
             assert isinstance(refusal.error, PushError)
             turned = ", ".join(f"{t:+.0f}" for t in refusal.turns_tried)
             also = f"; turned {turned} deg off the object path it could not be made either" if turned else ""
@@ -180,12 +192,36 @@ class PushPipeline:
             raise PushError("infeasible", f"no object path to the goal: {exc}") from exc
         if not state.records:
             raise PushError("bad_request", "the object is already at the goal")
-        final = judge_push(start_T, np.asarray(request.goal_xy), state.records[-1].step.result.final_object_pose,
-                           max_rotation_deg=None)
+        final = judged(state.records[-1].step.result.final_object_pose)
         state.timings["object_path"] = sum(p.planning_s for p in outcome.paths)
         state.notes += [f"push {i + 1} turned {turn:+.0f} deg off the object path: the arm could not make the path's push"
                         for i, turn in enumerate(outcome.turns_deg) if turn]
         return final
+
+    def _path_push(self, state: RequestState, to_xy: np.ndarray) -> np.ndarray:
+        """One push of a multi-step request, from where the object was seen toward `to_xy`; where it was seen
+        after. A pose goal's push is offered hand poses turned to turn the object toward the goal yaw (or keep
+        it) too (`goals.turn_to_make_deg`). DirectionInfeasible when it cannot be planned and nothing moved."""
+        state.cancel.check()
+        offset = np.asarray(to_xy) - state.T_world_O[:2, 3]  # from where the object really is
+        distance = float(np.linalg.norm(offset))
+        u = offset / distance
+        executed = len(state.records)
+        try:
+            turn = turn_to_make_deg(state.T_world_O, state.yaw_goal)
+            self._push_once(state, Push(state.T_world_O.copy(), u, distance, turn_deg=turn))
+        except PushError as exc:
+            error = exc
+            if state.records:
+                where = ", ".join(f"{v:.3f}" for v in state.T_world_O[:2, 3])
+                error = PushError(exc.code, f"push {len(state.records) + 1}, with the object at ({where}) after "
+                                  f"{len(state.records)} push(es): {exc.message}")
+            if exc.code == "infeasible" and len(state.records) == executed:  # nothing moved: another direction may do
+                raise DirectionInfeasible(error) from exc
+            if error is exc:
+                raise
+            raise error from exc
+        return state.T_world_O[:2, 3]
 
     def _corrected(self, state: RequestState, push: Push) -> ExecutionResult:
         """The outcome of a direction push after up to `request.options.corrections` corrective pushes.

@@ -41,10 +41,11 @@ from shared.contracts.messages import (
     ValidationJob,
     ValidationResult,
 )
-from shared.frames import invert_transform
+from shared.frames import invert_transform, pose25_to_matrix
 from shared.planning import ranking
 from shared.planning.cancellation import Cancellation
 from shared.planning.candidates import CandidatePlan, Candidates, Feasible, Push, RankedPlan
+from shared.planning.goals import turning_poses
 from shared.planning.monitor import MonitorThresholds, PushMonitor, backed_out
 from shared.planning.motion import MotionPlanner, PlanningError
 from shared.planning.outcome import Execution, PushError, StepRecord
@@ -54,6 +55,8 @@ from shared.world.fixed_poses import FixedPoseError, spatula_pose
 from shared.world.objects import ObjectModel
 from shared.world.push_outcome import (
     SUCCESS_MAX_ROTATION_DEG,
+    TOPPLED_TILT_DEG,
+    YawGoal,
     judge_push,
     object_pose,
     pose_matrix,
@@ -142,11 +145,15 @@ class RequestState:
     # Whether a camera can see the object turn about its vertical axis (push_outcome.turn_observable): for a body
     # of revolution the tracked turn is a guess, so it neither stops a push nor counts against one.
     turn_observable: bool = True
+    # A pose goal's yaw as the judge reads it, and as the ranking's L_goal prices it (None: no goal yaw).
+    yaw_goal: YawGoal | None = None
+    yaw_term: ranking.YawTerm | None = None
 
     @property
     def max_turn_deg(self) -> float | None:
-        """The turn a push of this object may make and succeed (None: not judged, it cannot be seen)."""
-        return SUCCESS_MAX_ROTATION_DEG if self.turn_observable else None
+        """The turn a push of this object may make and succeed (None: not judged, it cannot be seen, or the
+        request's goal yaw judges how the object ends instead)."""
+        return SUCCESS_MAX_ROTATION_DEG if self.turn_observable and self.yaw_goal is None else None
 
     def time(self, stage: str, seconds: float) -> None:
         self.timings[stage] = self.timings.get(stage, 0.0) + seconds
@@ -213,7 +220,26 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
             state.sampled = (R_D_O, poses_d, p_success)
     state.time("sampling", time.perf_counter() - started)
     state.cancel.check()
+    if push.turn_deg is not None:
+        return with_turning_copies(state, push, poses_d, p_success)
     return Candidates.in_frame(poses_d, push, state.hand, p_success)
+
+
+def with_turning_copies(state: RequestState, push: Push, poses_d: np.ndarray,
+                        p_success: np.ndarray | None) -> Candidates:
+    """The candidates of the poses [K, 25] in D followed by copies turned to turn the object by `push.turn_deg`
+    (`goals.turning_poses`). A copy keeps its pose's P(success) (the critic's word for the nearest pose it scored)
+    and order key (`Candidates.source`): a pose and its copy are considered one after the other, so the plans
+    rolled out hold both and the ranking (a pose goal's yaw miss) chooses between them."""
+    assert push.turn_deg is not None  # only a push that is to turn the object has turned copies
+    T_D_O = invert_transform(push.T_world_D) @ push.T_world_O
+    vertices_d = state.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
+    transforms, _ = pose25_to_matrix(poses_d)
+    palm_normals = transforms[:, :3, :3] @ state.hand.palm_normal_base.double().numpy()
+    turned = turning_poses(poses_d, palm_normals, vertices_d, push.turn_deg)
+    both = None if p_success is None else np.concatenate([p_success, p_success])
+    source = np.tile(np.arange(len(poses_d)), 2)
+    return Candidates.in_frame(np.concatenate([poses_d, turned]), push, state.hand, both, source)
 
 
 def sampling_frame(state: RequestState, push: Push) -> DirectionFrame:
@@ -293,13 +319,15 @@ def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
     """The order in which to consider the K candidates when plans are rolled out: most likely to push well
     first by the critic (when it scored them and the request asks for it), best-aligned palms first (L_dir)
     on ties and without it; random for a random feasible choice."""
-    l_dir = candidates.l_dir
+    l_dir = candidates.order_l_dir
     if not rolls_out(state.request):
         return np.random.default_rng(state.seed).permutation(len(l_dir))
+    # Ties go by the pose source's index: a turned copy right after its pose (lexsort is stable).
+    source = np.arange(len(l_dir)) if candidates.source is None else candidates.source
     if orders_by_critic(state.request, candidates):
         assert candidates.p_success is not None
-        return np.lexsort((l_dir, -candidates.p_success))
-    return np.argsort(l_dir, kind="stable")
+        return np.lexsort((source, l_dir, -candidates.p_success))
+    return np.lexsort((source, l_dir))
 
 
 def spread_out(order: np.ndarray, positions: np.ndarray, min_separation_m: float) -> np.ndarray:
@@ -337,10 +365,11 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
 
     The first `settings.prescreen` poses of the order are pushed by the validator's floating hand
     (about 0.1 s of CPU each, in chunks spread over the farm) in the push's frame; those that succeed
-    are planned first, closest to the target first. Planning and arm rollouts (about 0.25 s of CPU
-    each) are then spent where the pose itself is known to push well: without it, most of the few
-    plans that can be afforded come from poses that fail (measured in `evaluation/`). While the farm
-    pushes, the planner screens the further candidates that planning may need (`screen_more`).
+    are planned first, closest to the target first (for a pose goal as `prescreen_judged` says). Planning
+    and arm rollouts (about 0.25 s of CPU each) are then spent where the pose itself is known to push
+    well: without it, most of the few plans that can be afforded come from poses that fail (measured in
+    `evaluation/`). While the farm pushes, the planner screens the further candidates that planning may
+    need (`screen_more`).
     """
     request, tested = state.request, feasible.order[: settings.prescreen]
     chunks = [c for c in np.array_split(tested, math.ceil(len(tested) / PRESCREEN_CHUNK)) if len(c)]
@@ -356,13 +385,30 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
     start = 0
     for chunk, result in zip(chunks, results, strict=True):
         if not isinstance(result, Exception):  # an unavailable validator only loses the reordering
-            success[start:start + len(chunk)] = result.success.to_numpy()
-            error[start:start + len(chunk)] = result.position_error_m.to_numpy()
+            success[start:start + len(chunk)], error[start:start + len(chunk)] = prescreen_judged(state, push, result)
         start += len(chunk)
     passed = spread_out(tested[success][np.argsort(error[success], kind="stable")],
                         feasible.candidates.poses_d[:, :3], settings.min_separation_m)
     order = feasible.order
     return feasible.reordered(np.concatenate([passed, tested[~success], order[len(tested):]]))
+
+
+def prescreen_judged(state: RequestState, push: Push, result: ValidationResult) -> tuple[np.ndarray, np.ndarray]:
+    """Per floating push of `result`: whether it pushed well, and how far it left the object from what `push` asks.
+
+    A push's own judge (within the success tolerance of its target) and its distance from the target; for a pose
+    goal, whether it left the object standing and its distance plus its yaw miss, priced as the ranking prices it
+    (`ranking.YawTerm`): a push that turns the object as asked may fall a few centimetres short and is still
+    the one to plan. A floating push reports how far it turned the object, not which way, so the turn it made
+    stands in for the turn asked for (a pose turned to turn the object turns it the way it is turned; the
+    ranking, from the arm rollouts' final poses, tells the ways apart)."""
+    position_error: np.ndarray = result.position_error_m.to_numpy().astype(np.float64)
+    if state.yaw_goal is None or state.yaw_term is None:
+        return result.success.to_numpy(), position_error
+    asked = abs(state.yaw_goal.turn_deg(push.T_world_O[:3, :3]))
+    turn_miss = np.radians(np.abs(result.rotation_deg.to_numpy() - asked))
+    standing = result.max_tilt_deg.to_numpy() <= TOPPLED_TILT_DEG
+    return standing, position_error + state.yaw_term.length_m * turn_miss
 
 
 # ------------------------------------------------------------------------------- 4. planning
@@ -518,7 +564,7 @@ def rank(state: RequestState, plans: list[CandidatePlan], rollouts: list[Future[
             continue
         if result.obstacle_contact is not None and bool(result.obstacle_contact.to_numpy()[0]):
             continue
-        terms = ranking.score_rollout(result, float(l_dir[candidate.index]), settings.weights)
+        terms = ranking.score_rollout(result, float(l_dir[candidate.index]), settings.weights, state.yaw_term)
         scored.append(candidate.ranked(terms, result.object_paths[0] if result.object_paths else None))
     if errors and len(errors) == len(plans):
         raise PushError("unavailable", "every arm rollout failed: " + "; ".join(errors[:3]))
