@@ -139,9 +139,10 @@ def test_a_random_choice_executes_a_feasible_plan_without_rollouts(system):
     assert response.result.success, response.result
 
 
-def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_robot(system):
+def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_robot(system, monkeypatch):
     """A closed-loop push whose object follows its prediction is not stopped; a monitor that finds a reason
     to stop drops the command's lease and the bridge halts the robot, naming the reason."""
+    from services.planner import service as planner_service
     from services.planner.service import BusServices
     from shared.contracts.messages import SimWorld
     from shared.planning.cancellation import Cancellation
@@ -166,6 +167,9 @@ def test_closed_loop_over_the_bus_follows_the_push_and_its_monitor_can_stop_the_
 
     monitor = StopAfterOneSecond()
     world = SimWorld(object=request.object, object_pose=_pose(_box_at(0.55, 0.0)))
+    # The simulated robot otherwise runs as fast as its physics can: with the truth tracker the rest of a 10 s plan
+    # can be over before a lease dropped 1 s into it is noticed. 5x real time keeps the stop a race it must win.
+    monkeypatch.setattr(planner_service, "REALTIME_FACTOR", 5.0)
     with open_session(cfg) as session:
         services = BusServices(session, "closed-loop-test")
         try:
