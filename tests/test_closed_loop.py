@@ -367,3 +367,22 @@ def test_an_object_the_cameras_lose_mid_push_stops_it_and_the_robot_backs_out():
     (push_labels, stopped), (back_labels, back) = commands
     assert push_labels == ["approach", "push", "retreat"] and stopped.status == "stopped"
     assert back_labels == ["retreat"] and back.object_pose is None and back.object_lost
+
+
+def test_a_finger_pushed_far_off_its_command_backs_out_within_its_velocity_limit():
+    """A compliant thumb the toppling object pushed a radian off the plan: the way back's first step is slowed so
+    no joint exceeds half its limit (the bridge refused a 0.1 s step at 11 rad/s in MuJoCo), then follows the
+    plan's pace."""
+    from shared.planning.monitor import BACK_OUT_LEAD_S, BACK_OUT_VELOCITY_SHARE, backed_out
+
+    plan = _plan()
+    q_now = np.full(7, 0.0352)
+    q_now[6] = -0.95  # the plan has it near 0.035
+    velocity = np.full(7, 5.0)
+    back = backed_out(plan, 3.55, q_now, np.full(7, -1.0), np.full(7, 1.0), velocity)
+    positions, times = back.positions.to_numpy(), back.times_s.to_numpy()
+    speeds = np.abs(np.diff(positions, axis=0)) / np.diff(times)[:, None]
+    assert speeds[0].max() <= BACK_OUT_VELOCITY_SHARE * 5.0 + 1e-9 and times[1] > BACK_OUT_LEAD_S
+    unhurried = backed_out(plan, 3.55, q_now, np.full(7, -1.0), np.full(7, 1.0)).times_s.to_numpy()
+    assert np.allclose(np.diff(times)[1:], np.diff(unhurried)[1:])  # then at the plan's own pace
+    assert speeds[0].max() * (times[1] / unhurried[1]) > 5.0  # unslowed, it would break the limit

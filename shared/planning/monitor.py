@@ -149,15 +149,22 @@ BACK_OUT_LEAD_S = 0.1  # the way back's first waypoint is at least this far back
 
 
 LIMIT_MARGIN_RAD = 1e-6  # the way back starts this far inside a limit that a joint was pushed past
+# The way back's first step (from where the robot stopped to the plan's waypoint) moves no joint faster than this
+# share of its velocity limit: a compliant finger the object pushed a radian off its command returns slowly
+# instead of being refused by the bridge's speed check.
+BACK_OUT_VELOCITY_SHARE = 0.5
 
 
-def backed_out(plan: Plan, stop_time_s: float, q_now: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> Plan:
+def backed_out(plan: Plan, stop_time_s: float, q_now: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+               velocity: np.ndarray | None = None) -> Plan:
     """The way back along `plan` for a robot stopped at `q_now` about `stop_time_s` into it: the waypoints
     before that time in reverse, with the same timing, ending where the plan started. It retraces a path
     planned free of collisions, leaving the object behind (the push only moved it further on).
 
     A finger pressed against the object may stand past its joint limit (`lower`, `upper`: the plan's
-    joints); the way back starts at the limit, where its motor holds it (the bridge checks a start so)."""
+    joints); the way back starts at the limit, where its motor holds it (the bridge checks a start so). With the
+    joints' `velocity` limits, the first step takes long enough to move none faster than BACK_OUT_VELOCITY_SHARE of
+    its limit (the rest follows at the plan's own pace)."""
     times, positions = plan.times_s.to_numpy(), plan.positions.to_numpy()
     q_now = np.clip(np.asarray(q_now, dtype=np.float64), lower + LIMIT_MARGIN_RAD, upper - LIMIT_MARGIN_RAD)
     k = int(np.searchsorted(times, stop_time_s - BACK_OUT_LEAD_S, side="right"))  # waypoints at or before
@@ -167,5 +174,8 @@ def backed_out(plan: Plan, stop_time_s: float, q_now: np.ndarray, lower: np.ndar
         path, back_times = positions[:k][::-1], stop_time_s - times[:k][::-1]
     path = np.concatenate([np.asarray(q_now, dtype=np.float64)[None], path])
     back_times = np.concatenate([[0.0], back_times])
+    if velocity is not None:
+        slowest = float(np.max(np.abs(path[1] - path[0]) / (BACK_OUT_VELOCITY_SHARE * np.asarray(velocity))))
+        back_times[1:] += max(0.0, slowest - back_times[1])
     return Plan(arm=plan.arm, hand=plan.hand, joint_names=list(plan.joint_names), positions=path, times_s=back_times,
                 segments=[PlanSegment(label="retreat", start=0, stop=len(path))])

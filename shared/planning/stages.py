@@ -681,7 +681,8 @@ def _backed_out(state: RequestState, plan: Plan, monitor: PushMonitor, stopped: 
     """After the monitor stopped `plan`: the robot backs out the way it came, to where the plan started.
     The execution of both, ending where the way back left the robot and the object."""
     assert monitor.stop_time_s is not None
-    way_back = backed_out(plan, monitor.stop_time_s, stopped.final.positions.to_numpy(), limits.lower, limits.upper)
+    way_back = backed_out(plan, monitor.stop_time_s, stopped.final.positions.to_numpy(), limits.lower, limits.upper,
+                          limits.velocity)
     back = run_plan(way_back, None, state.cancel, None)
     state.cancel.check()
     if back.final.status != "done":
