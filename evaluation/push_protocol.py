@@ -64,6 +64,7 @@ from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
 from shared.world.objects.final_split import is_final_id
+from shared.world.objects.geometry import rolls
 from shared.world.push_outcome import judge_push, object_pose, rollout_predicts_success
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
@@ -77,6 +78,9 @@ PUSH_DISTANCE_M = 0.20
 OBJECT_XY = (0.40, 0.0)  # in front of the robot, where both arms reach all three directions (pulls fail at 0.5 m)
 PLACEMENT_NOISE_M = 0.01  # uniform in a ±1 cm square
 PLACEMENT_NOISE_DEG = 5.0  # uniform yaw in ±5°
+# The longest the object is left alone in its world after it is put down, waiting for it to rest before the
+# cameras look (a ball off balance on its drawn centre of mass rocks for a while; what stands still stops at once).
+SETTLE_S = 3.0
 ROBOTS = {"allegro": "panda", "leap": "xarm7"}
 
 
@@ -206,12 +210,19 @@ def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directio
             for t in range(trials)]
 
 
-def camera_rig(episode: Episode, world: ExecutionWorld) -> CameraRig:
+def camera_rig(episode: Episode, world: ExecutionWorld, T_start: np.ndarray) -> CameraRig:
     """The depth cameras the robot's image tracker sees the trial through: those that captured the object (told
-    the mesh: the default three), aimed as for the capture, off their calibration by the world's drawn errors."""
+    the mesh: the default three), aimed at where it rests (`T_start`) as for the capture, off their calibration
+    by the world's drawn errors."""
     obj = load_object(episode.object_id)
-    T_true = world.pose_error.true_pose(placement(episode))
-    return CameraRig.around(T_true, obj.mesh, episode.cameras or 3, world.camera_errors)
+    return CameraRig.around(T_start, obj.mesh, episode.cameras or 3, world.camera_errors)
+
+
+def put_down(episode: Episode, world: ExecutionWorld) -> np.ndarray:
+    """Where the object is truly put down for the trial (T_world_O): the told placement off by the world's pose
+    error. It then settles in the world's physics (`LocalRobot.settle_true_object`, SETTLE_S) before anything
+    looks at it; where it comes to rest is the trial's true start."""
+    return world.pose_error.true_pose(placement(episode))
 
 
 def placement(episode: Episode) -> np.ndarray:
@@ -234,29 +245,30 @@ def half_extents(object_id: str) -> np.ndarray:
     return world_half_extents(load_object(object_id).mesh.vertices)
 
 
-def push_request(episode: Episode) -> PushRequest:
-    """What the system is asked: the object as told (mesh and pose), or as the cameras see it."""
+def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
+    """What the system is asked: the object as told (mesh and the told pose), or as the cameras see it where it
+    truly rests (`T_start`)."""
     common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
                   arm=episode.arm, seed=episode.seed, options=METHODS[episode.method].options)
     if episode.cameras:
-        return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode)), **common)
+        return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode, T_start)), **common)
     return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
                        **common)
 
 
-def captured_cloud(episode: Episode) -> np.ndarray:
-    """The cloud `episode.cameras` depth cameras capture of the object at its true pose (seeded per trial)."""
+def captured_cloud(episode: Episode, T_start: np.ndarray) -> np.ndarray:
+    """The cloud `episode.cameras` depth cameras capture of the object where it truly rests, `T_start` (seeded
+    per trial)."""
     from shared.world.perception import cloud_for_request
     from shared.world.sim.camera import capture_object
 
     world = execution_world(episode)
-    T_true = world.pose_error.true_pose(placement(episode))
-    capture = capture_object(load_object(episode.object_id), T_true, n_cameras=episode.cameras, seed=episode.world_seed,
+    capture = capture_object(load_object(episode.object_id), T_start, n_cameras=episode.cameras, seed=episode.world_seed,
                              camera_errors=world.camera_errors)
     return cloud_for_request(capture.cloud)
 
 
-def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest, plan: Plan) -> dict[str, bool]:
+def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, plan: Plan) -> dict[str, bool]:
     """Why a plan its rollout predicted to succeed failed: the same plan executed again, in nominal physics,
     (a) on what the planner was told or saw, where it was told it stood ("planner_world": False means the
     rollout and the robot parted in the planner's own world) and (b) on the true object where it truly
@@ -282,20 +294,36 @@ def replay_failure(episode: Episode, world: ExecutionWorld, request: PushRequest
         in_planner_world = judged_from(episode, T_told, final).success
         robot.true_object = truth
         robot.execute(plan, told)
-        on_true_object = judge_episode(episode, world, robot.true_object_pose(episode.arm, episode.hand)).success
+        on_true_object = judged_from(episode, T_start, robot.true_object_pose(episode.arm, episode.hand)).success
     finally:
         robot.execution_world, robot.true_object = drawn, truth
     return {"planner_world": bool(in_planner_world), "true_object": bool(on_true_object)}
 
 
-def judge_episode(episode: Episode, world: ExecutionWorld, final: ObjectPose) -> ExecutionResult:
-    """The trial's outcome judged from where the object truly started (the told pose may be off)."""
-    return judged_from(episode, world.pose_error.true_pose(placement(episode)), final)
-
-
 def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> ExecutionResult:
-    """The episode's push judged from `T_start`: its target is the push distance along the direction from there."""
-    return judge_push(T_start, T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg), final)
+    """The episode's push judged from where the object truly started, `T_start` (the told pose may be off): its
+    target is the push distance along the direction from there; an object that rolls there is judged on its
+    position alone (`judge_push`)."""
+    return judge_push(T_start, T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg), final,
+                      rolling=rolls_at(episode.object_id, T_start))
+
+
+SMALL_MAX_M = 0.04  # an object no side of which is longer than this is small
+
+
+def shape_of(object_id: str, T_world_O: np.ndarray) -> str:
+    """The shape class a trial's object is reported under (docs/evaluation.md, "Shape classes"): "round" if it
+    rolls where it rests, else "small" (no side over SMALL_MAX_M), else its resting class: tall / volumetric /
+    flat (`shared.world.objects.geometry.shape_class`)."""
+    obj = load_object(object_id)
+    if rolls_at(object_id, T_world_O):
+        return "round"
+    return "small" if max(obj.info.size_m) <= SMALL_MAX_M else obj.info.shape_class
+
+
+def rolls_at(object_id: str, T_world_O: np.ndarray) -> bool:
+    """Whether the object rests at `T_world_O` in a way it rolls (`shared.world.objects.geometry.rolls`)."""
+    return rolls(load_object(object_id).mesh, np.asarray(T_world_O, dtype=np.float64)[:3, :3])
 
 
 # ------------------------------------------------------------------------------------------ workers
@@ -345,14 +373,16 @@ def run_episode(episode: Episode) -> dict[str, Any]:
                                prescreen=prescreen, max_plans=max_plans)
     world = execution_world(episode)
     system.robot.execution_world = world
-    # The robot pushes the true object where it truly stands, whatever the system was told or saw.
-    system.robot.true_object = (ObjectRef(library_id=episode.object_id), world.pose_error.true_pose(placement(episode)))
-    system.robot.rig = camera_rig(episode, world)
-    system.robot.tracking = TrackingErrors()
     system.robot.tracking_mode = episode.tracking
+    # The robot pushes the true object where it truly rests, whatever the system was told or saw.
+    system.robot.true_object = (ObjectRef(library_id=episode.object_id), put_down(episode, world))
+    T_start = system.robot.settle_true_object(episode.arm, episode.hand, SETTLE_S)
+    system.robot.rig = camera_rig(episode, world, T_start)
+    system.robot.tracking = TrackingErrors()
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
-                              "engine": engine_of(world)}
-    request = push_request(episode)  # with cameras: rendered once (the capture is seeded by the trial)
+                              "engine": engine_of(world), "shape": shape_of(episode.object_id, T_start),
+                              "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - put_down(episode, world)[:2, 3])), 4)}
+    request = push_request(episode, T_start)  # with cameras: rendered once (the capture is seeded by the trial)
     try:
         response = pipeline.run(request).response
     except PushError as exc:
@@ -362,7 +392,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     except Exception as exc:  # a crash in one trial is recorded, not fatal to the evaluation
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:  # judged where the object truly is: the system only knows what its tracker saw
-        result = judge_episode(episode, world, system.robot.true_object_pose(episode.arm, episode.hand))
+        result = judged_from(episode, T_start, system.robot.true_object_pose(episode.arm, episode.hand))
         record.update(outcome="success" if result.success else "failure", success=bool(result.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
@@ -370,7 +400,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
             if not result.success and len(response.steps) <= 1 and rollout_predicts_success(response.score.l_goal):
-                record["replayed"] = replay_failure(episode, world, request, response.plan)
+                record["replayed"] = replay_failure(episode, T_start, request, response.plan)
             if response.score.draws is not None:  # robust ranking: in how many rollout worlds it succeeded
                 record["predicted_draws"] = [response.score.draws_succeeded, response.score.draws]
         if response.notes:  # e.g. why a correction the request allowed was not made, or a push was stopped

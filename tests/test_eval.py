@@ -68,10 +68,11 @@ def test_every_method_faces_the_same_placement():
     assert not np.allclose(protocol.placement(a), protocol.placement(other_trial))
     offset = protocol.placement(a)[:2, 3] - np.array(protocol.OBJECT_XY)
     assert np.all(np.abs(offset) <= protocol.PLACEMENT_NOISE_M + 1e-9)
-    request = protocol.push_request(a)
+    request = protocol.push_request(a, protocol.placement(a))
     assert request.options.choice == "ranked" and request.options.method == "gd2p" and request.distance_m == pytest.approx(0.20)
-    ablation = protocol.push_request(protocol.Episode("gd2p-unranked", "allegro", "pb-mug", 180.0, 3))
-    random_nn = protocol.push_request(protocol.Episode("nearest", "allegro", "pb-mug", 180.0, 3))
+    ablation, random_nn = (protocol.push_request(e, protocol.placement(e)) for e in
+                           (protocol.Episode("gd2p-unranked", "allegro", "pb-mug", 180.0, 3),
+                            protocol.Episode("nearest", "allegro", "pb-mug", 180.0, 3)))
     assert (ablation.options.method, ablation.options.choice) == ("gd2p", "unranked")
     assert (random_nn.options.method, random_nn.options.choice) == ("nearest", "random")
 
@@ -91,10 +92,11 @@ def test_with_cameras_the_system_gets_a_capture_and_the_robot_the_true_object():
     from shared.world.sim.world import PoseError
 
     episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0, cameras=1)
-    request = protocol.push_request(episode)
-    assert request.object.point_cloud is not None and request.object_pose is None
-    assert np.array_equal(protocol.captured_cloud(episode), request.object.point_cloud.to_numpy())  # seeded
     world = protocol.execution_world(episode)
+    T_start = protocol.put_down(episode, world)
+    request = protocol.push_request(episode, T_start)
+    assert request.object.point_cloud is not None and request.object_pose is None
+    assert np.array_equal(protocol.captured_cloud(episode, T_start), request.object.point_cloud.to_numpy())  # seeded
     assert world.cameras == 1 and world.pose_error == PoseError()  # perception brings its own pose error
     true_object = (ObjectRef(library_id="proc-box-001"), protocol.placement(episode))
     told = SimWorld(object=request.object, object_pose=object_pose(np.eye(4)))
@@ -120,9 +122,9 @@ def test_with_cameras_the_tracker_follows_the_reconstruction_the_planner_plans_a
     from shared.world.push_outcome import judge_push
 
     episode = protocol.Episode("gd2p", "allegro", "pb-mug", 180.0, 0, cameras=3)
-    request = protocol.push_request(episode)
+    T_true = protocol.put_down(episode, protocol.execution_world(episode))
+    request = protocol.push_request(episode, T_true)
     seen = captured_object(request.object).T_world_O
-    T_true = protocol.execution_world(episode).pose_error.true_pose(protocol.placement(episode))
     assert (seen[:3, 2] @ T_true[:3, 2]) < -0.9  # what makes this case: the two frames' z axes are opposite
     told = SimWorld(object=request.object, object_pose=object_pose(seen))
     truth = true_world(told, protocol.execution_world(episode), (ObjectRef(library_id="pb-mug"), T_true))
@@ -150,13 +152,13 @@ def test_a_trial_is_judged_from_where_the_object_truly_started():
 
     episode = protocol.Episode("gd2p", "allegro", "proc-box-001", 60.0, 0)
     world = replace(protocol.execution_world(episode), pose_error=PoseError(0.02, 0.0, 0.0))
-    T_true = world.pose_error.true_pose(protocol.placement(episode))
+    T_true = protocol.put_down(episode, world)
     T_end = T_true.copy()
     T_end[:2, 3] += 0.20 * direction_xy(60.0)
-    assert protocol.judge_episode(episode, world, object_pose(T_end)).success
+    assert protocol.judged_from(episode, T_true, object_pose(T_end)).success
     T_told_end = protocol.placement(episode)
     T_told_end[:2, 3] += 0.20 * direction_xy(60.0) + np.array([0.0, 0.035])
-    assert not protocol.judge_episode(episode, world, object_pose(T_told_end)).success
+    assert not protocol.judged_from(episode, T_true, object_pose(T_told_end)).success
 
 
 def test_grasp_poses_move_with_the_object(tmp_path):
@@ -204,14 +206,14 @@ def test_a_failed_plan_is_replayed_to_tell_perception_from_physics(tmp_path):
     protocol._init_worker(str(tmp_path))
     protocol._system.robot.tracking_mode = "truth"  # physics replayed, not tracking: the quicker tracker
     episode = protocol.Episode("fixed", "allegro", "proc-box-001", 180.0, 0, world="exact")
-    request = protocol.push_request(episode)
+    request = protocol.push_request(episode, protocol.placement(episode))
     response = protocol._system.pipeline("sampler").run(request).response
     exact = protocol.execution_world(episode)
     for error, on_true_object in ((PoseError(0.0, 0.15, 0.0), False), (PoseError(), True)):
         world = replace(exact, pose_error=error)
-        truth = (ObjectRef(library_id="proc-box-001"), world.pose_error.true_pose(protocol.placement(episode)))
+        truth = (ObjectRef(library_id="proc-box-001"), protocol.put_down(episode, world))
         protocol._system.robot.true_object = truth
-        replayed = protocol.replay_failure(episode, world, request, response.plan)
+        replayed = protocol.replay_failure(episode, truth[1], request, response.plan)
         assert replayed == {"planner_world": True, "true_object": on_true_object}
         assert protocol._system.robot.true_object is truth and protocol._system.robot.execution_world is None
 

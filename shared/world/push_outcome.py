@@ -12,11 +12,12 @@ import trimesh
 
 from shared.contracts.messages import ExecutionResult, ObjectPose
 from shared.frames import matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from shared.world.objects.geometry import REVOLUTION_MAX, revolution_deviation
 
 # Below this, turning an object about its vertical axis is invisible to a depth camera (turn_observable). The
 # development objects' models: boxes, hulls, the duck, the mug and lying cylinders 0.13-0.31 (their
 # reconstructions 0.13-0.24); standing cylinders, the cone and the ellipsoid 0.01-0.04 (reconstructions 0.03-0.08).
-TURN_VISIBILITY_MIN = 0.1
+TURN_VISIBILITY_MIN = REVOLUTION_MAX
 SUCCESS_POSITION_TOLERANCE_M = 0.03
 SUCCESS_MAX_ROTATION_DEG = 45.0
 # A pose goal (a goal point with a yaw, PushRequest.goal_yaw_deg) is met within these instead: the position
@@ -30,18 +31,8 @@ def turn_observable(mesh: trimesh.Trimesh, up_O: np.ndarray) -> bool:
     """Whether turning the object (its `mesh`, in its frame O) about its vertical axis (`up_O`, in O) changes what
     a camera can see of it: not for a body of revolution about that axis (a ball, a standing can or cone), whose
     turn no tracker measures, so a turn reported for it is the tracker's guess and neither stops nor judges a push.
-
-    The measure is how much the surface's normal distances change under a small turn about the vertical through
-    the centre: the RMS over the surface of ((p - c) x n) . up / radius (0 for a body of revolution, ~0.2-0.3 for a
-    box), against TURN_VISIBILITY_MIN."""
-    points, faces = trimesh.sample.sample_surface(mesh, 2000, seed=0)
-    normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
-    points = np.asarray(points, dtype=np.float64)
-    centre = points.mean(axis=0)
-    radius = max(float(np.max(np.linalg.norm(points - centre, axis=1))), 1e-6)
-    up = np.asarray(up_O, dtype=np.float64) / np.linalg.norm(up_O)
-    lever = np.cross(points - centre, normals) @ up / radius
-    return bool(np.sqrt(np.mean(lever**2)) >= TURN_VISIBILITY_MIN)
+    The measure is `revolution_deviation` about the vertical, against TURN_VISIBILITY_MIN."""
+    return revolution_deviation(mesh, up_O) >= TURN_VISIBILITY_MIN
 
 
 def rollout_predicts_success(l_goal_m: float) -> bool:
@@ -111,7 +102,7 @@ def position_tolerance_m(yaw_goal: YawGoal | None) -> float:
 
 def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: ObjectPose, *,
                max_rotation_deg: float | None = SUCCESS_MAX_ROTATION_DEG,
-               yaw_goal: YawGoal | None = None) -> ExecutionResult:
+               yaw_goal: YawGoal | None = None, rolling: bool = False) -> ExecutionResult:
     """Position error (in the table plane, to the target), rotation, toppling and success of one push.
 
     `max_rotation_deg=None` does not judge the turn: a multi-step request, whose object may turn
@@ -119,6 +110,10 @@ def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: Object
     `yaw_goal` (a pose goal): success needs the object within POSE_GOAL_POSITION_TOLERANCE_M of the
     target and its yaw within POSE_GOAL_YAW_TOLERANCE_DEG of the goal yaw; the turn from the start is
     then not bounded (the goal says how the object is to end, and reaching it may take any turn).
+    `rolling` (an object that rolls, `shared.world.objects.geometry.rolls`: a ball, a fruit, a can on its
+    side): success is the position alone. A ball turns ~350 degrees in a 0.20 m roll and a rolling can's up
+    axis goes round with it, so neither the turn nor the tilt says anything about the push; both are still
+    reported.
     """
     T_end = pose_matrix(final)
     error = float(np.linalg.norm(T_end[:2, 3] - np.asarray(target_xy, dtype=np.float64)[:2]))
@@ -132,6 +127,6 @@ def judge_push(T_world_O_start: np.ndarray, target_xy: np.ndarray, final: Object
     else:
         yaw_error = yaw_goal.error_deg(r_end)
         off_pose = yaw_error > POSE_GOAL_YAW_TOLERANCE_DEG
-    success = error <= position_tolerance_m(yaw_goal) and not off_pose and not toppled
+    success = error <= position_tolerance_m(yaw_goal) and (rolling or (not off_pose and not toppled))
     return ExecutionResult(final_object_pose=final, position_error_m=error, rotation_deg=rotation,
                            toppled=toppled, success=success, yaw_error_deg=yaw_error)

@@ -96,6 +96,18 @@ class SimulatedRobot(Robot):
         """Whether an object stands in the engine's world (not where: that is the truth): the engine's."""
         raise NotImplementedError
 
+    def let_object_settle(self, duration_s: float) -> None:
+        """Run the physics `duration_s` with the robot held where it is, so an object put down where it cannot
+        rest goes where it would (a ball whose drawn centre of mass is off its middle rolls away): the evaluation's,
+        before its cameras look. The tracker's next frame is of the object where it came to rest."""
+        with self._lock:
+            self._step_held(duration_s)
+            self._tracked, self._lost = None, None
+
+    def _step_held(self, duration_s: float) -> None:
+        """Physics for `duration_s`, the robot's joints commanded to stay where they are: the engine's."""
+        raise NotImplementedError
+
     def _true_pose(self) -> np.ndarray | None:
         """The object's true pose in the world (None without an object): the engine's."""
         raise NotImplementedError

@@ -28,6 +28,13 @@ SHAPE_CLASSES = ("flat", "volumetric", "tall")
 # H > 1.5 w (bottles, cans, cereal boxes), volumetric otherwise (mugs, boxes, toys).
 FLAT_MAX_RATIO = 0.4
 TALL_MIN_RATIO = 1.5
+# An object whose resting pose must tilt less than this before it tips over an edge of its support rolls
+# (tipping_angle_deg): a tessellated ball or lying can's facet gives a few degrees, the flattest-based things
+# that stand (a box on end, a jenga block upright) over 10.
+ROLLS_BELOW_DEG = 6.0
+# Below this revolution_deviation a surface is a body of revolution about the axis, as a camera or the table sees
+# it (the library's bodies of revolution 0.006-0.036, every other development or val shape 0.076 or more).
+REVOLUTION_MAX = 0.1
 MIN_POSE_PROBABILITY = 0.01  # quasi-static drop probability below which a pose is ignored
 MAX_RESTING_POSES = 8
 NATIVE_MATCH_DEG = 2.0
@@ -145,16 +152,66 @@ def is_statically_stable(mesh_o: trimesh.Trimesh, rotation: np.ndarray, margin: 
     The support polygon is made of the hull vertices within SUPPORT_TOLERANCE_M of the lowest
     one: modelled flat bottoms are flat only to tenths of a millimetre.
     """
-    vertices = mesh_o.convex_hull.vertices @ rotation.T
+    polygon = _support_polygon(mesh_o, rotation)
+    return polygon is not None and bool(np.all(polygon.equations[:, 2] <= -margin))  # origin inside by `margin`
+
+
+def tipping_angle_deg(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:
+    """How far (degrees) the object, resting in `rotation` (O -> a table-aligned frame; any yaw), must be tilted
+    about the nearest edge of its support before its centre of mass passes over that edge: atan(the centre's
+    horizontal distance to the edge / its height). 0 when it touches the table at a point or along a line
+    (a ball, a can on its side), or does not rest at all.
+
+    What rolls has no edge to tip over: a tessellated body of revolution lies on one facet (360/sections/2
+    degrees: 3.75 for the library's 48 sections), a box or a standing can needs tens of degrees."""
+    polygon = _support_polygon(mesh_o, rotation)
+    if polygon is None:
+        return 0.0
+    height = -float((np.asarray(mesh_o.convex_hull.vertices) @ np.asarray(rotation)[2]).min())
+    margin = max(0.0, float(np.min(-polygon.equations[:, 2])))  # the origin's distance to the nearest edge
+    return math.degrees(math.atan2(margin, max(height, 1e-9)))
+
+
+def rolls(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> bool:
+    """Whether the object, resting in `rotation` (O -> table-aligned frame), rolls when pushed rather than
+    sliding or tipping: a ball, a fruit or a can on its side. It has no edge to tip over (tipping_angle_deg below
+    ROLLS_BELOW_DEG) and is a body of revolution about a horizontal axis (revolution_deviation below
+    REVOLUTION_MAX), the axis it rolls about; an irregular lump balanced near an edge of its support only tips.
+    The axes tried: the table's x and y (for a ball any horizontal axis is one) and O's principal axes lying
+    within 20 degrees of the table (a can on its side rolls about its own)."""
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if tipping_angle_deg(mesh_o, rotation) >= ROLLS_BELOW_DEG:
+        return False
+    axes = [rotation[0], rotation[1]] + [np.eye(3)[i] for i in range(3) if abs(rotation[2, i]) < math.sin(math.radians(20))]
+    return min(revolution_deviation(mesh_o, axis) for axis in axes) < REVOLUTION_MAX
+
+
+def revolution_deviation(mesh: trimesh.Trimesh, axis: np.ndarray) -> float:
+    """How far `mesh` is from a body of revolution about `axis` (in the mesh's frame) through its surface's
+    centre: the RMS over the surface of ((p - c) x n) . axis / radius, 0 for a body of revolution, ~0.2-0.3 for
+    a box. Turning such a body about that axis changes nothing a camera sees or the table touches."""
+    points, faces = trimesh.sample.sample_surface(mesh, 2000, seed=0)
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)[faces]
+    points = np.asarray(points, dtype=np.float64)
+    centre = points.mean(axis=0)
+    radius = max(float(np.max(np.linalg.norm(points - centre, axis=1))), 1e-6)
+    unit = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    lever = np.cross(points - centre, normals) @ unit / radius
+    return float(np.sqrt(np.mean(lever**2)))
+
+
+def _support_polygon(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> ConvexHull | None:
+    """The convex hull (in the table plane) of the hull vertices within SUPPORT_TOLERANCE_M of the lowest, the
+    object resting in `rotation`; None when they touch at a point or along a line."""
+    vertices = np.asarray(mesh_o.convex_hull.vertices) @ np.asarray(rotation).T
     lowest = vertices[:, 2].min()
     support = vertices[vertices[:, 2] < lowest + SUPPORT_TOLERANCE_M][:, :2]
     if len(support) < 3:
-        return False
+        return None
     try:
-        polygon = ConvexHull(support)
+        return ConvexHull(support)
     except QhullError:  # collinear contact: an edge, not a face
-        return False
-    return bool(np.all(polygon.equations[:, 2] <= -margin))  # offsets at the origin: inside by `margin`
+        return None
 
 
 def _coarse_hull(mesh: trimesh.Trimesh, max_faces: int = STABLE_POSE_HULL_FACES) -> trimesh.Trimesh:

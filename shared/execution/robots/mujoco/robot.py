@@ -193,6 +193,12 @@ class MujocoRobot(SimulatedRobot):
     def _has_object(self) -> bool:
         return self._placed is not None
 
+    def _step_held(self, duration_s: float) -> None:
+        model, data = self._world()
+        data.ctrl[self._actuators] = data.qpos[self._qpos]
+        for _ in range(round(duration_s / float(model.opt.timestep))):
+            mujoco.mj_step(model, data)
+
     def object_touches_obstacle(self) -> bool:
         model, data = self._world()
         if self._object_body < 0:

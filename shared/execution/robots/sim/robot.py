@@ -199,6 +199,13 @@ class SimRobot(SimulatedRobot):
     def _has_object(self) -> bool:
         return self.scene is not None and self.scene.object is not None
 
+    def _step_held(self, duration_s: float) -> None:
+        scene = self._scene()
+        positions, _ = scene.joint_state()
+        ArmController(scene, self.params, np.zeros(1), positions[None]).command(positions, np.zeros(len(positions)))
+        for _ in range(round(duration_s / self.params.time_step_s)):
+            scene.sim.step()
+
     def object_touches_obstacle(self) -> bool:
         with self._lock:
             return self.scene is not None and self.scene.object_touches_obstacle()
