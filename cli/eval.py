@@ -7,6 +7,8 @@
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
+    gd2p eval suite --out results/            # every task (the paper's push, push to a pose), default and baselines
+    gd2p eval suite --tasks pose --world mujoco  # one task, executed in MuJoCo
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --world exact --out results/  # test objects covered vs training-data fraction
     gd2p eval data-size --dataset datasets/allegro-v2 --yaw random --train-steps 20000 --lr 1e-3 --seeds 0 --tag v2  # v2
@@ -55,18 +57,20 @@ import sys
 from pathlib import Path
 
 from cli.args import positive_float
+from evaluation.tasks import TASKS
 
 EXPERIMENTS: dict[str, str] = {  # name -> "module:function(out, quick, workers) -> report path"
     "methods": "evaluation.methods:run_methods",
     "leap": "evaluation.methods:run_leap",
     "closed-loop": "evaluation.methods:run_closed_loop",
+    "suite": "evaluation.suite:run_suite",
     "multistep": "evaluation.multistep:run",
     "data-size": "evaluation.data_size:run",
     "sampler-quality": "evaluation.sampler_quality:run",
     "sampler-diagnosis": "evaluation.sampler_diagnosis:run",
 }
-TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop")
-WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "multistep")  # these also take --cameras and --tag
+TRIAL_EXPERIMENTS = ("methods", "leap", "closed-loop", "suite")
+WORLD_EXPERIMENTS = ("methods", "leap", "closed-loop", "suite", "multistep")  # these also take --cameras and --tag
 COVERAGE_EXPERIMENTS = ("sampler-quality", "data-size")  # --world and --cameras too: where the poses are pushed
 # `dev`: the development split (the library's `test` split, what `test` named before the final split existed; `test` stays an
 # alias that says so); `final`: the final split (evaluation/final_run.py).
@@ -158,6 +162,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="data-size: learning rate of every model (default 1e-4, the paper's)")
     parser.add_argument("--seeds", type=_seed_list, default=None,
                         help="data-size: comma-separated training seeds, one model per fraction and seed (default 0,1,2)")
+    parser.add_argument("--tasks", type=_task_list, default=None,
+                        help="suite: comma-separated tasks (default all: " + ", ".join(TASKS) + "); each is a "
+                             "closed-loop run of its own, <out>/closed-loop-<world>...-<task>/ (the paper's task: "
+                             "the closed-loop run itself)")
     parser.add_argument("--closed-loop", action="store_true",
                         help="multistep: watch every push and stop it when the object strays from its predicted "
                              "path (PlannerOptions.closed_loop), into <out>/multistep-<world>-closed/")
@@ -175,6 +183,14 @@ def _method_list(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(f"unknown method(s) {', '.join(unknown) or '(none given)'}; "
                                          f"known: {', '.join(METHODS)}; sampler-quality: {', '.join(METHOD_KEYS)}")
     return names
+
+
+def _task_list(text: str) -> tuple[str, ...]:
+    tasks = tuple(t.strip() for t in text.split(",") if t.strip())
+    unknown = [t for t in tasks if t not in TASKS]
+    if not tasks or unknown:
+        raise argparse.ArgumentTypeError(f"unknown task(s) {', '.join(unknown) or '(none given)'}; known: {', '.join(TASKS)}")
+    return tasks
 
 
 def _seed_list(text: str) -> tuple[int, ...]:
@@ -264,7 +280,11 @@ def run(args: argparse.Namespace) -> int:
     if args.tag is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}", args.tag):
         print(f"gd2p eval: --tag names a directory: letters, digits, '.', '_', '-' (got {args.tag!r})", file=sys.stderr)
         return 2
-    names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    # `all` is a slice of each of the paper's experiments; the suite runs closed-loop again per task
+    names = [n for n in EXPERIMENTS if n != "suite"] if args.experiment == "all" else [args.experiment]
+    if args.tasks is not None and names != ["suite"]:
+        print("gd2p eval: --tasks applies to suite only", file=sys.stderr)
+        return 2
     if args.split == "test":
         print("gd2p eval: --split test is the development split, now named dev (the same objects, seeds and results "
               "directories); the held-out measurement is --split final", file=sys.stderr)
@@ -334,6 +354,8 @@ def run(args: argparse.Namespace) -> int:
             options["tracking"] = args.tracking
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
+        if args.tasks is not None and name == "suite":
+            options["tasks"] = args.tasks
         if name == "sampler-quality":
             options.update(_sampler_quality_options(args, split))
         if name == "data-size" and args.experiment == "data-size":

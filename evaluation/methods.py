@@ -69,12 +69,20 @@ class Protocol:
     split: str = "test"
     tag: str | None = None  # names a run of the same protocol with other models or code (`--tag`)
     tracking: TrackingMode = "image"  # how the robot sees the object while it pushes: rendered images, or "truth"
+    task: str = "paper"  # what each trial asks (push_protocol.TASKS)
 
     @property
     def directory_name(self) -> str:
         return (f"{self.name}-{self.world}" + (f"-camera{self.cameras}" if self.cameras else "")
                 + ("-truthtrack" if self.tracking == "truth" else "")
-                + (f"-{self.split}" if self.split != "test" else "") + (f"-{self.tag}" if self.tag else ""))
+                + (f"-{self.split}" if self.split != "test" else "") + (f"-{self.task}" if self.task != "paper" else "")
+                + (f"-{self.tag}" if self.tag else ""))
+
+    def episodes(self, methods: Sequence[str] | None = None) -> list[protocol.Episode]:
+        """The protocol's trials (of `methods`, default its own)."""
+        return protocol.episodes(self.methods if methods is None else methods, self.hand, self.objects,
+                                 self.directions, self.trials, self.world, self.cameras, self.split, self.tracking,
+                                 self.task)
 
     def settings(self) -> dict[str, Any]:
         """What a resumed run must share with the records on disk. Not the trial count nor the methods:
@@ -88,6 +96,8 @@ class Protocol:
                     "tracking": self.tracking, "camera_calibration_errors": True,
                     # the poses' models: a run resumed after the shipped checkpoint or index changed is refused
                     "pose_models": protocol.pose_model_ids(self.hand)}
+        if self.task != "paper":  # the paper's runs were made before tasks, and keep their settings
+            settings["task"] = self.task
         if self.split == "final":  # the frozen objects the run measured, and that they are the final split's
             from shared.world.objects.final_split import manifest_sha256
 
@@ -107,7 +117,7 @@ DEFAULT_CAMERAS: dict[str, int] = {
 
 def protocol_for(name: str, quick: bool, trials: int | None = None, world: WorldLevel = "real",
                  methods: Sequence[str] | None = None, cameras: int = 0, split: str = "test",
-                 tag: str | None = None) -> Protocol:
+                 tag: str | None = None, task: str = "paper") -> Protocol:
     if split not in OBJECT_SETS:
         raise ValueError(f"unknown split {split!r}; known: {', '.join(OBJECT_SETS)}")
     objects: tuple[str, ...]
@@ -135,32 +145,34 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
                         tuple(methods or ("gd2p",)), objects, protocol.DIRECTIONS_DEG, trials, world, cameras, split,
                         tag)
     if name == "closed-loop":
-        return Protocol(name, f"Closed loop (Allegro + Panda), world `{world}`{on_val}", "allegro",
-                        tuple(methods or CLOSED_LOOP_METHODS), objects, protocol.DIRECTIONS_DEG, trials, world,
-                        cameras, split, tag)
+        title = f"Closed loop (Allegro + Panda), world `{world}`{on_val}"
+        if task != "paper":
+            title = f"Task `{task}`: " + title
+        return Protocol(name, title, "allegro", tuple(methods or CLOSED_LOOP_METHODS), protocol.task_objects(task, objects),
+                        protocol.DIRECTIONS_DEG, trials, world, cameras, split, tag, task=task)
+    if task != "paper":
+        raise ValueError(f"the {name} experiment asks the paper's task; tasks are measured by closed-loop (and suite)")
     raise ValueError(f"unknown protocol {name!r}")
 
 
 def run_protocol(name: str, out: Path, quick: bool, workers: int, trials: int | None = None,
                  world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
                  split: str = "test", tag: str | None = None,
-                 worker_init: Callable[[str], None] | None = None, tracking: TrackingMode = "image") -> Path:
+                 worker_init: Callable[[str], None] | None = None, tracking: TrackingMode = "image",
+                 task: str = "paper") -> Path:
     """One run of a trial protocol into `<out>/<directory_name>/`; `worker_init` replaces the workers' initializer
     (the final split's, evaluation/final_run.py, opens its access in every worker)."""
-    spec = replace(protocol_for(name, quick, trials, world, methods, cameras, split, tag), tracking=tracking)
+    spec = replace(protocol_for(name, quick, trials, world, methods, cameras, split, tag, task), tracking=tracking)
     directory = Path(out) / spec.directory_name
     settings = spec.settings()  # hashes the pose models' files: once per run
     store = ResultStore(directory, settings)
     started = time.perf_counter()
-    todo = protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions, spec.trials, spec.world,
-                             spec.cameras, spec.split, spec.tracking)
+    todo = spec.episodes()
     pending = [e for e in todo if not store.done(e.key)]
     protocol.run_in_workers(pending, protocol.run_episode, store, workers, Path(out) / "grasp_poses", label=name,
                             initializer=worker_init)
     spec = with_stored_methods(spec, store)
-    records = [store.records[e.key] for e in protocol.episodes(spec.methods, spec.hand, spec.objects, spec.directions,
-                                                               spec.trials, spec.world, spec.cameras, spec.split,
-                                                               spec.tracking)]
+    records = [store.records[e.key] for e in spec.episodes()]
     summary = summarise(records, spec)
     body = report_body(records, spec, summary, exact_rates(Path(out), spec, settings["pose_models"]))
     _plot(records, spec, directory / "success_by_direction.png")
@@ -174,9 +186,7 @@ def with_stored_methods(spec: Protocol, store: ResultStore) -> Protocol:
     """`spec` reporting every method the run's store holds all of `spec`'s trials of, not only those asked this
     time: a run extended by another method (`--methods nearest` into a finished run) keeps the others in its report."""
     def complete(method: str) -> bool:
-        return all(store.done(e.key) for e in protocol.episodes((method,), spec.hand, spec.objects, spec.directions,
-                                                                 spec.trials, spec.world, spec.cameras, spec.split,
-                                                                 spec.tracking))
+        return all(store.done(e.key) for e in spec.episodes((method,)))
     stored = {record["method"] for record in store.records.values()}
     extra = [m for m in protocol.METHODS if m in stored and m not in spec.methods and complete(m)]
     return replace(spec, methods=(*spec.methods, *extra))

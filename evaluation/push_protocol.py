@@ -49,6 +49,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
+from evaluation.tasks import POSE_TASK_TURN_DEG, TASKS
 from shared.contracts.messages import (
     ExecutionResult,
     ObjectPose,
@@ -65,7 +66,15 @@ from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import resolve_library_id
 from shared.world.objects.final_split import is_final_id
 from shared.world.objects.geometry import rolls
-from shared.world.push_outcome import judge_push, object_pose, rollout_predicts_success
+from shared.world.push_outcome import (
+    YawGoal,
+    judge_push,
+    object_pose,
+    pose_matrix,
+    resting_rotation,
+    rollout_predicts_success,
+    turn_observable,
+)
 from shared.world.sim.world import WORLD_LEVELS, ExecutionWorld, WorldLevel, sample_world
 from shared.world.sim.world import half_extents as world_half_extents
 
@@ -82,6 +91,7 @@ PLACEMENT_NOISE_DEG = 5.0  # uniform yaw in ±5°
 # cameras look (a ball off balance on its drawn centre of mass rocks for a while; what stands still stops at once).
 SETTLE_S = 3.0
 ROBOTS = {"allegro": "panda", "leap": "xarm7"}
+
 
 
 METHODS_FILE = Path(__file__).resolve().parent / "methods.yaml"
@@ -152,10 +162,17 @@ class Episode:
     world: WorldLevel = "real"
     cameras: int = 0  # 0: the system is told the mesh; 1-3: it receives a capture from that many cameras
     tracking: TrackingMode = "image"  # how the robot sees the object while it pushes: rendered images, or "truth"
+    task: str = "paper"  # what the trial asks (TASKS); every task meets the same placements and worlds
 
     @property
     def key(self) -> str:
-        return f"{self.method}/{self.hand}/{self.object_id}/{self.direction_deg:g}/{self.trial}"
+        key = f"{self.method}/{self.hand}/{self.object_id}/{self.direction_deg:g}/{self.trial}"
+        return key if self.task == "paper" else f"{self.task}:{key}"
+
+    @property
+    def goal_turn_deg(self) -> float:
+        """The pose task's turn: the goal yaw is the start's turned this far (counterclockwise on even trials)."""
+        return POSE_TASK_TURN_DEG if self.trial % 2 == 0 else -POSE_TASK_TURN_DEG
 
     @property
     def world_seed(self) -> int:
@@ -185,7 +202,7 @@ def _seed_prefix(object_id: str) -> str:
 
 def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directions: Sequence[float],
              trials: int, world: WorldLevel = "real", cameras: int = 0, split: str = "test",
-             tracking: TrackingMode = "image") -> list[Episode]:
+             tracking: TrackingMode = "image", task: str = "paper") -> list[Episode]:
     """The trials of a protocol. Objects must be of `split`: "test" (the development split), "val" to tune,
     "unseen" (test objects of a family no model trains on), "final" (the final split, measured once per release
     by `evaluation/final_run.py` only); never train."""
@@ -206,8 +223,18 @@ def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directio
         raise ValueError(f"unknown world {world!r}; known: {', '.join(WORLD_LEVELS)}")
     if tracking not in TRACKING_MODES:
         raise ValueError(f"unknown tracking {tracking!r}; known: {', '.join(TRACKING_MODES)}")
-    return [Episode(m, hand, o, d, t, world, cameras, tracking) for m in methods for o in objects for d in directions
-            for t in range(trials)]
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
+    return [Episode(m, hand, o, d, t, world, cameras, tracking, task) for m in methods for o in objects
+            for d in directions for t in range(trials)]
+
+
+def task_objects(task: str, objects: Sequence[str]) -> tuple[str, ...]:
+    """The objects a task is measured on: for "pose", those whose turn about the vertical a camera can see as they
+    rest (a body of revolution has no yaw to ask for: the planner refuses such a goal); all of them otherwise."""
+    if task != "pose":
+        return tuple(objects)
+    return tuple(o for o in objects if turn_observable(load_object(o).mesh, load_object(o).default_pose.rotation[2]))
 
 
 def camera_rig(episode: Episode, world: ExecutionWorld, T_start: np.ndarray) -> CameraRig:
@@ -247,13 +274,46 @@ def half_extents(object_id: str) -> np.ndarray:
 
 def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
     """What the system is asked: the object as told (mesh and the told pose), or as the cameras see it where it
-    truly rests (`T_start`)."""
-    common = dict(direction_deg=episode.direction_deg, distance_m=PUSH_DISTANCE_M, hand=episode.hand,
-                  arm=episode.arm, seed=episode.seed, options=METHODS[episode.method].options)
+    truly rests (`T_start`). The paper's task asks for a push along the direction; the pose task for the point
+    the push would reach from where the object truly rests (where a user wants it on the table) with the yaw
+    the system sees it at turned `goal_turn_deg`."""
+    common = dict(distance_m=PUSH_DISTANCE_M, hand=episode.hand, arm=episode.arm, seed=episode.seed,
+                  options=METHODS[episode.method].options)
+    told: dict[str, Any] = {"object": ObjectRef(library_id=episode.object_id), "object_pose": object_pose(placement(episode))}
     if episode.cameras:
-        return PushRequest(object=ObjectRef(point_cloud=captured_cloud(episode, T_start)), **common)
-    return PushRequest(object=ObjectRef(library_id=episode.object_id), object_pose=object_pose(placement(episode)),
-                       **common)
+        told = {"object": ObjectRef(point_cloud=captured_cloud(episode, T_start))}
+    if episode.task == "paper":
+        return PushRequest(direction_deg=episode.direction_deg, **told, **common)
+    seen_yaw = _seen_yaw(told["object"], told.get("object_pose"))
+    goal = _pose_task_target(episode, T_start)
+    return PushRequest(goal_xy=(float(goal[0]), float(goal[1])),
+                       goal_yaw_deg=_wrapped(seen_yaw + episode.goal_turn_deg), **told, **common)
+
+
+def _seen_yaw(ref: ObjectRef, told_pose: ObjectPose | None) -> float:
+    """The yaw (PushRequest.goal_yaw_deg's convention) the system has the object at: its reconstruction's where
+    the cloud shows it, or the told mesh's at the told pose."""
+    from shared.world.object_refs import captured_object
+
+    if ref.point_cloud is not None:
+        captured = captured_object(ref)
+        model, T = captured.model, captured.T_world_O
+    else:
+        assert told_pose is not None and ref.library_id is not None  # the evaluation tells library meshes with a pose
+        model, T = load_object(ref.library_id), pose_matrix(told_pose)
+    return _yaw_goal(model.resting_poses, T, 0.0).yaw_of(T[:3, :3])
+
+
+def _yaw_goal(resting_poses: Sequence[Any], T_world_O: np.ndarray, yaw_deg: float) -> YawGoal:
+    return YawGoal(yaw_deg, resting_rotation([pose.rotation for pose in resting_poses], T_world_O[:3, :3]))
+
+
+def _wrapped(deg: float) -> float:
+    return (deg + 180.0) % 360.0 - 180.0
+
+
+def _pose_task_target(episode: Episode, T_start: np.ndarray) -> np.ndarray:
+    return T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg)
 
 
 def captured_cloud(episode: Episode, T_start: np.ndarray) -> np.ndarray:
@@ -303,8 +363,13 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
 def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> ExecutionResult:
     """The episode's push judged from where the object truly started, `T_start` (the told pose may be off): its
     target is the push distance along the direction from there; an object that rolls there is judged on its
-    position alone (`judge_push`)."""
-    return judge_push(T_start, T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg), final,
+    position alone (`judge_push`). The pose task's yaw goal is the true start's yaw turned `goal_turn_deg`."""
+    yaw_goal = None
+    if episode.task == "pose":
+        obj = load_object(episode.object_id)
+        start_yaw = _yaw_goal(obj.resting_poses, T_start, 0.0).yaw_of(T_start[:3, :3])
+        yaw_goal = _yaw_goal(obj.resting_poses, T_start, _wrapped(start_yaw + episode.goal_turn_deg))
+    return judge_push(T_start, _pose_task_target(episode, T_start), final, yaw_goal=yaw_goal,
                       rolling=rolls_at(episode.object_id, T_start))
 
 
@@ -396,6 +461,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record.update(outcome="success" if result.success else "failure", success=bool(result.success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
+        if result.yaw_error_deg is not None:  # the pose task: how far from the goal yaw it ended
+            record["yaw_error_deg"] = round(result.yaw_error_deg, 2)
         record["tracker"] = {"mode": system.robot.tracking_mode, "pushes": system.robot.tracking.summary()}
         if response.score is not None:  # what the chosen plan's arm rollout predicted (ranking's L_goal)
             record["predicted_l_goal"] = round(response.score.l_goal, 4)
