@@ -118,7 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "method but the tuning candidates; closed-loop's: gd2p, gd2p-corrected, gd2p-closed, "
                              "gd2p-closed-critic-p24; leap's: gd2p): gd2p, gd2p-unranked, gd2p-random, gd2p-corrected, "
                              "gd2p-closed, gd2p-closed-critic-p24, gd2p-closed-fast, nearest, nearest-ranked, "
-                             "nearest-closed-critic, fixed, nearest-corrected, fixed-corrected, grasp, grasp-ranked; tuning "
+                             "nearest-closed-critic, fixed, fingertip-corrected, nearest-corrected, fixed-corrected, grasp, grasp-ranked; tuning "
                              "candidates (val): gd2p-robust, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, "
                              "gd2p-closed-looser, gd2p-closed-b24x6, gd2p-closed-b12x4, gd2p-closed-b12x4-ddim, "
                              "gd2p-closed-critic-guided, gd2p-closed-critic-p8, gd2p-closed-critic-p0, gd2p-closed-critic-p0x4, "

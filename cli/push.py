@@ -27,6 +27,9 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import get_args
+
+from shared.contracts.messages import PoseMethod
 
 CONNECT_TIMEOUT_MS = 3000
 
@@ -66,7 +69,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--obstacle", nargs=3, type=finite_float, action="append", default=[], metavar=("X", "Y", "R"),
                         help="a cylinder obstacle on the table (repeatable)")
     parser.add_argument("--k", type=positive_int, default=200, help="candidate hand poses sampled (default %(default)s)")
-    parser.add_argument("--method", choices=("gd2p", "nearest", "fixed"), default="gd2p", help="pose source")
+    parser.add_argument("--method", choices=get_args(PoseMethod), default="gd2p",
+                        help="pose source: the diffusion sampler (gd2p), retrieval (nearest), the fixed spatula pose "
+                             "(fixed) or one fingertip pointing along the push (fingertip)")
     parser.add_argument("--sampler", choices=("ddpm", "ddim"), default="ddpm",
                         help="diffusion sampler for --method gd2p: the paper's DDPM-100 or the DDIM-10 fast path")
     parser.add_argument("--no-critic", dest="critic", action="store_false",

@@ -24,9 +24,9 @@ from shared.execution.robots import TrackingMode
 from shared.world.sim.world import WorldLevel
 
 DEFAULT_METHOD = "gd2p-closed-critic-p24"
-# The baselines, each with the default's budget and stages: retrieval (nearest neighbour) with every stage, and
-# the fixed spatula pose with corrective pushes.
-SUITE_METHODS = (DEFAULT_METHOD, "nearest-closed-critic", "fixed-corrected")
+# The baselines, each with the default's budget and stages: retrieval (nearest neighbour) with every stage, the
+# fixed spatula pose with corrective pushes, and a straight-line pusher (one fingertip) with corrective pushes.
+SUITE_METHODS = (DEFAULT_METHOD, "nearest-closed-critic", "fixed-corrected", "fingertip-corrected")
 
 
 def run_suite(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None, world: WorldLevel = "real",

@@ -57,7 +57,7 @@ Hand = Literal["allegro", "leap"]
 Arm = Literal["panda", "xarm7"]
 Sampler = Literal["ddpm", "ddim", "nearest"]  # nearest: the nearest-neighbour baseline (stored training poses)
 DiffusionSampler = Literal["ddpm", "ddim"]
-PoseMethod = Literal["gd2p", "nearest", "fixed"]
+PoseMethod = Literal["gd2p", "nearest", "fixed", "fingertip"]
 # How the executed plan is chosen among the candidates (PlannerOptions.choice):
 # - "ranked": GD2P - plans rolled out with the arm and ranked by V = alpha L_goal + beta L_coll + gamma L_dir;
 # - "unranked": the ranking ablation - the same stages and rollouts, the executed plan drawn at random
@@ -718,7 +718,8 @@ class PlannerOptions(Value):
     """
 
     # Where candidate poses come from: the diffusion sampler, the nearest-neighbour baseline (sampler
-    # service) or the fixed spatula pose (the paper's baselines, for comparisons).
+    # service), the fixed spatula pose (the paper's baselines) or one fingertip pointing along the push (a
+    # straight-line pusher), for comparisons.
     method: PoseMethod = "gd2p"
     # The diffusion sampler for method "gd2p": the paper's DDPM-100, or the DDIM-10 fast path (fewer denoising
     # steps; its poses validate about as often: docs/results.md).

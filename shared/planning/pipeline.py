@@ -15,7 +15,9 @@ Pose sources (`PlannerOptions.method`), so that methods can be compared on the s
 - "gd2p": K poses from the diffusion sampler service;
 - "nearest": the paper's Nearest-Neighbour baseline, also from the sampler service (`sampler="nearest"`):
   the stored poses of the training frame nearest to the object in BPS space, at most K of them;
-- "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline).
+- "fixed": the one fixed spatula pose behind the object (the paper's Fixed Hand Pose baseline);
+- "fingertip": one finger pointing along the push at the centre of mass, the others curled (a straight-line
+  pusher, `shared.world.fixed_poses.fingertip_pose`).
 
 `PlannerOptions.choice` says how the executed plan is chosen: "ranked" (GD2P), "unranked" (the ranking
 ablation: the same stages and rollouts, the executed plan drawn at random among the rolled-out ones)

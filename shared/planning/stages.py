@@ -1,6 +1,6 @@
 """The stages of one push, each with one job; `pipeline.PushPipeline` runs them in this order.
 
-1. pose source (`candidate_poses`): K hand poses in D — the sampler service's, or the fixed spatula pose;
+1. pose source (`candidate_poses`): K hand poses in D — the sampler service's, or one fixed pose (spatula, fingertip);
 2. IK and screening (`screen`): batched arm IK, collision check of each pre-contact configuration
    and the push line's reachability, in chunks along the order in which poses would be tried;
 3. prescreen (`prescreen`): floating-hand pushes of the first feasible poses on the validator farm;
@@ -51,7 +51,7 @@ from shared.planning.motion import MotionPlanner, PlanningError
 from shared.planning.outcome import Execution, PushError, StepRecord
 from shared.robots.hands import HandModel
 from shared.robots.robot_limits import LimitViolation, RobotLimits
-from shared.world.fixed_poses import FixedPoseError, spatula_pose
+from shared.world.fixed_poses import FIXED_POSE_METHODS, FixedPoseError, fixed_pose
 from shared.world.objects import ObjectModel
 from shared.world.push_outcome import (
     SUCCESS_MAX_ROTATION_DEG,
@@ -194,11 +194,11 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
     another draw of the sampler for the same push (its own seed), never a reused one."""
     request = state.request
     started = time.perf_counter()
-    if request.options.method == "fixed":
+    if request.options.method in FIXED_POSE_METHODS:
         T_D_O = invert_transform(push.T_world_D) @ push.T_world_O
         vertices_d = state.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
         try:
-            poses_d = spatula_pose(state.hand, vertices_d)[None]
+            poses_d = fixed_pose(request.options.method, state.hand, vertices_d, T_D_O[:3, 3])[None]
         except FixedPoseError as exc:
             raise PushError("bad_request", str(exc)) from exc
         p_success = None
