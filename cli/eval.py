@@ -7,8 +7,8 @@
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
-    gd2p eval suite --out results/            # every task (the paper's push, push to a pose), default and baselines
-    gd2p eval suite --tasks pose --world mujoco  # one task, executed in MuJoCo
+    gd2p eval suite --out results/            # every task (paper, pose, tall, flat, small, round), default + baselines
+    gd2p eval suite --tasks round,pose --world mujoco  # some tasks, executed in MuJoCo
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --world exact --out results/  # test objects covered vs training-data fraction
     gd2p eval data-size --dataset datasets/allegro-v2 --yaw random --train-steps 20000 --lr 1e-3 --seeds 0 --tag v2  # v2

@@ -23,6 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
+from evaluation.tasks import SHAPE_TASK_OBJECTS, SHAPE_TASKS
 from shared.execution.robots import TrackingMode
 from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
@@ -148,6 +149,8 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
         title = f"Closed loop (Allegro + Panda), world `{world}`{on_val}"
         if task != "paper":
             title = f"Task `{task}`: " + title
+        if task in SHAPE_TASKS:
+            objects = protocol.shape_task_objects(task, split, 2 if quick else SHAPE_TASK_OBJECTS)
         return Protocol(name, title, "allegro", tuple(methods or CLOSED_LOOP_METHODS), protocol.task_objects(task, objects),
                         protocol.DIRECTIONS_DEG, trials, world, cameras, split, tag, task=task)
     if task != "paper":

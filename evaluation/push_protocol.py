@@ -36,6 +36,7 @@ every finished episode is recorded at once, so a killed run resumes where it sto
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import multiprocessing as mp
@@ -63,7 +64,7 @@ from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
-from shared.world.objects.catalog import resolve_library_id
+from shared.world.objects.catalog import list_object_ids, resolve_library_id
 from shared.world.objects.final_split import is_final_id
 from shared.world.objects.geometry import rolls
 from shared.world.push_outcome import (
@@ -384,6 +385,43 @@ def shape_of(object_id: str, T_world_O: np.ndarray) -> str:
     if rolls_at(object_id, T_world_O):
         return "round"
     return "small" if max(obj.info.size_m) <= SMALL_MAX_M else obj.info.shape_class
+
+
+@functools.cache
+def default_shape(object_id: str) -> str:
+    """`shape_of` the object resting in its default pose."""
+    return shape_of(object_id, load_object(object_id).T_D_O())
+
+
+def shape_task_objects(task: str, split: str, count: int) -> tuple[str, ...]:
+    """The objects of a shape-class task (evaluation.tasks.SHAPE_TASKS: its class's name): the first `count` of the
+    split's procedural and everyday objects whose default pose is of that class, taken in turn from each family
+    (sorted ids within a family) so the families spread; on the development split the 14 objects every change was
+    measured on are left out. ValueError when the split holds fewer."""
+    if split == "final":
+        from shared.world.objects.final_split import load_final_split
+
+        ids = list(load_final_split())
+    else:
+        ids = [i for i in list_object_ids("test" if split == "unseen" else split)
+               if resolve_library_id(i).source != "random_urdfs"
+               and i not in PROCEDURAL_OBJECTS + EVERYDAY_OBJECTS]
+    families: dict[str, list[str]] = {}
+    for object_id in sorted(ids):
+        families.setdefault(_family(object_id), []).append(object_id)
+    chosen: list[str] = []
+    for rank in range(max(map(len, families.values()), default=0)):
+        for members in families.values():
+            if rank < len(members) and default_shape(members[rank]) == task:
+                chosen.append(members[rank])
+                if len(chosen) == count:
+                    return tuple(chosen)
+    raise ValueError(f"the {split} split holds {len(chosen)} procedural or everyday objects of class {task!r}; "
+                     f"the task needs {count}")
+
+
+def _family(object_id: str) -> str:
+    return object_id.rsplit("-", 1)[0] if is_final_id(object_id) else resolve_library_id(object_id).family
 
 
 def rolls_at(object_id: str, T_world_O: np.ndarray) -> bool:

@@ -8,10 +8,21 @@ from __future__ import annotations
 # "paper": the paper's push, 0.20 m along a direction, within 3 cm, turned <= 45 degrees;
 # "pose": the same point and the object turned POSE_TASK_TURN_DEG, within 2 cm and 15 degrees of that yaw (a
 # PushRequest goal_xy + goal_yaw_deg), on the objects whose yaw a camera can see.
-TASKS = ("paper", "pose")
+# The shape-class tasks ask the paper's push of objects of one class (docs/evaluation.md, "Shape classes"), drawn
+# from the split's procedural and everyday families (SHAPE_TASK_OBJECTS of each, spread over the families).
+SHAPE_TASKS = ("tall", "flat", "small", "round")
+TASKS = ("paper", "pose", *SHAPE_TASKS)
 POSE_TASK_TURN_DEG = 30.0  # counterclockwise on even trials, clockwise on odd
+SHAPE_TASK_OBJECTS = 6
+PAPER_CRITERION = "0.20 m along the direction, within 3 cm, turned <= 45 degrees, upright"
 TASK_CRITERIA = {
-    "paper": "0.20 m along the direction, within 3 cm, turned <= 45 degrees, upright (round objects: position only)",
+    "paper": PAPER_CRITERION + " (round objects: position only)",
     "pose": f"the same point and the start's yaw turned {POSE_TASK_TURN_DEG:g} degrees (either way), within 2 cm and "
             "15 degrees of that yaw, upright; objects whose yaw a camera can see",
+    "tall": PAPER_CRITERION + "; standing objects over 1.5 times as tall as their footprint is wide (bottles, boxes on "
+            "end): toppling fails",
+    "flat": PAPER_CRITERION + "; lying objects under 0.4 times as tall as their footprint is wide (plates, books, spatulas)",
+    "small": PAPER_CRITERION + "; objects no side of which is over 4 cm",
+    "round": "0.20 m along the direction, within 3 cm, position only (turn and tilt reported, not judged); objects that "
+             "roll where they rest (balls, fruit, cans on their side)",
 }

@@ -83,7 +83,7 @@ def test_the_suite_reports_each_task_and_the_suite_pooled(tmp_path, monkeypatch)
     from evaluation.suite import run_suite
 
     monkeypatch.setattr(protocol, "run_episode", fake_trial)
-    report = run_suite(tmp_path, quick=True, workers=1, trials=2, world="exact",
+    report = run_suite(tmp_path, quick=True, workers=1, trials=2, world="exact", tasks=("paper", "pose"),
                        methods=("gd2p-closed-critic-p24", "fixed-corrected"), worker_init=no_worker)
     assert report == tmp_path / "suite-exact" / "report.md"
     text = report.read_text()
@@ -97,7 +97,7 @@ def test_the_suite_reports_each_task_and_the_suite_pooled(tmp_path, monkeypatch)
     assert all(json.loads(line)["task"] == "pose" for line in pose_records)
     # resumed: nothing is run again, the report is the same
     monkeypatch.setattr(protocol, "run_episode", lambda e: pytest.fail(f"ran {e.key} again"))
-    run_suite(tmp_path, quick=True, workers=1, trials=2, world="exact",
+    run_suite(tmp_path, quick=True, workers=1, trials=2, world="exact", tasks=("paper", "pose"),
               methods=("gd2p-closed-critic-p24", "fixed-corrected"), worker_init=no_worker)
 
 
@@ -110,3 +110,22 @@ def test_the_cli_refuses_an_unknown_task_and_tasks_outside_the_suite():
     assert unknown.returncode == 2 and "unknown task(s) stack; known: paper, pose" in unknown.stderr
     elsewhere = gd2p("methods", "--tasks", "pose")
     assert elsewhere.returncode == 2 and "--tasks applies to suite only" in elsewhere.stderr
+
+
+@pytest.mark.parametrize("task", ["tall", "flat", "small", "round"])
+def test_a_shape_task_draws_fresh_objects_of_its_class_from_several_families(task):
+    from evaluation.methods import protocol_for
+    from shared.world.objects.catalog import resolve_library_id
+
+    spec = protocol_for("closed-loop", quick=False, task=task)
+    assert len(spec.objects) == 6 and spec.directory_name == f"closed-loop-real-{task}"
+    assert all(protocol.default_shape(o) == task for o in spec.objects)
+    assert not set(spec.objects) & set(protocol.PROCEDURAL_OBJECTS + protocol.EVERYDAY_OBJECTS)  # not the 14 developed on
+    if task in ("tall", "flat"):
+        assert len({resolve_library_id(o).family for o in spec.objects}) >= 3
+    assert protocol_for("closed-loop", quick=False, split="val", task=task).objects != spec.objects
+
+
+def test_a_split_without_enough_objects_of_a_class_is_refused():
+    with pytest.raises(ValueError, match="objects of class 'round'; the task needs 500"):
+        protocol.shape_task_objects("round", "test", 500)
