@@ -10,12 +10,14 @@ all tasks (every trial of every task pooled, clustered by object). Methods get t
 from __future__ import annotations
 
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from evaluation.methods import protocol_for, run_protocol
+from evaluation import tolerance
+from evaluation.methods import failure_cause, protocol_for, run_protocol
 from evaluation.report import markdown_table, write_experiment
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, read_records
@@ -74,12 +76,16 @@ def _summary(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> dict[
 
 
 def suite_body(records: dict[str, list[dict[str, Any]]], runs: dict[str, Path], methods: Sequence[str]) -> str:
-    """The report: a table per task (success, objects, the default's paired difference), then the suite pooled."""
+    """The report: a table per task (success, objects, the default's paired difference, failure causes) and its
+    success against the tolerance, then the suite pooled."""
     parts = []
     for task, rs in records.items():
         objects = len({r["object_id"] for r in rs})
+        by_method = {m: tolerance.curves([r for r in rs if r["method"] == m]) for m in methods}
         parts.append(f"## Task `{task}`\n\n{TASK_CRITERIA[task]}. {objects} objects; trials in "
-                     f"[{runs[task].name}](../{runs[task].name}/report.md).\n\n" + _table(rs, methods))
+                     f"[{runs[task].name}](../{runs[task].name}/report.md).\n\n" + _table(rs, methods)
+                     + "\nAgainst the tolerance (the same trials; the turn is the one the task judges):\n\n"
+                     + tolerance.table(by_method))
     pooled = [r for rs in records.values() for r in rs]
     parts.append("## The suite\n\nEvery trial of every task pooled; intervals clustered by object.\n\n"
                  + _table(pooled, methods))
@@ -93,6 +99,8 @@ def _table(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
         rs = [r for r in records if r["method"] == method]
         difference = ("" if method == DEFAULT_METHOD or not default
                       else difference_interval(default, rs).points())
-        rows.append([method, len(rs), str(success_interval(rs)), difference])
-    return markdown_table(["method", "trials", "success [95% CI]", f"{DEFAULT_METHOD} minus it (points) [95% CI]"],
-                          rows)
+        causes = Counter(c for c in map(failure_cause, rs) if c is not None)
+        rows.append([method, len(rs), str(success_interval(rs)), difference,
+                     ", ".join(f"{c} {n}" for c, n in causes.most_common()) or "–"])
+    return markdown_table(["method", "trials", "success [95% CI]", f"{DEFAULT_METHOD} minus it (points) [95% CI]",
+                           "failures by cause"], rows)

@@ -8,7 +8,8 @@ most 45 degrees), and turned at most 10-45 degrees (within 3 cm), upright in bot
 (no plan, a refused cloud, a lost track) fails at every tolerance. The system was asked for the paper's task
 (3 cm, 45 degrees) and its closed loop stops correcting once inside it, so a curve below 3 cm says how precise
 its pushes are, not how precise it could be if asked for more. A body of revolution's turn is judged as the
-evaluation's judge reads it (the true turn, which no camera sees): its rotation curve says little.
+evaluation's judge reads it (the true turn, which no camera sees): its rotation curve says little. A pose goal's
+trials are read by their yaw miss, and an object that rolls by its position alone (as `judge_push` does).
 """
 from __future__ import annotations
 
@@ -38,10 +39,15 @@ class Curves:
 
 
 def within(record: dict[str, Any], position_m: float, rotation_deg: float) -> bool:
-    """Whether the trial ended within `position_m` of its target, turned at most `rotation_deg`, upright."""
-    error, turned = record.get("position_error_m"), record.get("rotation_deg")
+    """Whether the trial ended within `position_m` of its target, turned at most `rotation_deg`, upright. The turn
+    is the one its task judges: a pose goal's yaw miss (`yaw_error_deg`) rather than the turn from the start; an
+    object that rolls (`shape` "round") is judged on its position alone, as the judge does."""
+    error = record.get("position_error_m")
+    turned = record.get("yaw_error_deg", record.get("rotation_deg"))
     if record.get("outcome") not in ("success", "failure") or error is None or turned is None:
         return False  # no final pose: an error before or during the push
+    if record.get("shape") == "round":
+        return bool(error <= position_m)
     return bool(error <= position_m and turned <= rotation_deg and not record.get("toppled", False))
 
 

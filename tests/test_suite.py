@@ -88,6 +88,7 @@ def test_the_suite_reports_each_task_and_the_suite_pooled(tmp_path, monkeypatch)
     assert report == tmp_path / "suite-exact" / "report.md"
     text = report.read_text()
     assert "## Task `paper`" in text and "## Task `pose`" in text and "## The suite" in text
+    assert text.count("Against the tolerance") == 2 and "unpredicted" in text  # the fixed pose's failures, by cause
     summary = json.loads((tmp_path / "suite-exact" / "summary.json").read_text())
     assert summary["runs"] == {"paper": "closed-loop-exact", "pose": "closed-loop-exact-pose"}
     assert summary["suite"]["gd2p-closed-critic-p24"]["interval_95"]["value"] == 1.0

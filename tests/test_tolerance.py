@@ -45,3 +45,12 @@ def test_the_command_writes_a_table_and_a_plot_and_refuses_a_directory_that_is_n
         assert image.size[0] > 600 and np.asarray(image.convert("L")).std() > 10
     assert main([str(tmp_path / "nothing")]) == 2
     assert "not a `gd2p eval` run" in capsys.readouterr().err
+
+
+def test_a_pose_goal_is_read_by_its_yaw_miss_and_a_rolling_object_by_its_position():
+    from evaluation.tolerance import within
+
+    pose = {"outcome": "success", "position_error_m": 0.015, "rotation_deg": 38.0, "yaw_error_deg": 6.0}
+    assert within(pose, 0.02, 10.0) and not within(pose, 0.02, 5.0)  # turned 38 degrees as asked: 6 off the goal
+    rolled = {"outcome": "failure", "position_error_m": 0.02, "rotation_deg": 170.0, "toppled": True, "shape": "round"}
+    assert within(rolled, 0.03, 10.0) and not within(rolled, 0.01, 45.0)
