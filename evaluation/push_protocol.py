@@ -94,7 +94,6 @@ SETTLE_S = 3.0
 ROBOTS = {"allegro": "panda", "leap": "xarm7"}
 
 
-
 METHODS_FILE = Path(__file__).resolve().parent / "methods.yaml"
 
 
@@ -275,7 +274,8 @@ def half_extents(object_id: str) -> np.ndarray:
 
 def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
     """What the system is asked: the object as told (mesh and the told pose), or as the cameras see it where it
-    truly rests (`T_start`). The paper's task asks for a push along the direction; the pose task for the point
+    truly rests (`T_start`). The paper's task (and each shape task) asks for a push along the direction; the pose
+    task for the point
     the push would reach from where the object truly rests (where a user wants it on the table) with the yaw
     the system sees it at turned `goal_turn_deg`."""
     common = dict(distance_m=PUSH_DISTANCE_M, hand=episode.hand, arm=episode.arm, seed=episode.seed,
@@ -283,10 +283,10 @@ def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
     told: dict[str, Any] = {"object": ObjectRef(library_id=episode.object_id), "object_pose": object_pose(placement(episode))}
     if episode.cameras:
         told = {"object": ObjectRef(point_cloud=captured_cloud(episode, T_start))}
-    if episode.task == "paper":
+    if episode.task != "pose":  # the paper's push (the shape tasks ask it too)
         return PushRequest(direction_deg=episode.direction_deg, **told, **common)
     seen_yaw = _seen_yaw(told["object"], told.get("object_pose"))
-    goal = _pose_task_target(episode, T_start)
+    goal = _target(episode, T_start)
     return PushRequest(goal_xy=(float(goal[0]), float(goal[1])),
                        goal_yaw_deg=_wrapped(seen_yaw + episode.goal_turn_deg), **told, **common)
 
@@ -313,7 +313,8 @@ def _wrapped(deg: float) -> float:
     return (deg + 180.0) % 360.0 - 180.0
 
 
-def _pose_task_target(episode: Episode, T_start: np.ndarray) -> np.ndarray:
+def _target(episode: Episode, T_start: np.ndarray) -> np.ndarray:
+    """Where every task wants the object: the push distance along the direction from where it truly started."""
     return T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg)
 
 
@@ -370,7 +371,7 @@ def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> Exe
         obj = load_object(episode.object_id)
         start_yaw = _yaw_goal(obj.resting_poses, T_start, 0.0).yaw_of(T_start[:3, :3])
         yaw_goal = _yaw_goal(obj.resting_poses, T_start, _wrapped(start_yaw + episode.goal_turn_deg))
-    return judge_push(T_start, _pose_task_target(episode, T_start), final, yaw_goal=yaw_goal,
+    return judge_push(T_start, _target(episode, T_start), final, yaw_goal=yaw_goal,
                       rolling=rolls_at(episode.object_id, T_start))
 
 

@@ -52,6 +52,12 @@ def test_a_pose_trial_asks_for_the_point_and_a_turn_from_the_yaw_the_system_sees
     assert request.goal_yaw_deg == pytest.approx(told_yaw + POSE_TASK_TURN_DEG, abs=1e-6)
 
 
+def test_a_shape_task_asks_the_papers_push():
+    episode = protocol.Episode("gd2p-closed-critic-p24", "allegro", "proc-lying-000", 60.0, 0, task="round")
+    request = protocol.push_request(episode, protocol.placement(episode))
+    assert (request.direction_deg, request.goal_xy, request.goal_yaw_deg) == (60.0, None, None)
+
+
 def test_a_pose_trial_is_judged_by_where_and_how_turned_the_object_truly_ended():
     episode = pose_episode(trial=1)  # a clockwise turn
     T_start = protocol.put_down(episode, protocol.execution_world(episode))
