@@ -286,7 +286,7 @@ def test_eval_sees_the_object_through_three_cameras_under_real_and_is_told_the_m
         assert main(["eval", *argv, "--out", "/tmp/never-written"]) == 0
         assert (calls[0]["world"], calls[0]["cameras"]) == (world, cameras), argv
     assert main(["eval", "sampler-diagnosis", "--cameras", "3", "--out", "/tmp/never-written"]) == 2
-    assert "--cameras applies to methods, leap, closed-loop, multistep, sampler-quality, data-size" in capsys.readouterr().err
+    assert "--cameras applies to methods, leap, closed-loop, suite, multistep, sampler-quality, data-size" in capsys.readouterr().err
 
 
 def test_eval_refuses_a_noise_scale_outside_sampler_quality_or_out_of_range(capsys):

@@ -258,3 +258,15 @@ def test_hardware_states_carry_a_users_tracker_pose_and_the_plan_time(zenoh_rout
     assert np.all(np.diff([s.plan_time_s for s in executing]) > 0)
     time.sleep(TRACK_FRESH_S + 0.1)
     assert tracks.latest() is None  # a tracker gone quiet is not believed
+
+
+def test_a_halted_motion_waits_a_moment_for_the_estop_message_to_say_why():
+    """The bus adapter stops the robots before it decodes the e-stop message; a report of the halted motion made
+    in between (a busy machine) waits for the message rather than saying "a message on the e-stop key"."""
+    latch = EStopLatch()
+    latch.stop_now()
+    threading.Timer(0.05, latch.describe, args=(EStop(reason="person in the cell"),)).start()
+    assert latch.reason == "a message on the e-stop key"
+    assert latch.reason_once_described() == "person in the cell"
+    latch.reset()
+    assert latch.reason_once_described(wait_s=0.01) == "a message on the e-stop key"  # nothing to wait for: no hang

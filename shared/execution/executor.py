@@ -84,6 +84,9 @@ class EmergencyStop(Protocol):
     @property
     def reason(self) -> str: ...
 
+    def reason_once_described(self) -> str:
+        """`reason`, waiting briefly for the message of a stop that has just halted the motion."""
+
     def engage(self, msg: EStop) -> None:
         """Stop every guarded robot now, then latch."""
 
@@ -132,6 +135,9 @@ class LocalLease:
         callback()
 
 
+DESCRIBE_WAIT_S = 0.2  # the longest a report of a halted motion waits for the e-stop's message
+
+
 class EStopLatch:
     """Stops every robot it guards at once, then latches until `reset()` (an operator's deliberate action).
 
@@ -145,6 +151,7 @@ class EStopLatch:
         self.robots: list[Robot] = list(robots)
         self.triggered = threading.Event()
         self.last: EStop | None = None  # what the latest stop said (set after the stop has started)
+        self.described = threading.Event()  # `last` holds the latest stop's message
 
     @property
     def engaged(self) -> bool:
@@ -173,8 +180,16 @@ class EStopLatch:
         threading.Thread(target=stop, name="estop", daemon=True).start()
         self.triggered.set()
 
+    def reason_once_described(self, wait_s: float = DESCRIBE_WAIT_S) -> str:
+        """`reason`, after waiting up to `wait_s` for the stop's message to be described: for a report made once
+        the motion has halted (the stop itself never waits for the message), which a busy machine can reach
+        before the engaging thread has described the stop."""
+        self.described.wait(wait_s)
+        return self.reason
+
     def describe(self, msg: EStop) -> None:
         self.last = msg
+        self.described.set()
         log.warning("E-STOP: %s (issued by %s)", msg.reason, msg.issued_by or "unknown")
 
     def reset(self) -> None:
@@ -182,6 +197,7 @@ class EStopLatch:
         for robot in self.robots:
             robot.recover()
         self.last = None
+        self.described.clear()
         self.triggered.clear()
 
 
@@ -384,7 +400,7 @@ class Executor:
         """Why the motion stopped from outside: the e-stop, the lost lease (none for a robot's own failure)."""
         why = []
         if self.estop.engaged:
-            why.append(f"e-stop: {self.estop.reason}")
+            why.append(f"e-stop: {self.estop.reason_once_described()}")
         if lease.lost:
             noticed = watch.lease_lost_at if watch.lease_lost_at is not None else halted_at
             why.append(f"{lease.reason}; motion halted {max(0.0, halted_at - noticed):.3f} s after the loss was noticed")
