@@ -267,6 +267,32 @@ def test_a_goal_no_push_can_reach_is_refused_before_the_robot_moves(goal, yaw, o
     assert refusal.value.code == code and says in refusal.value.message and not refusal.value.records
 
 
+@pytest.mark.parametrize("target", [{"direction_deg": 90.0}, {"goal_xy": (0.5, -0.15)}])
+def test_an_obstacle_through_the_object_is_refused_before_the_robot_moves(target):
+    """The box (4.6 cm wide) stands at the default spot (0.55, 0): a cylinder of 3 cm radius 4 cm beside its centre
+    line reaches 1.3 cm into it; one touching its side is a neighbour, planned around."""
+    from shared.contracts.messages import CircleObstacle
+    from shared.planning.goals import check_obstacles
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+
+    pipeline = PushPipeline(PushServices(sample=_never_moves, validate=_never_moves, execute=_never_moves))
+    request = PushRequest(object=ObjectRef(library_id=BOX), obstacles=[CircleObstacle(x=0.55, y=0.04, radius=0.03)],
+                          options=PlannerOptions(method="fixed"), **target)
+    try:
+        with pytest.raises(PushError) as refusal:
+            pipeline.run(request)
+    finally:
+        pipeline.close()
+    assert refusal.value.code == "bad_request" and "obstacle 0" in refusal.value.message
+    assert "into the object's footprint" in refusal.value.message and not refusal.value.records
+    square = np.array([[-0.02, -0.02], [0.02, -0.02], [0.02, 0.02], [-0.02, 0.02]])
+    check_obstacles([CircleObstacle(x=0.05, y=0.0, radius=0.03)], square)  # touching the side: a neighbour
+    check_obstacles([CircleObstacle(x=0.05, y=0.05, radius=0.04)], square)  # 2.4 mm short of the corner
+    with pytest.raises(PushError, match="reaches 5 mm into"):
+        check_obstacles([CircleObstacle(x=0.0, y=-0.045, radius=0.03)], square)
+
+
 def test_the_reach_bound_holds_the_default_spot_and_not_a_goal_two_metres_out():
     from shared.robots.reach import reach
 

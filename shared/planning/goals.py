@@ -9,6 +9,9 @@ Checked before any motion (`check_goal`), each a PushError naming the problem:
   exceeds in any configuration): else "infeasible", for the robot, not the request, cannot do it;
 - a goal yaw needs an object whose turn a camera can see (`push_outcome.turn_observable`): a body of
   revolution looks the same at every yaw, so its yaw can be neither measured nor judged ("bad_request").
+Of every request, direction or goal (`check_obstacles`): no obstacle may reach into the object's footprint as
+it stands (more than OBSTACLE_OVERLAP_TOLERANCE_M): an obstacle drawn through the object is a mistake in the
+request, and simulated it would throw the object out of the table ("bad_request").
 
 Every push of a pose goal is to bring the object's yaw toward the goal's (`turn_to_make_deg`; a turn of 0 keeps
 it): the pose source's hand poses are then also tried turned about the object's vertical axis (`turning_poses`).
@@ -23,17 +26,21 @@ chooses.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from shared.contracts.messages import PushRequest
+from shared.contracts.messages import CircleObstacle, PushRequest
 from shared.frames import make_transform, transform_poses, yaw_rotation
 from shared.planning.outcome import PushError
 from shared.robots.reach import reach
 from shared.world.push_outcome import YawGoal
 from shared.world.sim.scene import TABLE_TOP_HALF_EXTENTS_M
 
+# How far an obstacle may reach into the object's footprint before the request is refused: a reconstruction's
+# outline is a few millimetres off the true one, and a neighbour touching the object is a real scene.
+OBSTACLE_OVERLAP_TOLERANCE_M = 0.002
 # The most a push is asked to turn the object: a larger turn takes more pushes.
 MAX_TURN_PER_PUSH_DEG = 30.0
 # The most a turned palm is slanted from square to the push: slanted further, it slides along the object's edge
@@ -54,6 +61,31 @@ def check_goal(request: PushRequest, footprint_radius_m: float, T_world_base: np
     if request.goal_yaw_deg is not None and not turn_observable:
         raise PushError("bad_request", "goal_yaw_deg: the object looks the same at every yaw about its vertical axis "
                         "(a body of revolution), so no camera can tell its yaw; ask for the goal point alone")
+
+
+def check_obstacles(obstacles: Sequence[CircleObstacle], footprint_xy: np.ndarray) -> None:
+    """PushError("bad_request") naming the first obstacle that reaches more than OBSTACLE_OVERLAP_TOLERANCE_M into
+    the object's footprint (`footprint_xy` [N, 2]: the object's points in the table plane where it stands)."""
+    hull = ConvexHull(np.asarray(footprint_xy, dtype=np.float64))
+    outline = hull.points[hull.vertices]
+    for index, obstacle in enumerate(obstacles):
+        centre = np.array([obstacle.x, obstacle.y])
+        depth = obstacle.radius - _signed_distance(hull, outline, centre)
+        if depth > OBSTACLE_OVERLAP_TOLERANCE_M:
+            raise PushError("bad_request", f"obstacle {index} (a cylinder of radius {obstacle.radius:.3f} m at "
+                            f"{_xy(centre)}) reaches {depth * 1000:.0f} mm into the object's footprint: an obstacle "
+                            "must stand clear of the object to be pushed (a neighbour may touch it, not pass through it)")
+
+
+def _signed_distance(hull: ConvexHull, outline: np.ndarray, point: np.ndarray) -> float:
+    """Distance (m) from `point` to the convex polygon (`hull`, its vertices `outline` in order), negative inside."""
+    offsets = hull.equations[:, :2] @ point + hull.equations[:, 2]  # unit outward normals: signed edge distances
+    if np.all(offsets <= 0.0):
+        return float(offsets.max())
+    starts, ends = outline, np.roll(outline, -1, axis=0)
+    edges = ends - starts
+    along = np.clip(np.einsum("ij,ij->i", point - starts, edges) / np.einsum("ij,ij->i", edges, edges), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(starts + along[:, None] * edges - point, axis=1)))
 
 
 def _check_on_table(goal: np.ndarray, footprint_radius_m: float) -> None:

@@ -57,7 +57,7 @@ from shared.frames import direction_xy, make_transform
 from shared.planning import stages
 from shared.planning.cancellation import Cancellation
 from shared.planning.candidates import Candidates, Feasible, Push, RankedPlan
-from shared.planning.goals import check_goal, turn_to_make_deg
+from shared.planning.goals import check_goal, check_obstacles, turn_to_make_deg
 from shared.planning.ik import ArmIK
 from shared.planning.motion import MotionPlanner, PlanningError
 from shared.planning.multistep import DirectionInfeasible, push_along_path
@@ -115,6 +115,8 @@ class PushPipeline:
         when `cancel` is set first."""
         started = time.perf_counter()
         state = self._start(request, cancel or Cancellation())
+        vertices = state.obj.mesh.vertices @ state.T_world_O[:3, :3].T + state.T_world_O[:3, 3]
+        check_obstacles(request.obstacles, vertices[:, :2])
         try:
             if request.goal_xy is None:
                 assert request.direction_deg is not None  # PushRequest holds exactly one of direction_deg, goal_xy
