@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.compare import load_run, request_key
+from evaluation.methods import DEFAULT_METHOD
 from evaluation.report import markdown_table
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, read_records
@@ -70,8 +71,9 @@ def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_pa
     methods = [m for m in _methods(real_dir) if m in _methods(mujoco_dir)]
     if not methods:
         raise ValueError(f"{real_dir} and {mujoco_dir} share no method")
-    rows, causes, tracking = [], [], []
+    rows, causes, tracking, against = [], [], [], []
     tolerance: dict[str, Curves] = {}
+    paired: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
     for method in methods:
         real, mujoco = load_run(real_dir, method).records, load_run(mujoco_dir, method).records
         by_request = {request_key(r): r for r in mujoco}
@@ -79,6 +81,7 @@ def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_pa
         if not pairs:
             continue
         a, b = [p[0] for p in pairs], [p[1] for p in pairs]
+        paired[method] = (a, b)
         rows.append([method, len(pairs), len({r["object_id"] for r in a}), str(success_interval(a)),
                      str(success_interval(b)), difference_interval(b, a).points()])
         for engine, records in (("PyBullet (`real`)", a), ("MuJoCo", b)):
@@ -89,11 +92,19 @@ def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_pa
             tracking.append([method, engine, int(t["pushes"])] + [_fmt(t, k) for k in (
                 "median_mm_p50", "median_mm_p95", "worst_mm_p95", "median_deg_p50", "worst_deg_p95")]
                 + [f"{100 * t['lost_frames']:.1f}%" if "lost_frames" in t else "–"])
+    if DEFAULT_METHOD in paired:  # the default minus each baseline in each engine, paired by object
+        for method, (a, b) in paired.items():
+            if method != DEFAULT_METHOD:
+                against.append([method, len(a), difference_interval(paired[DEFAULT_METHOD][0], a).points(),
+                                difference_interval(paired[DEFAULT_METHOD][1], b).points()])
+    versus = ("" if not against else f"\n## The default ({DEFAULT_METHOD}) minus each method, in each engine\n\n"
+              "Points, paired by object on the objects both ran (its trials as above).\n\n"
+              + markdown_table(["method", "trials", "PyBullet", "MuJoCo"], against))
     head = "# The same trials in PyBullet and MuJoCo\n\n" + (f"- command: `{command}`\n" if command else "")
     return (head + f"- runs: `{real_dir}` (PyBullet) and `{mujoco_dir}` (MuJoCo), matched by request\n"
             f"- code: {_codes(real_dir)} / {_codes(mujoco_dir)}\n\n"
             "Intervals: 95%, bootstrap clustered by object; the gap is MuJoCo − PyBullet, paired by object.\n\n"
-            + markdown_table(["method", "trials", "objects", "PyBullet", "MuJoCo", "gap, points"], rows)
+            + markdown_table(["method", "trials", "objects", "PyBullet", "MuJoCo", "gap, points"], rows) + versus
             + "\n## Why trials failed\n\n" + markdown_table(["method", "engine", *CAUSES], causes)
             + "\n## The image tracker against the truth (per push)\n\n"
             + markdown_table(["method", "engine", "pushes", "median mm (p50)", "median mm (p95)", "worst mm (p95)",

@@ -51,6 +51,7 @@ COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked")
                ("gd2p-closed", "nearest-corrected"), ("gd2p-closed-critic-p24", "gd2p-closed"))
 # The closed-loop experiment (`gd2p eval closed-loop`): open loop, corrective pushes after a push, and
 # pushes watched and stopped mid-way, run together on one commit; the last in the critic's order (the planner's default).
+DEFAULT_METHOD = "gd2p-closed-critic-p24"  # the planner's default (methods.yaml: it changes nothing)
 CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed", "gd2p-closed-critic-p24")
 
 

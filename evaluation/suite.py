@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from evaluation import tolerance
-from evaluation.methods import failure_cause, protocol_for, run_protocol
+from evaluation.methods import DEFAULT_METHOD, failure_cause, protocol_for, run_protocol
 from evaluation.report import markdown_table, write_experiment
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, read_records
@@ -25,7 +25,6 @@ from evaluation.tasks import TASK_CRITERIA, TASKS
 from shared.execution.robots import TrackingMode
 from shared.world.sim.world import WorldLevel
 
-DEFAULT_METHOD = "gd2p-closed-critic-p24"
 # The baselines, each with the default's budget and stages: retrieval (nearest neighbour) with every stage, the
 # fixed spatula pose with corrective pushes, and a straight-line pusher (one fingertip) with corrective pushes.
 SUITE_METHODS = (DEFAULT_METHOD, "nearest-closed-critic", "fixed-corrected", "fingertip-corrected")

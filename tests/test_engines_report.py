@@ -44,3 +44,17 @@ def test_the_report_pairs_the_same_requests_and_counts_causes(tmp_path):
     assert "| m | MuJoCo | 0 | 0 | 1 | 1 | 0 |" in text
     assert "10.0%" in text  # frames lost: 1 in 10 per push
     assert main([str(tmp_path / "real"), str(tmp_path / "nowhere")]) == 2
+
+
+def test_the_report_gives_the_default_minus_each_baseline_in_each_engine(tmp_path):
+    default, baseline = "gd2p-closed-critic-p24", "fixed-corrected"
+    real = ([_record(default, o, t, True, "pybullet") for o in ("a", "b") for t in range(2)]
+            + [_record(baseline, o, t, t == 0, "pybullet") for o in ("a", "b") for t in range(2)])
+    mujoco = ([_record(default, o, t, o == "a", "mujoco") for o in ("a", "b") for t in range(2)]
+              + [_record(baseline, o, t, False, "mujoco") for o in ("a", "b") for t in range(2)])
+    _write(tmp_path / "real", real)
+    _write(tmp_path / "mujoco", mujoco)
+    text = report(tmp_path / "real", tmp_path / "mujoco")
+    assert "## The default (gd2p-closed-critic-p24) minus each method, in each engine" in text
+    row = next(line for line in text.splitlines() if line.startswith(f"| {baseline} | 4 | +"))
+    assert row.startswith(f"| {baseline} | 4 | +50.0 [") and row.split("|")[4].strip().startswith("+50.0 [")  # 100-50, 50-0
