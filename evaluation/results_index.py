@@ -38,6 +38,7 @@ DOCS_MAX_LINES = 150
 # Where a run may be cited by path (`--superseded` keeps what these name).
 CITING = ("README.md", "CONTRIBUTING.md", "docs", "evaluation", "bench", "tests", "cli", "services", "shared", "deploy")
 EXPERIMENT_ORDER = (
+    "suite",
     "methods",
     "leap",
     "closed-loop",
@@ -50,7 +51,8 @@ EXPERIMENT_ORDER = (
 SPLIT_ORDER = ("final", "test", "unseen", "val", "train")
 
 _PROTOCOL = re.compile(
-    r"^(methods|leap|closed-loop)(?:-(real|exact))?(?:-camera(\d))?(?:-(val|unseen|final))?(?:-(.+))?$"
+    r"^(methods|leap|closed-loop|suite)(?:-(real|exact|mujoco))?(?:-camera(\d))?(-truthtrack)?(?:-(val|unseen|final))?"
+    r"(?:-(pose|tall|flat|small|round))?(?:-(.+))?$"
 )
 _MULTISTEP = re.compile(r"^multistep(?:-(real|exact))?(?:-closed)?(?:-camera(\d))?(?:-(val))?(?:-(.+))?$")
 _COVERAGE = re.compile(
@@ -185,6 +187,13 @@ def _protocol_rows(run: Run) -> list[Row]:
     return rows
 
 
+def _suite_rows(run: Run) -> list[Row]:
+    """A suite's methods over every task's trials pooled (`evaluation.suite`)."""
+    pooled = run.summary.get("suite") or {}
+    methods = [m for m in run.summary.get("methods", []) if m in pooled]
+    return [Row(m, _interval(pooled[m]["interval_95"]), int(pooled[m]["trials"])) for m in methods]
+
+
 def _coverage_rows(run: Run) -> list[Row]:
     methods = run.summary.get("methods") or {}
     rows = []
@@ -247,12 +256,13 @@ def describe(path: Path) -> Run:
             match[1],
             match[2] or "exact",
             match[3],
-            match[4],
-            match[5] or "",
+            match[5],
+            match[7] or "",
         )
+        run.variant = ", ".join(v for v in (match[6] and f"task {match[6]}", match[4] and "truth tracker") if v)
         run.cameras, run.split = int(settings.get("cameras") or cameras or 0), split or "test"
         run.hand = str(settings.get("hand", "leap" if run.experiment == "leap" else "allegro"))
-        run.rows = _protocol_rows(run)
+        run.rows = _suite_rows(run) if run.experiment == "suite" else _protocol_rows(run)
     elif match := _MULTISTEP.match(name):
         run.experiment, run.world, cameras, split, run.tag = (
             "multistep",

@@ -82,3 +82,21 @@ def test_a_run_is_grouped_with_the_other_runs_of_its_experiment_and_the_newest_i
     assert kept == {new.name, val.name, closed.name, opened.name}
     index = render_index(read_runs(tmp_path))
     assert "| gd2p: 90.0% [80.0%, 100.0%] |" in index and "no interval recorded" in index  # the open-loop run
+
+
+def test_a_mujoco_run_a_task_run_and_a_suite_are_told_apart(tmp_path):
+    def run(name: str, **summary) -> Path:
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
+        (tmp_path / name / "summary.json").write_text(json.dumps({"date": "2026-12-07T00:00:00Z", **summary}))
+        return tmp_path / name
+
+    interval = {"value": 0.8, "low": 0.7, "high": 0.9}
+    methods = {"gd2p-closed-critic-p24": {"success_rate": 0.8, "trials": 30, "interval_95": interval}}
+    paper = describe(run("closed-loop-mujoco-camera3-levelled", methods=methods))
+    pose = describe(run("closed-loop-mujoco-camera3-pose-levelled", methods=methods))
+    suite = describe(run("suite-mujoco-camera3-levelled", methods=["gd2p-closed-critic-p24"],
+                         suite={"gd2p-closed-critic-p24": {"trials": 60, "interval_95": interval}}))
+    assert (paper.world, paper.seen, paper.tag, paper.variant) == ("mujoco", "mujoco, 3 cameras", "levelled", "")
+    assert pose.variant == "task pose" and pose.key != paper.key and pose.tag == "levelled"
+    assert suite.experiment == "suite" and [(r.label, r.count) for r in suite.rows] == [("gd2p-closed-critic-p24", 60)]
