@@ -23,7 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
-from evaluation.tasks import SHAPE_TASK_OBJECTS, SHAPE_TASKS
+from evaluation.tasks import SHAPE_TASK_OBJECTS, SHAPE_TASKS, TASK_CRITERIA
 from shared.execution.robots import TrackingMode
 from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
@@ -51,6 +51,12 @@ COMPARISONS = (("gd2p", "nearest"), ("gd2p", "fixed"), ("gd2p", "gd2p-unranked")
                ("gd2p-closed", "nearest-corrected"), ("gd2p-closed-critic-p24", "gd2p-closed"))
 # The closed-loop experiment (`gd2p eval closed-loop`): open loop, corrective pushes after a push, and
 # pushes watched and stopped mid-way, run together on one commit; the last in the critic's order (the planner's default).
+WORLD_TEXT = {  # how a report describes the world its trials executed in
+    "real": "each trial executes in physics the planner does not know",
+    "mujoco": "each trial executes in MuJoCo, whose contact model and drawn physics (the hand's included) the planner "
+              "does not know: it predicts in PyBullet",
+    "exact": "each trial executes in the planner's own world",
+}
 DEFAULT_METHOD = "gd2p-closed-critic-p24"  # the planner's default (methods.yaml: it changes nothing)
 CLOSED_LOOP_METHODS = ("gd2p", "gd2p-corrected", "gd2p-closed", "gd2p-closed-critic-p24")
 
@@ -374,9 +380,9 @@ def report_body(records: Sequence[dict[str, Any]], spec: Protocol, summary: dict
         rows.append([f"**{label}**"] + [_share(averages[m][key], ".2f") if d == spec.directions[0] else ""
                                         for m in spec.methods for d in spec.directions])
     text = (f"World `{spec.world}` (`shared.world.sim.world`): "
-            + ("each trial executes in physics the planner does not know"
-               + ("" if spec.cameras else ", with the object off the told pose") + ". "
-               if spec.world == "real" else "each trial executes in the planner's own world. ")
+            + (WORLD_TEXT[spec.world] + ("" if spec.cameras or spec.world == "exact" else ", with the object off the told pose")
+               + ". ")
+            + (f"Task `{spec.task}`: {TASK_CRITERIA[spec.task]}. " if spec.task != "paper" else "")
             + (f"The system never sees the object's mesh: it receives the point cloud {spec.cameras} simulated depth "
                "camera(s) capture of it and plans around its own reconstruction; the robot pushes the true object. "
                if spec.cameras else "The system is told the object's mesh. ")
