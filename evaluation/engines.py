@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,11 +67,13 @@ def tracker_errors(records: list[dict[str, Any]]) -> dict[str, float]:
     return out
 
 
-def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_path: Path | None = None) -> str:
-    """The markdown report; with `plot_path`, the tolerance curves are drawn there and linked."""
-    methods = [m for m in _methods(real_dir) if m in _methods(mujoco_dir)]
+def report(real_dir: Path, mujoco_dir: Path, command: str | None = None, plot_path: Path | None = None,
+           only: Sequence[str] | None = None) -> str:
+    """The markdown report; with `plot_path`, the tolerance curves are drawn there and linked; `only`: these
+    methods (e.g. leaving out one whose trials are still running)."""
+    methods = [m for m in _methods(real_dir) if m in _methods(mujoco_dir) and (only is None or m in only)]
     if not methods:
-        raise ValueError(f"{real_dir} and {mujoco_dir} share no method")
+        raise ValueError(f"{real_dir} and {mujoco_dir} share no method" + (f" of {', '.join(only)}" if only else ""))
     rows, causes, tracking, against = [], [], [], []
     tolerance: dict[str, Curves] = {}
     paired: dict[str, tuple[list[dict[str, Any]], list[dict[str, Any]]]] = {}
@@ -133,10 +136,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("real", type=Path, help="the `--world real` run's directory")
     parser.add_argument("mujoco", type=Path, help="the `--world mujoco` run's directory")
     parser.add_argument("--out", type=Path, default=None, help="write the markdown here (default: print it)")
+    parser.add_argument("--methods", default=None, help="comma-separated methods to report (default: every one both ran)")
     args = parser.parse_args(argv)
+    only = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         command = " ".join(["python -m evaluation.engines", *(argv or sys.argv[1:])])
-        text = report(args.real, args.mujoco, command, args.out.with_suffix(".png") if args.out else None)
+        text = report(args.real, args.mujoco, command, args.out.with_suffix(".png") if args.out else None, only)
     except ValueError as exc:
         print(f"evaluation.engines: {exc}", file=sys.stderr)
         return 2

@@ -58,3 +58,13 @@ def test_the_report_gives_the_default_minus_each_baseline_in_each_engine(tmp_pat
     assert "## The default (gd2p-closed-critic-p24) minus each method, in each engine" in text
     row = next(line for line in text.splitlines() if line.startswith(f"| {baseline} | 4 | +"))
     assert row.startswith(f"| {baseline} | 4 | +50.0 [") and row.split("|")[4].strip().startswith("+50.0 [")  # 100-50, 50-0
+
+
+def test_the_report_can_leave_out_a_method_still_running(tmp_path):
+    real = [_record(m, "a", 0, True, "pybullet") for m in ("m", "running")]
+    mujoco = [_record(m, "a", 0, True, "mujoco") for m in ("m", "running")]
+    _write(tmp_path / "real", real)
+    _write(tmp_path / "mujoco", mujoco)
+    text = report(tmp_path / "real", tmp_path / "mujoco", only=["m"])
+    assert "| m |" in text and "| running |" not in text
+    assert main([str(tmp_path / "real"), str(tmp_path / "mujoco"), "--methods", "nothing"]) == 2
