@@ -45,7 +45,8 @@ def machine() -> str:
 def code_version() -> str:
     """The git commit the results came from (`-dirty` when code differs from it), or "unknown" outside git.
 
-    Changed files under results/ do not make the code dirty: an evaluation writes there while it runs.
+    Changed files under results/ and docs/results.md do not make the code dirty: an evaluation writes there while
+    it runs (the index of the repository's results/ is both), and the next run would otherwise be stamped dirty.
     """
     root = Path(__file__).resolve().parent.parent
 
@@ -59,7 +60,8 @@ def code_version() -> str:
     commit = git("rev-parse", "--short", "HEAD")
     if not commit:
         return "unknown"
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)results",
+                  ":(exclude)docs/results.md")
     return commit + ("-dirty" if changed else "")
 
 
