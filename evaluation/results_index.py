@@ -441,11 +441,13 @@ def render_index(runs: Sequence[Run]) -> str:
 
 def _docs_runs(runs: Sequence[Run]) -> list[Run]:
     """The runs a user cares about: the newest of each experiment in the evaluation's default setting (the `real`
-    world seen by 3 cameras) on the test objects and the never-trained family."""
+    world seen by 3 cameras, the image tracker) on the test objects and the never-trained family; a suite's task
+    runs are in its section (pooled) and its report."""
     default = [
         r
         for r in newest(runs).values()
         if r.rows and r.world == "real" and r.cameras == 3 and r.split in ("test", "unseen")
+        and "task " not in r.variant and "truth tracker" not in r.variant
     ]
     order = {r.name: i for i, r in enumerate(runs)}
     return sorted(default, key=lambda r: order[r.name])
