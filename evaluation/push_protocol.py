@@ -234,7 +234,8 @@ def task_objects(task: str, objects: Sequence[str]) -> tuple[str, ...]:
     rest (a body of revolution has no yaw to ask for: the planner refuses such a goal); all of them otherwise."""
     if task != "pose":
         return tuple(objects)
-    return tuple(o for o in objects if turn_observable(load_object(o).mesh, load_object(o).default_pose.rotation[2]))
+    models = {o: load_object(o) for o in objects}
+    return tuple(o for o, obj in models.items() if turn_observable(obj.mesh, obj.default_pose.rotation[2]))
 
 
 def camera_rig(episode: Episode, world: ExecutionWorld, T_start: np.ndarray) -> CameraRig:
@@ -479,13 +480,14 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     system.robot.execution_world = world
     system.robot.tracking_mode = episode.tracking
     # The robot pushes the true object where it truly rests, whatever the system was told or saw.
-    system.robot.true_object = (ObjectRef(library_id=episode.object_id), put_down(episode, world))
+    T_put = put_down(episode, world)
+    system.robot.true_object = (ObjectRef(library_id=episode.object_id), T_put)
     T_start = system.robot.settle_true_object(episode.arm, episode.hand, SETTLE_S)
     system.robot.rig = camera_rig(episode, world, T_start)
     system.robot.tracking = TrackingErrors()
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
                               "engine": engine_of(world), "shape": shape_of(episode.object_id, T_start),
-                              "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - put_down(episode, world)[:2, 3])), 4)}
+                              "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - T_put[:2, 3])), 4)}
     request = push_request(episode, T_start)  # with cameras: rendered once (the capture is seeded by the trial)
     try:
         response = pipeline.run(request).response
