@@ -37,7 +37,7 @@ CONNECT_TIMEOUT_MS = 3000
 # PushRequest fields -> the flags that set them (errors name what the user typed).
 FLAGS = {"object": "--object/--cloud", "object_pose": "--position/--yaw", "direction_deg": "--direction-deg",
          "goal_xy": "--goal", "goal_yaw_deg": "--goal-yaw", "distance_m": "--distance", "hand": "--hand", "arm": "--arm",
-         "obstacles": "--obstacle", "seed": "--seed", "options": "the planner options", "options.k": "--k", "options.method": "--method",
+         "obstacles": "--obstacle / --wall", "seed": "--seed", "options": "the planner options", "options.k": "--k", "options.method": "--method",
          "options.sampler": "--sampler", "options.choice": "--choice", "options.physics_draws": "--physics-draws",
          "options.corrections": "--corrections", "options.closed_loop": "--closed-loop", "options.critic": "--no-critic",
          "options.prescreen": "--no-prescreen"}
@@ -67,7 +67,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--hand", choices=("allegro", "leap"), default="allegro")
     parser.add_argument("--arm", choices=("panda", "xarm7"), default=None, help="default: panda for allegro, xarm7 for leap")
     parser.add_argument("--obstacle", nargs=3, type=finite_float, action="append", default=[], metavar=("X", "Y", "R"),
-                        help="a cylinder obstacle on the table (repeatable)")
+                        help="a cylinder obstacle on the table (repeatable); nothing may touch it")
+    parser.add_argument("--wall", nargs=4, type=finite_float, action="append", default=[],
+                        metavar=("X", "Y", "YAW", "LENGTH"),
+                        help="a wall on the table (repeatable): centre X Y, running along YAW degrees, LENGTH m long, "
+                             "2 cm thick, 15 cm tall; the object may slide along it, the robot may not touch it")
     parser.add_argument("--k", type=positive_int, default=200, help="candidate hand poses sampled (default %(default)s)")
     parser.add_argument("--method", choices=get_args(PoseMethod), default="gd2p",
                         help="pose source: the diffusion sampler (gd2p), retrieval (nearest), the fixed spatula pose "
@@ -161,7 +165,8 @@ def build_request(args: argparse.Namespace):
     return PushRequest.model_validate(dict(
         object=ref, object_pose=pose, direction_deg=args.direction_deg, goal_xy=tuple(args.goal) if args.goal else None,
         goal_yaw_deg=args.goal_yaw, distance_m=args.distance, hand=args.hand, arm=arm, seed=args.seed, options=options,
-        obstacles=[CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle]))
+        obstacles=[*(CircleObstacle(x=x, y=y, radius=r) for x, y, r in args.obstacle),
+                   *(dict(x=x, y=y, yaw_deg=yaw, length_m=length) for x, y, yaw, length in args.wall)]))
 
 
 def run_push(args: argparse.Namespace) -> int:

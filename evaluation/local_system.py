@@ -19,7 +19,7 @@ and every robot state to it.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -32,6 +32,7 @@ from shared.contracts.messages import (
     ExecutionState,
     ObjectPose,
     ObjectRef,
+    Obstacle,
     Plan,
     PushDecision,
     SampleRequest,
@@ -125,7 +126,7 @@ class TrackingErrors:
 class Contacts:
     """What touched an obstacle during the executions since the last `reset()`."""
 
-    robot_obstacle: set[str] = field(default_factory=set)  # robot link names
+    robot_obstacle: set[str] = field(default_factory=set)  # robot link names that touched an obstacle or a wall
     object_obstacle: bool = False
 
     def reset(self) -> None:
@@ -148,7 +149,7 @@ def true_world(told: SimWorld, execution: ExecutionWorld | None,
     multi-step request) and the closed-loop monitor then see the model they plan around, not the
     library object's own frame, which may be the reconstruction's turned upside down. The image tracker
     registers the told model from the told pose, through `rig` (None: the default cameras)."""
-    obstacles = tuple((o.x, o.y, o.radius) for o in told.obstacles)
+    obstacles = tuple(told.obstacles)
     T_O_tracked = None
     if true_object is not None:
         obj, T_true = true_object
@@ -237,21 +238,22 @@ class LocalRobot:
         finally:
             unregister()
             self._watching = None
-        self.contacts.robot_obstacle.update(link for link, other in robot.collisions if other.startswith("obstacle"))
+        self.contacts.robot_obstacle.update(link for link, other in robot.collisions
+                                            if other.startswith(("obstacle", "wall")))
         return Execution(final=state)
 
-    def settle_true_object(self, arm: str, hand: str, max_s: float) -> np.ndarray:
+    def settle_true_object(self, arm: str, hand: str, max_s: float, obstacles: Sequence[Obstacle] = ()) -> np.ndarray:
         """Put the trial's true object (`true_object`) down in its world with `arm` + `hand` at home, leave it until
         it rests (it moves less than SETTLED_MM in SETTLE_STEP_S) or `max_s` has passed, and make where it came to
-        rest its true pose; that pose (T_world_O). What the cameras then capture, the robot pushes and the judge
+        rest its true pose, among `obstacles`; that pose (T_world_O). What the cameras then capture, the robot pushes and the judge
         measures from is where the object truly rests, not where it was put: a ball with a drawn centre of mass
         rolls off its spot, a box stays within a fraction of a millimetre."""
         if self.true_object is None:
             raise RuntimeError("no true object to settle: set LocalRobot.true_object first")
         ref, T_put = self.true_object
         robot = self.robot(arm, hand)
-        robot.reset_world(true_world(SimWorld(object=ref, object_pose=object_pose(T_put)), self.execution_world,
-                                     self.true_object))
+        told = SimWorld(object=ref, object_pose=object_pose(T_put), obstacles=list(obstacles))
+        robot.reset_world(true_world(told, self.execution_world, self.true_object))
         before = pose_matrix(self.true_object_pose(arm, hand))
         for _ in range(max(1, round(max_s / SETTLE_STEP_S))):
             robot.let_object_settle(SETTLE_STEP_S)

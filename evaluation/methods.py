@@ -270,11 +270,13 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     (it fails on the true object where it truly stood, in nominal physics: the told pose or the
     reconstruction) and "physics" (it succeeds there: the execution world's physics), or is "world gap"
     where no replay was made (trials before replays existed, and requests of several pushes). None for
-    a success."""
+    a success; "wall contact" when the robot touched the wall task's wall."""
     if record["success"]:
         return None
     if record["outcome"] != "failure":
         return "planning"
+    if record.get("robot_touched_wall"):
+        return "wall contact"
     predicted = record.get("predicted_l_goal")
     if predicted is None:
         return "unpredicted"
@@ -290,6 +292,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
 
 FAILURE_CAUSES = {
     "planning": "no feasible plan (or an error)",
+    "wall contact": "the robot touched the wall (the wall task)",
     "pose quality": "the executed plan's own rollout predicted the failure",
     "prediction": "predicted to succeed, and the same plan fails in the planner's own world too (rollout and robot parted)",
     "perception": "predicted to succeed, and the same plan fails on the true object where it truly stood, in nominal "

@@ -50,7 +50,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
-from evaluation.tasks import POSE_TASK_TURN_DEG, TASKS
+from evaluation.tasks import POSE_TASK_TURN_DEG, TASKS, WALL_ANGLE_DEG, WALL_GAP_M, WALL_HEIGHT_M, WALL_LENGTH_M
 from shared.contracts.messages import (
     ExecutionResult,
     ObjectPose,
@@ -59,6 +59,7 @@ from shared.contracts.messages import (
     PlannerOptions,
     PushRequest,
     SimWorld,
+    WallObstacle,
 )
 from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig
@@ -253,6 +254,22 @@ def put_down(episode: Episode, world: ExecutionWorld) -> np.ndarray:
     return world.pose_error.true_pose(placement(episode))
 
 
+def task_obstacles(episode: Episode) -> list[WallObstacle]:
+    """The obstacles of the episode's scene: for the wall task a wall WALL_GAP_M from the object where it is truly
+    put down, behind it at WALL_ANGLE_DEG to the push (turned counterclockwise from the push on even trials,
+    clockwise on odd), WALL_LENGTH_M long; none otherwise. In the world from the start: the object settles beside it."""
+    if episode.task != "wall":
+        return []
+    T_put = put_down(episode, execution_world(episode))
+    turn = WALL_ANGLE_DEG if episode.trial % 2 == 0 else -WALL_ANGLE_DEG
+    toward = direction_xy(episode.direction_deg + 3.0 * turn)  # from the object to the wall: behind the push
+    footprint = load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T[:, :2]
+    thickness = WallObstacle.model_fields["thickness_m"].default
+    centre = T_put[:2, 3] + (float(np.max(footprint @ toward)) + WALL_GAP_M + thickness / 2.0) * toward
+    return [WallObstacle(x=float(centre[0]), y=float(centre[1]), yaw_deg=float(episode.direction_deg + turn),  # its length
+                         length_m=WALL_LENGTH_M, height_m=WALL_HEIGHT_M)]
+
+
 def placement(episode: Episode) -> np.ndarray:
     """T_world_O the system is told for the episode's trial: resting at the spot in front of the robot,
     re-placed with noise (the true pose differs by the execution world's pose error)."""
@@ -280,7 +297,7 @@ def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
     the push would reach from where the object truly rests (where a user wants it on the table) with the yaw
     the system sees it at turned `goal_turn_deg`."""
     common = dict(distance_m=PUSH_DISTANCE_M, hand=episode.hand, arm=episode.arm, seed=episode.seed,
-                  options=METHODS[episode.method].options)
+                  options=METHODS[episode.method].options, obstacles=task_obstacles(episode))
     told: dict[str, Any] = {"object": ObjectRef(library_id=episode.object_id), "object_pose": object_pose(placement(episode))}
     if episode.cameras:
         told = {"object": ObjectRef(point_cloud=captured_cloud(episode, T_start))}
@@ -327,7 +344,7 @@ def captured_cloud(episode: Episode, T_start: np.ndarray) -> np.ndarray:
 
     world = execution_world(episode)
     capture = capture_object(load_object(episode.object_id), T_start, n_cameras=episode.cameras, seed=episode.world_seed,
-                             camera_errors=world.camera_errors)
+                             camera_errors=world.camera_errors, obstacles=task_obstacles(episode))
     return cloud_for_request(capture.cloud)
 
 
@@ -348,7 +365,7 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
     else:
         assert request.object_pose is not None  # a told mesh comes with its pose
         T_told = pose_matrix(request.object_pose)
-    told = SimWorld(object=request.object, object_pose=object_pose(T_told))
+    told = SimWorld(object=request.object, object_pose=object_pose(T_told), obstacles=request.obstacles)
     drawn, truth = robot.execution_world, robot.true_object
     try:
         robot.execution_world = robot.true_object = None
@@ -482,13 +499,14 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     # The robot pushes the true object where it truly rests, whatever the system was told or saw.
     T_put = put_down(episode, world)
     system.robot.true_object = (ObjectRef(library_id=episode.object_id), T_put)
-    T_start = system.robot.settle_true_object(episode.arm, episode.hand, SETTLE_S)
+    T_start = system.robot.settle_true_object(episode.arm, episode.hand, SETTLE_S, task_obstacles(episode))
     system.robot.rig = camera_rig(episode, world, T_start)
     system.robot.tracking = TrackingErrors()
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
                               "engine": engine_of(world), "shape": shape_of(episode.object_id, T_start),
                               "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - T_put[:2, 3])), 4)}
     request = push_request(episode, T_start)  # with cameras: rendered once (the capture is seeded by the trial)
+    system.robot.contacts.reset()
     try:
         response = pipeline.run(request).response
     except PushError as exc:
@@ -499,7 +517,11 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record.update(outcome="error", success=False, error_code="internal", message=repr(exc)[:300])
     else:  # judged where the object truly is: the system only knows what its tracker saw
         result = judged_from(episode, T_start, system.robot.true_object_pose(episode.arm, episode.hand))
-        record.update(outcome="success" if result.success else "failure", success=bool(result.success),
+        touched = sorted(system.robot.contacts.robot_obstacle)  # the wall task: the robot must not touch the wall
+        if touched:
+            record["robot_touched_wall"] = touched
+        success = result.success and not touched
+        record.update(outcome="success" if success else "failure", success=bool(success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})
         if result.yaw_error_deg is not None:  # the pose task: how far from the goal yaw it ended

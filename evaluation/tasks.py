@@ -10,15 +10,25 @@ from __future__ import annotations
 # PushRequest goal_xy + goal_yaw_deg), on the objects whose yaw a camera can see.
 # The shape-class tasks ask the paper's push of objects of one class (docs/evaluation.md, "Shape classes"), drawn
 # from the split's procedural and everyday families (SHAPE_TASK_OBJECTS of each, spread over the families).
+# "wall": the paper's push away from a wall: the wall WALL_GAP_M beside the object where it rests, behind it at
+# WALL_ANGLE_DEG to the push (on one side on even trials, the other on odd), so the push leads away from it. A hand
+# square behind the object would stand where the wall is: the robot must find another way to push (a fingertip on
+# the free corner, a pull from above), never touching the wall.
 SHAPE_TASKS = ("tall", "flat", "small", "round")
-TASKS = ("paper", "pose", *SHAPE_TASKS)
+TASKS = ("paper", "pose", "wall", *SHAPE_TASKS)
 POSE_TASK_TURN_DEG = 30.0  # counterclockwise on even trials, clockwise on odd
 SHAPE_TASK_OBJECTS = 6
+WALL_GAP_M = 0.01  # the object's footprint to the wall's face
+WALL_ANGLE_DEG = 45.0  # between the push and the wall
+WALL_LENGTH_M = 0.30  # centred beside the object
+WALL_HEIGHT_M = 0.06
 PAPER_CRITERION = "0.20 m along the direction, within 3 cm, turned <= 45 degrees, upright"
 TASK_CRITERIA = {
     "paper": PAPER_CRITERION + " (round objects: position only)",
     "pose": f"the same point and the start's yaw turned {POSE_TASK_TURN_DEG:g} degrees (either way), within 2 cm and "
             "15 degrees of that yaw, upright; objects whose yaw a camera can see",
+    "wall": PAPER_CRITERION + f"; away from a wall {WALL_GAP_M * 100:g} cm from the object, at {WALL_ANGLE_DEG:g} "
+            "degrees to the push behind it (left or right): the robot touching the wall fails",
     "tall": PAPER_CRITERION + "; standing objects over 1.5 times as tall as their footprint is wide (bottles, boxes on "
             "end): toppling fails",
     "flat": PAPER_CRITERION + "; lying objects under 0.4 times as tall as their footprint is wide (plates, books, spatulas)",

@@ -87,13 +87,15 @@ def test_a_request_models_validation_error_is_described_by_flag():
 
     with pytest.raises(ValidationError) as caught:
         PushRequest(object=ObjectRef(library_id=BOX), distance_m=2.0, options={"k": 0},
-                    obstacles=[CircleObstacle(x=0, y=0, radius=0.1).model_dump() | {"radius": -1.0}])
+                    obstacles=[CircleObstacle(x=0, y=0, radius=0.1).model_dump() | {"radius": -1.0},
+                               {"x": 0.5, "y": 0.1, "length_m": 0.0}])
     text = describe_validation_error(caught.value, {"distance_m": "--distance", "options.k": "--k", "obstacles": "--obstacle"},
                                      command="push")
     lines = text.splitlines()
     assert "gd2p push: --distance: must be <= 1.0, got 2.0" in lines
     assert "gd2p push: --k: must be >= 1, got 0" in lines
-    assert "gd2p push: --obstacle (0.radius): must be > 0.0, got -1.0" in lines
+    assert "gd2p push: --obstacle (0.circle.radius): must be > 0.0, got -1.0" in lines  # each kind's own error
+    assert "gd2p push: --obstacle (1.wall.length_m): must be > 0.0, got 0.0" in lines
     assert "distance_m" not in text and "'k'" not in text
 
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from shared.contracts.messages import CircleObstacle
 from shared.frames import direction_frame, direction_xy, make_transform, matrix_to_r6, pose25_to_matrix
 from shared.planning.candidates import Candidates, Push
 from shared.planning.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
@@ -99,7 +100,7 @@ def test_rrtconnect_path_to_a_configuration_above_the_box_is_collision_free(scen
 def test_rrtconnect_goes_around_an_obstacle_that_blocks_the_straight_path():
     q_hand = load_hand("allegro").open_joint_positions.double().numpy()
     with RobotScene("panda", "allegro") as obstacle_scene:
-        obstacle_scene.add_obstacles([(0.35, 0.10, 0.05)])  # a 30 cm tall cylinder left of the home pose
+        obstacle_scene.add_obstacles([CircleObstacle(x=0.35, y=0.10, radius=0.05)])  # a 30 cm tall cylinder left of the home pose
         planner = MotionPlanner(obstacle_scene)
         home = obstacle_scene.arm.home.double().numpy()
         ik = planner.ik.solve_hand_poses(make_transform(hand_above_box(0.0)[:3, :3], np.array([0.40, 0.30, 0.15])))

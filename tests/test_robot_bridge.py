@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from conftest import free_port, router_config
-from shared.contracts.messages import ExecutionCommand, ExecutionState, Plan
+from shared.contracts.messages import CircleObstacle, ExecutionCommand, ExecutionState, Plan
 from shared.execution.executor import EStopLatch, Executor, LocalLease
 from shared.execution.robot import MotionStopped
 from shared.execution.robots.sim.config import SimConfig
@@ -184,7 +184,7 @@ def test_executing_a_planned_push_moves_the_box_in_the_push_direction():
 
 def test_contact_with_an_obstacle_during_execution_is_recorded():
     with SimRobot(SimConfig("panda", "allegro")) as robot:
-        robot.add_obstacles([(0.45, -0.03, 0.05)])  # a 0.3 m tall cylinder in front of the hand
+        robot.add_obstacles([CircleObstacle(x=0.45, y=-0.03, radius=0.05)])  # a 0.3 m tall cylinder in front of the hand
         start = start_configuration(robot)
         goal = start.copy()
         goal[1] += 0.9  # leans forward: the hand comes down from 0.54 m to below the cylinder's top

@@ -44,13 +44,13 @@ from shared.contracts.messages import (
     PushDecision,
     PushResponse,
 )
+from shared.world.obstacles import obstacle_mesh
 
 log = logging.getLogger("gd2p.view")
 
 DEFAULT_PORT = 8090
 RATE_HZ = 30.0  # drawing rate: above the tracker's 20 Hz, below a browser's 60 fps
 TRAIL_POINTS = 400  # the tracked object's trail (points kept)
-OBSTACLE_HEIGHT_M = 0.15
 CLOUD_RGB = (40, 120, 255)
 OBJECT_RGB = (230, 130, 30)
 CHOSEN_RGB = (20, 200, 60)
@@ -418,9 +418,9 @@ class LiveView:
         for node in self._controls.get("obstacle_nodes", []):
             node.remove()
         self._controls["obstacle_nodes"] = [
-            scene.add_cylinder(f"/obstacles/{k}", radius=o.radius, height=OBSTACLE_HEIGHT_M, color=OBSTACLE_RGB,
-                               position=(o.x, o.y, OBSTACLE_HEIGHT_M / 2), opacity=0.8)
-            for k, o in enumerate(d.obstacles)]
+            scene.add_mesh_simple(f"/obstacles/{k}", obstacle.vertices.astype(np.float32), obstacle.faces.astype(np.uint32),
+                                  color=OBSTACLE_RGB, opacity=0.8)
+            for k, obstacle in enumerate(map(obstacle_mesh, d.obstacles))]
         # The chosen plan: the robot at its first waypoint (it moves with the states).
         robot = self._robot_for(d.arm, d.hand)
         waypoints = d.plan.positions.to_numpy()

@@ -25,18 +25,18 @@ from pathlib import Path
 
 import numpy as np
 import pybullet as pb
-import trimesh
 from foxglove import messages as fg
 
-from shared.contracts.messages import ExecutionState, PushDecision, PushRequest
+from shared.contracts.messages import ExecutionState, Obstacle, PushDecision, PushRequest, WallObstacle
 from shared.planning.decision import METADATA_NAME, decision_metadata
 from shared.planning.outcome import PushOutcome, StepRecord
 from shared.robots.arms import combined_urdf
 from shared.sampling.models import model_ids
 from shared.world.object_refs import load_object_ref
 from shared.world.objects import write_object_urdf
+from shared.world.obstacles import height_of, obstacle_mesh, wall_half_extents, wall_pose
 from shared.world.push_outcome import pose_matrix
-from shared.world.sim.robot_scene import OBSTACLE_HEIGHT_M, RobotScene
+from shared.world.sim.robot_scene import RobotScene
 from shared.world.sim.scene import transform_to_pos_quat
 from visualisation.recording import McapWriter
 from visualisation.render import VIEWS, Item, UrdfItem, compose_png, mesh_item, render_views
@@ -68,7 +68,7 @@ def record_push(record_dir: Path, request: PushRequest, outcome: PushOutcome, sc
     records = outcome.records
     obj = load_object_ref(request.object)
     scene.add_object(write_object_urdf(obj), records[0].T_world_O_start)
-    scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
+    scene.add_obstacles(request.obstacles)
     with McapWriter(str(mcap_path)) as writer:
         start_ns = time.time_ns()
         writer.write_message("gd2p/planner/request", request, start_ns)
@@ -129,13 +129,7 @@ def _write_scene(writer: McapWriter, mesh, request: PushRequest, ns: int) -> Non
                                                size=fg.Vector3(x=1.2, y=1.6, z=0.02),
                                                color=fg.Color(r=0.6, g=0.6, b=0.6, a=0.5))]),
     ]
-    for i, o in enumerate(request.obstacles):
-        entities.append(fg.SceneEntity(
-            timestamp=_stamp(ns), frame_id=WORLD_FRAME, id=f"obstacle {i}",
-            cylinders=[fg.CylinderPrimitive(pose=fg.Pose(position=fg.Vector3(x=o.x, y=o.y, z=OBSTACLE_HEIGHT_M / 2)),
-                                            size=fg.Vector3(x=2 * o.radius, y=2 * o.radius, z=OBSTACLE_HEIGHT_M),
-                                            bottom_scale=1.0, top_scale=1.0,
-                                            color=fg.Color(r=0.8, g=0.1, b=0.1, a=0.8))]))
+    entities += [_obstacle_entity(f"obstacle {i}", o, ns) for i, o in enumerate(request.obstacles)]
     _foxglove(writer, "/scene", fg.SceneUpdate(entities=entities), ns)
 
 
@@ -204,9 +198,7 @@ def storyboard(scene: RobotScene, records: list[StepRecord], mesh, obstacles, pa
                    ((f"push {i + 1}: end ({'success' if result.success else 'miss'}, "
                      f"{result.position_error_m * 100:.1f} cm off)"),
                     record.execution.final.positions.to_numpy().astype(np.float64), pose_matrix(result.final_object_pose))]
-    obstacle_items = [mesh_item(f"obstacle {k}", trimesh.creation.cylinder(o.radius, OBSTACLE_HEIGHT_M),
-                                _translation([o.x, o.y, OBSTACLE_HEIGHT_M / 2]), OBSTACLE_RGBA)
-                      for k, o in enumerate(obstacles)]
+    obstacle_items = [mesh_item(f"obstacle {k}", obstacle_mesh(o), np.eye(4), OBSTACLE_RGBA) for k, o in enumerate(obstacles)]
     joint_names = list(records[0].step.plan.joint_names)
     framing = np.concatenate([_robot_points(scene, q) for _, q, _ in frames]
                              + [mesh.vertices @ T[:3, :3].T + T[:3, 3] for _, _, T in frames])
@@ -244,7 +236,18 @@ def _push_direction(record: StepRecord) -> np.ndarray:
     return delta / np.linalg.norm(delta) if np.linalg.norm(delta) > 1e-6 else np.array([1.0, 0.0])
 
 
-def _translation(xyz) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = xyz
-    return T
+def _obstacle_entity(name: str, obstacle: Obstacle, ns: int) -> fg.SceneEntity:
+    """A cylinder or a wall for Foxglove's 3D panel."""
+    red = fg.Color(r=0.8, g=0.1, b=0.1, a=0.8)
+    height = height_of(obstacle)
+    if isinstance(obstacle, WallObstacle):
+        position, quaternion = transform_to_pos_quat(wall_pose(obstacle))
+        size = wall_half_extents(obstacle) * 2.0
+        pose = fg.Pose(position=fg.Vector3(x=position[0], y=position[1], z=position[2]),
+                       orientation=fg.Quaternion(x=quaternion[0], y=quaternion[1], z=quaternion[2], w=quaternion[3]))
+        return fg.SceneEntity(timestamp=_stamp(ns), frame_id=WORLD_FRAME, id=name, cubes=[fg.CubePrimitive(
+            pose=pose, size=fg.Vector3(x=float(size[0]), y=float(size[1]), z=float(size[2])), color=red)])
+    return fg.SceneEntity(timestamp=_stamp(ns), frame_id=WORLD_FRAME, id=name, cylinders=[fg.CylinderPrimitive(
+        pose=fg.Pose(position=fg.Vector3(x=obstacle.x, y=obstacle.y, z=height / 2)),
+        size=fg.Vector3(x=2 * obstacle.radius, y=2 * obstacle.radius, z=height), bottom_scale=1.0, top_scale=1.0,
+        color=red)])

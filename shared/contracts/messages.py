@@ -27,8 +27,10 @@ from pydantic import (
     AfterValidator,
     BaseModel,
     ConfigDict,
+    Discriminator,
     Field,
     FiniteFloat,
+    Tag,
     field_validator,
     model_validator,
 )
@@ -410,11 +412,38 @@ class DirectionFrame(Value):
 
 
 class CircleObstacle(Value):
-    """A vertical cylinder obstacle on the table: centre (x, y) and radius in metres."""
+    """A vertical cylinder obstacle on the table: centre (x, y) and radius in metres. Nothing may touch it: not
+    the robot, not the pushed object (it may be fragile, or someone's cup)."""
 
     x: FiniteFloat
     y: FiniteFloat
     radius: PositiveFloat
+
+
+class WallObstacle(Value):
+    """A straight wall standing on the table (a shelf's side, a bin's edge, a fixture): a box `length_m` long
+    along the direction `yaw_deg` (degrees about world z), `thickness_m` thick and `height_m` tall, centred at
+    (x, y). The pushed object may slide along it (a wall is there to be pushed against); the robot must not
+    touch it. The cameras see it, and the system cuts it from what they see as a known part of the workcell."""
+
+    x: FiniteFloat
+    y: FiniteFloat
+    yaw_deg: FiniteFloat = 0.0
+    length_m: PositiveFloat = Field(le=3.0)
+    thickness_m: PositiveFloat = Field(default=0.02, le=0.5)
+    height_m: PositiveFloat = Field(default=0.15, le=1.0)
+
+
+def _obstacle_kind(value: Any) -> str:
+    """A wall has a length, a cylinder a radius: which of the two a message's obstacle is (its errors are then that
+    kind's alone)."""
+    fields = value if isinstance(value, dict) else vars(value)
+    return "wall" if "length_m" in fields else "circle"
+
+
+# An obstacle of a request or a world: told apart by their fields (old messages carry circles alone).
+Obstacle = Annotated[Annotated[CircleObstacle, Tag("circle")] | Annotated[WallObstacle, Tag("wall")],
+                     Discriminator(_obstacle_kind)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -542,7 +571,7 @@ class ValidationJob(Message):
     # Floating hand only: the object's resting pose (None: its default one). With a frame, the frame's
     # object must be this resting pose turned about the vertical (the validator refuses it otherwise).
     pose_index: RestingPoseIndex | None = None
-    obstacles: list[CircleObstacle] = Field(default_factory=list)
+    obstacles: list[Obstacle] = Field(default_factory=list)
     # Arm rollouts: also roll the plan out in this many worlds drawn around the nominal physics and
     # the told pose (`shared.world.sim.world.rollout_worlds`, seeded by `seed`), for ranking by robustness.
     physics_draws: int = Field(default=0, ge=0, le=MAX_PHYSICS_DRAWS)
@@ -793,7 +822,7 @@ class PushRequest(Message):
     distance_m: PositiveFloat = Field(default=0.20, le=1.0)  # with goal_xy: the longest single push
     hand: Hand = "allegro"
     arm: Arm = "panda"
-    obstacles: list[CircleObstacle] = Field(default_factory=list)
+    obstacles: list[Obstacle] = Field(default_factory=list)
     seed: Seed = 0
     # The client's lease (`gd2p/lease/client/<identity>/<id>`, shared/bus/lease.py): when it is lost (Ctrl-C, a
     # crashed client, a lost connection) the planner cancels the request, stopping the robot if it moves. The
@@ -894,7 +923,7 @@ class SimWorld(Value):
 
     object: ObjectRef
     object_pose: ObjectPose  # frame O (centre of mass, principal axes) in the world
-    obstacles: list[CircleObstacle] = Field(default_factory=list)
+    obstacles: list[Obstacle] = Field(default_factory=list)
 
 
 class ExecutionCommand(Message):
@@ -1038,7 +1067,7 @@ class PushDecision(Message):
     object: ObjectRef  # the library object, mesh or captured point cloud (reconstructed by whoever draws it)
     frame: DirectionFrame  # where the object is at the push's start and which way it is pushed
     distance_m: PositiveFloat | None = None  # how far it should go (None when unknown: a random choice)
-    obstacles: list[CircleObstacle] = Field(default_factory=list)
+    obstacles: list[Obstacle] = Field(default_factory=list)
     candidates_world: PoseArray
     critic_scores: FloatVector | None = None
     rollouts: list[RolloutPreview] = Field(default_factory=list)

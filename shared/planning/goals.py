@@ -31,10 +31,11 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from shared.contracts.messages import CircleObstacle, PushRequest
+from shared.contracts.messages import Obstacle, PushRequest, WallObstacle
 from shared.frames import make_transform, transform_poses, yaw_rotation
 from shared.planning.outcome import PushError
 from shared.robots.reach import reach
+from shared.world.obstacles import describe, wall_depth_into
 from shared.world.push_outcome import YawGoal
 from shared.world.sim.scene import TABLE_TOP_HALF_EXTENTS_M
 
@@ -63,18 +64,20 @@ def check_goal(request: PushRequest, footprint_radius_m: float, T_world_base: np
                         "(a body of revolution), so no camera can tell its yaw; ask for the goal point alone")
 
 
-def check_obstacles(obstacles: Sequence[CircleObstacle], footprint_xy: np.ndarray) -> None:
+def check_obstacles(obstacles: Sequence[Obstacle], footprint_xy: np.ndarray) -> None:
     """PushError("bad_request") naming the first obstacle that reaches more than OBSTACLE_OVERLAP_TOLERANCE_M into
     the object's footprint (`footprint_xy` [N, 2]: the object's points in the table plane where it stands)."""
     hull = ConvexHull(np.asarray(footprint_xy, dtype=np.float64))
     outline = hull.points[hull.vertices]
     for index, obstacle in enumerate(obstacles):
-        centre = np.array([obstacle.x, obstacle.y])
-        depth = obstacle.radius - _signed_distance(hull, outline, centre)
+        if isinstance(obstacle, WallObstacle):
+            depth = wall_depth_into(obstacle, outline)
+        else:
+            depth = obstacle.radius - _signed_distance(hull, outline, np.array([obstacle.x, obstacle.y]))
         if depth > OBSTACLE_OVERLAP_TOLERANCE_M:
-            raise PushError("bad_request", f"obstacle {index} (a cylinder of radius {obstacle.radius:.3f} m at "
-                            f"{_xy(centre)}) reaches {depth * 1000:.0f} mm into the object's footprint: an obstacle "
-                            "must stand clear of the object to be pushed (a neighbour may touch it, not pass through it)")
+            raise PushError("bad_request", f"obstacle {index} ({describe(obstacle)}) reaches {depth * 1000:.0f} mm into "
+                            "the object's footprint: an obstacle must stand clear of the object to be pushed (a "
+                            "neighbour or a wall may touch it, not pass through it)")
 
 
 def _signed_distance(hull: ConvexHull, outline: np.ndarray, point: np.ndarray) -> float:

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.contracts.messages import ExecutionResult, ObjectPose, PushRequest, PushResponse
+from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, PushRequest, PushResponse
 from shared.frames import direction_xy, make_transform
 from shared.planning import stages
 from shared.planning.cancellation import Cancellation
@@ -68,6 +68,7 @@ from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits
 from shared.world.object_refs import captured_object, load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel, write_object_urdf
+from shared.world.obstacles import as_discs, off_obstacles
 from shared.world.push_outcome import (
     SUCCESS_MAX_ROTATION_DEG,
     YawGoal,
@@ -97,6 +98,19 @@ class PushServices:
     execute: stages.Execute
 
 
+def _known_obstacles_cut(request: PushRequest) -> PushRequest:
+    """The request with its cloud's points on its obstacles and walls left out: they are known parts of the scene,
+    not of the object (a wall 1 cm from the object would join its cluster and its reconstruction)."""
+    cloud = request.object.point_cloud
+    if cloud is None or not request.obstacles:
+        return request
+    points = cloud.to_numpy()
+    kept = off_obstacles(points, request.obstacles)
+    if len(kept) == len(points):
+        return request
+    return request.model_copy(update={"object": ObjectRef(point_cloud=kept)})
+
+
 class PushPipeline:
     """Serves PushRequests with the given services (see the module docstring)."""
 
@@ -114,6 +128,7 @@ class PushPipeline:
         (with the records of the pushes executed before) when it cannot be done, RequestCancelled
         when `cancel` is set first."""
         started = time.perf_counter()
+        request = _known_obstacles_cut(request)
         state = self._start(request, cancel or Cancellation())
         vertices = state.obj.mesh.vertices @ state.T_world_O[:3, :3].T + state.T_world_O[:3, 3]
         check_obstacles(request.obstacles, vertices[:, :2])
@@ -177,7 +192,7 @@ class PushPipeline:
             return judged(object_pose(state.T_world_O)).success
 
         try:
-            outcome = push_along_path(start_T[:2, 3], request.goal_xy, request.obstacles,
+            outcome = push_along_path(start_T[:2, 3], request.goal_xy, as_discs(request.obstacles),
                                       lambda _from_xy, to_xy: self._path_push(state, to_xy),
                                       object_radius_m=_footprint_radius(state.obj), max_push_m=request.distance_m,
                                       margin_m=self.settings.obstacle_margin_m, max_steps=request.options.max_steps,
@@ -266,7 +281,7 @@ class PushPipeline:
         request = state.request
         with self.scene(request.arm, request.hand) as scene:
             scene.add_object(state.urdf, push.T_world_O)
-            scene.add_obstacles([(o.x, o.y, o.radius) for o in request.obstacles])
+            scene.add_obstacles(request.obstacles)
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene),
                                     workspace=self._limits(request.arm, request.hand).workspace)
             rolled_out = stages.rolls_out(request)

@@ -77,7 +77,7 @@ def rollout(job: ValidationJob, params: PhysicsParams) -> ValidationResult:
     hand_link_names = {scene.link_names[i] for i in scene.hand_links}
     collided = bool(nominal.run.collisions)
     touched_obstacle = (nominal.run.object_obstacle_contact
-                        or any(other.startswith("obstacle") for _, other in nominal.run.collisions))
+                        or any(other.startswith(("obstacle", "wall")) for _, other in nominal.run.collisions))
     return ValidationResult(job_id=job.id, hand=job.hand, object_id=obj.id,
                             goal_error_m=np.array([nominal.result.position_error_m]),
                             collision_cost=np.array([float(collided)]), obstacle_contact=np.array([touched_obstacle]),
@@ -107,7 +107,7 @@ def _play(scene: RobotScene, job: ValidationJob, urdf: Path, T_world_O: np.ndarr
     scene.use_contact_physics(params)
     try:
         scene.add_object(urdf, T_world_O)
-        scene.add_obstacles([(o.x, o.y, o.radius) for o in job.obstacles])
+        scene.add_obstacles(job.obstacles)
         penetration = _initial_penetration(scene, job) if with_penetration else 0.0
         try:
             run = run_plan(scene, job.plan, params, _window(job))

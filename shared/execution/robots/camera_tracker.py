@@ -5,7 +5,7 @@ ones by default. At each tracking frame the engine renders depth from every came
 (`CameraRig.true_poses`: a calibration is never exact), the D435-class noise of `shared.world.sim.camera` is added, and
 the frames go to `shared.world.perception.tracking.ObjectTracker` stamped with the poses the system *believes*
 (`CameraRig.believed`, levelled to the table once per rig as the capture's frames are), together with the robot's
-self-filter mask (the pixels its model covers at its measured joints). The tracker segments the object, registers
+self-filter mask (the pixels its model covers at its measured joints, and the workcell's known obstacles and walls). The tracker segments the object, registers
 the model the system has (the told mesh, or the reconstruction it planned around) and reports a pose with a
 fitness, or "lost". Nothing here reads the simulator's object pose: the engine only draws pictures.
 

@@ -55,7 +55,9 @@ import pybullet as pb
 import trimesh
 from scipy import ndimage
 
+from shared.contracts.messages import Obstacle
 from shared.frames import matrix_to_quat_xyzw
+from shared.world.obstacles import obstacle_mesh, off_obstacles
 from shared.world.perception.depth import DepthFrame, Intrinsics, frames_to_cloud, level_to_table
 from shared.world.sim.world import CameraError
 
@@ -181,6 +183,7 @@ def capture_object(
     cameras: list[CameraPose] | None = None,
     camera_errors: Sequence[CameraError] | None = None,
     level: bool = True,
+    obstacles: Sequence[Obstacle] = (),
 ) -> Capture:
     """Render `obj` (an ObjectModel, or any object with a trimesh `mesh` in its frame O) at T_world_O.
 
@@ -189,7 +192,8 @@ def capture_object(
     `camera_errors` (None or empty: cameras exactly where calibrated): the k-th camera truly stands at
     its pose composed with the k-th error, and its frame carries the calibrated pose (module docstring), refined
     against the table the frame shows (`level_to_table`: height, roll and pitch; what a real pipeline does) unless
-    `level` is False.
+    `level` is False. `obstacles` (cylinders and walls) stand in the scene, seen and occluding; the cloud leaves
+    out what lies on them (`obstacles.off_obstacles`), as a real pipeline subtracts its workcell's known static scene.
     """
     T_world_O = np.asarray(T_world_O, dtype=np.float64)
     position = T_world_O[:3, 3]
@@ -201,7 +205,7 @@ def capture_object(
     intrinsics = renderer_intrinsics(size)
     rng = np.random.default_rng(seed)
     frames, ideal, masks = [], [], []
-    with _CaptureWorld(obj.mesh, T_world_O) as world:
+    with _CaptureWorld(obj.mesh, T_world_O, obstacles) as world:
         for k, camera in enumerate(cameras):
             calibrated = camera.T_world_camera()
             depth, mask = world.render(true_camera_pose(camera, errors[k] if errors else None), intrinsics)
@@ -211,6 +215,7 @@ def capture_object(
             frame = DepthFrame(noisy.astype(np.float32), intrinsics, calibrated)
             frames.append(level_to_table(frame) if level else frame)
     cloud = crop_to_region(frames_to_cloud(frames), position[:2])
+    cloud = off_obstacles(cloud, obstacles)
     return Capture(frames, list(cameras), cloud, ideal, masks)
 
 
@@ -231,9 +236,9 @@ def crop_to_region(points: np.ndarray, center_xy: np.ndarray, radius_m: float = 
 
 
 class _CaptureWorld:
-    """A private PyBullet DIRECT client with the table top and the object's visual mesh."""
+    """A private PyBullet DIRECT client with the table top, the object's visual mesh and the obstacles'."""
 
-    def __init__(self, mesh: trimesh.Trimesh, T_world_O: np.ndarray) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, T_world_O: np.ndarray, obstacles: Sequence[Obstacle] = ()) -> None:
         self.client = pb.connect(pb.DIRECT)
         try:
             half = TABLE_HALF_EXTENTS_M
@@ -246,6 +251,11 @@ class _CaptureWorld:
             self.object_id = pb.createMultiBody(
                 baseMass=0.0, baseVisualShapeIndex=shape, basePosition=T_world_O[:3, 3].tolist(),
                 baseOrientation=matrix_to_quat_xyzw(T_world_O[:3, :3]).tolist(), physicsClientId=self.client)
+            for solid in map(obstacle_mesh, obstacles):  # world-frame meshes at the origin
+                shape = pb.createVisualShape(
+                    pb.GEOM_MESH, vertices=np.asarray(solid.vertices, dtype=np.float64).tolist(),
+                    indices=np.asarray(solid.faces, dtype=np.int64).reshape(-1).tolist(), physicsClientId=self.client)
+                pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=self.client)
         except Exception:
             pb.disconnect(self.client)
             raise

@@ -25,14 +25,15 @@ from pathlib import Path
 import numpy as np
 import pybullet as pb
 
+from shared.contracts.messages import Obstacle, WallObstacle
 from shared.robots.arms import ArmModel, combined_urdf, load_arm, mount_joint_name
 from shared.robots.hands import HandModel, load_hand
+from shared.world.obstacles import CYLINDER_HEIGHT_M, wall_half_extents, wall_pose
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.scene import Body, SimError, SimScene, c_stdout_to_stderr, transform_to_pos_quat
 
 Joints = Sequence[float] | np.ndarray  # joint angles (rad)
 
-OBSTACLE_HEIGHT_M = 0.3
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class Collision:
     """One offending pair: a robot link and what it touches (distance < 0 is penetration)."""
 
     robot_link: str
-    other: str  # "table", "object", "obstacle N" or a robot link name
+    other: str  # "table", "object", "obstacle N" (a cylinder), "wall N" or a robot link name
     distance_m: float
 
     def __str__(self) -> str:
@@ -48,7 +49,7 @@ class Collision:
 
 
 class RobotScene:
-    """PyBullet world: table, arm + hand (fixed base), optional object and cylinder obstacles."""
+    """PyBullet world: table, arm + hand (fixed base), optional object, cylinder obstacles and walls."""
 
     def __init__(
         self,
@@ -68,7 +69,8 @@ class RobotScene:
         self._self_check_links = self.self_check_arm_links + sorted(self.hand_links)
         self._centres_local, self._radii = self._bounding_spheres(self._self_check_links)
         self.object: Body | None = None
-        self.obstacles: list[Body] = []
+        self.obstacles: list[Body] = []  # the cylinders
+        self.walls: list[Body] = []
 
     # ------------------------------------------------------------------------------------- building
 
@@ -152,19 +154,22 @@ class RobotScene:
         self.object = self.sim.add_object(urdf_path, T_world_O)
         return self.object
 
-    def add_obstacles(self, circles: Iterable[tuple[float, float, float]]) -> list[Body]:
-        """Static vertical cylinders (x, y, radius) standing on the table."""
-        for x, y, radius in circles:
-            self.obstacles.append(self.sim.add_cylinder_obstacle(x, y, radius, OBSTACLE_HEIGHT_M))
-        return self.obstacles
+    def add_obstacles(self, obstacles: Iterable[Obstacle]) -> None:
+        """Static cylinders and walls (`shared.contracts.messages.Obstacle`) standing on the table."""
+        for obstacle in obstacles:
+            if isinstance(obstacle, WallObstacle):
+                self.walls.append(self.sim.add_box_obstacle(wall_pose(obstacle), wall_half_extents(obstacle)))
+            else:
+                self.obstacles.append(self.sim.add_cylinder_obstacle(obstacle.x, obstacle.y, obstacle.radius,
+                                                                     CYLINDER_HEIGHT_M))
 
     def clear_environment(self) -> None:
-        """Remove the object and the obstacles (the robot and the table stay): reuse the scene for another
-        world without reloading the robot (its URDF load is most of a scene's cost, ~0.7 s)."""
-        for body in ([self.object] if self.object is not None else []) + self.obstacles:
+        """Remove the object, the obstacles and the walls (the robot and the table stay): reuse the scene for
+        another world without reloading the robot (its URDF load is most of a scene's cost, ~0.7 s)."""
+        for body in ([self.object] if self.object is not None else []) + self.obstacles + self.walls:
             pb.removeBody(body.id, physicsClientId=self.client)
         self.object = None
-        self.obstacles = []
+        self.obstacles, self.walls = [], []
 
     def close(self) -> None:
         self.sim.close()
@@ -247,7 +252,8 @@ class RobotScene:
         return found
 
     def object_touches_obstacle(self) -> bool:
-        """Whether the object touched an obstacle in the last physics step (false without an object)."""
+        """Whether the object touched a cylinder obstacle in the last physics step (false without an object; it
+        may slide along a wall)."""
         return self.object is not None and any(
             pb.getContactPoints(self.object.id, obstacle.id, physicsClientId=self.client) for obstacle in self.obstacles)
 
@@ -261,6 +267,7 @@ class RobotScene:
         if self.object is not None:
             env.append((self.object.id, "object", self.hand_links if allow_hand_object else set()))
         env += [(body.id, f"obstacle {i}", set()) for i, body in enumerate(self.obstacles)]
+        env += [(body.id, f"wall {i}", set()) for i, body in enumerate(self.walls)]
         return env
 
     def _robot_vs(self, body: int, name: str, clearance_m: float, skip_links: set[int]) -> list[Collision]:

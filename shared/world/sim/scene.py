@@ -250,6 +250,14 @@ class SimScene:
         body_id = pb.createMultiBody(0.0, shape, basePosition=[x, y, height / 2], physicsClientId=self.client)
         return Body(self, body_id, np.eye(4))
 
+    def add_box_obstacle(self, T_world_box: np.ndarray, half_extents: np.ndarray) -> Body:
+        """A static box (a wall) with its centre at T_world_box."""
+        shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=[float(h) for h in half_extents],
+                                        physicsClientId=self.client)
+        pos, quat = transform_to_pos_quat(T_world_box)
+        body_id = pb.createMultiBody(0.0, shape, basePosition=pos, baseOrientation=quat, physicsClientId=self.client)
+        return Body(self, body_id, np.eye(4))
+
     def joint_indices(self, body_id: int) -> dict[str, int]:
         """Movable joint name -> PyBullet joint index."""
         out = {}

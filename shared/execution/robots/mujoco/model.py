@@ -29,13 +29,14 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from shared.contracts.messages import CircleObstacle, Obstacle, WallObstacle
 from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.decompose import convex_pieces
 from shared.robots.arms import combined_urdf, load_arm
 from shared.robots.hands import load_hand
 from shared.world.objects.model import ObjectModel
+from shared.world.obstacles import CYLINDER_HEIGHT_M, wall_half_extents, wall_pose
 
-OBSTACLE_HEIGHT_M = 0.3  # as the PyBullet world's obstacles
 OBJECT_BODY = "object"
 ROBOT_GROUP, WORLD_GROUP = 1, 2  # contype / conaffinity bits: robot geoms touch the world, not each other
 # MuJoCo takes a contact's friction from the geom of higher priority: the table's (object-table) and the
@@ -90,7 +91,7 @@ def compile_spec(spec: mujoco.MjSpec, what: str) -> mujoco.MjModel:
 
 
 def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
-               obstacles: Sequence[tuple[float, float, float]] = ()) -> mujoco.MjSpec:
+               obstacles: Sequence[Obstacle] = ()) -> mujoco.MjSpec:
     """The full world's MjSpec: robot with servos, table, object (if any), obstacles, contact settings."""
     spec = robot_spec(config.arm, config.hand)
     _contact_options(spec, config)
@@ -121,11 +122,21 @@ def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
     table.priority, table.condim = TABLE_PRIORITY, materials.condim
     if placed is not None:
         _add_object(spec, config, placed)
-    for index, (x, y, radius) in enumerate(obstacles):
-        cylinder = spec.worldbody.add_geom(name=f"obstacle {index}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-                                           size=[radius, OBSTACLE_HEIGHT_M / 2, 0.0], pos=[x, y, OBSTACLE_HEIGHT_M / 2])
-        cylinder.contype, cylinder.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
-        cylinder.condim = materials.condim
+    cylinders = [o for o in obstacles if isinstance(o, CircleObstacle)]
+    walls = [o for o in obstacles if isinstance(o, WallObstacle)]
+    for index, circle in enumerate(cylinders):
+        geom = spec.worldbody.add_geom(name=f"obstacle {index}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                                       size=[circle.radius, CYLINDER_HEIGHT_M / 2, 0.0],
+                                       pos=[circle.x, circle.y, CYLINDER_HEIGHT_M / 2])
+        geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+        geom.condim = materials.condim
+    for index, wall in enumerate(walls):
+        T = wall_pose(wall)
+        geom = spec.worldbody.add_geom(name=f"wall {index}", type=mujoco.mjtGeom.mjGEOM_BOX,
+                                       size=wall_half_extents(wall).tolist(), pos=T[:3, 3].tolist(), quat=wxyz(T[:3, :3]))
+        geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
+        geom.friction = [materials.table_friction, materials.torsional_friction, materials.rolling_friction]
+        geom.condim = materials.condim
     _contact_geoms(spec, config)
     return spec
 
@@ -153,7 +164,7 @@ def finger_of_body(spec: mujoco.MjSpec, hand_joints: Sequence[str]) -> dict[str,
 
 
 def build_model(config: MujocoConfig, placed: PlacedObject | None = None,
-                obstacles: Sequence[tuple[float, float, float]] = ()) -> mujoco.MjModel:
+                obstacles: Sequence[Obstacle] = ()) -> mujoco.MjModel:
     """The compiled world (ModelError naming what failed)."""
     what = f"{config.arm}+{config.hand}" + (f" with object {placed.obj.id}" if placed is not None else "")
     return compile_spec(build_spec(config, placed, obstacles), what)

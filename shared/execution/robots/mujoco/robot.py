@@ -36,7 +36,7 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from shared.contracts.messages import SimWorld
+from shared.contracts.messages import Obstacle, SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
 from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
@@ -76,7 +76,7 @@ class MujocoRobot(SimulatedRobot):
         self.model: mujoco.MjModel | None = None
         self.data: mujoco.MjData | None = None
         self._placed: PlacedObject | None = None
-        self._obstacles: tuple[tuple[float, float, float], ...] = ()
+        self._obstacles: tuple[Obstacle, ...] = ()
         self._lock = threading.RLock()  # one stepping caller at a time
         self._renderers = RendererSlot()  # taken before `_lock` when both are
         self.collisions: dict[tuple[str, str], float] = {}
@@ -171,11 +171,11 @@ class MujocoRobot(SimulatedRobot):
             if self.camera_tracker is not None:  # the model is at hand: the cameras track it from where it stands
                 self.camera_tracker.reset(obj.mesh, T_world_O, CameraRig.around(T_world_O, obj.mesh), 0)
 
-    def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
-        """Static cylinders (x, y, radius) on the table."""
+    def add_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+        """Static cylinders and walls on the table."""
         with self._lock:
             q = self.observe().positions
-            self._obstacles = (*self._obstacles, *((float(x), float(y), float(r)) for x, y, r in circles))
+            self._obstacles = (*self._obstacles, *obstacles)
             self._build(q)
 
     # ---------------------------------------------------------------------------------------- observe

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.contracts.messages import ObjectRef, SimWorld
+from shared.contracts.messages import ObjectRef, Obstacle, SimWorld
 from shared.execution.executor import StatePublisher
 from shared.execution.limits import SafetyRefusal
 from shared.execution.robot import ExecutionReport, JointTrajectory, MotionStopped
@@ -60,7 +60,7 @@ class TrueWorld:
 
     obj: ObjectRef
     T_world_O: np.ndarray  # the object's true pose
-    obstacles: tuple[tuple[float, float, float], ...] = ()  # (x, y, radius) cylinders on the table
+    obstacles: tuple[Obstacle, ...] = ()  # cylinders and walls on the table
     physics: PhysicsParams | None = None  # None: the robot's nominal physics (its config's)
     mass_scale: float = 1.0
     com_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # in the object's frame O
@@ -81,7 +81,7 @@ class TrueWorld:
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
         """`world` taken as the truth: all a bus bridge knows."""
-        return cls(world.object, pose_matrix(world.object_pose), tuple((o.x, o.y, o.radius) for o in world.obstacles))
+        return cls(world.object, pose_matrix(world.object_pose), tuple(world.obstacles))
 
     @property
     def tracked_model(self) -> tuple[ObjectRef, np.ndarray]:
@@ -173,11 +173,11 @@ class SimRobot(SimulatedRobot):
             self._tracked, self._lost = None, None
             self._T_O_tracked = np.eye(4)  # tracked in its own frame, unless the world says otherwise (reset_world)
 
-    def add_obstacles(self, circles: Sequence[tuple[float, float, float]]) -> None:
-        """Static cylinders (x, y, radius) on the table."""
+    def add_obstacles(self, obstacles: Sequence[Obstacle]) -> None:
+        """Static cylinders and walls on the table."""
         scene = self._scene()
         with self._lock:
-            scene.add_obstacles(circles)
+            scene.add_obstacles(obstacles)
 
     # ---------------------------------------------------------------------------------------- observe
 
@@ -213,13 +213,16 @@ class SimRobot(SimulatedRobot):
     def render_depth(self, cameras: Sequence[np.ndarray], intrinsics: Intrinsics,
                      windows: Sequence[tuple[slice, slice]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per camera: ideal depth of the scene as it is now (TinyRenderer: the arm, hand, object and obstacles)
-        and the robot's self-filter mask (the pixels its links cover); only each window is drawn."""
+        and the self-filter mask (the pixels the robot's links and the obstacles cover); only each window is drawn."""
         scene = self._scene()
         with self._lock:
             drawn: Sequence[tuple[slice, slice] | None] = [None] * len(cameras) if windows is None else windows
             seen = [render_depth(scene.client, T_world_camera, intrinsics, window)
                     for T_world_camera, window in zip(cameras, drawn, strict=True)]
-        return [(depth, bodies == scene.robot_id) for depth, bodies in seen]
+        # The mask covers what the system knows stands there besides the object: the robot (its model rendered at
+        # its joints) and the workcell's obstacles and walls (a real pipeline subtracts its static scene).
+        known = [scene.robot_id, *(body.id for body in scene.obstacles + scene.walls)]
+        return [(depth, np.isin(bodies, known)) for depth, bodies in seen]
 
     # ------------------------------------------------------------------------------------------ send
 
