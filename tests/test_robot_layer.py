@@ -131,6 +131,24 @@ def test_an_engaged_estop_refuses_commands_before_anything_moves():
     assert arm.commands == hand.commands == 0
 
 
+def test_an_estop_that_lands_before_a_device_starts_is_reported_as_the_estop():
+    """On a busy machine the e-stop can stop a device between the executor's checks and its first command: the
+    device then refuses to start, and the report names the operator's stop, not a device fault."""
+    arm, hand = devices()
+    latch = EStopLatch()
+    executor = Executor("xarm7", "leap", [arm, hand], latch)
+    send = arm.send
+
+    def send_after_the_estop(*args, **kwargs):
+        latch.engage(EStop(reason="person in the cell"))
+        arm._stop_requested.wait(1.0)  # the latch's thread has stopped the device
+        return send(*args, **kwargs)
+
+    arm.send = send_after_the_estop  # type: ignore[method-assign]
+    state = executor.execute(command(XARM_HOME + 0.5, 2.0), LocalLease())
+    assert state.status == "stopped" and state.message.startswith("e-stop: person in the cell"), state.message
+
+
 def test_the_estop_latch_stops_a_running_motion_and_stays_latched():
     arm, hand = devices()
     latch = EStopLatch()

@@ -98,7 +98,7 @@ def test_the_pybullet_robot_reports_touching_a_wall_and_the_object_may_slide_alo
     assert scene.walls == [] and scene.obstacles == [] and scene.object is None
 
 
-def test_the_mujoco_world_builds_a_wall_as_a_box_and_its_cameras_mask_it_as_known_scene():
+def test_the_mujoco_world_builds_a_wall_as_a_box_its_cameras_see():
     import mujoco
 
     from shared.execution.robots.mujoco.config import MujocoConfig
@@ -118,10 +118,26 @@ def test_the_mujoco_world_builds_a_wall_as_a_box_and_its_cameras_mask_it_as_know
     with MujocoRobot(MujocoConfig("panda", "allegro")) as robot:
         ((depth, _),) = robot.render_depth([camera], intrinsics)
         robot.add_obstacles([wall])
-        ((walled, known),) = robot.render_depth([camera], intrinsics)
+        ((walled, robot_mask),) = robot.render_depth([camera], intrinsics)
     centre = (24, 32)
-    assert walled[centre] < depth[centre] - 0.01  # the wall stands in front of the table
-    assert known[centre]  # the tracker leaves it out with the robot
+    assert walled[centre] < depth[centre] - 0.01 and not robot_mask[centre]  # the wall stands in front of the table
+
+
+def test_the_image_tracker_leaves_a_known_walls_points_out_of_the_object():
+    from shared.world.perception.tracking import ObjectTracker
+    from shared.world.sim.camera import capture_object
+
+    obj = load_object("proc-box-001")
+    T = make_transform(np.eye(3), np.array([0.45, 0.0, 0.0])) @ obj.T_D_O()
+    side = float(np.max(obj.mesh.vertices @ T[:3, :3].T[:, 1]))
+    wall = WallObstacle(x=0.45, y=side + WALL_GAP_M + 0.01, length_m=0.4, height_m=0.06)
+    frames = capture_object(obj, T, n_cameras=3, seed=0, obstacles=[wall]).frames
+    tracker = ObjectTracker.from_mesh(obj.mesh)
+    centre, radius = T[:3, 3], tracker.radius_m + 0.03
+    for known, expected_on_wall in (([], True), ([wall], False)):
+        tracker.reset(T, known)
+        points = tracker.segment(frames, [None] * len(frames), centre, radius)
+        assert bool(on_obstacles(points, [wall], 0.0).any()) is expected_on_wall
 
 
 def wall_episode(trial: int = 0, method: str = "fixed-corrected") -> protocol.Episode:

@@ -365,11 +365,13 @@ class Executor:
         for robot in self.robots:
             threading.Thread(target=run, args=(robot,), name=f"exec-{robot.name}", daemon=True).start()
         self._supervise(command, finished, watch, reasons)
+        from_outside: list[str] = []
         if stop.is_set():
-            reasons[:0] = self._stop_reasons(lease, watch, time.monotonic()) or ([] if reasons else ["stopped"])
+            from_outside = self._stop_reasons(lease, watch, time.monotonic())
+            reasons[:0] = from_outside or ([] if reasons else ["stopped"])
             if not self.estop.engaged:
                 self._recover(reasons)  # a lease-loss stop is no device fault: ready for the next lease
-        return self._outcome(command, reports, reasons)
+        return self._outcome(command, reports, reasons, bool(from_outside))
 
     def _supervise(self, command: ExecutionCommand, finished: threading.Event, watch: _Watch, reasons: list[str]) -> None:
         """Until every robot is done, each state tick: stop all on lease loss, e-stop, an effort over its
@@ -433,9 +435,14 @@ class Executor:
                 continue
         return observations
 
-    def _outcome(self, command: ExecutionCommand, reports: Mapping[str, object], reasons: list[str]) -> ExecutionState:
+    def _outcome(self, command: ExecutionCommand, reports: Mapping[str, object], reasons: list[str],
+                 stopped_from_outside: bool = False) -> ExecutionState:
+        """The command's end. Stopped from outside (the e-stop, a lost lease), it is "stopped" whatever each device
+        said: a device the stop reached before its motion began refuses to start ("stopped; call recover()"),
+        which on a busy machine can happen, and is the stop's doing, not a fault (its words stay in the message)."""
         failures = {name: r for name, r in reports.items() if isinstance(r, BaseException)}
-        if reasons and all(isinstance(r, MotionStopped) or not isinstance(r, BaseException) for r in reports.values()):
+        if reasons and (stopped_from_outside or all(isinstance(r, MotionStopped) or not isinstance(r, BaseException)
+                                                    for r in reports.values())):
             stopped = [str(r) for r in reports.values() if isinstance(r, MotionStopped)]
             return self.state("stopped", command.id, "; ".join([*reasons, *stopped]))
         if failures:

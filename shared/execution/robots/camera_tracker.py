@@ -5,7 +5,8 @@ ones by default. At each tracking frame the engine renders depth from every came
 (`CameraRig.true_poses`: a calibration is never exact), the D435-class noise of `shared.world.sim.camera` is added, and
 the frames go to `shared.world.perception.tracking.ObjectTracker` stamped with the poses the system *believes*
 (`CameraRig.believed`, levelled to the table once per rig as the capture's frames are), together with the robot's
-self-filter mask (the pixels its model covers at its measured joints, and the workcell's known obstacles and walls). The tracker segments the object, registers
+self-filter mask (the pixels its model covers at its measured joints) and the known obstacles and walls (their points
+are left out, as the planner leaves them out of a cloud). The tracker segments the object, registers
 the model the system has (the told mesh, or the reconstruction it planned around) and reports a pose with a
 fitness, or "lost". Nothing here reads the simulator's object pose: the engine only draws pictures.
 
@@ -20,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from shared.contracts.messages import Obstacle
 from shared.world.perception.depth import DepthFrame, Intrinsics, level_to_table
 from shared.world.perception.tracking import ObjectTracker, TrackedPose, TrackingConfig
 from shared.world.sim.camera import (
@@ -97,11 +99,13 @@ class CameraTracker:
         self._believed: list[np.ndarray] = []  # the rig's poses as calibrated, then levelled to the table
         self._rng = np.random.default_rng(0)
 
-    def reset(self, model: trimesh.Trimesh, T_world_O: np.ndarray, rig: CameraRig, seed: int) -> None:
+    def reset(self, model: trimesh.Trimesh, T_world_O: np.ndarray, rig: CameraRig, seed: int,
+              obstacles: Sequence[Obstacle] = ()) -> None:
         """Track `model` (the system's, in its frame O), which the system was told stands at `T_world_O`, through
-        `rig`; the depth noise drawn from `seed`. A new rig is first levelled to the table (`_level`)."""
+        `rig`, among the known `obstacles`; the depth noise drawn from `seed`. A new rig is first levelled to the
+        table (`_level`)."""
         self._tracker = ObjectTracker.from_mesh(model, self.config)
-        self._tracker.reset(np.asarray(T_world_O, dtype=np.float64))
+        self._tracker.reset(np.asarray(T_world_O, dtype=np.float64), obstacles)
         self._rng = np.random.default_rng(seed)
         if rig != self._rig:
             self._believed = self._level(rig)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
-from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack
+from shared.contracts.messages import ExecutionState, ObjectPose, ObjectRef, ObjectTrack, Obstacle
 from shared.execution.executor import StatePublisher
 from shared.execution.robot import Observation, Robot
 from shared.execution.robots import TRACKING_MODES, TrackingMode
@@ -66,16 +66,16 @@ class SimulatedRobot(Robot):
         return self.camera_tracker.config.rate_hz if self.camera_tracker is not None else self.tracker.config.rate_hz
 
     def _reset_tracking(self, seed: int, T_O_tracked: np.ndarray | None, told: tuple[ObjectRef, np.ndarray],
-                        rig: CameraRig | None) -> None:
+                        rig: CameraRig | None, obstacles: Sequence[Obstacle] = ()) -> None:
         """A new world: forget what was seen. `told`: the model the system has and where it was told the model
         stands (the image tracker registers that model from there); `rig`: the cameras (None: the default rig
-        aimed at the told pose, calibrated)."""
+        aimed at the told pose, calibrated); `obstacles`: the known ones, which the image tracker leaves out."""
         self.tracker.reset(seed)
         self._T_O_tracked = np.eye(4) if T_O_tracked is None else np.asarray(T_O_tracked, dtype=np.float64)
         if self.camera_tracker is not None:
             ref, T_told = told
             model = load_object_ref(ref).mesh
-            self.camera_tracker.reset(model, T_told, rig or CameraRig.around(T_told, model), seed)
+            self.camera_tracker.reset(model, T_told, rig or CameraRig.around(T_told, model), seed, obstacles)
         self._tracked, self._lost, self._fitness = None, None, None
 
     def render_depth(self, cameras: Sequence[np.ndarray], intrinsics: Intrinsics,

@@ -61,6 +61,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from shared.contracts.messages import Obstacle
+from shared.world.obstacles import off_obstacles
+
 from .cloud import voxel_downsample
 from .depth import DepthFrame, Intrinsics, transform_points_no_blas
 from .errors import PerceptionError
@@ -183,6 +186,7 @@ class ObjectTracker:
         self._tree = cKDTree(points)
         self.registration = self._registration()
         self._T_good: np.ndarray | None = None  # last tracked pose (world <- O)
+        self._obstacles: tuple[Obstacle, ...] = ()  # known obstacles and walls near the object
         self._since_good = 0  # frames since it (1 on the frame after a tracked one)
         self._velocity = np.zeros(3)  # the model centre's shift between the last two tracked frames, if consecutive
 
@@ -201,8 +205,10 @@ class ObjectTracker:
 
     # ------------------------------------------------------------------------------------------ state
 
-    def reset(self, T_world_O: np.ndarray) -> None:
-        """Start from this pose (the pose the system was told or perceived)."""
+    def reset(self, T_world_O: np.ndarray, obstacles: Sequence[Obstacle] = ()) -> None:
+        """Start from this pose (the pose the system was told or perceived), among the known `obstacles` (cylinders
+        and walls: their points are never the object's)."""
+        self._obstacles = tuple(obstacles)
         self._T_good = _check_pose(T_world_O)
         self._since_good = 1
         self._velocity = np.zeros(3)
@@ -271,10 +277,10 @@ class ObjectTracker:
 
     def segment(self, frames: Sequence[DepthFrame], robot_masks: Sequence[np.ndarray | None], centre: np.ndarray,
                 radius_m: float) -> np.ndarray:
-        """[N, 3] world points of the object: within `radius_m` of `centre`, off the robot and the table,
-        voxel-downsampled, isolated points dropped."""
+        """[N, 3] world points of the object: within `radius_m` of `centre`, off the robot, the table and the known
+        obstacles, voxel-downsampled, isolated points dropped."""
         parts = [self._frame_points(frame, mask, centre, radius_m) for frame, mask in zip(frames, robot_masks, strict=True)]
-        points = np.concatenate(parts, axis=0)
+        points = off_obstacles(np.concatenate(parts, axis=0), self._obstacles)
         if len(points) == 0:
             return points
         points = voxel_downsample(points, self.config.voxel_m)

@@ -99,11 +99,7 @@ class DepthRenderer:
         self._free_camera = mujoco.MjvCamera()
         mujoco.mjv_defaultFreeCamera(model, self._free_camera)
         self._rect = mujoco.MjrRect(0, 0, width, height)
-        # The mask covers what the system knows stands there besides the object: the robot's links and the
-        # workcell's obstacles and walls (a real pipeline renders its robot model and subtracts its static scene).
-        fixtures = np.array([model.geom(i).name.startswith(("obstacle", "wall")) for i in range(model.ngeom)], dtype=bool)
-        known = ((np.asarray(model.geom_contype) & ROBOT_GROUP) != 0) | fixtures
-        self._robot_geom = np.append(known, False)  # [-1]: not a geom
+        self._robot_geom = np.append((np.asarray(model.geom_contype) & ROBOT_GROUP) != 0, False)  # [-1]: not a geom
         extent = float(model.stat.extent)
         self.near_m = float(np.float32(model.vis.map.znear * extent))
         self.far_m = float(np.float32(model.vis.map.zfar * extent))

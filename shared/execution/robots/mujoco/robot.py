@@ -150,7 +150,7 @@ class MujocoRobot(SimulatedRobot):
             self._placed, self._obstacles = placed, tuple(world.obstacles)
             self.world_config = self.config if draw is None else self.config.drawn(draw)
             self._build(None)
-        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig)
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.obstacles)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its

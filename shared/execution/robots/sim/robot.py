@@ -155,7 +155,7 @@ class SimRobot(SimulatedRobot):
         self.add_object(urdf, world.T_world_O)
         self.add_obstacles(world.obstacles)
         # The next observation is a frame of this world's object.
-        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig)
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.obstacles)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -213,16 +213,13 @@ class SimRobot(SimulatedRobot):
     def render_depth(self, cameras: Sequence[np.ndarray], intrinsics: Intrinsics,
                      windows: Sequence[tuple[slice, slice]] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """Per camera: ideal depth of the scene as it is now (TinyRenderer: the arm, hand, object and obstacles)
-        and the self-filter mask (the pixels the robot's links and the obstacles cover); only each window is drawn."""
+        and the robot's self-filter mask (the pixels its links cover); only each window is drawn."""
         scene = self._scene()
         with self._lock:
             drawn: Sequence[tuple[slice, slice] | None] = [None] * len(cameras) if windows is None else windows
             seen = [render_depth(scene.client, T_world_camera, intrinsics, window)
                     for T_world_camera, window in zip(cameras, drawn, strict=True)]
-        # The mask covers what the system knows stands there besides the object: the robot (its model rendered at
-        # its joints) and the workcell's obstacles and walls (a real pipeline subtracts its static scene).
-        known = [scene.robot_id, *(body.id for body in scene.obstacles + scene.walls)]
-        return [(depth, np.isin(bodies, known)) for depth, bodies in seen]
+        return [(depth, bodies == scene.robot_id) for depth, bodies in seen]
 
     # ------------------------------------------------------------------------------------------ send
 
