@@ -190,6 +190,12 @@ class LocalRobot:
         # The cameras the robot's image tracker sees through (set per trial: the capture's, with their drawn
         # calibration errors); None: the default rig, calibrated.
         self.rig: CameraRig | None = None
+        # Other objects beside the true one (clutter), each where it truly stands: in every world a reset builds,
+        # never told to the planner (a request may tell it where they are as obstacles). Set per trial.
+        self.neighbours: tuple[tuple[ObjectRef, np.ndarray], ...] = ()
+        # The obstacles truly standing, when they are not what the planner was told (a neighbour told as a cylinder
+        # is a neighbour, not a cylinder); None: the told ones. Set per trial.
+        self.true_obstacles: tuple[Obstacle, ...] | None = None
         self._watching: tuple[PushMonitor, LocalLease] | None = None  # the executing push's monitor, and its lease
         self.view: ViewSink | None = _view  # a live view shown every state (`gd2p eval --view`)
         self.tracking = TrackingErrors()  # the judge's comparison of every tracked frame with the truth
@@ -227,7 +233,7 @@ class LocalRobot:
         finding a reason to stop (closed loop) — stops it."""
         executor, robot = self.executor(plan.arm, plan.hand), self.robot(plan.arm, plan.hand)
         if world is not None:
-            robot.reset_world(true_world(world, self.execution_world, self.true_object, self.rig))
+            robot.reset_world(self._true_world(world, self.rig))
         self.tracking.start_push()
         lease = LocalLease()
         unregister = cancel.on_cancel(lambda: lease.release("the request was cancelled")) if cancel is not None else (lambda: None)
@@ -245,7 +251,8 @@ class LocalRobot:
     def settle_true_object(self, arm: str, hand: str, max_s: float, obstacles: Sequence[Obstacle] = ()) -> np.ndarray:
         """Put the trial's true object (`true_object`) down in its world with `arm` + `hand` at home, leave it until
         it rests (it moves less than SETTLED_MM in SETTLE_STEP_S) or `max_s` has passed, and make where it came to
-        rest its true pose, among `obstacles`; that pose (T_world_O). What the cameras then capture, the robot pushes and the judge
+        rest its true pose, among `obstacles` (its `neighbours` settle too, and stand where they came to rest);
+        that pose (T_world_O). What the cameras then capture, the robot pushes and the judge
         measures from is where the object truly rests, not where it was put: a ball with a drawn centre of mass
         rolls off its spot, a box stays within a fraction of a millimetre."""
         if self.true_object is None:
@@ -253,7 +260,7 @@ class LocalRobot:
         ref, T_put = self.true_object
         robot = self.robot(arm, hand)
         told = SimWorld(object=ref, object_pose=object_pose(T_put), obstacles=list(obstacles))
-        robot.reset_world(true_world(told, self.execution_world, self.true_object))
+        robot.reset_world(self._true_world(told, None))
         before = pose_matrix(self.true_object_pose(arm, hand))
         for _ in range(max(1, round(max_s / SETTLE_STEP_S))):
             robot.let_object_settle(SETTLE_STEP_S)
@@ -263,7 +270,18 @@ class LocalRobot:
             if moved < SETTLED_MM / 1000.0:
                 break
         self.true_object = (ref, before)
+        self.neighbours = tuple((n_ref, T) for (n_ref, _), T in zip(self.neighbours, robot.neighbour_poses(), strict=True))
         return before
+
+    def _true_world(self, told: SimWorld, rig: CameraRig | None) -> TrueWorld:
+        """`true_world` of the told world with this trial's neighbours and true obstacles."""
+        world = true_world(told, self.execution_world, self.true_object, rig)
+        obstacles = world.obstacles if self.true_obstacles is None else self.true_obstacles
+        return replace(world, neighbours=self.neighbours, obstacles=obstacles, known_obstacles=tuple(told.obstacles))
+
+    def true_neighbour_poses(self, arm: str, hand: str) -> list[np.ndarray]:
+        """Where the neighbours truly are now (T_world_O each, as `neighbours` lists them)."""
+        return self.robot(arm, hand).neighbour_poses()
 
     def true_object_pose(self, arm: str, hand: str) -> ObjectPose:
         """Where the object truly is now (what the evaluation judges; the planner sees the tracker's pose)."""

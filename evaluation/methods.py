@@ -23,7 +23,7 @@ from evaluation import push_protocol as protocol
 from evaluation.report import SUMMARY_FILE, markdown_table, write_experiment
 from evaluation.stats import difference_interval, mean_interval, success_interval
 from evaluation.store import SETTINGS_FILE, ResultStore
-from evaluation.tasks import SHAPE_TASK_OBJECTS, SHAPE_TASKS, TASK_CRITERIA
+from evaluation.tasks import NEIGHBOUR_MOVED_M, SHAPE_TASK_OBJECTS, SHAPE_TASKS, TASK_CRITERIA
 from shared.execution.robots import TrackingMode
 from shared.world.push_outcome import rollout_predicts_success
 from shared.world.sim.world import WorldLevel
@@ -270,13 +270,16 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     (it fails on the true object where it truly stood, in nominal physics: the told pose or the
     reconstruction) and "physics" (it succeeds there: the execution world's physics), or is "world gap"
     where no replay was made (trials before replays existed, and requests of several pushes). None for
-    a success; "wall contact" when the robot touched the wall task's wall."""
+    a success; "wall contact" when the robot touched the wall task's wall, "neighbour moved" when the clutter task's
+    neighbour was moved."""
     if record["success"]:
         return None
     if record["outcome"] != "failure":
         return "planning"
     if record.get("robot_touched_wall"):
         return "wall contact"
+    if max(record.get("neighbours_moved_m") or [0.0]) > NEIGHBOUR_MOVED_M:
+        return "neighbour moved"
     predicted = record.get("predicted_l_goal")
     if predicted is None:
         return "unpredicted"
@@ -293,6 +296,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
 FAILURE_CAUSES = {
     "planning": "no feasible plan (or an error)",
     "wall contact": "the robot touched the wall (the wall task)",
+    "neighbour moved": "a neighbour was moved more than 1 cm (the clutter task)",
     "pose quality": "the executed plan's own rollout predicted the failure",
     "prediction": "predicted to succeed, and the same plan fails in the planner's own world too (rollout and robot parted)",
     "perception": "predicted to succeed, and the same plan fails on the true object where it truly stood, in nominal "

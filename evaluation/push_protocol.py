@@ -47,11 +47,24 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial import ConvexHull
 from tqdm import tqdm
 
 from evaluation.report import CODE_AT_START
-from evaluation.tasks import POSE_TASK_TURN_DEG, TASKS, WALL_ANGLE_DEG, WALL_GAP_M, WALL_HEIGHT_M, WALL_LENGTH_M
+from evaluation.tasks import (
+    CLUTTER_BEARINGS_DEG,
+    CLUTTER_GAP_M,
+    CLUTTER_PROPS,
+    NEIGHBOUR_MOVED_M,
+    POSE_TASK_TURN_DEG,
+    TASKS,
+    WALL_ANGLE_DEG,
+    WALL_GAP_M,
+    WALL_HEIGHT_M,
+    WALL_LENGTH_M,
+)
 from shared.contracts.messages import (
+    CircleObstacle,
     ExecutionResult,
     ObjectPose,
     ObjectRef,
@@ -68,6 +81,7 @@ from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import list_object_ids, resolve_library_id
 from shared.world.objects.final_split import is_final_id
 from shared.world.objects.geometry import rolls
+from shared.world.obstacles import cut_known_obstacles, distance_to_hull
 from shared.world.push_outcome import (
     YawGoal,
     judge_push,
@@ -270,6 +284,48 @@ def task_obstacles(episode: Episode) -> list[WallObstacle]:
                          length_m=WALL_LENGTH_M, height_m=WALL_HEIGHT_M)]
 
 
+Neighbours = tuple[tuple[ObjectRef, np.ndarray], ...]  # each neighbour and where it truly stands (T_world_O)
+
+
+def task_neighbours(episode: Episode) -> Neighbours:
+    """The objects standing beside the one pushed: for the clutter task, one or two of CLUTTER_PROPS (drawn from
+    the trial's seed) each CLUTTER_GAP_M from where the object is truly put down, at CLUTTER_BEARINGS_DEG from the
+    push; none otherwise. Each is put down with the object and settles with it."""
+    if episode.task != "clutter":
+        return ()
+    T_put = put_down(episode, execution_world(episode))
+    footprint = ConvexHull(load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T[:, :2])
+    rng = np.random.default_rng([episode.seed, 7])  # its own stream: the placement's draws stay as they were
+    neighbours = []
+    for bearing in CLUTTER_BEARINGS_DEG[episode.trial % 2]:
+        prop = load_object(CLUTTER_PROPS[int(rng.integers(len(CLUTTER_PROPS)))])
+        T_D_O = prop.T_D_O()
+        radius = float(np.max(np.linalg.norm((prop.mesh.vertices @ T_D_O[:3, :3].T)[:, :2], axis=1)))
+        toward = direction_xy(episode.direction_deg + bearing)
+        clearance = float(rng.uniform(*CLUTTER_GAP_M)) + radius  # from the footprint to the neighbour's axis
+        # Out along the bearing until the footprint's nearest point is that far (a box's corner may be nearest).
+        low, high = 0.0, float(np.max(np.linalg.norm(footprint.points, axis=1))) + clearance
+        for _ in range(40):
+            middle = (low + high) / 2.0
+            low, high = (middle, high) if distance_to_hull(footprint, middle * toward) < clearance else (low, middle)
+        centre = T_put[:2, 3] + high * toward
+        neighbours.append((ObjectRef(library_id=prop.id), make_transform(np.eye(3), np.array([*centre, 0.0])) @ T_D_O))
+    return tuple(neighbours)
+
+
+def neighbour_circles(neighbours: Neighbours) -> list[CircleObstacle]:
+    """What the request tells of the neighbours where they stand: each a cylinder around it, as tall as it stands
+    (what a user's perception gives), which nothing may touch."""
+    circles = []
+    for ref, T in neighbours:
+        assert ref.library_id is not None  # the clutter props are library objects
+        points = load_object(ref.library_id).mesh.vertices @ T[:3, :3].T + T[:3, 3]
+        centre = points[:, :2].min(axis=0) / 2.0 + points[:, :2].max(axis=0) / 2.0
+        circles.append(CircleObstacle(x=float(centre[0]), y=float(centre[1]), height_m=float(points[:, 2].max()),
+                                      radius=float(np.max(np.linalg.norm(points[:, :2] - centre, axis=1)))))
+    return circles
+
+
 def placement(episode: Episode) -> np.ndarray:
     """T_world_O the system is told for the episode's trial: resting at the spot in front of the robot,
     re-placed with noise (the true pose differs by the execution world's pose error)."""
@@ -290,17 +346,19 @@ def half_extents(object_id: str) -> np.ndarray:
     return world_half_extents(load_object(object_id).mesh.vertices)
 
 
-def push_request(episode: Episode, T_start: np.ndarray) -> PushRequest:
+def push_request(episode: Episode, T_start: np.ndarray, neighbours: Neighbours = ()) -> PushRequest:
     """What the system is asked: the object as told (mesh and the told pose), or as the cameras see it where it
     truly rests (`T_start`). The paper's task (and each shape task) asks for a push along the direction; the pose
     task for the point
     the push would reach from where the object truly rests (where a user wants it on the table) with the yaw
-    the system sees it at turned `goal_turn_deg`."""
+    the system sees it at turned `goal_turn_deg`. The obstacles: the task's walls, and its `neighbours` (where they
+    truly rest) told as cylinders."""
     common = dict(distance_m=PUSH_DISTANCE_M, hand=episode.hand, arm=episode.arm, seed=episode.seed,
-                  options=METHODS[episode.method].options, obstacles=task_obstacles(episode))
+                  options=METHODS[episode.method].options,
+                  obstacles=[*task_obstacles(episode), *neighbour_circles(neighbours)])
     told: dict[str, Any] = {"object": ObjectRef(library_id=episode.object_id), "object_pose": object_pose(placement(episode))}
     if episode.cameras:
-        told = {"object": ObjectRef(point_cloud=captured_cloud(episode, T_start))}
+        told = {"object": ObjectRef(point_cloud=captured_cloud(episode, T_start, neighbours))}
     if episode.task != "pose":  # the paper's push (the shape tasks ask it too)
         return PushRequest(direction_deg=episode.direction_deg, **told, **common)
     seen_yaw = _seen_yaw(told["object"], told.get("object_pose"))
@@ -336,15 +394,17 @@ def _target(episode: Episode, T_start: np.ndarray) -> np.ndarray:
     return T_start[:2, 3] + PUSH_DISTANCE_M * direction_xy(episode.direction_deg)
 
 
-def captured_cloud(episode: Episode, T_start: np.ndarray) -> np.ndarray:
+def captured_cloud(episode: Episode, T_start: np.ndarray, neighbours: Neighbours = ()) -> np.ndarray:
     """The cloud `episode.cameras` depth cameras capture of the object where it truly rests, `T_start` (seeded
-    per trial)."""
+    per trial), with the task's walls (left out of the cloud as known) and `neighbours` (in it) in view."""
     from shared.world.perception import cloud_for_request
     from shared.world.sim.camera import capture_object
 
     world = execution_world(episode)
     capture = capture_object(load_object(episode.object_id), T_start, n_cameras=episode.cameras, seed=episode.world_seed,
-                             camera_errors=world.camera_errors, obstacles=task_obstacles(episode))
+                             camera_errors=world.camera_errors, obstacles=task_obstacles(episode),
+                             neighbours=[(load_object(ref.library_id).mesh, T) for ref, T in neighbours
+                                         if ref.library_id is not None])
     return cloud_for_request(capture.cloud)
 
 
@@ -361,7 +421,7 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
     assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
     robot = system.robot
     if request.object.point_cloud is not None:
-        T_told = captured_object(request.object).T_world_O
+        T_told = captured_object(cut_known_obstacles(request).object).T_world_O
     else:
         assert request.object_pose is not None  # a told mesh comes with its pose
         T_told = pose_matrix(request.object_pose)
@@ -391,6 +451,11 @@ def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> Exe
         yaw_goal = _yaw_goal(obj.resting_poses, T_start, _wrapped(start_yaw + episode.goal_turn_deg))
     return judge_push(T_start, _target(episode, T_start), final, yaw_goal=yaw_goal,
                       rolling=rolls_at(episode.object_id, T_start))
+
+
+def neighbours_moved_m(start: Neighbours, now: Sequence[np.ndarray]) -> list[float]:
+    """How far each neighbour's centre moved on the table since the trial's start (a toppled can's moves too)."""
+    return [round(float(np.linalg.norm(T_now[:2, 3] - T[:2, 3])), 4) for (_, T), T_now in zip(start, now, strict=True)]
 
 
 SMALL_MAX_M = 0.04  # an object no side of which is longer than this is small
@@ -499,13 +564,16 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     # The robot pushes the true object where it truly rests, whatever the system was told or saw.
     T_put = put_down(episode, world)
     system.robot.true_object = (ObjectRef(library_id=episode.object_id), T_put)
+    system.robot.neighbours = task_neighbours(episode)
+    system.robot.true_obstacles = tuple(task_obstacles(episode))  # the neighbours' cylinders are told, not there
     T_start = system.robot.settle_true_object(episode.arm, episode.hand, SETTLE_S, task_obstacles(episode))
+    neighbours = system.robot.neighbours  # where they came to rest
     system.robot.rig = camera_rig(episode, world, T_start)
     system.robot.tracking = TrackingErrors()
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
                               "engine": engine_of(world), "shape": shape_of(episode.object_id, T_start),
                               "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - T_put[:2, 3])), 4)}
-    request = push_request(episode, T_start)  # with cameras: rendered once (the capture is seeded by the trial)
+    request = push_request(episode, T_start, neighbours)  # with cameras: rendered once (the capture is seeded by the trial)
     system.robot.contacts.reset()
     try:
         response = pipeline.run(request).response
@@ -520,7 +588,10 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         touched = sorted(system.robot.contacts.robot_obstacle)  # the wall task: the robot must not touch the wall
         if touched:
             record["robot_touched_wall"] = touched
-        success = result.success and not touched
+        moved = neighbours_moved_m(neighbours, system.robot.true_neighbour_poses(episode.arm, episode.hand))
+        if moved:
+            record["neighbours_moved_m"] = moved
+        success = result.success and not touched and max(moved, default=0.0) <= NEIGHBOUR_MOVED_M
         record.update(outcome="success" if success else "failure", success=bool(success),
                       position_error_m=result.position_error_m, rotation_deg=result.rotation_deg,
                       toppled=result.toppled, timings_s={k: round(v, 3) for k, v in response.timings_s.items()})

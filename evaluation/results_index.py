@@ -28,6 +28,7 @@ from typing import Any
 from evaluation.report import REPORT_FILE, SUMMARY_FILE, markdown_table
 from evaluation.stats import Interval, success_interval
 from evaluation.store import RECORDS_FILE, SETTINGS_FILE, read_records
+from evaluation.tasks import TASKS
 from shared.atomic import atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,7 +53,7 @@ SPLIT_ORDER = ("final", "test", "unseen", "val", "train")
 
 _PROTOCOL = re.compile(
     r"^(methods|leap|closed-loop|suite)(?:-(real|exact|mujoco))?(?:-camera(\d))?(-truthtrack)?(?:-(val|unseen|final))?"
-    r"(?:-(pose|tall|flat|small|round))?(?:-(.+))?$"
+    rf"(?:-({'|'.join(t for t in TASKS if t != 'paper')}))?(?:-(.+))?$"
 )
 _MULTISTEP = re.compile(r"^multistep(?:-(real|exact))?(?:-closed)?(?:-camera(\d))?(?:-(val))?(?:-(.+))?$")
 _COVERAGE = re.compile(

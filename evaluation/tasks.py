@@ -14,14 +14,22 @@ from __future__ import annotations
 # WALL_ANGLE_DEG to the push (on one side on even trials, the other on odd), so the push leads away from it. A hand
 # square behind the object would stand where the wall is: the robot must find another way to push (a fingertip on
 # the free corner, a pull from above), never touching the wall.
+# "clutter": the paper's push with neighbours standing CLUTTER_GAP_M from the object (cans and cups: CLUTTER_PROPS,
+# library objects of the train split): one beside it, and on even trials a second behind it on the other side. The
+# request tells where they stand as cylinder obstacles (what a user's perception gives); the cameras see them. A
+# neighbour moved more than NEIGHBOUR_MOVED_M fails the trial.
 SHAPE_TASKS = ("tall", "flat", "small", "round")
-TASKS = ("paper", "pose", "wall", *SHAPE_TASKS)
+TASKS = ("paper", "pose", "wall", "clutter", *SHAPE_TASKS)
 POSE_TASK_TURN_DEG = 30.0  # counterclockwise on even trials, clockwise on odd
 SHAPE_TASK_OBJECTS = 6
 WALL_GAP_M = 0.01  # the object's footprint to the wall's face
 WALL_ANGLE_DEG = 45.0  # between the push and the wall
 WALL_LENGTH_M = 0.30  # centred beside the object
 WALL_HEIGHT_M = 0.06
+CLUTTER_PROPS = ("proc-cylinder-007", "proc-cylinder-010", "proc-cylinder-016", "proc-cylinder-025")
+CLUTTER_GAP_M = (0.01, 0.03)  # the object's footprint to a neighbour's, drawn per neighbour
+CLUTTER_BEARINGS_DEG = ((90.0, -135.0), (-90.0,))  # from the push direction, on even and on odd trials
+NEIGHBOUR_MOVED_M = 0.01
 PAPER_CRITERION = "0.20 m along the direction, within 3 cm, turned <= 45 degrees, upright"
 TASK_CRITERIA = {
     "paper": PAPER_CRITERION + " (round objects: position only)",
@@ -29,6 +37,9 @@ TASK_CRITERIA = {
             "15 degrees of that yaw, upright; objects whose yaw a camera can see",
     "wall": PAPER_CRITERION + f"; away from a wall {WALL_GAP_M * 100:g} cm from the object, at {WALL_ANGLE_DEG:g} "
             "degrees to the push behind it (left or right): the robot touching the wall fails",
+    "clutter": PAPER_CRITERION + f"; one or two neighbours (cans, cups) {CLUTTER_GAP_M[0] * 100:g}-"
+               f"{CLUTTER_GAP_M[1] * 100:g} cm from the object, beside and behind it: a neighbour moved more than "
+               f"{NEIGHBOUR_MOVED_M * 100:g} cm fails",
     "tall": PAPER_CRITERION + "; standing objects over 1.5 times as tall as their footprint is wide (bottles, boxes on "
             "end): toppling fails",
     "flat": PAPER_CRITERION + "; lying objects under 0.4 times as tall as their footprint is wide (plates, books, spatulas)",

@@ -15,7 +15,7 @@ from shared.frames import direction_xy, make_transform
 from shared.planning.goals import check_obstacles
 from shared.planning.outcome import PushError
 from shared.world.objects import load_object
-from shared.world.obstacles import as_discs, on_obstacles, wall_depth_into, wall_outline
+from shared.world.obstacles import as_discs, cut_known_obstacles, on_obstacles, wall_depth_into, wall_outline
 from shared.world.push_outcome import object_pose
 
 
@@ -181,7 +181,6 @@ def test_the_robot_touching_the_wall_is_a_failure_of_its_own_cause():
 def test_a_users_cloud_with_a_wall_in_it_is_planned_on_without_the_wall():
     """A user's cloud is the camera's scene crop: the planner cuts the request's known walls from it before it
     reconstructs the object, so a wall 1 cm away does not join the object's cluster."""
-    from shared.planning.pipeline import _known_obstacles_cut
     from shared.world.object_refs import captured_object
     from shared.world.perception import cloud_for_request
     from shared.world.sim.camera import capture_object
@@ -194,7 +193,7 @@ def test_a_users_cloud_with_a_wall_in_it_is_planned_on_without_the_wall():
     face = np.stack([u.ravel(), np.full(u.size, side + WALL_GAP_M), z.ravel()], axis=1)  # the wall's face the cameras see
     cloud = np.concatenate([capture_object(obj, T, n_cameras=3, seed=0).cloud, face])
     request = PushRequest(object=ObjectRef(point_cloud=cloud_for_request(cloud)), direction_deg=0.0, obstacles=[wall])
-    cut = _known_obstacles_cut(request)
+    cut = cut_known_obstacles(request)
     assert cut.object.point_cloud is not None and len(cut.object.point_cloud.to_numpy()) <= len(cloud) - len(face)
 
     def reaches_y(ref: ObjectRef) -> float:
@@ -204,4 +203,4 @@ def test_a_users_cloud_with_a_wall_in_it_is_planned_on_without_the_wall():
     alone = reaches_y(ObjectRef(point_cloud=cloud_for_request(cloud[: len(cloud) - len(face)])))
     assert reaches_y(cut.object) == pytest.approx(alone, abs=0.001)  # as if the wall were not there
     assert reaches_y(request.object) > alone + 0.005  # uncut, the wall joins the object
-    assert _known_obstacles_cut(request.model_copy(update={"obstacles": []})).object is request.object
+    assert cut_known_obstacles(request.model_copy(update={"obstacles": []})).object is request.object

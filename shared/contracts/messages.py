@@ -412,12 +412,13 @@ class DirectionFrame(Value):
 
 
 class CircleObstacle(Value):
-    """A vertical cylinder obstacle on the table: centre (x, y) and radius in metres. Nothing may touch it: not
-    the robot, not the pushed object (it may be fragile, or someone's cup)."""
+    """A vertical cylinder obstacle on the table: centre (x, y), radius and height in metres. Nothing may touch it:
+    not the robot, not the pushed object (it may be fragile, or someone's cup)."""
 
     x: FiniteFloat
     y: FiniteFloat
     radius: PositiveFloat
+    height_m: PositiveFloat = Field(default=0.3, le=2.0)
 
 
 class WallObstacle(Value):

@@ -35,7 +35,7 @@ from shared.contracts.messages import Obstacle, PushRequest, WallObstacle
 from shared.frames import make_transform, transform_poses, yaw_rotation
 from shared.planning.outcome import PushError
 from shared.robots.reach import reach
-from shared.world.obstacles import describe, wall_depth_into
+from shared.world.obstacles import describe, distance_to_hull, wall_depth_into
 from shared.world.push_outcome import YawGoal
 from shared.world.sim.scene import TABLE_TOP_HALF_EXTENTS_M
 
@@ -68,27 +68,15 @@ def check_obstacles(obstacles: Sequence[Obstacle], footprint_xy: np.ndarray) -> 
     """PushError("bad_request") naming the first obstacle that reaches more than OBSTACLE_OVERLAP_TOLERANCE_M into
     the object's footprint (`footprint_xy` [N, 2]: the object's points in the table plane where it stands)."""
     hull = ConvexHull(np.asarray(footprint_xy, dtype=np.float64))
-    outline = hull.points[hull.vertices]
     for index, obstacle in enumerate(obstacles):
         if isinstance(obstacle, WallObstacle):
-            depth = wall_depth_into(obstacle, outline)
+            depth = wall_depth_into(obstacle, hull.points[hull.vertices])
         else:
-            depth = obstacle.radius - _signed_distance(hull, outline, np.array([obstacle.x, obstacle.y]))
+            depth = obstacle.radius - distance_to_hull(hull, np.array([obstacle.x, obstacle.y]))
         if depth > OBSTACLE_OVERLAP_TOLERANCE_M:
             raise PushError("bad_request", f"obstacle {index} ({describe(obstacle)}) reaches {depth * 1000:.0f} mm into "
                             "the object's footprint: an obstacle must stand clear of the object to be pushed (a "
                             "neighbour or a wall may touch it, not pass through it)")
-
-
-def _signed_distance(hull: ConvexHull, outline: np.ndarray, point: np.ndarray) -> float:
-    """Distance (m) from `point` to the convex polygon (`hull`, its vertices `outline` in order), negative inside."""
-    offsets = hull.equations[:, :2] @ point + hull.equations[:, 2]  # unit outward normals: signed edge distances
-    if np.all(offsets <= 0.0):
-        return float(offsets.max())
-    starts, ends = outline, np.roll(outline, -1, axis=0)
-    edges = ends - starts
-    along = np.clip(np.einsum("ij,ij->i", point - starts, edges) / np.einsum("ij,ij->i", edges, edges), 0.0, 1.0)
-    return float(np.min(np.linalg.norm(starts + along[:, None] * edges - point, axis=1)))
 
 
 def _check_on_table(goal: np.ndarray, footprint_radius_m: float) -> None:

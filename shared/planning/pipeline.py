@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.contracts.messages import ExecutionResult, ObjectPose, ObjectRef, PushRequest, PushResponse
+from shared.contracts.messages import ExecutionResult, ObjectPose, PushRequest, PushResponse
 from shared.frames import direction_xy, make_transform
 from shared.planning import stages
 from shared.planning.cancellation import Cancellation
@@ -68,7 +68,7 @@ from shared.robots.hands import load_hand
 from shared.robots.robot_limits import RobotLimits
 from shared.world.object_refs import captured_object, load_object_ref
 from shared.world.objects import ObjectLoadError, ObjectModel, write_object_urdf
-from shared.world.obstacles import as_discs, off_obstacles
+from shared.world.obstacles import as_discs, cut_known_obstacles
 from shared.world.push_outcome import (
     SUCCESS_MAX_ROTATION_DEG,
     YawGoal,
@@ -98,19 +98,6 @@ class PushServices:
     execute: stages.Execute
 
 
-def _known_obstacles_cut(request: PushRequest) -> PushRequest:
-    """The request with its cloud's points on its obstacles and walls left out: they are known parts of the scene,
-    not of the object (a wall 1 cm from the object would join its cluster and its reconstruction)."""
-    cloud = request.object.point_cloud
-    if cloud is None or not request.obstacles:
-        return request
-    points = cloud.to_numpy()
-    kept = off_obstacles(points, request.obstacles)
-    if len(kept) == len(points):
-        return request
-    return request.model_copy(update={"object": ObjectRef(point_cloud=kept)})
-
-
 class PushPipeline:
     """Serves PushRequests with the given services (see the module docstring)."""
 
@@ -128,7 +115,7 @@ class PushPipeline:
         (with the records of the pushes executed before) when it cannot be done, RequestCancelled
         when `cancel` is set first."""
         started = time.perf_counter()
-        request = _known_obstacles_cut(request)
+        request = cut_known_obstacles(request)
         state = self._start(request, cancel or Cancellation())
         vertices = state.obj.mesh.vertices @ state.T_world_O[:3, :3].T + state.T_world_O[:3, 3]
         check_obstacles(request.obstacles, vertices[:, :2])

@@ -16,17 +16,17 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
+from scipy.spatial import ConvexHull
 
-from shared.contracts.messages import CircleObstacle, Obstacle, WallObstacle
+from shared.contracts.messages import CircleObstacle, ObjectRef, Obstacle, PushRequest, WallObstacle
 
-CYLINDER_HEIGHT_M = 0.3  # a cylinder obstacle's height (the request gives its footprint only)
 # Points this close to a known obstacle are taken for it: a camera off its calibration by tenths of a degree sees a
 # wall 0.6 m away a few mm off, its noise adds a few more; an object 1 cm from a wall keeps its face.
 FIXTURE_MARGIN_M = 0.006
 
 
 def height_of(obstacle: Obstacle) -> float:
-    return obstacle.height_m if isinstance(obstacle, WallObstacle) else CYLINDER_HEIGHT_M
+    return obstacle.height_m
 
 
 def wall_pose(wall: WallObstacle) -> np.ndarray:
@@ -56,8 +56,8 @@ def obstacle_mesh(obstacle: Obstacle) -> trimesh.Trimesh:
         box: trimesh.Trimesh = trimesh.creation.box(2.0 * wall_half_extents(obstacle), transform=wall_pose(obstacle))
         return box
     T = np.eye(4)
-    T[:3, 3] = [obstacle.x, obstacle.y, CYLINDER_HEIGHT_M / 2.0]
-    cylinder: trimesh.Trimesh = trimesh.creation.cylinder(obstacle.radius, CYLINDER_HEIGHT_M, transform=T)
+    T[:3, 3] = [obstacle.x, obstacle.y, obstacle.height_m / 2.0]
+    cylinder: trimesh.Trimesh = trimesh.creation.cylinder(obstacle.radius, obstacle.height_m, transform=T)
     return cylinder
 
 
@@ -83,6 +83,30 @@ def off_obstacles(points: np.ndarray, obstacles: Sequence[Obstacle]) -> np.ndarr
     """The points (world [N, 3]) not taken for a known obstacle (FIXTURE_MARGIN_M)."""
     points = np.asarray(points)
     return points[~on_obstacles(points, obstacles, FIXTURE_MARGIN_M)] if len(obstacles) else points
+
+
+def cut_known_obstacles(request: PushRequest) -> PushRequest:
+    """The request with its cloud's points on its obstacles and walls left out: they are known parts of the scene,
+    not of the object (a wall or a neighbour 1 cm from the object would join its cluster and its reconstruction)."""
+    cloud = request.object.point_cloud
+    if cloud is None or not request.obstacles:
+        return request
+    points = cloud.to_numpy()
+    kept = off_obstacles(points, request.obstacles)
+    if len(kept) == len(points):
+        return request
+    return request.model_copy(update={"object": ObjectRef(point_cloud=kept)})
+
+
+def distance_to_hull(hull: ConvexHull, point: np.ndarray) -> float:
+    """Distance (m) from `point` to a convex polygon (a 2-D `hull`, e.g. an object's footprint), negative inside."""
+    offsets = hull.equations[:, :2] @ point + hull.equations[:, 2]  # unit outward normals: signed edge distances
+    if np.all(offsets <= 0.0):
+        return float(offsets.max())
+    starts = hull.points[hull.vertices]
+    edges = np.roll(starts, -1, axis=0) - starts
+    along = np.clip(np.einsum("ij,ij->i", point - starts, edges) / np.einsum("ij,ij->i", edges, edges), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(starts + along[:, None] * edges - point, axis=1)))
 
 
 def wall_depth_into(wall: WallObstacle, outline_xy: np.ndarray) -> float:

@@ -112,6 +112,10 @@ class SimulatedRobot(Robot):
         """The object's true pose in the world (None without an object): the engine's."""
         raise NotImplementedError
 
+    def neighbour_poses(self) -> list[np.ndarray]:
+        """Where the object's neighbours truly are (T_world_O each, in the world's order): the engine's."""
+        raise NotImplementedError
+
     def _joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(positions, velocities) of the robot's joints now: the engine's."""
         raise NotImplementedError

@@ -184,6 +184,7 @@ def capture_object(
     camera_errors: Sequence[CameraError] | None = None,
     level: bool = True,
     obstacles: Sequence[Obstacle] = (),
+    neighbours: Sequence[tuple[trimesh.Trimesh, np.ndarray]] = (),
 ) -> Capture:
     """Render `obj` (an ObjectModel, or any object with a trimesh `mesh` in its frame O) at T_world_O.
 
@@ -194,6 +195,7 @@ def capture_object(
     against the table the frame shows (`level_to_table`: height, roll and pitch; what a real pipeline does) unless
     `level` is False. `obstacles` (cylinders and walls) stand in the scene, seen and occluding; the cloud leaves
     out what lies on them (`obstacles.off_obstacles`), as a real pipeline subtracts its workcell's known static scene.
+    `neighbours` (mesh in its frame O, T_world_O): other objects standing there, seen like the object.
     """
     T_world_O = np.asarray(T_world_O, dtype=np.float64)
     position = T_world_O[:3, 3]
@@ -205,7 +207,8 @@ def capture_object(
     intrinsics = renderer_intrinsics(size)
     rng = np.random.default_rng(seed)
     frames, ideal, masks = [], [], []
-    with _CaptureWorld(obj.mesh, T_world_O, obstacles) as world:
+    others = [(solid, np.eye(4)) for solid in map(obstacle_mesh, obstacles)] + list(neighbours)
+    with _CaptureWorld(obj.mesh, T_world_O, others) as world:
         for k, camera in enumerate(cameras):
             calibrated = camera.T_world_camera()
             depth, mask = world.render(true_camera_pose(camera, errors[k] if errors else None), intrinsics)
@@ -236,9 +239,11 @@ def crop_to_region(points: np.ndarray, center_xy: np.ndarray, radius_m: float = 
 
 
 class _CaptureWorld:
-    """A private PyBullet DIRECT client with the table top, the object's visual mesh and the obstacles'."""
+    """A private PyBullet DIRECT client with the table top, the object's visual mesh and the others' (each a mesh and
+    its pose: obstacles, neighbours)."""
 
-    def __init__(self, mesh: trimesh.Trimesh, T_world_O: np.ndarray, obstacles: Sequence[Obstacle] = ()) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, T_world_O: np.ndarray,
+                 others: Sequence[tuple[trimesh.Trimesh, np.ndarray]] = ()) -> None:
         self.client = pb.connect(pb.DIRECT)
         try:
             half = TABLE_HALF_EXTENTS_M
@@ -251,11 +256,12 @@ class _CaptureWorld:
             self.object_id = pb.createMultiBody(
                 baseMass=0.0, baseVisualShapeIndex=shape, basePosition=T_world_O[:3, 3].tolist(),
                 baseOrientation=matrix_to_quat_xyzw(T_world_O[:3, :3]).tolist(), physicsClientId=self.client)
-            for solid in map(obstacle_mesh, obstacles):  # world-frame meshes at the origin
+            for solid, T in others:
                 shape = pb.createVisualShape(
                     pb.GEOM_MESH, vertices=np.asarray(solid.vertices, dtype=np.float64).tolist(),
                     indices=np.asarray(solid.faces, dtype=np.int64).reshape(-1).tolist(), physicsClientId=self.client)
-                pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+                pb.createMultiBody(baseMass=0.0, baseVisualShapeIndex=shape, basePosition=T[:3, 3].tolist(),
+                                   baseOrientation=matrix_to_quat_xyzw(T[:3, :3]).tolist(), physicsClientId=self.client)
         except Exception:
             pb.disconnect(self.client)
             raise

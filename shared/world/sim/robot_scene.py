@@ -28,7 +28,7 @@ import pybullet as pb
 from shared.contracts.messages import Obstacle, WallObstacle
 from shared.robots.arms import ArmModel, combined_urdf, load_arm, mount_joint_name
 from shared.robots.hands import HandModel, load_hand
-from shared.world.obstacles import CYLINDER_HEIGHT_M, wall_half_extents, wall_pose
+from shared.world.obstacles import wall_half_extents, wall_pose
 from shared.world.sim.params import PhysicsParams
 from shared.world.sim.scene import Body, SimError, SimScene, c_stdout_to_stderr, transform_to_pos_quat
 
@@ -41,7 +41,7 @@ class Collision:
     """One offending pair: a robot link and what it touches (distance < 0 is penetration)."""
 
     robot_link: str
-    other: str  # "table", "object", "obstacle N" (a cylinder), "wall N" or a robot link name
+    other: str  # "table", "object", "obstacle N" (a cylinder), "wall N", "neighbour N" or a robot link name
     distance_m: float
 
     def __str__(self) -> str:
@@ -71,6 +71,7 @@ class RobotScene:
         self.object: Body | None = None
         self.obstacles: list[Body] = []  # the cylinders
         self.walls: list[Body] = []
+        self.neighbours: list[Body] = []  # other movable objects beside the one pushed (clutter)
 
     # ------------------------------------------------------------------------------------- building
 
@@ -154,6 +155,12 @@ class RobotScene:
         self.object = self.sim.add_object(urdf_path, T_world_O)
         return self.object
 
+    def add_neighbour(self, urdf_path: str | Path, T_world_O: np.ndarray) -> Body:
+        """Another movable object on the table (one the push must leave where it stands)."""
+        body = self.sim.add_object(urdf_path, T_world_O)
+        self.neighbours.append(body)
+        return body
+
     def add_obstacles(self, obstacles: Iterable[Obstacle]) -> None:
         """Static cylinders and walls (`shared.contracts.messages.Obstacle`) standing on the table."""
         for obstacle in obstacles:
@@ -161,15 +168,15 @@ class RobotScene:
                 self.walls.append(self.sim.add_box_obstacle(wall_pose(obstacle), wall_half_extents(obstacle)))
             else:
                 self.obstacles.append(self.sim.add_cylinder_obstacle(obstacle.x, obstacle.y, obstacle.radius,
-                                                                     CYLINDER_HEIGHT_M))
+                                                                     obstacle.height_m))
 
     def clear_environment(self) -> None:
-        """Remove the object, the obstacles and the walls (the robot and the table stay): reuse the scene for
-        another world without reloading the robot (its URDF load is most of a scene's cost, ~0.7 s)."""
-        for body in ([self.object] if self.object is not None else []) + self.obstacles + self.walls:
+        """Remove the object, its neighbours, the obstacles and the walls (the robot and the table stay): reuse the
+        scene for another world without reloading the robot (its URDF load is most of a scene's cost, ~0.7 s)."""
+        for body in ([self.object] if self.object is not None else []) + self.neighbours + self.obstacles + self.walls:
             pb.removeBody(body.id, physicsClientId=self.client)
         self.object = None
-        self.obstacles, self.walls = [], []
+        self.neighbours, self.obstacles, self.walls = [], [], []
 
     def close(self) -> None:
         self.sim.close()
@@ -268,6 +275,7 @@ class RobotScene:
             env.append((self.object.id, "object", self.hand_links if allow_hand_object else set()))
         env += [(body.id, f"obstacle {i}", set()) for i, body in enumerate(self.obstacles)]
         env += [(body.id, f"wall {i}", set()) for i, body in enumerate(self.walls)]
+        env += [(body.id, f"neighbour {i}", set()) for i, body in enumerate(self.neighbours)]
         return env
 
     def _robot_vs(self, body: int, name: str, clearance_m: float, skip_links: set[int]) -> list[Collision]:

@@ -35,7 +35,7 @@ from shared.execution.robots.mujoco.decompose import convex_pieces
 from shared.robots.arms import combined_urdf, load_arm
 from shared.robots.hands import load_hand
 from shared.world.objects.model import ObjectModel
-from shared.world.obstacles import CYLINDER_HEIGHT_M, wall_half_extents, wall_pose
+from shared.world.obstacles import wall_half_extents, wall_pose
 
 OBJECT_BODY = "object"
 ROBOT_GROUP, WORLD_GROUP = 1, 2  # contype / conaffinity bits: robot geoms touch the world, not each other
@@ -91,8 +91,9 @@ def compile_spec(spec: mujoco.MjSpec, what: str) -> mujoco.MjModel:
 
 
 def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
-               obstacles: Sequence[Obstacle] = ()) -> mujoco.MjSpec:
-    """The full world's MjSpec: robot with servos, table, object (if any), obstacles, contact settings."""
+               obstacles: Sequence[Obstacle] = (), neighbours: Sequence[PlacedObject] = ()) -> mujoco.MjSpec:
+    """The full world's MjSpec: robot with servos, table, object (if any) and its neighbours (bodies
+    `neighbour_body(k)`), obstacles, contact settings."""
     spec = robot_spec(config.arm, config.hand)
     _contact_options(spec, config)
     arm, hand = load_arm(config.arm), load_hand(config.hand)
@@ -122,12 +123,14 @@ def build_spec(config: MujocoConfig, placed: PlacedObject | None = None,
     table.priority, table.condim = TABLE_PRIORITY, materials.condim
     if placed is not None:
         _add_object(spec, config, placed)
+    for index, neighbour in enumerate(neighbours):
+        _add_object(spec, config, neighbour, neighbour_body(index))
     cylinders = [o for o in obstacles if isinstance(o, CircleObstacle)]
     walls = [o for o in obstacles if isinstance(o, WallObstacle)]
     for index, circle in enumerate(cylinders):
         geom = spec.worldbody.add_geom(name=f"obstacle {index}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-                                       size=[circle.radius, CYLINDER_HEIGHT_M / 2, 0.0],
-                                       pos=[circle.x, circle.y, CYLINDER_HEIGHT_M / 2])
+                                       size=[circle.radius, circle.height_m / 2, 0.0],
+                                       pos=[circle.x, circle.y, circle.height_m / 2])
         geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
         geom.condim = materials.condim
     for index, wall in enumerate(walls):
@@ -164,10 +167,10 @@ def finger_of_body(spec: mujoco.MjSpec, hand_joints: Sequence[str]) -> dict[str,
 
 
 def build_model(config: MujocoConfig, placed: PlacedObject | None = None,
-                obstacles: Sequence[Obstacle] = ()) -> mujoco.MjModel:
+                obstacles: Sequence[Obstacle] = (), neighbours: Sequence[PlacedObject] = ()) -> mujoco.MjModel:
     """The compiled world (ModelError naming what failed)."""
     what = f"{config.arm}+{config.hand}" + (f" with object {placed.obj.id}" if placed is not None else "")
-    return compile_spec(build_spec(config, placed, obstacles), what)
+    return compile_spec(build_spec(config, placed, obstacles, neighbours), what)
 
 
 def _contact_options(spec: mujoco.MjSpec, config: MujocoConfig) -> None:
@@ -215,11 +218,15 @@ def _servos(spec: mujoco.MjSpec, config: MujocoConfig, arm_joints: Sequence[str]
         actuator.forcerange = [-effort[name], effort[name]]
 
 
-def _add_object(spec: mujoco.MjSpec, config: MujocoConfig, placed: PlacedObject) -> None:
+def neighbour_body(index: int) -> str:
+    return f"neighbour {index}"
+
+
+def _add_object(spec: mujoco.MjSpec, config: MujocoConfig, placed: PlacedObject, name: str = OBJECT_BODY) -> None:
     obj = placed.obj
     T = np.asarray(placed.T_world_O, dtype=np.float64)
-    body = spec.worldbody.add_body(name=OBJECT_BODY, pos=T[:3, 3], quat=wxyz(T[:3, :3]))
-    body.add_freejoint(name="object_free")
+    body = spec.worldbody.add_body(name=name, pos=T[:3, 3], quat=wxyz(T[:3, :3]))
+    body.add_freejoint(name=f"{name}_free")
     body.explicitinertial = True
     body.mass = obj.mass * placed.mass_scale
     body.ipos = list(placed.com_offset_m)
@@ -227,11 +234,11 @@ def _add_object(spec: mujoco.MjSpec, config: MujocoConfig, placed: PlacedObject)
     inertia = np.diag(obj.inertia) if np.ndim(obj.inertia) == 2 else np.asarray(obj.inertia)
     body.inertia = inertia * placed.mass_scale
     for index, piece in enumerate(convex_pieces(obj)):
-        mesh = spec.add_mesh(name=f"object_piece{index}")
+        mesh = spec.add_mesh(name=f"{name}_piece{index}")
         mesh.uservert = np.asarray(piece.vertices, dtype=np.float64).ravel().tolist()
         mesh.userface = np.asarray(piece.faces, dtype=np.int32).ravel().tolist()
         mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX
-        geom = body.add_geom(name=f"object_piece{index}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name)
+        geom = body.add_geom(name=f"{name}_piece{index}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name)
         geom.contype, geom.conaffinity = WORLD_GROUP, ROBOT_GROUP | WORLD_GROUP
         materials = config.materials
         geom.friction = [materials.object_friction, materials.torsional_friction, materials.rolling_friction]

@@ -44,7 +44,7 @@ from shared.execution.robots.camera_tracker import CameraRig
 from shared.execution.robots.mujoco.cameras import RendererSlot, render_depth
 from shared.execution.robots.mujoco.config import MujocoConfig
 from shared.execution.robots.mujoco.decompose import DecompositionError
-from shared.execution.robots.mujoco.model import OBJECT_BODY, ModelError, PlacedObject, build_model
+from shared.execution.robots.mujoco.model import OBJECT_BODY, ModelError, PlacedObject, build_model, neighbour_body
 from shared.execution.robots.sim.config import limits
 from shared.execution.robots.sim.robot import TrueWorld
 from shared.execution.robots.simulated import SimulatedRobot
@@ -77,6 +77,7 @@ class MujocoRobot(SimulatedRobot):
         self.data: mujoco.MjData | None = None
         self._placed: PlacedObject | None = None
         self._obstacles: tuple[Obstacle, ...] = ()
+        self._neighbours: tuple[PlacedObject, ...] = ()
         self._lock = threading.RLock()  # one stepping caller at a time
         self._renderers = RendererSlot()  # taken before `_lock` when both are
         self.collisions: dict[tuple[str, str], float] = {}
@@ -100,7 +101,7 @@ class MujocoRobot(SimulatedRobot):
 
     def _build(self, q: np.ndarray | None) -> None:
         """(Re)compile the world with the current object and obstacles; the robot at `q` (None: home)."""
-        model = build_model(self.world_config, self._placed, self._obstacles)
+        model = build_model(self.world_config, self._placed, self._obstacles, self._neighbours)
         data = mujoco.MjData(model)
         self._index(model)
         self.model, self.data = model, data
@@ -116,10 +117,12 @@ class MujocoRobot(SimulatedRobot):
         self._actuators = np.array([model.actuator(name).id for name in self.joint_names])
         self._ff = np.array([-model.actuator_biasprm[a, 2] / model.actuator_gainprm[a, 0] for a in self._actuators])
         self._object_body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, OBJECT_BODY)
+        self._neighbour_bodies = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, neighbour_body(k))
+                                  for k in range(len(self._neighbours))]
         last_arm = model.joint(load_arm(self.arm_name).joint_names[-1]).id
         hand_root = int(model.jnt_bodyid[last_arm])  # the flange and the hand: rigid with the last arm joint
         self._body_name = {b: model.body(b).name for b in range(model.nbody)}
-        self._robot_bodies = {b for b in range(1, model.nbody) if b != self._object_body}
+        self._robot_bodies = {b for b in range(1, model.nbody) if b != self._object_body} - set(self._neighbour_bodies)
         self._hand_bodies = {b for b in self._robot_bodies if _descends_from(model, b, hand_root)}
 
     def reset(self, q_arm: Sequence[float] | None = None, q_hand: Sequence[float] | None = None) -> None:
@@ -148,9 +151,11 @@ class MujocoRobot(SimulatedRobot):
         placed = PlacedObject(obj, np.asarray(world.T_world_O, dtype=np.float64), mass_scale, com)
         with self._lock:
             self._placed, self._obstacles = placed, tuple(world.obstacles)
+            self._neighbours = tuple(PlacedObject(load_object_ref(ref), np.asarray(T, dtype=np.float64))
+                                     for ref, T in world.neighbours)
             self.world_config = self.config if draw is None else self.config.drawn(draw)
             self._build(None)
-        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.obstacles)
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.known)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -213,13 +218,20 @@ class MujocoRobot(SimulatedRobot):
         return False
 
     def _true_pose(self) -> np.ndarray | None:
-        _, data = self._world()
         if self._object_body < 0:
             return None
+        return self._body_pose(self._object_body)
+
+    def neighbour_poses(self) -> list[np.ndarray]:
+        """Where each neighbour truly is now (T_world_O; the judge's, as `true_object_pose`)."""
+        return [self._body_pose(body) for body in self._neighbour_bodies]
+
+    def _body_pose(self, body: int) -> np.ndarray:
+        _, data = self._world()
         with self._lock:
             T = np.eye(4)
-            T[:3, :3] = data.xmat[self._object_body].reshape(3, 3)
-            T[:3, 3] = data.xpos[self._object_body]
+            T[:3, :3] = data.xmat[body].reshape(3, 3)
+            T[:3, 3] = data.xpos[body]
             return T
 
     def _record_contacts(self, elapsed: float) -> None:
@@ -237,6 +249,8 @@ class MujocoRobot(SimulatedRobot):
                     other = "object"
                 elif other_body == 0:
                     other = model.geom(geom).name or "world"
+                elif other_body in self._neighbour_bodies:
+                    other = self._body_name[other_body]
                 else:
                     continue  # robot vs robot is not modelled
                 self.collisions.setdefault((self._body_name[robot_body], other), elapsed)

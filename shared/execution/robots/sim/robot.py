@@ -77,11 +77,21 @@ class TrueWorld:
     # there); None: the true object where it truly stands (all a bus bridge knows).
     told_object: tuple[ObjectRef, np.ndarray] | None = None
     rig: CameraRig | None = None  # the depth cameras the image tracker sees through (None: the default, calibrated)
+    # Other objects standing beside it (clutter), each where it truly stands, with nominal physics: the robot must
+    # leave them be (the judge reads where they end, `neighbour_poses`).
+    neighbours: tuple[tuple[ObjectRef, np.ndarray], ...] = ()
+    # The obstacles the system knows of (the image tracker leaves their points out); None: `obstacles`. They differ
+    # when the system was told a neighbour as a cylinder: the world holds the neighbour, not a cylinder.
+    known_obstacles: tuple[Obstacle, ...] | None = None
 
     @classmethod
     def told(cls, world: SimWorld) -> TrueWorld:
         """`world` taken as the truth: all a bus bridge knows."""
         return cls(world.object, pose_matrix(world.object_pose), tuple(world.obstacles))
+
+    @property
+    def known(self) -> tuple[Obstacle, ...]:
+        return self.obstacles if self.known_obstacles is None else self.known_obstacles
 
     @property
     def tracked_model(self) -> tuple[ObjectRef, np.ndarray]:
@@ -153,9 +163,12 @@ class SimRobot(SimulatedRobot):
             self.params = self.nominal_params if world.physics is None else world.physics
             self.connect()
         self.add_object(urdf, world.T_world_O)
+        for ref, T_world_N in world.neighbours:
+            with self._lock:
+                self._scene().add_neighbour(write_object_urdf(load_object_ref(ref)), T_world_N)
         self.add_obstacles(world.obstacles)
         # The next observation is a frame of this world's object.
-        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.obstacles)
+        self._reset_tracking(world.tracker_seed, world.T_O_tracked, world.tracked_model, world.rig, world.known)
 
     def reset_told(self, world: SimWorld) -> None:
         """Reset to the told `world` taken as the truth (the bus bridge's); SafetyRefusal("world") if its
@@ -190,6 +203,12 @@ class SimRobot(SimulatedRobot):
         scene = self._scene()
         with self._lock:
             return scene.joint_state()
+
+    def neighbour_poses(self) -> list[np.ndarray]:
+        """Where each neighbour truly is now (T_world_O; the judge's, as `true_object_pose`)."""
+        scene = self._scene()
+        with self._lock:
+            return [body.pose() for body in scene.neighbours]
 
     def _true_pose(self) -> np.ndarray | None:
         scene = self._scene()

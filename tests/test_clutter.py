@@ -1,0 +1,100 @@
+"""The clutter task: neighbours standing beside the pushed object, in both engines and in the cameras' view, told to
+the planner as cylinders, and judged: a neighbour moved more than 1 cm fails the trial."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from evaluation import push_protocol as protocol
+from evaluation.methods import failure_cause
+from evaluation.tasks import CLUTTER_BEARINGS_DEG, CLUTTER_GAP_M, CLUTTER_PROPS, NEIGHBOUR_MOVED_M
+from shared.contracts.messages import CircleObstacle, ObjectRef
+from shared.frames import direction_xy
+from shared.world.objects import load_object
+from shared.world.obstacles import distance_to_hull
+
+
+def clutter_episode(trial: int = 0, method: str = "fixed-corrected", object_id: str = "pb-mug",
+                    direction: float = 180.0) -> protocol.Episode:
+    return protocol.Episode(method, "allegro", object_id, direction, trial, cameras=3, task="clutter")
+
+
+def world_points(ref: ObjectRef, T: np.ndarray) -> np.ndarray:
+    assert ref.library_id is not None
+    return load_object(ref.library_id).mesh.vertices @ T[:3, :3].T + T[:3, 3]
+
+
+@pytest.mark.parametrize("trial", [0, 1])
+def test_neighbours_stand_one_to_three_cm_from_the_object_beside_and_behind_it(trial):
+    episode = clutter_episode(trial, object_id="proc-box-001", direction=60.0)
+    T_put = protocol.put_down(episode, protocol.execution_world(episode))
+    neighbours = protocol.task_neighbours(episode)
+    bearings = CLUTTER_BEARINGS_DEG[trial % 2]
+    assert len(neighbours) == len(bearings)
+    footprint = ConvexHull(world_points(ObjectRef(library_id=episode.object_id), T_put)[:, :2])
+    for (ref, T), bearing in zip(neighbours, bearings, strict=True):
+        assert ref.library_id in CLUTTER_PROPS
+        prop = world_points(ref, T)[:, :2]
+        radius = float(np.max(np.linalg.norm(prop - T[:2, 3], axis=1)))
+        gap = distance_to_hull(footprint, T[:2, 3]) - radius  # the can's side to the object's nearest point
+        assert CLUTTER_GAP_M[0] - 1e-6 <= gap <= CLUTTER_GAP_M[1] + 1e-6
+        heading = T[:2, 3] - T_put[:2, 3]
+        assert float(heading @ direction_xy(60.0 + bearing)) > 0.9 * np.linalg.norm(heading)
+    again = protocol.task_neighbours(clutter_episode(trial, method="gd2p-closed-critic-p24", object_id="proc-box-001",
+                                                     direction=60.0))
+    assert [r for r, _ in again] == [r for r, _ in neighbours]  # every method meets the same scene
+    paper = protocol.Episode("fixed-corrected", "allegro", "proc-box-001", 60.0, trial, cameras=3)
+    assert protocol.task_neighbours(paper) == ()
+
+
+def test_the_request_tells_each_neighbour_as_a_cylinder_around_it_as_tall_as_it_stands():
+    episode = clutter_episode(0)
+    neighbours = protocol.task_neighbours(episode)
+    circles = protocol.neighbour_circles(neighbours)
+    for circle, (ref, T) in zip(circles, neighbours, strict=True):
+        points = world_points(ref, T)
+        assert isinstance(circle, CircleObstacle)
+        assert circle.height_m == pytest.approx(points[:, 2].max())
+        assert np.all(np.hypot(points[:, 0] - circle.x, points[:, 1] - circle.y) <= circle.radius + 1e-9)
+    request = protocol.push_request(episode, protocol.placement(episode), neighbours)
+    assert request.obstacles == circles and request.object.point_cloud is not None
+
+
+def test_a_trial_among_neighbours_runs_with_them_in_the_world_and_judges_whether_they_moved(tmp_path):
+    """The palm pulls the mug toward the robot past a can standing beside it: the can stays, the trial succeeds,
+    and the record says how far the can moved."""
+    protocol._init_worker(str(tmp_path))
+    record = protocol.run_episode(clutter_episode(1))
+    assert record["outcome"] == "success", record.get("message")
+    assert record["neighbours_moved_m"] == [pytest.approx(0.0, abs=0.002)]
+    robot = protocol._system.robot.robot("panda", "allegro")
+    assert len(robot.scene.neighbours) == 1 and robot.scene.obstacles == []  # a can, not a told cylinder
+
+
+def test_a_neighbour_moved_more_than_a_centimetre_fails_of_its_own_cause():
+    start = ((ObjectRef(library_id=CLUTTER_PROPS[0]), np.eye(4)),)
+    moved = np.eye(4)
+    moved[0, 3] = 0.015
+    assert protocol.neighbours_moved_m(start, [moved]) == [0.015]
+    record = {"success": False, "outcome": "failure", "neighbours_moved_m": [0.015], "predicted_l_goal": 0.01}
+    assert failure_cause(record) == "neighbour moved"
+    assert failure_cause({**record, "neighbours_moved_m": [NEIGHBOUR_MOVED_M / 2]}) == "world gap"
+
+
+def test_the_mujoco_world_holds_neighbours_as_free_bodies_that_stand_where_they_were_put():
+    from shared.execution.robots.mujoco.config import MujocoConfig
+    from shared.execution.robots.mujoco.robot import MujocoRobot
+    from shared.execution.robots.sim.robot import TrueWorld
+
+    episode = clutter_episode(0)
+    neighbours = protocol.task_neighbours(episode)
+    T_put = protocol.put_down(episode, protocol.execution_world(episode))
+    world = TrueWorld(ObjectRef(library_id=episode.object_id), T_put, neighbours=neighbours)
+    with MujocoRobot(MujocoConfig("panda", "allegro")) as robot:
+        robot.reset_world(world)
+        robot.let_object_settle(0.5)
+        poses = robot.neighbour_poses()
+    assert len(poses) == 2
+    for (_, T), now in zip(neighbours, poses, strict=True):
+        assert np.linalg.norm(now[:3, 3] - T[:3, 3]) < 0.005
