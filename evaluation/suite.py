@@ -16,6 +16,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from evaluation import tolerance
 from evaluation.methods import DEFAULT_METHOD, failure_cause, protocol_for, run_protocol
 from evaluation.report import markdown_table, write_experiment
@@ -103,3 +105,64 @@ def _table(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
                      ", ".join(f"{c} {n}" for c, n in causes.most_common()) or "–"])
     return markdown_table(["method", "trials", "success [95% CI]", f"{DEFAULT_METHOD} minus it (points) [95% CI]",
                            "failures by cause"], rows)
+
+
+# ----------------------------------------------------------------------------------------------- the tasks, drawn
+SCENE_DIRECTION_DEG = 60.0  # the protocol's first direction
+NEIGHBOUR_RGBA = (0.55, 0.55, 0.58, 1.0)
+WALL_RGBA = (0.80, 0.15, 0.15, 1.0)
+
+
+def task_scene(task: str, trial: int = 0) -> tuple[list[Any], float]:
+    """What a task's first trial puts on the table (its first object where it is truly put down, the wall or the
+    neighbours, the push and the target's tolerance), as render items; and the push's heading (degrees)."""
+    from evaluation import push_protocol as protocol
+    from shared.frames import direction_frame, direction_xy
+    from shared.world.obstacles import obstacle_mesh
+    from visualisation.render import mesh_item, push_markers
+
+    objects = protocol_for("closed-loop", False, 1, "real", None, 3, "test", None, task).objects
+    episode = protocol.Episode(DEFAULT_METHOD, "allegro", objects[0], SCENE_DIRECTION_DEG, trial, cameras=3, task=task)
+    T = protocol.put_down(episode, protocol.execution_world(episode))
+    items: list[Any] = [mesh_item("object", protocol.load_object(episode.object_id).mesh, T)]
+    items += [mesh_item(f"wall {k}", obstacle_mesh(o), np.eye(4), WALL_RGBA) for k, o in enumerate(protocol.task_obstacles(episode))]
+    items += [mesh_item(f"neighbour {k}", protocol.load_object(ref.library_id).mesh, T_n, NEIGHBOUR_RGBA)
+              for k, (ref, T_n) in enumerate(protocol.task_neighbours(episode)) if ref.library_id is not None]
+    tolerance = 0.02 if task == "pose" else 0.03
+    items += push_markers(direction_frame(T[:3, 3], direction_xy(SCENE_DIRECTION_DEG)), protocol.PUSH_DISTANCE_M, tolerance)
+    return items, SCENE_DIRECTION_DEG
+
+
+def draw_tasks(out: Path, tasks: Sequence[str] = TASKS) -> Path:
+    """One picture of every task's first trial, seen from behind the push and above (`docs/img/suite_tasks.png`)."""
+    from visualisation.render import LegendEntry, View, compose_png, render_views
+
+    rendered = []
+    for task in tasks:
+        items, heading = task_scene(task)
+        view = View(task, -180.0, 50.0, 24.0, label=task)
+        rendered += render_views(items, [view], size=(360, 300), heading_deg=heading)
+    legend = [LegendEntry("object", (0.42, 0.55, 0.78, 1.0)), LegendEntry("wall", WALL_RGBA),
+              LegendEntry("neighbour", NEIGHBOUR_RGBA), LegendEntry("push and target", (0.12, 0.12, 0.12, 1.0))]
+    return compose_png(rendered, out, title="The suite's tasks · each task's first trial, where its object is put down · "
+                       f"push along {SCENE_DIRECTION_DEG:g}°", legend=legend, columns=4)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m evaluation.suite", description="Draw the suite's tasks (one "
+                                     "picture: each task's first trial on the development split).")
+    parser.add_argument("--draw", type=Path, required=True, metavar="PNG", help="where to write the picture")
+    parser.add_argument("--tasks", default=",".join(TASKS), help="comma-separated tasks (default all)")
+    args = parser.parse_args(argv)
+    tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
+    unknown = [t for t in tasks if t not in TASKS]
+    if unknown or not tasks:
+        parser.error(f"unknown task(s) {unknown}; known: {', '.join(TASKS)}")
+    print(draw_tasks(args.draw, tasks))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

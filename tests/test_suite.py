@@ -136,3 +136,20 @@ def test_a_shape_task_draws_fresh_objects_of_its_class_from_several_families(tas
 def test_a_split_without_enough_objects_of_a_class_is_refused():
     with pytest.raises(ValueError, match="objects of class 'round'; the task needs 500"):
         protocol.shape_task_objects("round", "test", 500)
+
+
+def test_the_tasks_picture_shows_each_tasks_scene(tmp_path):
+    from PIL import Image
+
+    from evaluation.suite import main
+
+    def red_pixels(task: str) -> int:  # the wall is red (so are the world's x axis and the legend's swatch)
+        out = tmp_path / f"{task}.png"
+        assert main(["--draw", str(out), "--tasks", task]) == 0
+        with Image.open(out) as picture:
+            pixels = np.asarray(picture.convert("RGB")).reshape(-1, 3).astype(int)
+        return int(np.sum((pixels[:, 0] > 150) & (pixels[:, 1] < 80) & (pixels[:, 2] < 80)))
+
+    assert red_pixels("wall") > red_pixels("clutter") + 1000
+    with pytest.raises(SystemExit):
+        main(["--draw", str(tmp_path / "x.png"), "--tasks", "stack"])
