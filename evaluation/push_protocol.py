@@ -127,6 +127,8 @@ class Method:
     # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the shipped
     # one (`PipelineSettings`).
     budget: tuple[int, int] | None = None
+    # Poses also tried slid sideways by these (m) near an obstacle (`PipelineSettings.slide_m`), instead of not.
+    slide: tuple[float, ...] | None = None
     grasp: bool = False  # grasp poses (evaluation/grasp_baseline.py) in place of the sampler's
     tuning: bool = False  # a candidate compared on val objects: a full run leaves it out
 
@@ -557,7 +559,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
     pipeline = system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                               prescreen=prescreen, max_plans=max_plans)
+                               prescreen=prescreen, max_plans=max_plans, slide_m=method.slide)
     world = execution_world(episode)
     system.robot.execution_world = world
     system.robot.tracking_mode = episode.tracking
@@ -624,6 +626,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.prescreen if request.options.prescreen else 0, settings.max_plans]
+    if settings.slide_m:  # a candidate stage: the slides its poses were also tried at near an obstacle
+        record["slide_m"] = list(settings.slide_m)
     return record
 
 

@@ -98,3 +98,18 @@ def test_the_mujoco_world_holds_neighbours_as_free_bodies_that_stand_where_they_
     assert len(poses) == 2
     for (_, T), now in zip(neighbours, poses, strict=True):
         assert np.linalg.norm(now[:3, 3] - T[:3, 3]) < 0.005
+
+
+def test_a_slid_copy_keeps_its_distance_to_the_face_it_pushes_and_one_slid_past_the_object_is_dropped():
+    from shared.planning.stages import slid_poses
+
+    disc = np.array([[0.05 * np.cos(a), 0.05 * np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 73)[:-1]])
+    pose = np.zeros((1, 25))
+    pose[0, :3] = [-0.07, 0.0, 0.05]  # 2 cm behind the back of a 5 cm disc, along the push (+x of D)
+    slid, ok = slid_poses(pose, disc, 0.03)
+    assert ok[0] and slid[0, 1] == pytest.approx(0.03)
+    back = -np.sqrt(0.05**2 - 0.03**2)  # the disc's back at y = 3 cm: nearer the centre line
+    assert slid[0, 0] - back == pytest.approx(-0.02, abs=0.002)  # still 2 cm behind it
+    assert np.array_equal(slid[0, 3:], pose[0, 3:])  # the same orientation and fingers
+    _, past = slid_poses(pose, disc, 0.06)
+    assert not past[0]

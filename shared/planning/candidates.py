@@ -75,15 +75,16 @@ class Candidates:
     l_dir: np.ndarray
     p_success: np.ndarray | None = None
     source: np.ndarray | None = None
+    tier: np.ndarray | None = None  # [K] 0: the pose source's (and turned copies), 1: slid copies, tried after
 
     @classmethod
     def in_frame(cls, poses_d: np.ndarray, push: Push, hand: HandModel, p_success: np.ndarray | None = None,
-                 source: np.ndarray | None = None) -> Candidates:
+                 source: np.ndarray | None = None, tier: np.ndarray | None = None) -> Candidates:
         """The candidates for `poses_d` [K, 25], given in the push's frame D."""
         poses_world = poses_d_to_world(poses_d, push.T_world_D)
         T_world_hand, q_hands = pose25_to_matrix(poses_world)
         return cls(poses_d, poses_world, T_world_hand, q_hands, ranking.direction_costs(hand, poses_d), p_success,
-                   source)
+                   source, tier)
 
     @property
     def order_l_dir(self) -> np.ndarray:

@@ -306,7 +306,7 @@ class PushPipeline:
     def _screened_draw(self, state: RequestState, planner: MotionPlanner, push: Push,
                        draw: int) -> tuple[Candidates, PipelineSettings, Feasible]:
         """Draw `draw`'s candidates, their settings and the feasible ones (PushError "infeasible" if none)."""
-        candidates = stages.candidate_poses(state, push, self.services.sample, draw)
+        candidates = stages.candidate_poses(state, push, self.services.sample, draw, self.settings.slide_m)
         settings = self.settings.for_push(state.request)
         needed = settings.feasible_first(stages.rolls_out(state.request))
         return candidates, settings, stages.screen(state, planner, candidates, push, settings, needed)

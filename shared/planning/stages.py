@@ -23,11 +23,12 @@ import functools
 import math
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from shared.contracts.messages import (
     DirectionFrame,
@@ -40,6 +41,7 @@ from shared.contracts.messages import (
     SimWorld,
     ValidationJob,
     ValidationResult,
+    WallObstacle,
 )
 from shared.frames import invert_transform, pose25_to_matrix
 from shared.planning import ranking
@@ -53,6 +55,7 @@ from shared.robots.hands import HandModel
 from shared.robots.robot_limits import LimitViolation, RobotLimits
 from shared.world.fixed_poses import FIXED_POSE_METHODS, FixedPoseError, fixed_pose
 from shared.world.objects import ObjectModel
+from shared.world.obstacles import distance_to_hull, wall_depth_into
 from shared.world.push_outcome import (
     SUCCESS_MAX_ROTATION_DEG,
     TOPPLED_TILT_DEG,
@@ -66,6 +69,7 @@ from shared.world.push_outcome import (
 # A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
 # this from how it sat in the last one's (the sampler would be asked the same question).
 REUSE_SAMPLES_DEG = 10.0
+SLIDE_NEAR_M = 0.05  # an obstacle this close to the object's footprint may stand where a hand would (`slide_m`)
 DRAW_SEED_STRIDE = 1_000_003  # seed offset of a push's further sampler draws (`PipelineSettings.sample_draws`)
 SCREEN_CHUNK = 50  # candidates per batched IK screen (`screen`)
 PRESCREEN_CHUNK = 6  # poses per floating-hand validation job: 24 poses in 4 jobs, even rounds on a farm of 2 or 4 workers
@@ -108,6 +112,11 @@ class PipelineSettings:
     # failures the rollouts predicted and as many world-gap ones, a gain within the interval's noise. Off, as
     # measured (docs/evaluation.md §Tuned settings).
     min_separation_m: float = 0.0
+    # With an obstacle or a wall within SLIDE_NEAR_M of the object, the pose source's poses are also tried slid
+    # sideways along the face they push by each of these (m, along D's y), after every pose as it is: a hand
+    # the sampler put where a wall or a neighbour stands may fit beside it (`slid_poses`). Off (): a candidate
+    # setting, measured on val before it is a default.
+    slide_m: tuple[float, ...] = ()
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
@@ -185,7 +194,8 @@ class RequestState:
 # ------------------------------------------------------------------------------- 1. pose source
 
 
-def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int = 0) -> Candidates:
+def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int = 0,
+                    slide_m: Sequence[float] = ()) -> Candidates:
     """The request's pose source's candidates for `push` (`PlannerOptions.method`).
 
     Candidates are poses in D, the frame of the object and the push direction: a later push of the request
@@ -220,13 +230,75 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
             state.sampled = (R_D_O, poses_d, p_success)
     state.time("sampling", time.perf_counter() - started)
     state.cancel.check()
+    if slide_m and near_an_obstacle(state, push):
+        poses_d, p_success, tier = with_slid_copies(state, push, poses_d, p_success, slide_m)
+    else:
+        tier = None
     if push.turn_deg is not None:
-        return with_turning_copies(state, push, poses_d, p_success)
-    return Candidates.in_frame(poses_d, push, state.hand, p_success)
+        return with_turning_copies(state, push, poses_d, p_success, tier)
+    return Candidates.in_frame(poses_d, push, state.hand, p_success, tier=tier)
+
+
+def near_an_obstacle(state: RequestState, push: Push) -> bool:
+    """Whether an obstacle or a wall of the request stands within SLIDE_NEAR_M of the object's footprint."""
+    vertices = state.obj.mesh.vertices @ push.T_world_O[:3, :3].T + push.T_world_O[:3, 3]
+    hull = ConvexHull(vertices[:, :2])
+    for obstacle in state.request.obstacles:
+        if isinstance(obstacle, WallObstacle):
+            gap = -wall_depth_into(obstacle, hull.points[hull.vertices])
+        else:
+            gap = distance_to_hull(hull, np.array([obstacle.x, obstacle.y])) - obstacle.radius
+        if gap < SLIDE_NEAR_M:
+            return True
+    return False
+
+
+def with_slid_copies(state: RequestState, push: Push, poses_d: np.ndarray, p_success: np.ndarray | None,
+                     slide_m: Sequence[float]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The poses [K, 25] in D followed by their copies slid sideways by each of `slide_m` (`slid_poses`); each
+    copy keeps its pose's P(success). With the tier of each (0: as sampled, 1: slid), which orders every pose
+    before any copy."""
+    T_D_O = invert_transform(push.T_world_D) @ push.T_world_O
+    vertices_d = state.obj.mesh.vertices @ T_D_O[:3, :3].T + T_D_O[:3, 3]
+    copies, kept = [poses_d], [np.arange(len(poses_d))]
+    for slide in slide_m:
+        slid, ok = slid_poses(poses_d, vertices_d, slide)
+        copies.append(slid[ok])
+        kept.append(np.flatnonzero(ok))
+    source = np.concatenate(kept)
+    tier = np.concatenate([np.zeros(len(poses_d), dtype=int)] + [np.ones(len(k), dtype=int) for k in kept[1:]])
+    return np.concatenate(copies), None if p_success is None else p_success[source], tier
+
+
+def slid_poses(poses_d: np.ndarray, vertices_d: np.ndarray, slide_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hand poses [K, 25] in D slid `slide_m` along D's y and moved along x by how much the back of the
+    object's footprint (its least x, `vertices_d` [V, 3] in D) moves between the hand's old and new y, so the hand
+    keeps its distance to the face it pushes; and which copies still face the object ([K] bool: a hand slid past
+    the object's side has nothing to push)."""
+    hull = ConvexHull(np.asarray(vertices_d, dtype=np.float64)[:, :2])
+    before = _back_of(hull, poses_d[:, 1])
+    after = _back_of(hull, poses_d[:, 1] + slide_m)
+    ok = np.isfinite(before) & np.isfinite(after)
+    slid = np.array(poses_d, dtype=np.float64, copy=True)
+    slid[:, 1] += slide_m
+    slid[ok, 0] += after[ok] - before[ok]
+    return slid, ok
+
+
+def _back_of(hull: ConvexHull, y: np.ndarray) -> np.ndarray:
+    """The least x of the convex footprint `hull` on each line of constant `y` [K] (inf where the line misses it)."""
+    starts = hull.points[hull.vertices]
+    ends = np.roll(starts, -1, axis=0)
+    y = np.asarray(y, dtype=np.float64)[:, None]
+    low, high = np.minimum(starts[:, 1], ends[:, 1]), np.maximum(starts[:, 1], ends[:, 1])
+    crosses = (y >= low) & (y <= high) & (high > low)
+    t = np.where(crosses, (y - starts[:, 1]) / np.where(high > low, ends[:, 1] - starts[:, 1], 1.0), 0.0)
+    x = np.where(crosses, starts[:, 0] + t * (ends[:, 0] - starts[:, 0]), np.inf)
+    return np.asarray(x.min(axis=1))
 
 
 def with_turning_copies(state: RequestState, push: Push, poses_d: np.ndarray,
-                        p_success: np.ndarray | None) -> Candidates:
+                        p_success: np.ndarray | None, tier: np.ndarray | None = None) -> Candidates:
     """The candidates of the poses [K, 25] in D followed by copies turned to turn the object by `push.turn_deg`
     (`goals.turning_poses`). A copy keeps its pose's P(success) (the critic's word for the nearest pose it scored)
     and order key (`Candidates.source`): a pose and its copy are considered one after the other, so the plans
@@ -239,7 +311,8 @@ def with_turning_copies(state: RequestState, push: Push, poses_d: np.ndarray,
     turned = turning_poses(poses_d, palm_normals, vertices_d, push.turn_deg)
     both = None if p_success is None else np.concatenate([p_success, p_success])
     source = np.tile(np.arange(len(poses_d)), 2)
-    return Candidates.in_frame(np.concatenate([poses_d, turned]), push, state.hand, both, source)
+    return Candidates.in_frame(np.concatenate([poses_d, turned]), push, state.hand, both, source,
+                               None if tier is None else np.tile(tier, 2))
 
 
 def sampling_frame(state: RequestState, push: Push) -> DirectionFrame:
@@ -322,12 +395,14 @@ def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
     l_dir = candidates.order_l_dir
     if not rolls_out(state.request):
         return np.random.default_rng(state.seed).permutation(len(l_dir))
-    # Ties go by the pose source's index: a turned copy right after its pose (lexsort is stable).
+    # Ties go by the pose source's index: a turned copy right after its pose (lexsort is stable). Slid copies
+    # (`slide_m`) come after every pose as it was sampled (their tier, the first key).
     source = np.arange(len(l_dir)) if candidates.source is None else candidates.source
+    tier = np.zeros(len(l_dir), dtype=int) if candidates.tier is None else candidates.tier
     if orders_by_critic(state.request, candidates):
         assert candidates.p_success is not None
-        return np.lexsort((source, l_dir, -candidates.p_success))
-    return np.lexsort((source, l_dir))
+        return np.lexsort((source, l_dir, -candidates.p_success, tier))
+    return np.lexsort((source, l_dir, tier))
 
 
 def spread_out(order: np.ndarray, positions: np.ndarray, min_separation_m: float) -> np.ndarray:
