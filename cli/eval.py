@@ -7,8 +7,9 @@
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
-    gd2p eval suite --out results/            # every task (paper, pose, tall, flat, small, round), default + baselines
+    gd2p eval suite --out results/            # every task (paper, pose, wall, clutter, tall, ...), default + baselines
     gd2p eval suite --tasks round,pose --world mujoco  # some tasks, executed in MuJoCo
+    gd2p eval closed-loop --tasks wall --methods gd2p-closed-critic-p24,fixed-corrected  # one task's run alone
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
     gd2p eval data-size --world exact --out results/  # test objects covered vs training-data fraction
     gd2p eval data-size --dataset datasets/allegro-v2 --yaw random --train-steps 20000 --lr 1e-3 --seeds 0 --tag v2  # v2
@@ -165,7 +166,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--tasks", type=_task_list, default=None,
                         help="suite: comma-separated tasks (default all: " + ", ".join(TASKS) + "); each is a "
                              "closed-loop run of its own, <out>/closed-loop-<world>...-<task>/ (the paper's task: "
-                             "the closed-loop run itself)")
+                             "the closed-loop run itself). closed-loop: one task, its run alone (default paper)")
     parser.add_argument("--closed-loop", action="store_true",
                         help="multistep: watch every push and stop it when the object strays from its predicted "
                              "path (PlannerOptions.closed_loop), into <out>/multistep-<world>-closed/")
@@ -282,8 +283,11 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # `all` is a slice of each of the paper's experiments; the suite runs closed-loop again per task
     names = [n for n in EXPERIMENTS if n != "suite"] if args.experiment == "all" else [args.experiment]
-    if args.tasks is not None and names != ["suite"]:
-        print("gd2p eval: --tasks applies to suite only", file=sys.stderr)
+    if args.tasks is not None and names not in (["suite"], ["closed-loop"]):
+        print("gd2p eval: --tasks applies to suite and closed-loop only", file=sys.stderr)
+        return 2
+    if args.tasks is not None and names == ["closed-loop"] and len(args.tasks) != 1:
+        print("gd2p eval closed-loop: --tasks takes one task (its run alone); the suite runs several", file=sys.stderr)
         return 2
     if args.split == "test":
         print("gd2p eval: --split test is the development split, now named dev (the same objects, seeds and results "
@@ -354,7 +358,7 @@ def run(args: argparse.Namespace) -> int:
             options["tracking"] = args.tracking
         if args.closed_loop and name == "multistep":
             options["closed_loop"] = True
-        if args.tasks is not None and name == "suite":
+        if args.tasks is not None and name in ("suite", "closed-loop"):
             options["tasks"] = args.tasks
         if name == "sampler-quality":
             options.update(_sampler_quality_options(args, split))

@@ -219,9 +219,12 @@ def run_leap(out: Path, quick: bool = False, workers: int = 2, trials: int | Non
 def run_closed_loop(out: Path, quick: bool = False, workers: int = 2, trials: int | None = None,
                     world: WorldLevel = "real", methods: Sequence[str] | None = None, cameras: int = 0,
                     split: str = "test", tag: str | None = None, worker_init: Callable[[str], None] | None = None,
-                    tracking: TrackingMode = "image") -> Path:
+                    tracking: TrackingMode = "image", tasks: Sequence[str] = ("paper",)) -> Path:
+    """The closed-loop run of one task (`tasks`: one of TASKS; the suite runs them all and reports them together)."""
+    if len(tasks) != 1:
+        raise ValueError(f"closed-loop runs one task at a time, not {', '.join(tasks) or 'none'}; the suite runs several")
     return run_protocol("closed-loop", out, quick, workers, trials, world, methods, cameras, split, tag, worker_init,
-                        tracking)
+                        tracking, task=tasks[0])
 
 
 def exact_rates(out: Path, spec: Protocol, pose_models: dict[str, str]) -> dict[str, dict[str, Any]]:

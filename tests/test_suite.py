@@ -116,7 +116,9 @@ def test_the_cli_refuses_an_unknown_task_and_tasks_outside_the_suite():
     unknown = gd2p("suite", "--tasks", "stack")
     assert unknown.returncode == 2 and "unknown task(s) stack; known: paper, pose" in unknown.stderr
     elsewhere = gd2p("methods", "--tasks", "pose")
-    assert elsewhere.returncode == 2 and "--tasks applies to suite only" in elsewhere.stderr
+    assert elsewhere.returncode == 2 and "--tasks applies to suite and closed-loop only" in elsewhere.stderr
+    several = gd2p("closed-loop", "--tasks", "wall,clutter")
+    assert several.returncode == 2 and "--tasks takes one task" in several.stderr
 
 
 @pytest.mark.parametrize("task", ["tall", "flat", "small", "round"])
