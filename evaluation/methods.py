@@ -273,7 +273,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     (it fails on the true object where it truly stood, in nominal physics: the told pose or the
     reconstruction) and "physics" (it succeeds there: the execution world's physics), or is "world gap"
     where no replay was made (trials before replays existed, and requests of several pushes). None for
-    a success; "wall contact" when the robot touched the wall task's wall, "neighbour moved" when the clutter task's
+    a success; "wall contact" when the robot touched a wall (the wall and corner tasks), "neighbour moved" when the clutter task's
     neighbour was moved."""
     if record["success"]:
         return None
@@ -298,7 +298,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
 
 FAILURE_CAUSES = {
     "planning": "no feasible plan (or an error)",
-    "wall contact": "the robot touched the wall (the wall task)",
+    "wall contact": "the robot touched a wall (the wall and corner tasks)",
     "neighbour moved": "a neighbour was moved more than 1 cm (the clutter task)",
     "pose quality": "the executed plan's own rollout predicted the failure",
     "prediction": "predicted to succeed, and the same plan fails in the planner's own world too (rollout and robot parted)",

@@ -271,19 +271,34 @@ def put_down(episode: Episode, world: ExecutionWorld) -> np.ndarray:
 
 
 def task_obstacles(episode: Episode) -> list[WallObstacle]:
-    """The obstacles of the episode's scene: for the wall task a wall WALL_GAP_M from the object where it is truly
-    put down, behind it at WALL_ANGLE_DEG to the push (turned counterclockwise from the push on even trials,
-    clockwise on odd), WALL_LENGTH_M long; none otherwise. In the world from the start: the object settles beside it."""
-    if episode.task != "wall":
+    """The obstacles of the episode's scene, in the world from the start (the object settles beside them): for the
+    wall task a wall WALL_GAP_M from the object where it is truly put down, behind it at WALL_ANGLE_DEG to the push
+    (turned counterclockwise from the push on even trials, clockwise on odd), WALL_LENGTH_M long; for the corner
+    task both of those walls, each cut where it meets the other, so the object stands in the corner they make
+    behind it; none otherwise."""
+    if episode.task not in ("wall", "corner"):
         return []
     T_put = put_down(episode, execution_world(episode))
-    turn = WALL_ANGLE_DEG if episode.trial % 2 == 0 else -WALL_ANGLE_DEG
-    toward = direction_xy(episode.direction_deg + 3.0 * turn)  # from the object to the wall: behind the push
     footprint = load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T[:, :2]
     thickness = WallObstacle.model_fields["thickness_m"].default
-    centre = T_put[:2, 3] + (float(np.max(footprint @ toward)) + WALL_GAP_M + thickness / 2.0) * toward
-    return [WallObstacle(x=float(centre[0]), y=float(centre[1]), yaw_deg=float(episode.direction_deg + turn),  # its length
-                         length_m=WALL_LENGTH_M, height_m=WALL_HEIGHT_M)]
+    turns = [WALL_ANGLE_DEG if episode.trial % 2 == 0 else -WALL_ANGLE_DEG]
+    if episode.task == "corner":
+        turns = [WALL_ANGLE_DEG, -WALL_ANGLE_DEG]
+    # each wall's face plane: its outward direction from the object (behind the push) and its distance
+    toward = [direction_xy(episode.direction_deg + 3.0 * turn) for turn in turns]
+    reach = [float(np.max(footprint @ n)) + WALL_GAP_M + thickness / 2.0 for n in toward]
+    walls = []
+    for k, (turn, n) in enumerate(zip(turns, toward, strict=True)):
+        along = direction_xy(episode.direction_deg + turn)  # the wall's length
+        middle = 0.0
+        if len(turns) == 2:  # run from the corner (the other wall's far face) along this wall, past the object
+            other = toward[1 - k]
+            corner = (reach[1 - k] + thickness / 2.0) / float(other @ along)  # where along this wall the corner is
+            middle = corner - np.sign(corner) * WALL_LENGTH_M / 2.0
+        centre = T_put[:2, 3] + reach[k] * n + middle * along
+        walls.append(WallObstacle(x=float(centre[0]), y=float(centre[1]), yaw_deg=float(episode.direction_deg + turn),
+                                  length_m=WALL_LENGTH_M, height_m=WALL_HEIGHT_M))
+    return walls
 
 
 Neighbours = tuple[tuple[ObjectRef, np.ndarray], ...]  # each neighbour and where it truly stands (T_world_O)

@@ -145,7 +145,7 @@ def draw_tasks(out: Path, tasks: Sequence[str] = TASKS) -> Path:
     legend = [LegendEntry("object", (0.42, 0.55, 0.78, 1.0)), LegendEntry("wall", WALL_RGBA),
               LegendEntry("neighbour", NEIGHBOUR_RGBA), LegendEntry("push and target", (0.12, 0.12, 0.12, 1.0))]
     return compose_png(rendered, out, title="The suite's tasks · each task's first trial, where its object is put down · "
-                       f"push along {SCENE_DIRECTION_DEG:g}°", legend=legend, columns=4)
+                       f"push along {SCENE_DIRECTION_DEG:g}°", legend=legend, columns=3)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

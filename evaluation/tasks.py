@@ -14,12 +14,14 @@ from __future__ import annotations
 # WALL_ANGLE_DEG to the push (on one side on even trials, the other on odd), so the push leads away from it. A hand
 # square behind the object would stand where the wall is: the robot must find another way to push (a fingertip on
 # the free corner, a pull from above), never touching the wall.
+# "corner": the wall task's two walls at once (both sides), meeting behind the object: it stands in a right-angled
+# corner, WALL_GAP_M from each wall, and is pushed out of it.
 # "clutter": the paper's push with neighbours standing CLUTTER_GAP_M from the object (cans and cups: CLUTTER_PROPS,
 # library objects of the train split): one beside it, and on even trials a second behind it on the other side. The
 # request tells where they stand as cylinder obstacles (what a user's perception gives); the cameras see them. A
 # neighbour moved more than NEIGHBOUR_MOVED_M fails the trial.
 SHAPE_TASKS = ("tall", "flat", "small", "round")
-TASKS = ("paper", "pose", "wall", "clutter", *SHAPE_TASKS)
+TASKS = ("paper", "pose", "wall", "corner", "clutter", *SHAPE_TASKS)
 POSE_TASK_TURN_DEG = 30.0  # counterclockwise on even trials, clockwise on odd
 SHAPE_TASK_OBJECTS = 6
 WALL_GAP_M = 0.01  # the object's footprint to the wall's face
@@ -37,6 +39,8 @@ TASK_CRITERIA = {
             "15 degrees of that yaw, upright; objects whose yaw a camera can see",
     "wall": PAPER_CRITERION + f"; away from a wall {WALL_GAP_M * 100:g} cm from the object, at {WALL_ANGLE_DEG:g} "
             "degrees to the push behind it (left or right): the robot touching the wall fails",
+    "corner": PAPER_CRITERION + f"; out of a right-angled corner behind it, {WALL_GAP_M * 100:g} cm from each wall, the "
+              f"walls at {WALL_ANGLE_DEG:g} degrees to the push on either side: the robot touching a wall fails",
     "clutter": PAPER_CRITERION + f"; one or two neighbours (cans, cups) {CLUTTER_GAP_M[0] * 100:g}-"
                f"{CLUTTER_GAP_M[1] * 100:g} cm from the object, beside and behind it: a neighbour moved more than "
                f"{NEIGHBOUR_MOVED_M * 100:g} cm fails",

@@ -159,6 +159,21 @@ def test_the_wall_task_puts_a_wall_behind_the_object_a_centimetre_away_at_an_ang
     assert (paper.seed, paper.world_seed) == (episode.seed, episode.world_seed)
 
 
+@pytest.mark.parametrize("direction_deg", [60.0, 180.0])
+def test_the_corner_task_stands_the_object_a_centimetre_from_two_walls_that_meet_behind_it(direction_deg):
+    episode = protocol.Episode("fixed-corrected", "allegro", "proc-box-001", direction_deg, 1, cameras=3, task="corner")
+    T_put = protocol.put_down(episode, protocol.execution_world(episode))
+    walls = protocol.task_obstacles(episode)
+    footprint = (load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T + T_put[:3, 3])[:, :2]
+    assert [wall_depth_into(w, footprint) for w in walls] == pytest.approx([-WALL_GAP_M] * 2, abs=1e-3)
+    assert abs(walls[0].yaw_deg - walls[1].yaw_deg) == pytest.approx(2 * WALL_ANGLE_DEG)  # at right angles
+    shared_corners = [p for p in wall_outline(walls[0]) if np.min(np.linalg.norm(wall_outline(walls[1]) - p, axis=1)) < 1e-9]
+    assert len(shared_corners) == 1  # closed: no gap between them for the object to leave by
+    corner = shared_corners[0] - T_put[:2, 3]
+    assert float(corner @ direction_xy(direction_deg)) < 0.0  # the push leads out of it
+    assert protocol.Episode("fixed-corrected", "allegro", "proc-box-001", direction_deg, 1, cameras=3).seed == episode.seed
+
+
 def test_a_palm_square_behind_the_object_cannot_push_it_away_from_the_wall(tmp_path):
     """The planner, the cameras and the robot all have the wall: the fixed spatula pose would stand in it."""
     protocol._init_worker(str(tmp_path))
