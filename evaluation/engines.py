@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.compare import load_run, request_key
-from evaluation.methods import DEFAULT_METHOD
+from evaluation.methods import DEFAULT_METHOD, lost_track
 from evaluation.report import markdown_table
 from evaluation.stats import difference_interval, success_interval
 from evaluation.store import RECORDS_FILE, read_records
@@ -45,7 +45,7 @@ def failure_cause(record: dict[str, Any]) -> str | None:
         return "perception"
     if code == "infeasible":
         return "planning"
-    if code == "lost" or any("lost the object" in note for note in record.get("notes", [])):
+    if lost_track(record):
         return "tracking"
     if record.get("outcome") == "failure":
         return "push"

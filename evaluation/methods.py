@@ -265,8 +265,15 @@ def _rate(records: Sequence[dict[str, Any]]) -> float:
     return sum(r["success"] for r in records) / len(records) if records else float("nan")
 
 
+def lost_track(record: dict[str, Any]) -> bool:
+    """Whether the trial ended on the image tracker losing the object (the push stopped on a lost track, or no pose
+    of the object after it)."""
+    return record.get("error_code") == "lost" or any("lost the object" in note for note in record.get("notes") or [])
+
+
 def failure_cause(record: dict[str, Any]) -> str | None:
-    """Why a trial failed: "planning" (no feasible plan, or an error), "pose quality" (the chosen plan's
+    """Why a trial failed: "tracking" (the image tracker lost the object), "planning" (no feasible plan, or another
+    error), "pose quality" (the chosen plan's
     own rollout predicted the failure: nothing better was found), "unpredicted" (a random choice has no
     rollout to tell); a plan predicted to succeed is split by its replays (`push_protocol.replay_failure`)
     into "prediction" (it fails in the planner's own world too: rollout and robot parted), "perception"
@@ -277,6 +284,8 @@ def failure_cause(record: dict[str, Any]) -> str | None:
     neighbour was moved."""
     if record["success"]:
         return None
+    if lost_track(record):
+        return "tracking"
     if record["outcome"] != "failure":
         return "planning"
     if record.get("robot_touched_wall"):
@@ -297,7 +306,8 @@ def failure_cause(record: dict[str, Any]) -> str | None:
 
 
 FAILURE_CAUSES = {
-    "planning": "no feasible plan (or an error)",
+    "tracking": "the image tracker lost the object: the push was stopped and backed out, or it gave no pose after it",
+    "planning": "no feasible plan (or another error)",
     "wall contact": "the robot touched a wall (the wall and corner tasks)",
     "neighbour moved": "a neighbour was moved more than 1 cm (the clutter task)",
     "pose quality": "the executed plan's own rollout predicted the failure",

@@ -225,6 +225,10 @@ def test_failure_causes_follow_the_replays():
     assert failure_cause({**failed, "replayed": {"planner_world": True, "true_object": False}}) == "perception"
     assert failure_cause({**failed, "replayed": {"planner_world": True, "true_object": True}}) == "physics"
     assert failure_cause({**failed, "predicted_l_goal": 0.05}) == "pose quality"
+    lost = {"success": False, "outcome": "error", "error_code": "lost", "message": "after the push the tracker had lost "
+            "the object: too few object points (16 < 30)"}
+    assert failure_cause(lost) == "tracking"  # the tracker's, not the planner's
+    assert failure_cause({**lost, "error_code": "infeasible"}) == "planning"
 
 
 def test_reports_and_index(tmp_path):

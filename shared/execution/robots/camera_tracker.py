@@ -107,6 +107,10 @@ class CameraTracker:
         self._tracker = ObjectTracker.from_mesh(model, self.config)
         self._tracker.reset(np.asarray(T_world_O, dtype=np.float64), obstacles)
         self._rng = np.random.default_rng(seed)
+        size = self._tracker.config.image_size  # the camera mode of this model (a small one's is finer)
+        if size != (self.intrinsics.width, self.intrinsics.height):
+            self.intrinsics, self.noise = renderer_intrinsics(size), tracking_noise(size)
+            self._rig = None  # levelled in the other mode
         if rig != self._rig:
             self._believed = self._level(rig)
         self._rig = rig
