@@ -40,7 +40,7 @@ demo: install
 test: install
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q --durations=15
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 # Break the system on purpose (workers, router, leases, e-stop) and print what a user would feel (docs/safety.md).
 chaos: install
