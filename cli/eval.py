@@ -7,7 +7,7 @@
     gd2p eval methods --methods gd2p,nearest  # only these methods (a run can be extended with more later)
     gd2p eval leap --out results/             # the same protocol with the LEAP hand on the xArm7
     gd2p eval closed-loop --out results/      # open loop vs corrective pushes vs pushes watched and stopped
-    gd2p eval suite --out results/            # every task (paper, pose, wall, clutter, tall, ...), default + baselines
+    gd2p eval suite --out results/            # every task (paper, pose, wall, corner, clutter, tall, ...), default + baselines
     gd2p eval suite --tasks round,pose --world mujoco  # some tasks, executed in MuJoCo
     gd2p eval closed-loop --tasks wall --methods gd2p-closed-critic-p24,fixed-corrected  # one task's run alone
     gd2p eval multistep --out results/        # pushing to a goal around an obstacle (RRT* + pushes)
