@@ -90,6 +90,48 @@ def test_a_hidden_object_is_reported_lost_not_at_its_last_pose(robot):
     assert observation.object_lost is not None and observation.object_lost
 
 
+def _hold(robot: SimRobot, seconds: float) -> None:
+    q = robot.observe().positions
+    robot.send(JointTrajectory(robot.joint_names, np.stack([q, q]), np.array([0.0, seconds])), realtime_factor=1000.0)
+
+
+def test_a_motion_that_ends_on_a_lost_frame_keeps_looking_until_the_still_robot_sees_the_object(robot, monkeypatch):
+    """The hand hides the object in every frame of a motion (as it may at the end of a push): once the robot has
+    stopped, the tracker keeps looking and the robot reports the object where it is, not "lost"."""
+    from shared.execution.robots.simulated import REACQUIRE_S
+    from shared.world.perception.tracking import TrackedPose
+
+    T_true = _box_pose()
+    robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true))
+    tracker, hidden, held = robot.camera_tracker, [True], []
+    real_frame, real_hold = tracker.frame, robot._step_held
+
+    def frame():
+        return TrackedPose(None, 0.0, math.nan, 0, "the hand is in the way") if hidden[0] else real_frame()
+
+    def step_held(duration_s):  # the motion is over: the hand is out of the way
+        hidden[0] = False
+        held.append(duration_s)
+        real_hold(duration_s)
+
+    monkeypatch.setattr(tracker, "frame", frame)
+    monkeypatch.setattr(robot, "_step_held", step_held)
+    _hold(robot, 0.5)
+    seen = robot.observe()
+    assert seen.object_pose is not None and seen.object_lost is None
+    assert np.linalg.norm(pose_matrix(seen.object_pose)[:2, 3] - T_true[:2, 3]) < 0.004
+    assert len(held) == 1  # one more frame sufficed
+
+    # Truly out of sight: it keeps looking for REACQUIRE_S, then still says lost (never a stale pose).
+    away = CameraPose("away", (0.0, 0.0, 0.8), (-1.0, 0.5, 0.0))
+    robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true, rig=CameraRig.calibrated([away])))
+    held.clear()
+    _hold(robot, 0.5)
+    seen = robot.observe()
+    assert seen.object_pose is None and seen.object_lost
+    assert len(held) == round(REACQUIRE_S * robot.tracking_rate_hz)
+
+
 def test_the_judge_sees_the_trackers_error_without_the_planner(robot):
     T_true = _box_pose(yaw_deg=10.0)
     robot.reset_world(TrueWorld(ObjectRef(library_id=BOX), T_true))

@@ -35,6 +35,7 @@ if TYPE_CHECKING:  # sim/robot.py imports this module
 
 
 SelfRobot = TypeVar("SelfRobot", bound="SimulatedRobot")
+REACQUIRE_S = 1.0  # after a motion that ends with the object lost, how long the still robot's tracker keeps looking
 
 
 class SimulatedRobot(Robot):
@@ -107,6 +108,21 @@ class SimulatedRobot(Robot):
     def _step_held(self, duration_s: float) -> None:
         """Physics for `duration_s`, the robot's joints commanded to stay where they are: the engine's."""
         raise NotImplementedError
+
+    def _reacquire(self, plan_time_s: float, command_id: str | None) -> None:
+        """After a motion that ended with the image tracker's object lost: the robot holds still and the tracker
+        keeps looking, a frame at a time (its search widening while it finds nothing), for up to REACQUIRE_S of
+        robot time, until a frame is tracked. A real perception stack does not stop when the arm does, and the
+        moment a push ends (the hand still at the object, the object still moving) is when a frame is most often
+        lost; a push must not end unjudged on that one frame. Nothing is invented: still lost, it says so."""
+        if self.camera_tracker is None:
+            return
+        for _ in range(round(REACQUIRE_S * self.tracking_rate_hz)):
+            with self._lock:
+                if self._lost is None:
+                    return
+                self._step_held(1.0 / self.tracking_rate_hz)
+            self._track_frame(plan_time_s, command_id)
 
     def _true_pose(self) -> np.ndarray | None:
         """The object's true pose in the world (None without an object): the engine's."""

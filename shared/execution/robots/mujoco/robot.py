@@ -320,6 +320,7 @@ class MujocoRobot(SimulatedRobot):
                 time.sleep(ahead)
         if not np.isfinite(data.qpos).all():
             raise MotionStopped(f"{self.name}: the simulation diverged (non-finite state)")
+        self._reacquire(own.duration_s, command_id)
         final = self.observe().positions
         error = float(np.max(np.abs(final - own.final)))
         message = f"final joint error {error:.4f} rad"

@@ -274,6 +274,7 @@ class SimRobot(SimulatedRobot):
             ahead = elapsed / realtime_factor - (time.monotonic() - wall_start)
             if ahead > 0.0:
                 time.sleep(ahead)
+        self._reacquire(controller.time_of(controller.step_count), command_id)
         final = self.observe().positions
         error = float(np.max(np.abs(final - own.final)))
         message = f"final joint error {error:.4f} rad"
