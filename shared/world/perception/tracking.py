@@ -115,8 +115,7 @@ class TrackingConfig:
     # Small objects (a model radius under `small_radius_m`: dice, erasers, caps, most under 1.7 cm tall) are tracked in
     # the D435's 848 x 480 mode (twice the focal length in pixels: four times the pixels on the object, half the depth
     # noise), on a finer voxel and a lower table cut: in the default mode the 1 cm cut leaves an 8 mm tall object only
-    # its noisiest top points. Measured on the small task's failing trials (the trial's cameras and hand):
-    # proc-small-007 lost 112 of 136 frames in the default mode, none of 141 in this one. A search window around a
+    # its noisiest top points (measured: docs/architecture.md "Tracking from images only"). A search window around a
     # small object is small, so the finer mode costs little.
     small_radius_m: float = 0.03
     small_image_size: tuple[int, int] = (848, 480)
