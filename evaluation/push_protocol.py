@@ -284,7 +284,7 @@ def task_obstacles(episode: Episode) -> list[WallObstacle]:
     turns = [WALL_ANGLE_DEG if episode.trial % 2 == 0 else -WALL_ANGLE_DEG]
     if episode.task == "corner":
         turns = [WALL_ANGLE_DEG, -WALL_ANGLE_DEG]
-    # each wall's face plane: its outward direction from the object (behind the push) and its distance
+    # each wall: its outward direction from the object (behind the push) and how far its middle plane stands off
     toward = [direction_xy(episode.direction_deg + 3.0 * turn) for turn in turns]
     reach = [float(np.max(footprint @ n)) + WALL_GAP_M + thickness / 2.0 for n in toward]
     walls = []
