@@ -327,6 +327,22 @@ def run(candidate: Candidate, sequence: Sequence, config: TrackingConfig) -> lis
     return rows
 
 
+def weakest_direction(sequence: Sequence, config: TrackingConfig) -> float:
+    """The object's least observed motion in its push frames: the median over the frames of the tracker's
+    weakest eigenvalue relative to its strongest (ObjectTracker.observability at the true pose). Below
+    `TrackingConfig.unobserved_ratio` the tracker keeps its prior along it (a body of revolution's spin)."""
+    tracker = ObjectTracker.from_mesh(load_object(sequence.object_id).mesh, config)
+    ratios = []
+    for frames, masks, truth in zip(sequence.frames, sequence.masks, sequence.truth, strict=True):
+        if truth is None:
+            continue
+        points = tracker.segment(frames, masks, tracker.centre(truth), tracker.radius_m + config.search_margin_m)
+        observed = tracker.observability(points, truth)
+        if observed is not None:
+            ratios.append(float(observed[0][0]))
+    return round(float(np.median(ratios)), 5) if ratios else math.nan
+
+
 def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
     tracked = [r for r in rows if r["present"] and not r["lost"]]
     present = [r for r in rows if r["present"]]
@@ -400,7 +416,9 @@ def main(argv: list[str] | None = None) -> int:
                         "image_size": list(config.image_size), "cameras": 3, "start_error": list(START_ERROR),
                         "false_track": {"m": FALSE_M, "deg": FALSE_DEG},
                         "robot_hides": {s.object_id: round(s.occluded, 3) for s in sequences},
-                        "symmetric": [s.object_id for s in sequences if s.symmetric_axis_O is not None]},
+                        "symmetric": [s.object_id for s in sequences if s.symmetric_axis_O is not None],
+                        "weakest_direction": {s.object_id: weakest_direction(s, config) for s in sequences},
+                        "unobserved_ratio": config.unobserved_ratio},
               "summary": summary, "per_object": per_object, "render_s": round(render_s, 1),
               "total_s": round(time.time() - started, 1), "rows": rows}
     if args.json and not args.quick:

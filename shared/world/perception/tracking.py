@@ -29,24 +29,8 @@ mask for each: the pixels its model covers at its measured joints):
    pushed at `max_speed_mps` / `max_turn_deg_s` can do in the frames since: a failed check reports
    lost with the reason, never a pose.
 
-Registration library, chosen by measurement (bench/tracking.py, bench/results/tracking.json): 8 development
-objects each pushed 0.20 m in 16 frames turning 10-30 degrees, the Panda + Allegro hand behind them hiding 2-34%
-of the object, 3 cameras at 424 x 240 with D435 noise, the tracker started 5 mm / 3 degrees off; then 2 frames
-with the object gone. Errors over tracked frames (rotation of the standing cylinder: its axis' tilt), ms per
-update on one thread of a shared 2-core machine:
-
-    candidate                   position mm      rotation deg     lost   false   ms
-                                median  p95      median  p95                     median  p95
-    Open3D point-to-plane       0.45    1.72     0.90    4.77     0%     0%      14.2    27.4
-    small_gicp point-to-plane   0.61    2.42     0.92   12.18     0%     0.7%    12.2    41.3
-    small_gicp GICP             0.46    3.03     1.27    6.29     0%     0%      21.4    55.4
-    (Open3D, no robot mask      0.90    1.15     9.01    9.81    86%     0%     239     479)  errors: the 14% tracked
-
-Open3D (open3d-cpu 0.20, a 105 MB wheel against small_gicp's 0.4 MB) is the most accurate in rotation, where
-it matters (near-round and small objects: ellipsoid p95 5.3 against 14.5 / 7.6 degrees), with no false track
-and the lowest p95 time. small_gicp's clouds take no given normals, so its point-to-plane runs on normals
-estimated from the model samples, and its point-to-plane cost weighs the residual per axis rather than along
-the normal: it stops short on a weakly observed rotation. Every object removed was reported lost by all.
+Registration library: Open3D's point-to-plane ICP with the model's own normals, chosen by measurement against
+small_gicp (bench/tracking.py; the figures and why: docs/architecture.md "Tracking from images only").
 """
 from __future__ import annotations
 
@@ -99,8 +83,10 @@ class TrackingConfig:
     # cylinder's unobservable spin stays near the prior while a box's rotation follows the points (the measured
     # eigenvalue ratios: docs/architecture.md "Tracking from images only").
     degenerate_ratio: float = 0.01
-    # Below this share of the strongest eigenvalue a direction is not observed and keeps the prior outright.
-    unobserved_ratio: float = 0.005
+    # Below this share of the strongest eigenvalue a direction is not observed and keeps the prior outright: between
+    # the spin of bodies of revolution (standing cylinders, lying ones that roll) and that of a near-round ellipsoid,
+    # which depth does see (bench/tracking.py's `weakest_direction`; docs/architecture.md "Tracking from images only").
+    unobserved_ratio: float = 0.003
     # Fitness: the share of segmented points within `inlier_m` of the model surface. On the bench's pushes (robot
     # in view) the right model explains nearly all of them and a wrong model far fewer; one of nearly the same
     # shape (a sphere for a near-round ellipsoid) can pass: shape is all depth can tell (figures:
@@ -109,7 +95,9 @@ class TrackingConfig:
     min_fitness: float = 0.75
     max_rmse_m: float = 0.005  # the explained points of the right pose sit at 2-3.5 mm RMSE at 0.5-1 m
     # The fastest a pushed object moves: pushes run at up to 0.3 m/s, the rest is room for the noise of the two
-    # poses compared; a fast turn.
+    # poses compared. Its fastest turn: no point of it faster than that, so a model of radius r may turn
+    # max_speed_mps / r (a die or a can rolled by a fingertip turns far faster than a box), and never less than
+    # `max_turn_deg_s`.
     max_speed_mps: float = 0.5
     max_turn_deg_s: float = 180.0
     # Small objects (a model radius under `small_radius_m`: dice, erasers, caps, most under 1.7 cm tall) are tracked in
@@ -349,25 +337,35 @@ class ObjectTracker:
         of the point-to-plane Hessian H in the same terms (eigenvalues l), and each part scaled by
         l / (l + mu), mu = degenerate_ratio * max(l): the solution with a prior term mu |change|^2 added. A well
         observed direction keeps its change, an unobserved one (a cylinder's spin) keeps the prior."""
-        hessian = self._hessian(points, T_world_O)
-        if hessian is None:
+        observed = self.observability(points, T_world_O)
+        if observed is None:
             return T_world_O
-        eigenvalues, eigenvectors = np.linalg.eigh(hessian)
-        eigenvalues = np.maximum(eigenvalues, 0.0)
-        damping = self.config.degenerate_ratio * eigenvalues[-1]
-        if damping <= 0.0:
-            return T_world_O
+        ratios, eigenvectors = observed
+        damping = self.config.degenerate_ratio
         turn = Rotation.from_matrix(T_world_O[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
         change = np.concatenate([self.radius_m * turn, self.centre(T_world_O) - self.centre(T_prior)])
-        keep = eigenvalues / (eigenvalues + damping)
+        keep = ratios / (ratios + damping)
         # A direction the points hardly see at all (a round object's spin) keeps the prior outright: a fraction of
         # an arbitrary turn each frame adds up to tens of degrees over a push.
-        keep[eigenvalues < self.config.unobserved_ratio * eigenvalues[-1]] = 0.0
+        keep[ratios < self.config.unobserved_ratio] = 0.0
         kept = eigenvectors @ (keep * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
         out[:3, 3] = self.centre(T_prior) + kept[3:] - out[:3, :3] @ self.centre_O
         return out
+
+    def observability(self, points: np.ndarray, T_world_O: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """How well `points` pin the pose T_world_O down: the point-to-plane Hessian's eigenvalues relative to the
+        strongest (ascending, the weakest first) and its eigenvectors (columns; radius * rotation about the model
+        centre, then centre shift); None with too few matches or nothing observed."""
+        hessian = self._hessian(points, T_world_O)
+        if hessian is None:
+            return None
+        eigenvalues, eigenvectors = np.linalg.eigh(hessian)
+        eigenvalues = np.maximum(eigenvalues, 0.0)
+        if eigenvalues[-1] <= 0.0:
+            return None
+        return eigenvalues / eigenvalues[-1], eigenvectors
 
     def _hessian(self, points: np.ndarray, T_world_O: np.ndarray) -> np.ndarray | None:
         """[6, 6] point-to-plane Gauss-Newton Hessian per matched point at T_world_O, in (radius * rotation about
@@ -396,6 +394,11 @@ class ObjectTracker:
         rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else math.nan
         return float(fitness), rmse
 
+    @property
+    def max_turn_deg_s(self) -> float:
+        """The fastest this model may turn: its farthest point at `max_speed_mps`, or `max_turn_deg_s` if faster."""
+        return max(self.config.max_turn_deg_s, math.degrees(self.config.max_speed_mps / self.radius_m))
+
     def _implausible(self, fitness: float, rmse: float, T_world_O: np.ndarray) -> str | None:
         """Why the registered pose is not to be believed (None: it is)."""
         assert self._T_good is not None
@@ -409,7 +412,7 @@ class ObjectTracker:
         turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
-        if turn_deg > c.max_turn_deg_s * seconds:
+        if turn_deg > self.max_turn_deg_s * seconds:
             return f"implausible turn: {turn_deg:.0f} deg in {self._since_good} frame(s)"
         return None
 
