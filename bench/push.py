@@ -32,6 +32,10 @@ each with its commit; `dirty` when this tree has uncommitted changes) and the ra
 `same_requests` false when the runs pushed different requests (a base without `--objects` pushes all), and
 `speedup_p50_common` the to-plan p50 ratio over the requests both served.
 Without `--json` a short table compares them.
+
+`memory`: the whole system's peak while the bench runs (`MemoryPeak`: the service processes and this one, which
+embeds the router), as resident set (RSS, an upper bound: shared libraries count in every process) and proportional
+set (PSS, what the machine holds); issue 50's target is 6 GiB with 2 validators.
 """
 from __future__ import annotations
 
@@ -91,6 +95,46 @@ def wait_for_storyboard(recording_path: str | None, timeout_s: float = 60.0) -> 
     deadline = time.monotonic() + timeout_s
     while not png.exists() and time.monotonic() < deadline:
         time.sleep(0.1)
+
+
+class MemoryPeak:
+    """The system's peak memory while the bench runs: every 0.5 s, the sum over this process (the embedded router
+    and the client) and every service process of their resident set (RSS: shared libraries counted in each
+    process, an upper bound) and of their proportional set (PSS: each shared page split among its users, what the
+    machine actually holds), from /proc/PID/smaps_rollup (Linux)."""
+
+    def __init__(self, launcher: Launcher, period_s: float = 0.5) -> None:
+        self._launcher = launcher
+        self._period_s = period_s
+        self._stop = threading.Event()
+        self.peak_rss_kib = self.peak_pss_kib = 0
+        self.processes = 0
+        self._thread = threading.Thread(target=self._run, name="memory-peak", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            pids = [os.getpid(), *(c.process.pid for c in self._launcher.children())]
+            sizes = [s for s in map(_smaps_rollup, pids) if s is not None]
+            self.processes = max(self.processes, len(sizes))
+            self.peak_rss_kib = max(self.peak_rss_kib, sum(rss for rss, _ in sizes))
+            self.peak_pss_kib = max(self.peak_pss_kib, sum(pss for _, pss in sizes))
+
+    def summary(self, validators: int) -> dict[str, Any]:
+        self._stop.set()
+        self._thread.join()
+        return {"peak_rss_gib": round(self.peak_rss_kib / 2**20, 2), "peak_pss_gib": round(self.peak_pss_kib / 2**20, 2),
+                "processes": self.processes, "validators": validators, "target_gib": 6.0}
+
+
+def _smaps_rollup(pid: int) -> tuple[int, int] | None:
+    """(RSS, PSS) of a process in KiB; None if it is gone or the kernel has no smaps_rollup."""
+    try:
+        text = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in text.splitlines() if line.startswith(("Rss:", "Pss:")))
+    return int(fields["Rss"].split()[0]), int(fields["Pss"].split()[0])
 
 
 def percentile(values: Sequence[float], q: float) -> float:
@@ -234,6 +278,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if method == "auto":
         method = "gd2p" if default_checkpoint_path("allegro").is_file() else "fixed"
     launcher, cfg = start_system(args.record_dir, args.validators)
+    memory = MemoryPeak(launcher)
     rows: list[dict[str, Any]] = []
     watch = ViewBench(cfg, args.browser) if args.view else None
     try:
@@ -275,6 +320,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     finally:
         if watch is not None:
             watch.close()
+        memory_summary = memory.summary(args.validators or os.cpu_count() or 1)
         launcher.stop()
     if view_summary is not None:
         rows = [r for r in rows if not r["view"]] + [r for r in rows if r["view"]]
@@ -295,6 +341,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "stages_s": {s: {"p50": percentile([r["stages_s"].get(s, 0.0) for r in served], 50),
                          "p95": percentile([r["stages_s"].get(s, 0.0) for r in served], 95)} for s in STAGES},
         "median_total_in_planner_s": round(statistics.median([r["stages_s"]["total"] for r in served]), 3) if served else None,
+        "memory": memory_summary,
         "rows": rows,
     }
     if view_summary is not None:

@@ -4,9 +4,12 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
+import os
 import subprocess
+import sys
+import time
 from pathlib import Path
-from types import ModuleType
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 import pytest
@@ -115,3 +118,25 @@ def test_this_bench_accepts_every_flag_it_passes(bench: ModuleType) -> None:
     args = bench.build_parser().parse_args(["--validators", "1", "--no-critic", "--no-prescreen", "--view"])
     _, dropped = bench.filter_flags(bench.shared_flags(args), bench.help_flags(bench.build_parser().format_help()))
     assert dropped == []
+
+
+def test_the_memory_figure_counts_every_service_process_while_it_runs(bench: ModuleType) -> None:
+    """A service holding 300 MiB shows in the peak, whatever this process holds, and is still counted after it
+    exits (a peak, not the last reading); PSS never exceeds RSS."""
+    hold = "import time; x = b'\\x01' * (300 * 2**20); print('ready', flush=True); time.sleep(30)"
+    holder = subprocess.Popen([sys.executable, "-c", hold], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "ready"
+        launcher = SimpleNamespace(children=lambda: [SimpleNamespace(process=holder)])
+        own = bench._smaps_rollup(os.getpid())
+        assert own is not None
+        memory = bench.MemoryPeak(launcher, period_s=0.05)
+        time.sleep(0.5)
+    finally:
+        holder.kill()
+        holder.wait()
+    time.sleep(0.2)
+    figures = memory.summary(validators=2)
+    assert figures["processes"] == 2 and figures["validators"] == 2
+    assert figures["peak_rss_gib"] * 2**20 >= own[0] + 300 * 2**10
+    assert figures["peak_pss_gib"] <= figures["peak_rss_gib"]
