@@ -339,7 +339,7 @@ def weakest_direction(sequence: Sequence, config: TrackingConfig) -> float:
         points = tracker.segment(frames, masks, tracker.centre(truth), tracker.radius_m + config.search_margin_m)
         observed = tracker.observability(points, truth)
         if observed is not None:
-            ratios.append(float(observed[0][0]))
+            ratios.append(float(observed[0][0] / observed[0][-1]))
     return round(float(np.median(ratios)), 5) if ratios else math.nan
 
 

@@ -83,10 +83,11 @@ class TrackingConfig:
     # cylinder's unobservable spin stays near the prior while a box's rotation follows the points (the measured
     # eigenvalue ratios: docs/architecture.md "Tracking from images only").
     degenerate_ratio: float = 0.01
-    # Below this share of the strongest eigenvalue a direction is not observed and keeps the prior outright: between
-    # the spin of bodies of revolution (standing cylinders, lying ones that roll) and that of a near-round ellipsoid,
-    # which depth does see (bench/tracking.py's `weakest_direction`; docs/architecture.md "Tracking from images only").
-    unobserved_ratio: float = 0.003
+    # Below this share of the strongest eigenvalue a direction is not observed and keeps the prior outright: above the
+    # spin of every body of revolution measured (standing and lying cylinders, round small objects); a near-round
+    # ellipsoid's spin falls under it too (bench/tracking.py's `weakest_direction`; docs/architecture.md "Tracking
+    # from images only").
+    unobserved_ratio: float = 0.005
     # Fitness: the share of segmented points within `inlier_m` of the model surface. On the bench's pushes (robot
     # in view) the right model explains nearly all of them and a wrong model far fewer; one of nearly the same
     # shape (a sphere for a near-round ellipsoid) can pass: shape is all depth can tell (figures:
@@ -95,9 +96,9 @@ class TrackingConfig:
     min_fitness: float = 0.75
     max_rmse_m: float = 0.005  # the explained points of the right pose sit at 2-3.5 mm RMSE at 0.5-1 m
     # The fastest a pushed object moves: pushes run at up to 0.3 m/s, the rest is room for the noise of the two
-    # poses compared. Its fastest turn: no point of it faster than that, so a model of radius r may turn
-    # max_speed_mps / r (a die or a can rolled by a fingertip turns far faster than a box), and never less than
-    # `max_turn_deg_s`.
+    # poses compared; a fast turn. One bound for every size: a small object may truly turn faster, but letting it
+    # (the rim at max_speed_mps) let registration flip near-square small objects by 90 degrees (docs/architecture.md
+    # "Tracking from images only").
     max_speed_mps: float = 0.5
     max_turn_deg_s: float = 180.0
     # Small objects (a model radius under `small_radius_m`: dice, erasers, caps, most under 1.7 cm tall) are tracked in
@@ -340,14 +341,14 @@ class ObjectTracker:
         observed = self.observability(points, T_world_O)
         if observed is None:
             return T_world_O
-        ratios, eigenvectors = observed
-        damping = self.config.degenerate_ratio
+        eigenvalues, eigenvectors = observed
+        damping = self.config.degenerate_ratio * eigenvalues[-1]
         turn = Rotation.from_matrix(T_world_O[:3, :3] @ T_prior[:3, :3].T).as_rotvec()
         change = np.concatenate([self.radius_m * turn, self.centre(T_world_O) - self.centre(T_prior)])
-        keep = ratios / (ratios + damping)
+        keep = eigenvalues / (eigenvalues + damping)
         # A direction the points hardly see at all (a round object's spin) keeps the prior outright: a fraction of
         # an arbitrary turn each frame adds up to tens of degrees over a push.
-        keep[ratios < self.config.unobserved_ratio] = 0.0
+        keep[eigenvalues < self.config.unobserved_ratio * eigenvalues[-1]] = 0.0
         kept = eigenvectors @ (keep * (eigenvectors.T @ change))
         out = np.eye(4)
         out[:3, :3] = Rotation.from_rotvec(kept[:3] / self.radius_m).as_matrix() @ T_prior[:3, :3]
@@ -355,9 +356,9 @@ class ObjectTracker:
         return out
 
     def observability(self, points: np.ndarray, T_world_O: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """How well `points` pin the pose T_world_O down: the point-to-plane Hessian's eigenvalues relative to the
-        strongest (ascending, the weakest first) and its eigenvectors (columns; radius * rotation about the model
-        centre, then centre shift); None with too few matches or nothing observed."""
+        """How well `points` pin the pose T_world_O down: the point-to-plane Hessian's eigenvalues (ascending, the
+        weakest first; compare them with the last, the strongest) and its eigenvectors (columns; radius * rotation
+        about the model centre, then centre shift); None with too few matches or nothing observed."""
         hessian = self._hessian(points, T_world_O)
         if hessian is None:
             return None
@@ -365,7 +366,7 @@ class ObjectTracker:
         eigenvalues = np.maximum(eigenvalues, 0.0)
         if eigenvalues[-1] <= 0.0:
             return None
-        return eigenvalues / eigenvalues[-1], eigenvectors
+        return eigenvalues, eigenvectors
 
     def _hessian(self, points: np.ndarray, T_world_O: np.ndarray) -> np.ndarray | None:
         """[6, 6] point-to-plane Gauss-Newton Hessian per matched point at T_world_O, in (radius * rotation about
@@ -394,11 +395,6 @@ class ObjectTracker:
         rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else math.nan
         return float(fitness), rmse
 
-    @property
-    def max_turn_deg_s(self) -> float:
-        """The fastest this model may turn: its farthest point at `max_speed_mps`, or `max_turn_deg_s` if faster."""
-        return max(self.config.max_turn_deg_s, math.degrees(self.config.max_speed_mps / self.radius_m))
-
     def _implausible(self, fitness: float, rmse: float, T_world_O: np.ndarray) -> str | None:
         """Why the registered pose is not to be believed (None: it is)."""
         assert self._T_good is not None
@@ -412,7 +408,7 @@ class ObjectTracker:
         turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
-        if turn_deg > self.max_turn_deg_s * seconds:
+        if turn_deg > c.max_turn_deg_s * seconds:
             return f"implausible turn: {turn_deg:.0f} deg in {self._since_good} frame(s)"
         return None
 
