@@ -353,3 +353,22 @@ def test_masks_must_match_the_frames():
         tracker.update([frame], [np.zeros(frame.depth_m.shape, dtype=np.uint8)])
     with pytest.raises(PerceptionError, match="no depth frames"):
         tracker.update([], [])
+
+
+def test_observability_says_a_cylinder_spin_is_unseen_and_a_box_turn_is_seen():
+    """The tracker's measure of what points pin down (bench/tracking.py reports it per object): the spin of a
+    standing cylinder about its axis falls under `unobserved_ratio` of the strongest direction, and is that spin;
+    every direction of a box stays well above it."""
+    def weakest(mesh: trimesh.Trimesh) -> tuple[float, np.ndarray]:
+        tracker = ObjectTracker.from_mesh(mesh)
+        points, _ = trimesh.sample.sample_surface(mesh, 2000, seed=1)
+        observed = tracker.observability(np.asarray(points), np.eye(4))
+        assert observed is not None
+        eigenvalues, eigenvectors = observed
+        return float(eigenvalues[0] / eigenvalues[-1]), eigenvectors[:, 0]
+
+    ratio, direction = weakest(trimesh.creation.cylinder(radius=0.04, height=0.12, sections=64))
+    assert ratio < CONFIG.unobserved_ratio
+    assert abs(direction[2]) > 0.99  # a turn about the vertical axis, nothing else
+    ratio, _ = weakest(trimesh.creation.box(extents=(0.10, 0.06, 0.04)))
+    assert ratio > 10 * CONFIG.unobserved_ratio
