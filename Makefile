@@ -37,7 +37,7 @@ demo: install
 
 # Lint (ruff, whole tree) and type-check (mypy, all product code, strict on shared/, visualisation/, client/; cached in
 # .mypy_cache) before the suite. The suite runs on two workers (the machine's two cores), a test module per worker so
-# its module-wide fixtures (routers, a running system) start once: 620 s against 1,032 s on one.
+# its module-wide fixtures (routers, a running system) start once (the time it saves: CHANGELOG).
 test: install
 	$(BIN)/ruff check .
 	$(BIN)/mypy
