@@ -157,7 +157,9 @@ def protocol_for(name: str, quick: bool, trials: int | None = None, world: World
         if task != "paper":
             title = f"Task `{task}`: " + title
         if task in SHAPE_TASKS:
-            objects = protocol.shape_task_objects(task, split, 2 if quick else SHAPE_TASK_OBJECTS)
+            # the final split measures every object of the class it holds (5 small ones, more of the others)
+            count = 2 if quick else None if split == "final" else SHAPE_TASK_OBJECTS
+            objects = protocol.shape_task_objects(task, split, count)
         return Protocol(name, title, "allegro", tuple(methods or CLOSED_LOOP_METHODS), protocol.task_objects(task, objects),
                         protocol.DIRECTIONS_DEG, trials, world, cameras, split, tag, task=task)
     if task != "paper":

@@ -79,7 +79,7 @@ from shared.execution.robots.camera_tracker import CameraRig
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
 from shared.world.objects.catalog import list_object_ids, resolve_library_id
-from shared.world.objects.final_split import is_final_id
+from shared.world.objects.final_split import final_ids, is_final_id
 from shared.world.objects.geometry import rolls
 from shared.world.obstacles import cut_known_obstacles, distance_to_hull
 from shared.world.push_outcome import (
@@ -187,9 +187,19 @@ class Episode:
         return key if self.task == "paper" else f"{self.task}:{key}"
 
     @property
+    def mirrored(self) -> bool:
+        """Whether the trial asks its task's mirror case (pose: turn clockwise; wall: the wall on the other side;
+        clutter: one neighbour, not two): on odd trials; on the final split (one trial per object) on odd trials of
+        every other object in the split's order, so half its objects meet each case, and with the directions'
+        turn of three (`object_directions`) every direction meets both."""
+        shift = final_ids().index(self.object_id) if is_final_id(self.object_id) else 0
+        return (self.trial + shift) % 2 == 1
+
+    @property
     def goal_turn_deg(self) -> float:
-        """The pose task's turn: the goal yaw is the start's turned this far (counterclockwise on even trials)."""
-        return POSE_TASK_TURN_DEG if self.trial % 2 == 0 else -POSE_TASK_TURN_DEG
+        """The pose task's turn: the goal yaw is the start's turned this far (counterclockwise, or clockwise when
+        `mirrored`)."""
+        return -POSE_TASK_TURN_DEG if self.mirrored else POSE_TASK_TURN_DEG
 
     @property
     def world_seed(self) -> int:
@@ -243,7 +253,17 @@ def episodes(methods: Sequence[str], hand: str, objects: Sequence[str], directio
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
     return [Episode(m, hand, o, d, t, world, cameras, tracking, task) for m in methods for o in objects
-            for d in directions for t in range(trials)]
+            for d in object_directions(o, directions) for t in range(trials)]
+
+
+def object_directions(object_id: str, directions: Sequence[float]) -> tuple[float, ...]:
+    """The directions an object is pushed in: all of them, or on the final split one, rotating through them in the
+    split's order (a third of its objects each). The final split spends its trials on more objects, not more
+    directions: its intervals are clustered by object, so 72 objects once each say more than 24 three times,
+    and an object meets the same direction in every task, so tasks still pair trial by trial."""
+    if not is_final_id(object_id):
+        return tuple(directions)
+    return (directions[final_ids().index(object_id) % len(directions)],)
 
 
 def task_objects(task: str, objects: Sequence[str]) -> tuple[str, ...]:
@@ -273,7 +293,7 @@ def put_down(episode: Episode, world: ExecutionWorld) -> np.ndarray:
 def task_obstacles(episode: Episode) -> list[WallObstacle]:
     """The obstacles of the episode's scene, in the world from the start (the object settles beside them): for the
     wall task a wall WALL_GAP_M from the object where it is truly put down, behind it at WALL_ANGLE_DEG to the push
-    (turned counterclockwise from the push on even trials, clockwise on odd), WALL_LENGTH_M long; for the corner
+    (turned counterclockwise from the push, clockwise on a mirrored trial), WALL_LENGTH_M long; for the corner
     task both of those walls, each cut where it meets the other, so the object stands in the corner they make
     behind it; none otherwise."""
     if episode.task not in ("wall", "corner"):
@@ -281,7 +301,7 @@ def task_obstacles(episode: Episode) -> list[WallObstacle]:
     T_put = put_down(episode, execution_world(episode))
     footprint = load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T[:, :2]
     thickness = WallObstacle.model_fields["thickness_m"].default
-    turns = [WALL_ANGLE_DEG if episode.trial % 2 == 0 else -WALL_ANGLE_DEG]
+    turns = [-WALL_ANGLE_DEG if episode.mirrored else WALL_ANGLE_DEG]
     if episode.task == "corner":
         turns = [WALL_ANGLE_DEG, -WALL_ANGLE_DEG]
     # each wall: its outward direction from the object (behind the push) and how far its middle plane stands off
@@ -314,7 +334,7 @@ def task_neighbours(episode: Episode) -> Neighbours:
     footprint = ConvexHull(load_object(episode.object_id).mesh.vertices @ T_put[:3, :3].T[:, :2])
     rng = np.random.default_rng([episode.seed, 7])  # its own stream: the placement's draws stay as they were
     neighbours = []
-    for bearing in CLUTTER_BEARINGS_DEG[episode.trial % 2]:
+    for bearing in CLUTTER_BEARINGS_DEG[int(episode.mirrored)]:
         prop = load_object(CLUTTER_PROPS[int(rng.integers(len(CLUTTER_PROPS)))])
         T_D_O = prop.T_D_O()
         radius = float(np.max(np.linalg.norm((prop.mesh.vertices @ T_D_O[:3, :3].T)[:, :2], axis=1)))
@@ -494,11 +514,11 @@ def default_shape(object_id: str) -> str:
     return shape_of(object_id, load_object(object_id).T_D_O())
 
 
-def shape_task_objects(task: str, split: str, count: int) -> tuple[str, ...]:
-    """The objects of a shape-class task (evaluation.tasks.SHAPE_TASKS: its class's name): the first `count` of the
-    split's procedural and everyday objects whose default pose is of that class, taken in turn from each family
-    (sorted ids within a family) so the families spread; on the development split the 14 objects every change was
-    measured on are left out. ValueError when the split holds fewer."""
+def shape_task_objects(task: str, split: str, count: int | None) -> tuple[str, ...]:
+    """The objects of a shape-class task (evaluation.tasks.SHAPE_TASKS: its class's name): the first `count` (None:
+    all) of the split's procedural and everyday objects whose default pose is of that class, taken in turn from
+    each family (sorted ids within a family) so the families spread; on the development split the 14 objects every
+    change was measured on are left out. ValueError when the split holds fewer (or, for all, none)."""
     if split == "final":
         from shared.world.objects.final_split import load_final_split
 
@@ -517,6 +537,8 @@ def shape_task_objects(task: str, split: str, count: int) -> tuple[str, ...]:
                 chosen.append(members[rank])
                 if len(chosen) == count:
                     return tuple(chosen)
+    if count is None and chosen:
+        return tuple(chosen)
     raise ValueError(f"the {split} split holds {len(chosen)} procedural or everyday objects of class {task!r}; "
                      f"the task needs {count}")
 

@@ -11,18 +11,18 @@ from __future__ import annotations
 # The shape-class tasks ask the paper's push of objects of one class (docs/evaluation.md, "Shape classes"), drawn
 # from the split's procedural and everyday families (SHAPE_TASK_OBJECTS of each, spread over the families).
 # "wall": the paper's push away from a wall: the wall WALL_GAP_M beside the object where it rests, behind it at
-# WALL_ANGLE_DEG to the push (on one side on even trials, the other on odd), so the push leads away from it. A hand
+# WALL_ANGLE_DEG to the push (on one side, or the other on a mirrored trial: `Episode.mirrored`), so the push leads away from it. A hand
 # square behind the object would stand where the wall is: the robot must find another way to push (a fingertip on
 # the free corner, a pull from above), never touching the wall.
 # "corner": the wall task's two walls at once (both sides), meeting behind the object: it stands in a right-angled
 # corner, WALL_GAP_M from each wall, and is pushed out of it.
 # "clutter": the paper's push with neighbours standing CLUTTER_GAP_M from the object (cans and cups: CLUTTER_PROPS,
-# library objects of the train split): one beside it, and on even trials a second behind it on the other side. The
+# library objects of the train split): one beside it, and unless the trial is mirrored a second behind it on the other side. The
 # request tells where they stand as cylinder obstacles (what a user's perception gives); the cameras see them. A
 # neighbour moved more than NEIGHBOUR_MOVED_M fails the trial.
 SHAPE_TASKS = ("tall", "flat", "small", "round")
 TASKS = ("paper", "pose", "wall", "corner", "clutter", *SHAPE_TASKS)
-POSE_TASK_TURN_DEG = 30.0  # counterclockwise on even trials, clockwise on odd
+POSE_TASK_TURN_DEG = 30.0  # counterclockwise, clockwise on a mirrored trial
 SHAPE_TASK_OBJECTS = 6
 WALL_GAP_M = 0.01  # the object's footprint to the wall's face
 WALL_ANGLE_DEG = 45.0  # between the push and the wall
@@ -30,7 +30,7 @@ WALL_LENGTH_M = 0.30  # centred beside the object
 WALL_HEIGHT_M = 0.06
 CLUTTER_PROPS = ("proc-cylinder-007", "proc-cylinder-010", "proc-cylinder-016", "proc-cylinder-025")
 CLUTTER_GAP_M = (0.01, 0.03)  # the object's footprint to a neighbour's, drawn per neighbour
-CLUTTER_BEARINGS_DEG = ((90.0, -135.0), (-90.0,))  # from the push direction, on even and on odd trials
+CLUTTER_BEARINGS_DEG = ((90.0, -135.0), (-90.0,))  # from the push direction; on a mirrored trial
 NEIGHBOUR_MOVED_M = 0.01
 PAPER_CRITERION = "0.20 m along the direction, within 3 cm, turned <= 45 degrees, upright"
 TASK_CRITERIA = {

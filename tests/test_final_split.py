@@ -7,6 +7,7 @@ import hashlib
 import json
 import re
 import subprocess
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -235,3 +236,26 @@ def test_split_final_goes_through_the_guarded_entry_point_only(monkeypatch, caps
     assert eval_cli.run(_eval_args("methods", "--split", "final", "--out", str(tmp_path))) == 2
     assert "clean tree only" in capsys.readouterr().err
     assert "--split final" in eval_cli.__doc__ and "dev" in eval_cli.__doc__
+
+
+def test_final_trials_spread_over_objects_one_direction_each_and_every_object_of_a_class():
+    """The final split spends its trials on objects: each meets one direction, the same in every task (tasks pair),
+    a third of them each direction; a shape task measures every final object of its class, the new round family's
+    balls and lying fruit among the rollers."""
+    with fs.final_split_access():
+        paper = protocol_for("closed-loop", quick=False, trials=1, split="final", methods=("gd2p",))
+        episodes = paper.episodes()
+        assert len(episodes) == len(fs.final_ids()) == len({e.object_id for e in episodes})
+        per_direction = Counter(e.direction_deg for e in episodes)
+        assert set(per_direction) == set(protocol.DIRECTIONS_DEG) and max(per_direction.values()) - min(per_direction.values()) <= 1
+        # half the objects meet each task's mirror case (a clockwise goal, the wall on the other side), in every direction
+        assert Counter((e.direction_deg, e.mirrored) for e in episodes) == {(d, m): 12 for d in protocol.DIRECTIONS_DEG
+                                                                           for m in (False, True)}
+        wall = protocol_for("closed-loop", quick=False, trials=1, split="final", methods=("gd2p",), task="wall")
+        assert {(e.object_id, e.direction_deg) for e in wall.episodes()} == {(e.object_id, e.direction_deg) for e in episodes}
+        round_task = protocol_for("closed-loop", quick=False, trials=1, split="final", methods=("gd2p",), task="round")
+        assert {"final-round-00", "final-round-02", "final-lying-00"} <= set(round_task.objects)  # a ball, a lying fruit
+        small = protocol_for("closed-loop", quick=False, trials=1, split="final", methods=("gd2p",), task="small")
+        assert small.objects == tuple(f"final-small-{i:02d}" for i in range(fs.FINAL_PER_FAMILY))
+    development = protocol_for("closed-loop", quick=True, trials=1, methods=("gd2p",))
+    assert len(development.episodes()) == len(development.objects) * len(protocol.DIRECTIONS_DEG)  # all three there

@@ -38,6 +38,22 @@ def test_balls_and_lying_cans_roll_boxes_standing_cans_and_lumps_do_not():
     assert not rolls(lump, UPRIGHT)
 
 
+def test_a_ball_on_a_flat_of_its_own_rolls_a_prism_lying_on_a_facet_does_not():
+    """A ball or fruit cut flat where it sits stands still where put and rolls when pushed: the flat holds it,
+    it is a body of revolution beyond it. A 16-sided prism lying on one of its facets stays (a wide support)."""
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.03)
+    keep = trimesh.creation.box(bounds=[[-1, -1, -0.0294], [1, 1, 1]])  # a 0.6 mm cut: a flat 6 mm across
+    on_flat = trimesh.boolean.intersection([ball, keep], engine="manifold")
+    on_flat.apply_translation(-on_flat.center_mass)
+    assert tipping_angle_deg(on_flat, UPRIGHT) > ROLLS_BELOW_DEG and rolls(on_flat, UPRIGHT)
+    prism = trimesh.creation.cylinder(radius=0.03, height=0.12, sections=16)
+    on_facet = trimesh.transformations.rotation_matrix(math.pi / 2, [0, 1, 0])[:3, :3]
+    on_facet = trimesh.transformations.rotation_matrix(math.pi / 16, [1, 0, 0])[:3, :3] @ on_facet  # a facet down
+    assert tipping_angle_deg(prism, on_facet) > ROLLS_BELOW_DEG and not rolls(prism, on_facet)
+    box = trimesh.creation.box((0.06, 0.06, 0.06))
+    assert not rolls(box, UPRIGHT)
+
+
 def test_library_objects_roll_as_they_lie():
     assert rolls(load_object("proc-lying-000").mesh, load_object("proc-lying-000").default_pose.rotation)
     for object_id in ("proc-box-000", "proc-cylinder-000", "proc-ellipsoid-001", "pb-mug", "pb-toy-cylinder"):

@@ -33,8 +33,19 @@ TALL_MIN_RATIO = 1.5
 # that stand (a box on end, a jenga block upright) over 10.
 ROLLS_BELOW_DEG = 6.0
 # Below this revolution_deviation a surface is a body of revolution about the axis, as a camera or the table sees
-# it (the library's bodies of revolution 0.006-0.036, every other development or val shape 0.076 or more).
+# it (the library's bodies of revolution 0.006-0.036; its curved bananas 0.045 or more, every other shape more).
 REVOLUTION_MAX = 0.1
+# A true body of revolution about a horizontal axis (below TRUE_REVOLUTION_MAX: a ball, a lying fruit or can)
+# resting on a small flat of its own still rolls: the flat holds it where it is put, a push tips it off the flat's
+# edge and it rolls on. A ball on a 1 mm flat must tilt about 10 degrees first, a lemon lying on a 2 mm flat about
+# 20, a banana (no true body of revolution) 14-24 and then rocks back; such a body rolls below
+# ROLLS_ON_FLAT_BELOW_DEG.
+TRUE_REVOLUTION_MAX = 0.04
+ROLLS_ON_FLAT_BELOW_DEG = 25.0
+# What makes it a flat of its own, not a facet: it stands on under this share of its footprint (support_share: a
+# ball's flat about 0.03, a fruit's about 0.1), where a tessellated capsule lying on one of its facets stands on
+# 0.16 or more and stays where it is put (every library capsule, in each of its resting poses).
+FLAT_SUPPORT_MAX_SHARE = 0.15
 MIN_POSE_PROBABILITY = 0.01  # quasi-static drop probability below which a pose is ignored
 MAX_RESTING_POSES = 8
 NATIVE_MATCH_DEG = 2.0
@@ -178,12 +189,26 @@ def rolls(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> bool:
     ROLLS_BELOW_DEG) and is a body of revolution about a horizontal axis (revolution_deviation below
     REVOLUTION_MAX), the axis it rolls about; an irregular lump balanced near an edge of its support only tips.
     The axes tried: the table's x and y (for a ball any horizontal axis is one) and O's principal axes lying
-    within 20 degrees of the table (a can on its side rolls about its own)."""
+    within 20 degrees of the table (a can on its side rolls about its own). A true body of revolution resting on a
+    small flat (a ball or a fruit that stands where it is put) rolls too: see ROLLS_ON_FLAT_BELOW_DEG."""
     rotation = np.asarray(rotation, dtype=np.float64)
-    if tipping_angle_deg(mesh_o, rotation) >= ROLLS_BELOW_DEG:
+    tipping = tipping_angle_deg(mesh_o, rotation)
+    if tipping >= max(ROLLS_BELOW_DEG, ROLLS_ON_FLAT_BELOW_DEG):
         return False
     axes = [rotation[0], rotation[1]] + [np.eye(3)[i] for i in range(3) if abs(rotation[2, i]) < math.sin(math.radians(20))]
-    return min(revolution_deviation(mesh_o, axis) for axis in axes) < REVOLUTION_MAX
+    deviation = min(revolution_deviation(mesh_o, axis) for axis in axes)
+    if tipping < ROLLS_BELOW_DEG:
+        return deviation < REVOLUTION_MAX
+    return deviation < TRUE_REVOLUTION_MAX and support_share(mesh_o, rotation) < FLAT_SUPPORT_MAX_SHARE
+
+
+def support_share(mesh_o: trimesh.Trimesh, rotation: np.ndarray) -> float:
+    """The area the object, resting in `rotation`, stands on as a share of its footprint's (0: a point or a line)."""
+    polygon = _support_polygon(mesh_o, rotation)
+    if polygon is None:
+        return 0.0
+    footprint = ConvexHull((np.asarray(mesh_o.convex_hull.vertices) @ np.asarray(rotation).T)[:, :2])
+    return float(polygon.volume / footprint.volume)  # a 2-D hull's volume is its area
 
 
 def revolution_deviation(mesh: trimesh.Trimesh, axis: np.ndarray) -> float:
