@@ -19,6 +19,7 @@ from __future__ import annotations
 import datetime as dt
 import subprocess
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
@@ -83,11 +84,22 @@ def append_log(command: str, commit: str, settings: dict[str, Any], result: str,
     return path
 
 
+_worker_access: list[AbstractContextManager[None]] = []  # a final run's worker holds its access here, for life
+
+
+def open_access_for_life() -> None:
+    """Open the final-split access for the rest of this process (a final run's worker). The open context is kept
+    referenced: an unreferenced one is collected at once, and collecting it closes the access again."""
+    access = final_split_access()
+    access.__enter__()
+    _worker_access.append(access)
+
+
 def _init_final_worker(grasp_cache: str) -> None:
     """A final run's worker: the final-split access stays open for the worker's life, then the usual setup."""
     from evaluation.push_protocol import _init_worker
 
-    final_split_access().__enter__()  # closed with the process
+    open_access_for_life()
     _init_worker(grasp_cache)
 
 

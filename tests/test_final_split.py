@@ -259,3 +259,14 @@ def test_final_trials_spread_over_objects_one_direction_each_and_every_object_of
         assert small.objects == tuple(f"final-small-{i:02d}" for i in range(fs.FINAL_PER_FAMILY))
     development = protocol_for("closed-loop", quick=True, trials=1, methods=("gd2p",))
     assert len(development.episodes()) == len(development.objects) * len(protocol.DIRECTIONS_DEG)  # all three there
+
+
+def test_a_final_runs_worker_process_keeps_its_access_open():
+    """A final run's trials run in spawned workers, each opening the access for its life: it must stay open after
+    the initializer returns (an unreferenced open context is collected, and closes it), and only there."""
+    import multiprocessing as mp
+
+    with mp.get_context("spawn").Pool(1, initializer=final_run.open_access_for_life) as pool:
+        assert pool.apply(fs.final_access_open)
+    with mp.get_context("spawn").Pool(1) as pool:
+        assert not pool.apply(fs.final_access_open)
