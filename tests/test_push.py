@@ -502,6 +502,35 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
     assert np.allclose(jobs[0].poses.to_numpy()[0], poses[liked])
 
 
+def test_a_faster_prescreen_pushes_at_its_own_speed_and_rollouts_at_the_validator_s():
+    """`prescreen_push_speed_mps` (a candidate setting, bench/prescreen_speed.py): the prescreen's floating pushes
+    carry that speed with the validator's solver; arm rollouts keep the validator's physics (the robot's speed)."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
+    from shared.world.sim.params import PhysicsParams
+
+    jobs = []
+
+    def validate(job):
+        jobs.append(job)
+        return validate_here(job)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate, execute=robot.execute),
+                            PipelineSettings(max_plans=2, prescreen=4, max_plan_rounds=1, prescreen_push_speed_mps=0.2))
+    try:
+        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                 direction_deg=90.0, options=PlannerOptions(k=8, corrections=0)))
+    finally:
+        pipeline.close()
+        robot.close()
+    floating = [job for job in jobs if not job.with_arm]
+    assert floating and all(job.settings is not None and job.settings.push_speed_mps == 0.2 for job in floating)
+    assert floating[0].settings.solver_iterations == PhysicsParams().solver_iterations
+    assert all(job.settings is None for job in jobs if job.with_arm)
+
+
 def test_a_request_for_critic_guided_samples_reaches_the_sampler_and_only_for_diffusion_samples():
     from evaluation.local_system import LocalRobot, validate_here
     from shared.planning.pipeline import PushPipeline, PushServices

@@ -32,6 +32,7 @@ from scipy.spatial import ConvexHull
 
 from shared.contracts.messages import (
     DirectionFrame,
+    PhysicsSettings,
     Plan,
     PushRequest,
     PushStep,
@@ -65,6 +66,7 @@ from shared.world.push_outcome import (
     pose_matrix,
     rotation_between_deg,
 )
+from shared.world.sim.params import PhysicsParams
 
 # A later push reuses the last sampled candidates when the object sits in its push frame D turned no more than
 # this from how it sat in the last one's (the sampler would be asked the same question).
@@ -93,6 +95,10 @@ class PipelineSettings:
     # path, pushes none); see `prescreen`. Fewer pushes plan sooner but lost success on the val objects, even in
     # the critic's order, so 24 are kept (docs/evaluation.md §Tuned settings).
     prescreen: int = 24
+    # The prescreen's floating pushes at this hand speed (m/s; None: the validator's, that of the rollouts and the
+    # robot). A faster push simulates fewer steps; a candidate setting, measured (bench/prescreen_speed.py) and on
+    # val before it is a default.
+    prescreen_push_speed_mps: float | None = None
     max_plan_attempts: int = 10  # poses planned per round before giving up
     # A round in which none of its `max_plan_attempts` poses has an arm plan (the approach or the way out
     # runs out of reach, every path breaks a limit) is followed by one on the next poses, screened as
@@ -449,7 +455,8 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
     request, tested = state.request, feasible.order[: settings.prescreen]
     chunks = [c for c in np.array_split(tested, math.ceil(len(tested) / PRESCREEN_CHUNK)) if len(c)]
     jobs = [ValidationJob(object=request.object, hand=request.hand, poses=feasible.candidates.poses_d[chunk],
-                          frame=push.frame, push_distance_m=push.distance_m, seed=request.seed) for chunk in chunks]
+                          frame=push.frame, push_distance_m=push.distance_m, seed=request.seed,
+                          settings=prescreen_physics(settings)) for chunk in chunks]
     futures = [validate(job) for job in jobs]
     feasible = screen_more(state, planner, feasible, push, settings)
     started = time.perf_counter()
@@ -466,6 +473,15 @@ def prescreen(state: RequestState, planner: MotionPlanner, feasible: Feasible, p
                         feasible.candidates.poses_d[:, :3], settings.min_separation_m)
     order = feasible.order
     return feasible.reordered(np.concatenate([passed, tested[~success], order[len(tested):]]))
+
+
+def prescreen_physics(settings: PipelineSettings) -> PhysicsSettings | None:
+    """The prescreen jobs' physics: the validator's own (None), or its solver at the prescreen's push speed."""
+    if settings.prescreen_push_speed_mps is None:
+        return None
+    nominal = PhysicsParams()
+    return PhysicsSettings(solver_iterations=nominal.solver_iterations, time_step_s=nominal.time_step_s,
+                           push_speed_mps=settings.prescreen_push_speed_mps)
 
 
 def prescreen_judged(state: RequestState, push: Push, result: ValidationResult) -> tuple[np.ndarray, np.ndarray]:
