@@ -462,14 +462,34 @@ def test_the_poses_the_floating_hand_pushed_best_are_planned_first():
     assert np.allclose(rollouts[1].poses.to_numpy()[0], tested[1])
 
 
+def _validation_jobs(sample, settings, options: PlannerOptions) -> list:
+    """Every validation job (prescreen pushes, arm rollouts) one push of the box sends, executed on a simulated robot."""
+    from evaluation.local_system import LocalRobot, validate_here
+    from shared.planning.pipeline import PushPipeline, PushServices
+
+    jobs = []
+
+    def validate(job):
+        jobs.append(job)
+        return validate_here(job)
+
+    robot = LocalRobot()
+    pipeline = PushPipeline(PushServices(sample=sample, validate=validate, execute=robot.execute), settings)
+    try:
+        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
+                                 direction_deg=90.0, options=options))
+    finally:
+        pipeline.close()
+        robot.close()
+    return jobs
+
+
 @pytest.mark.parametrize("prescreen", [True, False])
 def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path_prescreens_nothing(prescreen):
     """Samples the sampler scored (success_probability): by default (critic on) the best-scored pose is the first
     the prescreen pushes; with `prescreen` off (the fast path) no floating hand pushes and its plan is rolled out
     first. (Without the critic, L_dir's order: tests/test_critic.py.)"""
-    from evaluation.local_system import LocalRobot, validate_here
     from shared.contracts.messages import NDArray
-    from shared.planning.pipeline import PushPipeline, PushServices
     from shared.planning.stages import PipelineSettings
 
     liked = 5
@@ -480,21 +500,8 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
         scores[liked] = 0.9
         return reply.model_copy(update={"success_probability": NDArray.from_numpy(scores)})
 
-    jobs = []
-
-    def validate(job):
-        jobs.append(job)
-        return validate_here(job)
-
-    robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=scored, validate=validate, execute=robot.execute),
-                            PipelineSettings(max_plans=2, max_plan_rounds=1))
-    try:
-        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, options=PlannerOptions(k=8, prescreen=prescreen)))
-    finally:
-        pipeline.close()
-        robot.close()
+    jobs = _validation_jobs(scored, PipelineSettings(max_plans=2, max_plan_rounds=1),
+                            PlannerOptions(k=8, prescreen=prescreen))
     assert jobs[0].with_arm is not prescreen  # the prescreen's floating-hand pushes come first, when asked for
     assert all(job.with_arm for job in jobs) is not prescreen
     poses = scored(SampleRequest(object=ObjectRef(library_id=BOX), hand="allegro", k=8,
@@ -505,26 +512,12 @@ def test_the_critic_s_order_decides_which_pose_is_pushed_first_and_the_fast_path
 def test_a_faster_prescreen_pushes_at_its_own_speed_and_rollouts_at_the_validator_s():
     """`prescreen_push_speed_mps` (a candidate setting, bench/prescreen_speed.py): the prescreen's floating pushes
     carry that speed with the validator's solver; arm rollouts keep the validator's physics (the robot's speed)."""
-    from evaluation.local_system import LocalRobot, validate_here
-    from shared.planning.pipeline import PushPipeline, PushServices
     from shared.planning.stages import PipelineSettings
     from shared.world.sim.params import PhysicsParams
 
-    jobs = []
-
-    def validate(job):
-        jobs.append(job)
-        return validate_here(job)
-
-    robot = LocalRobot()
-    pipeline = PushPipeline(PushServices(sample=_spatula_poses, validate=validate, execute=robot.execute),
-                            PipelineSettings(max_plans=2, prescreen=4, max_plan_rounds=1, prescreen_push_speed_mps=0.2))
-    try:
-        pipeline.run(PushRequest(object=ObjectRef(library_id=BOX), object_pose=_pose(_box_at(0.5, 0.0)),
-                                 direction_deg=90.0, options=PlannerOptions(k=8, corrections=0)))
-    finally:
-        pipeline.close()
-        robot.close()
+    jobs = _validation_jobs(_spatula_poses, PipelineSettings(max_plans=2, prescreen=4, max_plan_rounds=1,
+                                                             prescreen_push_speed_mps=0.2),
+                            PlannerOptions(k=8, corrections=0))
     floating = [job for job in jobs if not job.with_arm]
     assert floating and all(job.settings is not None and job.settings.push_speed_mps == 0.2 for job in floating)
     assert floating[0].settings.solver_iterations == PhysicsParams().solver_iterations
