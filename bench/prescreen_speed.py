@@ -18,6 +18,10 @@ check that the replay is the planner's: it must agree 100%). Measured, each agai
 - `top_overlap`: the mean share of the first `max_plans` planned poses (one round of plans) that are the same set;
 - `cpu_ms_per_push`: the CPU time of a replayed push.
 
+`noise_floor`: the same figures for the validator's own speed with every pose moved 0.1 mm sideways (along D's y,
+across the push): how much of a decision physics itself changes for a move no robot could tell. A faster speed
+that changes no more than that loses nothing the prescreen knew.
+
 The requests are planned but not executed (the robot is never asked to move). Val objects: settings are chosen on
 val. The JSON is written to `--out`.
 """
@@ -68,8 +72,12 @@ def planned_order(success: np.ndarray, error: np.ndarray) -> np.ndarray:
     return passed[np.argsort(error[passed], kind="stable")]
 
 
-def replayed(jobs: list[ValidationJob], speed: float) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """The request's prescreen jobs pushed again at `speed`: success, error, CPU seconds and pushes."""
+NOISE_NUDGE_M = 1e-4  # the noise floor's sideways move of every pose
+
+
+def replayed(jobs: list[ValidationJob], speed: float, nudge_m: float = 0.0) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """The request's prescreen jobs pushed again at `speed`, every pose moved `nudge_m` along D's y: success, error,
+    CPU seconds and pushes."""
     from shared.validation.jobs import validate
     from shared.world.sim.params import PhysicsParams
 
@@ -77,7 +85,7 @@ def replayed(jobs: list[ValidationJob], speed: float) -> tuple[np.ndarray, np.nd
     physics = PhysicsSettings(solver_iterations=nominal.solver_iterations, time_step_s=nominal.time_step_s,
                               push_speed_mps=speed)
     started = time.process_time()
-    parts = [judged(validate(replace_settings(job, physics))) for job in jobs]
+    parts = [judged(validate(replace_settings(nudged(job, nudge_m), physics))) for job in jobs]
     cpu = time.process_time() - started
     success = np.concatenate([p[0] for p in parts])
     return success, np.concatenate([p[1] for p in parts]), cpu, int(success.size)
@@ -85,6 +93,17 @@ def replayed(jobs: list[ValidationJob], speed: float) -> tuple[np.ndarray, np.nd
 
 def replace_settings(job: ValidationJob, physics: PhysicsSettings) -> ValidationJob:
     return job.model_copy(update={"settings": physics})
+
+
+def nudged(job: ValidationJob, nudge_m: float) -> ValidationJob:
+    """`job` with every hand pose moved `nudge_m` along D's y (a 25-d pose starts with the base's position)."""
+    if nudge_m == 0.0:
+        return job
+    from shared.contracts.messages import NDArray
+
+    poses = job.poses.to_numpy().astype(np.float64).copy()
+    poses[:, 1] += nudge_m
+    return job.model_copy(update={"poses": NDArray.from_numpy(poses.astype(job.poses.to_numpy().dtype))})
 
 
 def compare(reference: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray], top: int) -> dict[str, Any]:
@@ -133,8 +152,10 @@ def run(objects: list[str], speeds: list[float], out: Path, print_json: bool) ->
     nominal = PhysicsParams().push_speed_mps
     settings = PipelineSettings()
     system = LocalSystem(settings)
-    per_speed: dict[float, list[dict[str, Any]]] = {s: [] for s in speeds}
-    cpu: dict[float, list[float]] = {s: [] for s in speeds}
+    # each replay: (speed, sideways move); the noise floor last
+    replays = [(s, 0.0) for s in speeds] + [(nominal, NOISE_NUDGE_M)]
+    per_speed: dict[tuple[float, float], list[dict[str, Any]]] = {r: [] for r in replays}
+    cpu: dict[tuple[float, float], list[float]] = {r: [] for r in replays}
     requests = [(o, d) for o in objects for d in DIRECTIONS_DEG]
 
     def refuse(*_args: object) -> Any:
@@ -156,30 +177,31 @@ def run(objects: list[str], speeds: list[float], out: Path, print_json: bool) ->
                 continue
             planner = (np.concatenate([judged(r)[0] for _, r in recorder.jobs]),
                        np.concatenate([judged(r)[1] for _, r in recorder.jobs]))
-            for speed in speeds:
-                success, error, seconds, pushes = replayed(jobs, speed)
-                cpu[speed].append(seconds / pushes)
+            for speed, nudge in replays:
+                success, error, seconds, pushes = replayed(jobs, speed, nudge)
+                cpu[speed, nudge].append(seconds / pushes)
                 row = compare(planner, (success, error), settings.max_plans)
-                per_speed[speed].append({"object": object_id, "direction_deg": direction, **row})
+                per_speed[speed, nudge].append({"object": object_id, "direction_deg": direction, **row})
     finally:
         system.close()
     summary: dict[str, Any] = {"command": "python bench/prescreen_speed.py " + " ".join(sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
                                "code": code_version(), "machine": machine(), "reference_speed_mps": nominal,
                                "objects": objects, "requests": len(requests), "speeds": {}}
-    for speed, rows in per_speed.items():
+    for (speed, nudge), rows in per_speed.items():
         pushes = sum(r["pushes"] for r in rows)
-        summary["speeds"][f"{speed:g}"] = {
+        name = f"{speed:g}" if nudge == 0.0 else "noise_floor"
+        summary["speeds"][name] = {
             "requests_prescreened": len(rows), "pushes": pushes,
             "agreement": round(sum(r["agree"] for r in rows) / max(pushes, 1), 4),
             "first_same": round(float(np.mean([r["first_same"] for r in rows])) if rows else 0.0, 4),
             "top_overlap": round(float(np.mean([r["top_overlap"] for r in rows])) if rows else 0.0, 4),
             "passed_share": round(sum(r["passed"] for r in rows) / max(pushes, 1), 4),
-            "cpu_ms_per_push": round(1000 * float(np.mean(cpu[speed])), 1) if cpu[speed] else None,
+            "cpu_ms_per_push": round(1000 * float(np.mean(cpu[speed, nudge])), 1) if cpu[speed, nudge] else None,
             "per_request": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(summary, indent=1) + "\n")
     for speed, figures in summary["speeds"].items():
-        print(f"{speed} m/s: agreement {figures['agreement']:.1%} over {figures['pushes']} pushes, first pose the same "
+        print(f"{speed}{'' if speed == 'noise_floor' else ' m/s'}: agreement {figures['agreement']:.1%} over {figures['pushes']} pushes, first pose the same "
               f"in {figures['first_same']:.0%}, top {settings.max_plans} overlap {figures['top_overlap']:.0%}, "
               f"{figures['cpu_ms_per_push']} ms CPU per push")
     if print_json:
