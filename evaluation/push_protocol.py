@@ -77,7 +77,7 @@ from shared.contracts.messages import (
 from shared.execution.robots import TRACKING_MODES, TrackingMode
 from shared.execution.robots.camera_tracker import CameraRig
 from shared.frames import direction_xy, make_transform, yaw_rotation
-from shared.world.objects import UNSEEN_FAMILIES, load_object, split_of
+from shared.world.objects import UNSEEN_FAMILIES, ObjectLoadError, load_object, split_of
 from shared.world.objects.catalog import list_object_ids, resolve_library_id
 from shared.world.objects.final_split import final_ids, is_final_id
 from shared.world.objects.geometry import rolls
@@ -410,7 +410,12 @@ def _seen_yaw(ref: ObjectRef, told_pose: ObjectPose | None) -> float:
     from shared.world.object_refs import captured_object
 
     if ref.point_cloud is not None:
-        captured = captured_object(ref)
+        try:
+            captured = captured_object(ref)
+        except ObjectLoadError as exc:  # the system's own refusal of such a cloud (the pipeline's), raised first
+            from shared.planning.outcome import PushError
+
+            raise PushError("bad_request", f"bad object: {exc}") from exc
         model, T = captured.model, captured.T_world_O
     else:
         assert told_pose is not None and ref.library_id is not None  # the evaluation tells library meshes with a pose
@@ -612,9 +617,9 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record: dict[str, Any] = {**asdict(episode), "seed": episode.seed, "world_draw": world.record(),
                               "engine": engine_of(world), "shape": shape_of(episode.object_id, T_start),
                               "settled_m": round(float(np.linalg.norm(T_start[:2, 3] - T_put[:2, 3])), 4)}
-    request = push_request(episode, T_start, neighbours)  # with cameras: rendered once (the capture is seeded by the trial)
     system.robot.contacts.reset()
     try:
+        request = push_request(episode, T_start, neighbours)  # with cameras: rendered once (seeded by the trial)
         response = pipeline.run(request).response
     except PushError as exc:
         record.update(outcome="infeasible" if exc.code == "infeasible" else "error", success=False,
@@ -656,13 +661,13 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["ranking_weights"] = list(astuple(pipeline.settings.weights))
     if method.options.closed_loop:
         record["monitor"] = list(astuple(pipeline.settings.monitor))
-    record["sampler"] = request.options.sampler if method.source == "gd2p" else None
+    record["sampler"] = method.options.sampler if method.source == "gd2p" else None
     record["pose_model"] = _pose_model(episode.hand, method.source)
     record["critic"] = method.options.critic and method.source in ("gd2p", "nearest") and _has_critic(episode.hand)
     if record["critic"]:  # which critic ordered the poses (the sampler loads it from the same path)
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
-    record["budget"] = [settings.prescreen if request.options.prescreen else 0, settings.max_plans]
+    record["budget"] = [settings.prescreen if method.options.prescreen else 0, settings.max_plans]
     if settings.slide_m:  # a candidate stage: the slides its poses were also tried at near an obstacle
         record["slide_m"] = list(settings.slide_m)
     return record

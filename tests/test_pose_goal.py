@@ -366,3 +366,16 @@ def test_a_box_at_the_goal_point_but_40_deg_off_its_yaw_is_pushed_off_it_and_bac
     first = np.array(response.steps[0].result.final_object_pose.position[:2])
     assert first[1] < 0.12 - 0.03  # the first push took it off the point, sideways toward the robot's centre line
     assert response.steps[0].score.l_goal > 0.0 and len(response.steps) <= 6
+
+
+def test_a_pose_trial_whose_capture_shows_too_little_is_refused_as_the_system_refuses_it_not_a_crash():
+    """The pose task reads the yaw the system sees from the capture before it asks: a capture too sparse to
+    reconstruct (a small object seen from afar) is the system's bad_request, recorded as that trial's error, as the
+    paper's task records it, never an exception that stops the evaluation."""
+    from evaluation.push_protocol import _seen_yaw
+    from shared.planning.outcome import PushError
+
+    sparse = np.random.default_rng(0).uniform([0.39, -0.01, 0.0], [0.41, 0.01, 0.02], size=(30, 3))
+    with pytest.raises(PushError) as refused:
+        _seen_yaw(ObjectRef(point_cloud=sparse), None)
+    assert refused.value.code == "bad_request" and "too few" in refused.value.message
