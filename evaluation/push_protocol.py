@@ -79,7 +79,7 @@ from shared.execution.robots.camera_tracker import CameraRig
 from shared.frames import direction_xy, make_transform, yaw_rotation
 from shared.world.objects import UNSEEN_FAMILIES, ObjectLoadError, load_object, split_of
 from shared.world.objects.catalog import list_object_ids, resolve_library_id
-from shared.world.objects.final_split import final_ids, is_final_id
+from shared.world.objects.final_split import final_index, is_final_id
 from shared.world.objects.geometry import rolls
 from shared.world.obstacles import cut_known_obstacles, distance_to_hull
 from shared.world.push_outcome import (
@@ -192,7 +192,7 @@ class Episode:
         clutter: one neighbour, not two): on odd trials; on the final split (one trial per object) on odd trials of
         every other object in the split's order, so half its objects meet each case, and with the directions'
         turn of three (`object_directions`) every direction meets both."""
-        shift = final_ids().index(self.object_id) if is_final_id(self.object_id) else 0
+        shift = final_index(self.object_id) if is_final_id(self.object_id) else 0
         return (self.trial + shift) % 2 == 1
 
     @property
@@ -263,7 +263,7 @@ def object_directions(object_id: str, directions: Sequence[float]) -> tuple[floa
     and an object meets the same direction in every task, so tasks still pair trial by trial."""
     if not is_final_id(object_id):
         return tuple(directions)
-    return (directions[final_ids().index(object_id) % len(directions)],)
+    return (directions[final_index(object_id) % len(directions)],)
 
 
 def task_objects(task: str, objects: Sequence[str]) -> tuple[str, ...]:

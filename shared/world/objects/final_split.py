@@ -82,6 +82,16 @@ def final_ids() -> list[str]:
     return [f"final-{family}-{index:02d}" for family in FINAL_FAMILIES for index in range(_count(family))]
 
 
+def final_index(object_id: str) -> int:
+    """A final id's place in the split's order (`final_ids`): what spreads the final trials' directions and cases."""
+    return _final_indices()[object_id]
+
+
+@functools.cache
+def _final_indices() -> dict[str, int]:
+    return {object_id: index for index, object_id in enumerate(final_ids())}
+
+
 def _count(family: str) -> int:
     return ROUND_COUNT if family == "round" else FINAL_PER_FAMILY
 
