@@ -456,18 +456,14 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
     rollout and the robot parted in the planner's own world) and (b) on the true object where it truly
     stood ("true_object": False means what the system was told or saw was off enough to fail the push;
     True leaves the execution world's physics - friction, mass, centre of mass, controller - as the cause)."""
-    from shared.world.object_refs import captured_object
     from shared.world.push_outcome import pose_matrix
 
     system = _system
     assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
     robot = system.robot
-    if request.object.point_cloud is not None:
-        T_told = captured_object(cut_known_obstacles(request).object).T_world_O
-    else:
-        assert request.object_pose is not None  # a told mesh comes with its pose
-        T_told = pose_matrix(request.object_pose)
-    told = SimWorld(object=request.object, object_pose=object_pose(T_told), obstacles=request.obstacles)
+    told = told_world(request)
+    assert told.object_pose is not None  # told_world places it
+    T_told = pose_matrix(told.object_pose)
     drawn, truth = robot.execution_world, robot.true_object
     try:
         robot.execution_world = robot.true_object = None
@@ -480,6 +476,20 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
     finally:
         robot.execution_world, robot.true_object = drawn, truth
     return {"planner_world": bool(in_planner_world), "true_object": bool(on_true_object)}
+
+
+def told_world(request: PushRequest) -> SimWorld:
+    """The world the planner was told or saw: the object as it read it where it was told it stood, with the
+    request's obstacles. A captured cloud is read as the planner reads it, without the points on the known
+    obstacles (walls, the neighbours told as cylinders): the neighbours' own points would join the object's
+    cloud, or stand apart from it as a second object no reconstruction takes."""
+    from shared.world.object_refs import captured_object
+
+    if request.object.point_cloud is not None:
+        seen = cut_known_obstacles(request).object
+        return SimWorld(object=seen, object_pose=object_pose(captured_object(seen).T_world_O), obstacles=request.obstacles)
+    assert request.object_pose is not None  # a told mesh comes with its pose
+    return SimWorld(object=request.object, object_pose=request.object_pose, obstacles=request.obstacles)
 
 
 def judged_from(episode: Episode, T_start: np.ndarray, final: ObjectPose) -> ExecutionResult:

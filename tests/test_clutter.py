@@ -113,3 +113,27 @@ def test_a_slid_copy_keeps_its_distance_to_the_face_it_pushes_and_one_slid_past_
     assert np.array_equal(slid[0, 3:], pose[0, 3:])  # the same orientation and fingers
     _, past = slid_poses(pose, disc, 0.06)
     assert not past[0]
+
+
+def test_a_failed_plan_is_replayed_on_the_object_the_planner_saw_without_its_neighbours():
+    """The replay of a failure (why a plan failed) executes in the world the planner saw: the captured cloud holds
+    the two cans too, and read as the planner reads it, without the points on the told cylinders, it is the mug
+    alone, where the mug stands. Read whole, the cans stand apart as a second object no reconstruction takes
+    (a final run stopped on it)."""
+    from shared.world.object_refs import captured_object, load_object_ref
+    from shared.world.objects import ObjectLoadError
+    from shared.world.push_outcome import pose_matrix
+
+    episode = clutter_episode(0)
+    neighbours = protocol.task_neighbours(episode)
+    T_start = protocol.placement(episode)
+    request = protocol.push_request(episode, T_start, neighbours)
+    told = protocol.told_world(request)
+    assert told.obstacles == request.obstacles
+    T_told = pose_matrix(told.object_pose)
+    seen = load_object_ref(told.object).mesh.vertices @ T_told[:3, :3].T + T_told[:3, 3]
+    mug = load_object(episode.object_id).mesh.vertices @ T_start[:3, :3].T + T_start[:3, 3]
+    assert np.abs(seen[:, :2].min(axis=0) - mug[:, :2].min(axis=0)).max() < 0.01
+    assert np.abs(seen[:, :2].max(axis=0) - mug[:, :2].max(axis=0)).max() < 0.01
+    with pytest.raises(ObjectLoadError, match="two separate objects"):
+        captured_object(request.object)
