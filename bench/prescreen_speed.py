@@ -22,6 +22,12 @@ check that the replay is the planner's: it must agree 100%). Measured, each agai
 across the push): how much of a decision physics itself changes for a move no robot could tell. A faster speed
 that changes no more than that loses nothing the prescreen knew.
 
+`critic_order`: the same figures for no prescreen at all, read from the planner's own pushes (no replay): the
+order the prescreen was handed (the critic's, which the planner follows without a prescreen) against the order
+it planned in. `first_same` is then whether the critic's first pose is the prescreen's, `top_overlap` the share of
+the critic's first `max_plans` among the prescreen's, and `agreement` the share of those first `max_plans` that
+passed (what a planner without the prescreen would roll out). `--speeds none` measures only this.
+
 The requests are planned but not executed (the robot is never asked to move). Val objects: settings are chosen on
 val. The JSON is written to `--out`.
 """
@@ -108,14 +114,27 @@ def nudged(job: ValidationJob, nudge_m: float) -> ValidationJob:
 
 def compare(reference: tuple[np.ndarray, np.ndarray], other: tuple[np.ndarray, np.ndarray], top: int) -> dict[str, Any]:
     """How `other`'s prescreen decision of one request matches `reference`'s."""
-    order_ref, order_other = planned_order(*reference), planned_order(*other)
+    return compare_orders(planned_order(*reference), planned_order(*other), top) | {
+        "agree": int(np.sum(reference[0] == other[0])), "pushes": int(reference[0].size),
+        "passed_reference": int(reference[0].sum()), "passed": int(other[0].sum())}
+
+
+def critic_compare(reference: tuple[np.ndarray, np.ndarray], top: int) -> dict[str, Any]:
+    """How the order the prescreen was handed (the critic's: pushes 0, 1, ...) matches the order it planned in."""
+    success = reference[0]
+    critic = np.arange(success.size)
+    return compare_orders(planned_order(*reference), critic, top) | {
+        "agree": int(success[:top].sum()), "pushes": int(min(top, success.size)),
+        "passed_reference": int(success.sum()), "passed": int(success[:top].sum())}
+
+
+def compare_orders(order_ref: np.ndarray, order_other: np.ndarray, top: int) -> dict[str, Any]:
+    """Whether two orders of poses start with the same pose, and the overlap of their first `top`."""
     first_same = (len(order_ref) == 0 and len(order_other) == 0) or (
         len(order_ref) > 0 and len(order_other) > 0 and order_ref[0] == order_other[0])
     top_ref, top_other = set(order_ref[:top].tolist()), set(order_other[:top].tolist())
     overlap = 1.0 if not top_ref and not top_other else len(top_ref & top_other) / max(len(top_ref), len(top_other))
-    return {"agree": int(np.sum(reference[0] == other[0])), "pushes": int(reference[0].size),
-            "first_same": bool(first_same), "top_overlap": overlap,
-            "passed_reference": int(reference[0].sum()), "passed": int(other[0].sum())}
+    return {"first_same": bool(first_same), "top_overlap": overlap}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,15 +142,16 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--objects", default=",".join(VAL_OBJECTS), help="comma-separated ids (default: the val objects)")
-    parser.add_argument("--speeds", default="0.1,0.2", help="push speeds to replay at, m/s (default %(default)s)")
+    parser.add_argument("--speeds", default="0.1,0.2",
+                        help="push speeds to replay at, m/s, or 'none' for the critic's order only (default %(default)s)")
     parser.add_argument("--out", default="bench/results/prescreen_speed.json", help="the JSON (default %(default)s)")
     parser.add_argument("--json", action="store_true", help="end with one JSON line")
     args = parser.parse_args(argv)
     try:
-        speeds = [float(s) for s in args.speeds.split(",") if s]
+        speeds = [] if args.speeds == "none" else [float(s) for s in args.speeds.split(",") if s]
     except ValueError:
-        parser.error(f"--speeds takes comma-separated numbers (m/s), got {args.speeds!r}")
-    if not speeds or min(speeds) <= 0 or max(speeds) > 2.0:
+        parser.error(f"--speeds takes comma-separated numbers (m/s) or 'none', got {args.speeds!r}")
+    if speeds and (min(speeds) <= 0 or max(speeds) > 2.0):
         parser.error("--speeds must be in (0, 2] m/s")
     objects = [o for o in args.objects.split(",") if o]
     return run(objects, speeds, Path(args.out), args.json)
@@ -152,10 +172,11 @@ def run(objects: list[str], speeds: list[float], out: Path, print_json: bool) ->
     nominal = PhysicsParams().push_speed_mps
     settings = PipelineSettings()
     system = LocalSystem(settings)
-    # each replay: (speed, sideways move); the noise floor last
-    replays = [(s, 0.0) for s in speeds] + [(nominal, NOISE_NUDGE_M)]
+    # each replay: (speed, sideways move); the noise floor last, unless only the critic's order is asked for
+    replays = [(s, 0.0) for s in speeds] + ([(nominal, NOISE_NUDGE_M)] if speeds else [])
     per_speed: dict[tuple[float, float], list[dict[str, Any]]] = {r: [] for r in replays}
     cpu: dict[tuple[float, float], list[float]] = {r: [] for r in replays}
+    critic_rows: list[dict[str, Any]] = []
     requests = [(o, d) for o in objects for d in DIRECTIONS_DEG]
 
     def refuse(*_args: object) -> Any:
@@ -177,6 +198,8 @@ def run(objects: list[str], speeds: list[float], out: Path, print_json: bool) ->
                 continue
             planner = (np.concatenate([judged(r)[0] for _, r in recorder.jobs]),
                        np.concatenate([judged(r)[1] for _, r in recorder.jobs]))
+            critic_rows.append({"object": object_id, "direction_deg": direction,
+                                **critic_compare(planner, settings.max_plans)})
             for speed, nudge in replays:
                 success, error, seconds, pushes = replayed(jobs, speed, nudge)
                 cpu[speed, nudge].append(seconds / pushes)
@@ -187,21 +210,22 @@ def run(objects: list[str], speeds: list[float], out: Path, print_json: bool) ->
     summary: dict[str, Any] = {"command": "python bench/prescreen_speed.py " + " ".join(sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
                                "code": code_version(), "machine": machine(), "reference_speed_mps": nominal,
                                "objects": objects, "requests": len(requests), "speeds": {}}
-    for (speed, nudge), rows in per_speed.items():
+    named = [(f"{speed:g}" if nudge == 0.0 else "noise_floor", rows, cpu[speed, nudge])
+             for (speed, nudge), rows in per_speed.items()] + [("critic_order", critic_rows, [])]
+    for name, rows, per_push in named:
         pushes = sum(r["pushes"] for r in rows)
-        name = f"{speed:g}" if nudge == 0.0 else "noise_floor"
         summary["speeds"][name] = {
             "requests_prescreened": len(rows), "pushes": pushes,
             "agreement": round(sum(r["agree"] for r in rows) / max(pushes, 1), 4),
             "first_same": round(float(np.mean([r["first_same"] for r in rows])) if rows else 0.0, 4),
             "top_overlap": round(float(np.mean([r["top_overlap"] for r in rows])) if rows else 0.0, 4),
             "passed_share": round(sum(r["passed"] for r in rows) / max(pushes, 1), 4),
-            "cpu_ms_per_push": round(1000 * float(np.mean(cpu[speed, nudge])), 1) if cpu[speed, nudge] else None,
+            "cpu_ms_per_push": round(1000 * float(np.mean(per_push)), 1) if per_push else None,
             "per_request": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(summary, indent=1) + "\n")
     for speed, figures in summary["speeds"].items():
-        print(f"{speed}{'' if speed == 'noise_floor' else ' m/s'}: agreement {figures['agreement']:.1%} over {figures['pushes']} pushes, first pose the same "
+        print(f"{speed}{'' if speed in ('noise_floor', 'critic_order') else ' m/s'}: agreement {figures['agreement']:.1%} over {figures['pushes']} pushes, first pose the same "
               f"in {figures['first_same']:.0%}, top {settings.max_plans} overlap {figures['top_overlap']:.0%}, "
               f"{figures['cpu_ms_per_push']} ms CPU per push")
     if print_json:
