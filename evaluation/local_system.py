@@ -55,7 +55,7 @@ from shared.planning.pipeline import PushPipeline, PushServices
 from shared.planning.stages import PipelineSettings
 from shared.sampling.server import SamplerService
 from shared.validation.jobs import validate
-from shared.world.push_outcome import object_pose, pose_matrix
+from shared.world.push_outcome import object_pose, pose_matrix, rotation_between_deg
 from shared.world.sim.world import ExecutionWorld
 
 
@@ -93,31 +93,42 @@ class TrackingErrors:
     """The tracker's error against the truth, frame by frame, per executed push (the judge's, for trial records)."""
 
     pushes: list[list[tuple[float, float] | None]] = field(default_factory=list)  # (m, deg) per frame; None: lost
+    # Per push, at each lost frame: how far the object truly turned (deg) since the last frame the tracker saw.
+    # A tracker that refuses a registration for turning too fast is wrong where the object truly did.
+    lost_turns: list[list[float]] = field(default_factory=list)
+    _last_seen: np.ndarray | None = None  # the true orientation at the last frame the tracker saw
 
     def start_push(self) -> None:
         self.pushes.append([])
+        self.lost_turns.append([])
 
     def add(self, tracked: ObjectPose | None, truth: ObjectPose | None) -> None:
         if truth is None or not self.pushes:
             return
+        T_true = pose_matrix(truth)
         if tracked is None:
             self.pushes[-1].append(None)
+            if self._last_seen is not None:
+                self.lost_turns[-1].append(rotation_between_deg(self._last_seen, T_true[:3, :3]))
             return
-        T_seen, T_true = pose_matrix(tracked), pose_matrix(truth)
+        T_seen = pose_matrix(tracked)
+        self._last_seen = T_true[:3, :3]
         error_m = float(np.linalg.norm(T_seen[:3, 3] - T_true[:3, 3]))
-        cos = (np.trace(T_true[:3, :3].T @ T_seen[:3, :3]) - 1.0) / 2.0
-        self.pushes[-1].append((error_m, float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))))
+        self.pushes[-1].append((error_m, rotation_between_deg(T_true[:3, :3], T_seen[:3, :3])))
 
     def summary(self) -> list[dict[str, float | int]]:
-        """Per push: frames, lost frames, median and worst position (mm) and rotation (deg) error."""
+        """Per push: frames, lost frames, median and worst position (mm) and rotation (deg) error, and when frames
+        were lost, the most the object truly turned since the tracker last saw it."""
         out: list[dict[str, float | int]] = []
-        for frames in self.pushes:
+        for frames, turns in zip(self.pushes, self.lost_turns, strict=True):
             seen = np.array([f for f in frames if f is not None]).reshape(-1, 2)
             row: dict[str, float | int] = {"frames": len(frames), "lost": len(frames) - len(seen)}
             if len(seen):
                 row.update(median_mm=round(float(np.median(seen[:, 0])) * 1000, 2),
                            worst_mm=round(float(seen[:, 0].max()) * 1000, 2),
                            median_deg=round(float(np.median(seen[:, 1])), 2), worst_deg=round(float(seen[:, 1].max()), 2))
+            if turns:
+                row["lost_true_turn_deg"] = round(max(turns), 1)  # the most it truly turned while unseen
             out.append(row)
         return out
 

@@ -181,6 +181,31 @@ def test_a_plan_may_start_at_the_limit_a_pressed_joint_stands_past_but_not_beyon
 # ------------------------------------------------------------------------------------------ the tracker
 
 
+def test_a_trial_record_says_how_far_the_object_truly_turned_while_the_tracker_had_lost_it():
+    """The judge's comparison of the tracked frames with the truth: a tracker that refuses registrations as turning
+    too fast is wrong where the object truly turned that far; the record says how far it did."""
+    from evaluation.local_system import TrackingErrors
+
+    def at(yaw_deg: float, x: float = 0.4):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = yaw_rotation(np.radians(yaw_deg)), (x, 0.0, 0.03)
+        return object_pose(T)
+
+    errors = TrackingErrors()
+    errors.start_push()
+    errors.add(at(0.0, 0.402), at(0.0))  # seen, 2 mm off
+    errors.add(None, at(12.0))  # lost while it turns
+    errors.add(None, at(27.0))
+    errors.add(at(31.0), at(30.0))  # seen again, 1 degree off
+    errors.start_push()
+    errors.add(at(30.0), at(30.0))
+    first, second = errors.summary()
+    assert (first["frames"], first["lost"]) == (4, 2)
+    assert first["lost_true_turn_deg"] == pytest.approx(27.0, abs=0.1)
+    assert first["worst_mm"] == pytest.approx(2.0) and first["worst_deg"] == pytest.approx(1.0, abs=0.01)
+    assert "lost_true_turn_deg" not in second  # nothing lost
+
+
 def test_the_simulated_tracker_reports_the_pose_late_and_noisy_and_repeats_with_its_seed():
     from shared.execution.robots.sim.tracker import SimTracker, TrackerConfig
 
