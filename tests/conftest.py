@@ -2,9 +2,13 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import os
 import socket
+import sys
+from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -17,6 +21,18 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 # image tracker's own path through the bus is tested in test_interfaces.py, test_image_tracking.py and
 # test_closed_loop.py.
 TRUTH_TRACKED = {"tracking": "truth"}
+
+
+def load_bench(name: str) -> ModuleType:
+    """bench/<name>.py as a module: bench/ is not a package, so the script is loaded from its file (registered
+    under `bench_<name>`, which its dataclasses look their module up by)."""
+    path = Path(__file__).resolve().parent.parent / "bench" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def free_port() -> int:

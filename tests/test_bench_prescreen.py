@@ -1,26 +1,17 @@
 """bench/prescreen_speed.py: how two prescreen decisions, and the critic's order, are compared (no physics)."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parent.parent / "bench" / "prescreen_speed.py"
+from conftest import load_bench
 
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    # bench/ is not a package: the script is loaded from its file, as tests/test_bench_push.py loads bench/push.py.
-    spec = importlib.util.spec_from_file_location("bench_prescreen_speed", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up while being made
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("prescreen_speed")
 
 
 def test_the_planned_order_is_the_passing_poses_closest_first(bench: ModuleType) -> None:

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 import os
 import subprocess
@@ -14,17 +13,14 @@ from typing import Any
 
 import pytest
 
+from conftest import load_bench
+
 PUSH = Path(__file__).resolve().parent.parent / "bench" / "push.py"
 
 
 @pytest.fixture(scope="module")
 def bench() -> ModuleType:
-    # bench/ is not a package: the script is loaded from its file, as tests/test_chaos.py reads bench/chaos.py.
-    spec = importlib.util.spec_from_file_location("bench_push", PUSH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("push")
 
 
 def run_json(to_plan: tuple[float, float], total_p50: float, objects: tuple[str, ...] = ("a",)) -> dict[str, Any]:
