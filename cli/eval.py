@@ -23,7 +23,7 @@ Splits (`--split`): `dev` (default) is the development split: the 14 objects eve
 on (the object library's `test` split; `--split test` still works, as an alias that says so), so its figures
 are development figures. `val` is for choosing settings. `final` is the final split: 72 objects drawn for it
 (5 fresh draws of each procedural family and 12 of `round`, a family nothing trains on), frozen by content
-hash, with placements and world draws of their own; methods / leap / closed-loop only, from a clean tree,
+hash, with placements and world draws of their own; methods / leap / closed-loop / suite only, from a clean tree,
 every run logged in results/final/LOG.md, good or bad. Nothing else can load its objects.
 
 World (`--world`, every experiment but sampler-diagnosis): `real` (default) executes every plan in a world drawn
