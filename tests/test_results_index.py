@@ -100,3 +100,18 @@ def test_a_mujoco_run_a_task_run_and_a_suite_are_told_apart(tmp_path):
     assert (paper.world, paper.seen, paper.tag, paper.variant) == ("mujoco", "mujoco, 3 cameras", "levelled", "")
     assert pose.variant == "task pose" and pose.key != paper.key and pose.tag == "levelled"
     assert suite.experiment == "suite" and [(r.label, r.count) for r in suite.rows] == [("gd2p-closed-critic-p24", 60)]
+
+
+def test_the_results_page_leads_with_the_final_split(tmp_path):
+    """The held-out figures come first on docs/results.md, marked as the final split; the development run after."""
+    interval = {"value": 0.5, "low": 0.4, "high": 0.6}
+    for name in ("suite-real-camera3-levelled", "suite-real-camera3-final"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
+        (tmp_path / name / "summary.json").write_text(json.dumps({
+            "date": "2026-12-07T00:00:00Z", "title": "Suite", "methods": ["gd2p-closed-critic-p24"],
+            "suite": {"gd2p-closed-critic-p24": {"trials": 384, "interval_95": interval}}}))
+    page = render_docs(read_runs(tmp_path))
+    headings = [line for line in page.splitlines() if line.startswith("## ")]
+    assert headings == ["## Suite — final split", "## Suite"]
+    assert "final split (held out, measured once per release" in page
