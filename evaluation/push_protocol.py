@@ -462,7 +462,6 @@ def replay_failure(episode: Episode, T_start: np.ndarray, request: PushRequest, 
     assert system is not None  # this worker's, set by _init_worker (the pool's initializer)
     robot = system.robot
     told = told_world(request)
-    assert told.object_pose is not None  # told_world places it
     T_told = pose_matrix(told.object_pose)
     drawn, truth = robot.execution_world, robot.true_object
     try:
