@@ -372,3 +372,37 @@ def test_observability_says_a_cylinder_spin_is_unseen_and_a_box_turn_is_seen():
     assert abs(direction[2]) > 0.99  # a turn about the vertical axis, nothing else
     ratio, _ = weakest(trimesh.creation.box(extents=(0.10, 0.06, 0.04)))
     assert ratio > 10 * CONFIG.unobserved_ratio
+
+
+def test_a_registration_that_turns_too_fast_keeps_the_last_orientation_where_it_explains_the_points(box_push):
+    """With a turn bound below the push's 3 degrees a frame, every registration turns too fast: held at the last
+    orientation, at the registered centre, the box is still explained and followed (within the 3 degrees it truly
+    turned); without the hold it is lost, as before."""
+    obj, poses, seen = box_push
+    strict = TrackingConfig(max_turn_deg_s=5.0)  # 0.5 degrees a frame at 10 Hz
+    held = ObjectTracker.from_mesh(obj.mesh, strict)
+    held.reset(poses[0])
+    first = held.update(*seen[0])
+    for step in (1, 2):
+        result = held.update(*seen[step])
+        assert not result.lost, result.reason
+        position, rotation = _errors(result.T_world_O, poses[step])
+        assert position < 0.006 and rotation < STEP_DEG * step + 1.0
+        assert np.allclose(result.T_world_O[:3, :3], first.T_world_O[:3, :3])  # the orientation held
+    lost = ObjectTracker.from_mesh(obj.mesh, TrackingConfig(max_turn_deg_s=5.0, hold_orientation_on_spin=False))
+    lost.reset(poses[0])
+    lost.update(*seen[0])
+    result = lost.update(*seen[1])
+    assert result.lost and "implausible turn" in result.reason
+
+
+def test_a_true_turn_too_fast_for_the_bound_that_the_held_orientation_cannot_explain_is_lost(box_push):
+    """Told the box stood 40 degrees from where it stands, the tracker registers it turned 40 degrees in a frame:
+    the held (told) orientation does not explain the points, so it is lost, not followed at the wrong yaw."""
+    obj, poses, seen = box_push
+    told = poses[0].copy()
+    told[:3, :3] = Rotation.from_euler("z", 40.0, degrees=True).as_matrix() @ told[:3, :3]
+    tracker = ObjectTracker.from_mesh(obj.mesh)
+    tracker.reset(told)
+    result = tracker.update(*seen[0])
+    assert result.lost and "implausible turn" in result.reason, "followed at a yaw the points do not support"

@@ -27,7 +27,11 @@ mask for each: the pixels its model covers at its measured joints):
 4. Checks. Fitness (the share of segmented points within `inlier_m` of the model surface), RMSE of those
    points' point-to-plane distances, and the step from the last tracked pose against what an object
    pushed at `max_speed_mps` / `max_turn_deg_s` can do in the frames since: a failed check reports
-   lost with the reason, never a pose.
+   lost with the reason, never a pose. A registration that turned faster than an object can is tried once more
+   with the last tracked orientation at the registered centre (`hold_orientation_on_spin`): ICP spins a
+   near-round or near-square body about an axis the points barely pin while the object itself barely turned
+   (measured: docs/architecture.md "Tracking from images only"); the held pose stands if it passes the same
+   checks, and an object that truly turned that fast fails them and is lost.
 
 Registration library: Open3D's point-to-plane ICP with the model's own normals, chosen by measurement against
 small_gicp (bench/tracking.py; the figures and why: docs/architecture.md "Tracking from images only").
@@ -101,6 +105,7 @@ class TrackingConfig:
     # "Tracking from images only").
     max_speed_mps: float = 0.5
     max_turn_deg_s: float = 180.0
+    hold_orientation_on_spin: bool = True
     # Small objects (a model radius under `small_radius_m`: dice, erasers, caps, most under 1.7 cm tall) are tracked in
     # the D435's 848 x 480 mode (twice the focal length in pixels: four times the pixels on the object, half the depth
     # noise), on a finer voxel and a lower table cut: in the default mode the 1 cm cut leaves an 8 mm tall object only
@@ -237,6 +242,11 @@ class ObjectTracker:
         T_world_O = self._register(points, predicted, centre)
         fitness, rmse = self.score(points, T_world_O)
         reason = self._implausible(fitness, rmse, T_world_O)
+        if reason is not None and self.config.hold_orientation_on_spin and self._turned_too_fast(T_world_O):
+            held = self._orientation_held(T_world_O)
+            held_fitness, held_rmse = self.score(points, held)
+            if self._implausible(held_fitness, held_rmse, held) is None:
+                T_world_O, fitness, rmse, reason = held, held_fitness, held_rmse, None
         if reason is not None:
             return self._lose(reason, len(points), fitness, rmse)
         self._accept(T_world_O)
@@ -395,6 +405,19 @@ class ObjectTracker:
         rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else math.nan
         return float(fitness), rmse
 
+    def _turned_too_fast(self, T_world_O: np.ndarray) -> bool:
+        """Whether T_world_O turned from the last tracked pose faster than `max_turn_deg_s` allows."""
+        assert self._T_good is not None
+        turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
+        return turn_deg > self.config.max_turn_deg_s * self._since_good / self.config.rate_hz
+
+    def _orientation_held(self, T_world_O: np.ndarray) -> np.ndarray:
+        """The last tracked orientation with the model centre where T_world_O puts it."""
+        assert self._T_good is not None
+        held = np.array(self._T_good, dtype=np.float64)
+        held[:3, 3] += self.centre(T_world_O) - self.centre(held)
+        return held
+
     def _implausible(self, fitness: float, rmse: float, T_world_O: np.ndarray) -> str | None:
         """Why the registered pose is not to be believed (None: it is)."""
         assert self._T_good is not None
@@ -405,10 +428,10 @@ class ObjectTracker:
             return f"registration RMSE {rmse * 1000:.1f} mm above {c.max_rmse_m * 1000:.1f} mm"
         seconds = self._since_good / c.rate_hz
         step_m = float(np.linalg.norm(self.centre(T_world_O) - self.centre(self._T_good)))
-        turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
-        if turn_deg > c.max_turn_deg_s * seconds:
+        if self._turned_too_fast(T_world_O):
+            turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
             return f"implausible turn: {turn_deg:.0f} deg in {self._since_good} frame(s)"
         return None
 
