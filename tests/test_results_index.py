@@ -115,3 +115,20 @@ def test_the_results_page_leads_with_the_final_split(tmp_path):
     headings = [line for line in page.splitlines() if line.startswith("## ")]
     assert headings == ["## Suite — final split", "## Suite"]
     assert "final split (held out, measured once per release" in page
+
+
+def test_a_newer_run_of_one_method_does_not_stand_in_for_the_run_that_compared_them(tmp_path):
+    """One side of an A/B (the default alone, another setting) is newer than the run of every method, yet the
+    results page keeps showing the comparison; the index lists both."""
+    interval = {"value": 0.9, "low": 0.8, "high": 1.0}
+    one = {"success_rate": 0.9, "trials": 42, "interval_95": interval}
+    for name, date, methods in (("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("a", "b")),
+                                ("closed-loop-real-camera3-hold-on", "2026-12-07T00:00:00Z", ("a",))):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
+        (tmp_path / name / "summary.json").write_text(json.dumps(
+            {"date": date, "title": name, "methods": {m: one for m in methods}}))
+    runs = read_runs(tmp_path)
+    assert [line for line in render_docs(runs).splitlines() if line.startswith("## ")] == [
+        "## closed-loop-real-camera3-levelled"]
+    assert "closed-loop-real-camera3-hold-on" in render_index(runs)
