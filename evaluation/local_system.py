@@ -96,7 +96,7 @@ class TrackingErrors:
     # Per push, at each lost frame: how far the object truly turned (deg) since the last frame the tracker saw.
     # A tracker that refuses a registration for turning too fast is wrong where the object truly did.
     lost_turns: list[list[float]] = field(default_factory=list)
-    _last_seen: np.ndarray | None = None  # the true orientation at the last frame the tracker saw
+    _last_seen: np.ndarray | None = field(default=None, init=False, repr=False)  # true orientation, last frame seen
 
     def start_push(self) -> None:
         self.pushes.append([])

@@ -242,7 +242,7 @@ class ObjectTracker:
         T_world_O = self._register(points, predicted, centre)
         fitness, rmse = self.score(points, T_world_O)
         reason = self._implausible(fitness, rmse, T_world_O)
-        if reason is not None and self.config.hold_orientation_on_spin and self._turned_too_fast(T_world_O):
+        if reason is not None and self.config.hold_orientation_on_spin and self._too_fast_turn_deg(T_world_O) is not None:
             held = self._orientation_held(T_world_O)
             held_fitness, held_rmse = self.score(points, held)
             if self._implausible(held_fitness, held_rmse, held) is None:
@@ -405,11 +405,11 @@ class ObjectTracker:
         rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else math.nan
         return float(fitness), rmse
 
-    def _turned_too_fast(self, T_world_O: np.ndarray) -> bool:
-        """Whether T_world_O turned from the last tracked pose faster than `max_turn_deg_s` allows."""
+    def _too_fast_turn_deg(self, T_world_O: np.ndarray) -> float | None:
+        """How far T_world_O turned from the last tracked pose, if faster than `max_turn_deg_s` allows (else None)."""
         assert self._T_good is not None
         turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
-        return turn_deg > self.config.max_turn_deg_s * self._since_good / self.config.rate_hz
+        return turn_deg if turn_deg > self.config.max_turn_deg_s * self._since_good / self.config.rate_hz else None
 
     def _orientation_held(self, T_world_O: np.ndarray) -> np.ndarray:
         """The last tracked orientation with the model centre where T_world_O puts it."""
@@ -430,8 +430,8 @@ class ObjectTracker:
         step_m = float(np.linalg.norm(self.centre(T_world_O) - self.centre(self._T_good)))
         if step_m > c.max_speed_mps * seconds:
             return f"implausible jump: {step_m * 1000:.0f} mm in {self._since_good} frame(s)"
-        if self._turned_too_fast(T_world_O):
-            turn_deg = _angle_deg(self._T_good[:3, :3].T @ T_world_O[:3, :3])
+        turn_deg = self._too_fast_turn_deg(T_world_O)
+        if turn_deg is not None:
             return f"implausible turn: {turn_deg:.0f} deg in {self._since_good} frame(s)"
         return None
 
