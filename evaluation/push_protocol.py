@@ -127,7 +127,8 @@ class Method:
     # The planner's physics budget (feasible poses prescreened, plans rolled out per round) instead of the shipped
     # one (`PipelineSettings`).
     budget: tuple[int, int] | None = None
-    # Poses also tried slid sideways by these (m) near an obstacle (`PipelineSettings.slide_m`), instead of not.
+    # Poses also tried slid sideways by these (m) near an obstacle instead of the shipped ones
+    # (`PipelineSettings.slide_m`; an empty list: none).
     slide: tuple[float, ...] | None = None
     grasp: bool = False  # grasp poses (evaluation/grasp_baseline.py) in place of the sampler's
     tuning: bool = False  # a candidate compared on val objects: a full run leaves it out
@@ -677,7 +678,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
         record["critic_id"] = _critic_id(episode.hand)
     settings = pipeline.settings
     record["budget"] = [settings.prescreen if method.options.prescreen else 0, settings.max_plans]
-    if settings.slide_m:  # a candidate stage: the slides its poses were also tried at near an obstacle
+    if settings.slide_m:  # the slides its poses were also tried at near an obstacle (off in older records)
         record["slide_m"] = list(settings.slide_m)
     return record
 

@@ -115,6 +115,73 @@ def test_a_slid_copy_keeps_its_distance_to_the_face_it_pushes_and_one_slid_past_
     assert not past[0]
 
 
+def test_a_spatula_pose_a_can_stands_in_is_planned_slid_beside_it_by_default_and_refused_without_the_slide():
+    """The box pushed along +y with a can 1 cm behind it, 4 cm off its centre: the spatula pose behind the box's
+    centre stands in the can. The planner's default also tries each pose slid 2 and 4 cm along the face it pushes,
+    and one beside the can is planned and handed to the robot; with the stage off the request is infeasible, the
+    can named."""
+    from evaluation.local_system import validate_here
+    from shared.contracts.messages import PlannerOptions, PushRequest
+    from shared.planning.outcome import PushError
+    from shared.planning.pipeline import PushPipeline, PushServices
+    from shared.planning.stages import PipelineSettings
+    from shared.world.push_outcome import object_pose
+    from test_push import BOX, _box_at
+
+    class Planned(Exception):
+        pass
+
+    def execute(*_args, **_kwargs):
+        raise Planned
+
+    def never_sampled(*_args, **_kwargs):
+        raise AssertionError("the fixed pose needs no sampler")
+
+    request = PushRequest(object=ObjectRef(library_id=BOX), object_pose=object_pose(_box_at(0.5, 0.0)),
+                          direction_deg=90.0, obstacles=[CircleObstacle(x=0.54, y=-0.063, radius=0.03, height_m=0.12)],
+                          options=PlannerOptions(method="fixed", choice="random", closed_loop=False, critic=False,
+                                                 corrections=0))
+    assert PipelineSettings().slide_m  # the default slides
+    outcomes = {}
+    for name, settings in (("default", PipelineSettings(prescreen=0)), ("off", PipelineSettings(prescreen=0, slide_m=()))):
+        pipeline = PushPipeline(PushServices(sample=never_sampled, validate=validate_here, execute=execute), settings)
+        try:
+            pipeline.run(request)
+        except (Planned, PushError) as exc:
+            outcomes[name] = exc
+        finally:
+            pipeline.close()
+    assert isinstance(outcomes["default"], Planned)
+    refused = outcomes["off"]
+    assert isinstance(refused, PushError) and refused.code == "infeasible" and "vs obstacle 0" in refused.message
+
+
+@pytest.mark.parametrize("choice", ["random", "ranked"])
+def test_slid_copies_are_tried_only_after_every_pose_as_sampled_in_a_random_choice_too(choice):
+    """A random feasible choice (the fixed pose's, the random baselines') takes its poses in a random order, and a
+    ranked one in its own: either way a slid copy is a fallback, never chosen before a pose as sampled."""
+    from types import SimpleNamespace
+
+    from shared.contracts.messages import PlannerOptions, PushRequest
+    from shared.planning.candidates import Candidates
+    from shared.planning.stages import priority
+
+    n = 12
+    tier = np.repeat([0, 1], n // 2)
+    candidates = Candidates(np.zeros((n, 25)), np.zeros((n, 25)), np.zeros((n, 4, 4)), np.zeros((n, 16)),
+                            np.linspace(-1.0, -0.5, n), tier=tier)
+    request = PushRequest(object=ObjectRef(library_id="proc-box-001"), direction_deg=0.0,
+                          options=PlannerOptions(choice=choice, critic=False))
+    for seed in range(5):
+        order = priority(SimpleNamespace(request=request, seed=seed), candidates)
+        assert sorted(order.tolist()) == list(range(n)) and set(order[: n // 2].tolist()) == set(range(n // 2))
+    untiered = Candidates(*(getattr(candidates, f) for f in ("poses_d", "poses_world", "T_world_hand", "q_hands",
+                                                           "l_dir")))
+    if choice == "random":  # without slid copies, the order is the seed's permutation, as it always was
+        assert priority(SimpleNamespace(request=request, seed=3), untiered).tolist() == \
+            np.random.default_rng(3).permutation(n).tolist()
+
+
 def test_a_failed_plan_is_replayed_on_the_object_the_planner_saw_without_its_neighbours():
     """The replay of a failure (why a plan failed) executes in the world the planner saw: the captured cloud holds
     the two cans too, and read as the planner reads it, without the points on the told cylinders, it is the mug

@@ -174,11 +174,23 @@ def test_the_corner_task_stands_the_object_a_centimetre_from_two_walls_that_meet
     assert protocol.Episode("fixed-corrected", "allegro", "proc-box-001", direction_deg, 1, cameras=3).seed == episode.seed
 
 
-def test_a_palm_square_behind_the_object_cannot_push_it_away_from_the_wall(tmp_path):
-    """The planner, the cameras and the robot all have the wall: the fixed spatula pose would stand in it."""
+def test_a_palm_square_behind_the_object_stands_in_the_wall_unless_slid_clear_of_it(tmp_path):
+    """The planner, the cameras and the robot all have the wall: the fixed spatula pose as it is would stand in it;
+    the planner's default also tries it slid along the face it pushes, and one of those clears the wall."""
+    from dataclasses import replace
+
     protocol._init_worker(str(tmp_path))
-    record = protocol.run_episode(wall_episode(0))
+    system = protocol._system
+    shipped = system.settings
+    system.settings = replace(shipped, slide_m=())
+    try:
+        record = protocol.run_episode(wall_episode(0))
+    finally:
+        system.settings = shipped
     assert record["outcome"] == "infeasible" and "wall 0" in record["message"]
+    slid = protocol.run_episode(wall_episode(0))
+    assert slid["outcome"] != "infeasible" and slid["slide_m"] == list(shipped.slide_m)
+    assert not slid.get("robot_touched_wall")
     request = protocol.push_request(wall_episode(0), protocol.placement(wall_episode(0)))
     assert [type(o) for o in request.obstacles] == [WallObstacle] and request.object.point_cloud is not None
     assert math.isfinite(request.obstacles[0].x)

@@ -120,9 +120,10 @@ class PipelineSettings:
     min_separation_m: float = 0.0
     # With an obstacle or a wall within SLIDE_NEAR_M of the object, the pose source's poses are also tried slid
     # sideways along the face they push by each of these (m, along D's y), after every pose as it is: a hand
-    # the sampler put where a wall or a neighbour stands may fit beside it (`slid_poses`). Off (): a candidate
-    # setting, measured on val before it is a default.
-    slide_m: tuple[float, ...] = ()
+    # the sampler put where a wall or a neighbour stands may fit beside it (`slid_poses`). Chosen on val's wall,
+    # corner and clutter tasks (docs/evaluation.md §Tuned settings); () turns it off. Far from obstacles it
+    # changes nothing.
+    slide_m: tuple[float, ...] = (-0.04, -0.02, 0.02, 0.04)
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
@@ -397,14 +398,15 @@ def rolls_out(request: PushRequest) -> bool:
 def priority(state: RequestState, candidates: Candidates) -> np.ndarray:
     """The order in which to consider the K candidates when plans are rolled out: most likely to push well
     first by the critic (when it scored them and the request asks for it), best-aligned palms first (L_dir)
-    on ties and without it; random for a random feasible choice."""
+    on ties and without it; random for a random feasible choice. Either way slid copies (`slide_m`) come after
+    every pose as it was sampled (their tier, the first key): a fallback for poses an obstacle blocks."""
     l_dir = candidates.order_l_dir
-    if not rolls_out(state.request):
-        return np.random.default_rng(state.seed).permutation(len(l_dir))
-    # Ties go by the pose source's index: a turned copy right after its pose (lexsort is stable). Slid copies
-    # (`slide_m`) come after every pose as it was sampled (their tier, the first key).
-    source = np.arange(len(l_dir)) if candidates.source is None else candidates.source
     tier = np.zeros(len(l_dir), dtype=int) if candidates.tier is None else candidates.tier
+    if not rolls_out(state.request):
+        shuffled = np.random.default_rng(state.seed).permutation(len(l_dir))
+        return shuffled[np.argsort(tier[shuffled], kind="stable")]
+    # Ties go by the pose source's index: a turned copy right after its pose (lexsort is stable).
+    source = np.arange(len(l_dir)) if candidates.source is None else candidates.source
     if orders_by_critic(state.request, candidates):
         assert candidates.p_success is not None
         return np.lexsort((source, l_dir, -candidates.p_success, tier))
