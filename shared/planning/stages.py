@@ -248,6 +248,8 @@ def candidate_poses(state: RequestState, push: Push, sample: Sample, draw: int =
 
 def near_an_obstacle(state: RequestState, push: Push) -> bool:
     """Whether an obstacle or a wall of the request stands within SLIDE_NEAR_M of the object's footprint."""
+    if not state.request.obstacles:  # the slide is a default now: a request without obstacles skips the hull
+        return False
     vertices = state.obj.mesh.vertices @ push.T_world_O[:3, :3].T + push.T_world_O[:3, 3]
     hull = ConvexHull(vertices[:, :2])
     for obstacle in state.request.obstacles:
