@@ -36,6 +36,11 @@ Without `--json` a short table compares them.
 `memory`: the whole system's peak while the bench runs (`MemoryPeak`: the service processes and this one, which
 embeds the router), as resident set (RSS, an upper bound: shared libraries count in every process) and proportional
 set (PSS, what the machine holds); issue 50's target is 6 GiB with 2 validators.
+
+`cpu_s_per_request`: the CPU seconds a request costs each service (the median over requests; each row's `cpu_s`),
+read from /proc before and after it: with every core busy, the sum over the services that work before the robot
+moves (the validators' physics, the sampler, the planner's share) divided by the cores is the least time to a plan
+that this much work allows. The planner's and the robot bridge's figures include the execution.
 """
 from __future__ import annotations
 
@@ -125,6 +130,30 @@ class MemoryPeak:
         self._thread.join()
         return {"peak_rss_gib": round(self.peak_rss_kib / 2**20, 2), "peak_pss_gib": round(self.peak_pss_kib / 2**20, 2),
                 "processes": self.processes, "validators": validators, "target_gib": 6.0}
+
+
+def service_cpu_s(launcher: Launcher) -> dict[str, float]:
+    """CPU seconds (user + system) each service has used so far, summed over its processes, and "bench" for this
+    process (the embedded router and the client), from /proc/PID/stat (Linux; a process gone counts 0)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    used: dict[str, float] = {"bench": sum(os.times()[:2])}
+    for child in launcher.children():
+        used[child.service] = used.get(child.service, 0.0) + _cpu_ticks(child.process.pid) / tick
+    return used
+
+
+def _cpu_ticks(pid: int) -> int:
+    try:  # the fields after the command's ")" (which may hold spaces): utime and stime are the 12th and 13th
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return 0
+    return int(fields[11]) + int(fields[12])
+
+
+def cpu_used(before: dict[str, float], after: dict[str, float]) -> dict[str, float]:
+    """CPU seconds per service between two `service_cpu_s` readings, and their "total"."""
+    used = {name: round(after[name] - before.get(name, 0.0), 3) for name in after}
+    return used | {"total": round(sum(used.values()), 3)}
 
 
 def _smaps_rollup(pid: int) -> tuple[int, int] | None:
@@ -298,6 +327,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 viewed = viewed != bool((i // 2) % 2)  # alternate which of the pair runs first
                 watch.attach(viewed)
             request = PushRequest(object=ObjectRef(library_id=object_id), direction_deg=direction, options=options)
+            cpu_before = service_cpu_s(launcher)
             started = time.perf_counter()
             try:
                 response = push(request, cfg, timeout_s=300.0)
@@ -309,6 +339,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 row = {"object": object_id, "direction_deg": direction, "success": False, "error": exc.code,
                        "message": exc.message[:200]}
             row["total_s"] = round(time.perf_counter() - started, 3)
+            row["cpu_s"] = cpu_used(cpu_before, service_cpu_s(launcher))
             if watch is not None:
                 row["view"] = viewed
             rows.append(row)
@@ -340,6 +371,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                       "target_p95": 3.0},
         "stages_s": {s: {"p50": percentile([r["stages_s"].get(s, 0.0) for r in served], 50),
                          "p95": percentile([r["stages_s"].get(s, 0.0) for r in served], 95)} for s in STAGES},
+        # CPU seconds per request, by service (median over requests; execution and rendering the storyboard
+        # included): the work a request asks of the machine, whichever core runs it.
+        "cpu_s_per_request": {name: round(statistics.median([r["cpu_s"][name] for r in served]), 3)
+                              for name in (served[0]["cpu_s"] if served else {})},
         "median_total_in_planner_s": round(statistics.median([r["stages_s"]["total"] for r in served]), 3) if served else None,
         "memory": memory_summary,
         "rows": rows,
