@@ -33,6 +33,7 @@ import json
 import multiprocessing as mp
 import sys
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,8 +44,7 @@ from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.prescreen_speed import Planned, Recorder, judged
-from shared.contracts.messages import ObjectRef, PushRequest, ValidationJob
+from shared.contracts.messages import ObjectRef, PushRequest, ValidationJob, ValidationResult
 
 if TYPE_CHECKING:
     from evaluation.local_system import LocalSystem
@@ -68,13 +68,26 @@ class Unit:
         return f"{self.object_id}/{self.direction_deg:g}"
 
 
-class StopAtRollout(Recorder):
-    """The pipeline's `validate`: records the floating-hand pushes, stops the request at its first arm rollout."""
+class Planned(Exception):
+    """Raised at a request's first arm rollout: what the bench needs has been pushed by then."""
 
-    def __call__(self, job: ValidationJob):  # type: ignore[no-untyped-def]
+
+@dataclass
+class StopAtRollout:
+    """The pipeline's `validate`: runs the floating-hand (prescreen) jobs here and keeps them with their results;
+    stops the request at its first arm rollout."""
+
+    jobs: list[tuple[ValidationJob, ValidationResult]] = dataclasses.field(default_factory=list)
+
+    def __call__(self, job: ValidationJob) -> Future[ValidationResult]:
+        from evaluation.local_system import validate_here
+
         if job.with_arm:
             raise Planned
-        return super().__call__(job)
+        future = validate_here(job)
+        if future.exception() is None:
+            self.jobs.append((job, future.result()))
+        return future
 
 
 def _init_worker() -> None:
@@ -109,7 +122,8 @@ def label_request(unit: Unit) -> tuple[str, dict[str, Any]]:
         return unit.key, {"object": unit.object_id, "direction_deg": unit.direction_deg, "pushed": 0}
     frame = recorder.jobs[0][0].frame
     assert frame is not None  # the prescreen pushes in the request's frame
-    success, error = (np.concatenate(parts) for parts in zip(*(judged(r) for _, r in recorder.jobs), strict=True))
+    success = np.concatenate([r.success.to_numpy() for _, r in recorder.jobs]).astype(bool)
+    error = np.concatenate([r.position_error_m.to_numpy() for _, r in recorder.jobs]).astype(np.float64)
     return unit.key, {"object": unit.object_id, "direction_deg": unit.direction_deg, "pushed": int(success.size),
                       "frame": frame.model_dump(mode="json"),
                       "poses": np.concatenate([j.poses.to_numpy() for j, _ in recorder.jobs]).tolist(),

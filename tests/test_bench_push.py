@@ -136,3 +136,27 @@ def test_the_memory_figure_counts_every_service_process_while_it_runs(bench: Mod
     assert figures["processes"] == 2 and figures["validators"] == 2
     assert figures["peak_rss_gib"] * 2**20 >= own[0] + 300 * 2**10
     assert figures["peak_pss_gib"] <= figures["peak_rss_gib"]
+
+
+def test_the_cpu_figure_counts_what_each_service_process_spends(bench: ModuleType) -> None:
+    """A validator burning 0.3 s of CPU shows as its service's seconds between two readings; an idle one adds ~0."""
+    burn = ("import time; print('ready', flush=True); input(); t = time.process_time(); "
+            "exec('while time.process_time() - t < 0.3: pass'); print('done', flush=True); time.sleep(30)")
+    busy = subprocess.Popen([sys.executable, "-c", burn], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert busy.stdout is not None and busy.stdin is not None and busy.stdout.readline().strip() == "ready"
+        launcher = SimpleNamespace(children=lambda: [SimpleNamespace(service="validator", process=busy),
+                                                     SimpleNamespace(service="sampler", process=idle)])
+        before = bench.service_cpu_s(launcher)
+        busy.stdin.write("\n")
+        busy.stdin.flush()
+        assert busy.stdout.readline().strip() == "done"
+        used = bench.cpu_used(before, bench.service_cpu_s(launcher))
+    finally:
+        for process in (busy, idle):
+            process.kill()
+            process.wait()
+    assert 0.25 <= used["validator"] <= 1.0
+    assert used["sampler"] < 0.05
+    assert used["total"] == pytest.approx(sum(v for k, v in used.items() if k != "total"), abs=0.002)
