@@ -20,6 +20,8 @@ well would make those pushes unnecessary. Measured here, per request of the prot
    - `tuned_error`: that head fine-tuned on requests of `--train-objects` train-split objects (a listwise loss
      on each request's true errors, `fine_tune`), then read on the val requests it never saw;
    - `oracle`: the best the 48 pushed poses hold.
+3. `learning_curve`: `tuned_error` again with the first third and two thirds of the train objects, then all of
+   them: whether more such requests would close the gap.
 
 Val objects, as every tuning measurement (docs/evaluation.md); the critic is the shipped one. The requests are
 planned, never executed.
@@ -259,22 +261,33 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise SystemExit(f"no {HAND} success critic is installed for the shipped sampler checkpoint")
     critic.eval()
     val_groups, train_groups = groups_of(val, critic), groups_of(train, critic)
-    started = time.perf_counter()
-    tuned = fine_tune(train_groups, critic)
-    tune_s = time.perf_counter() - started
     top = settings.max_plans
     by_order = [orders(g, critic, settings.prescreen) for g in val_groups]
-    shipped_predicted, tuned_predicted = predicted_errors(val_groups, critic), predicted_errors(val_groups, tuned)
+    shipped_predicted = predicted_errors(val_groups, critic)
     results = {name: figures(val_groups, [o[name] for o in by_order],
                              shipped_predicted if name == "critic_error" else None, top)
                for name in ("prescreen", "critic", "critic_error", "oracle")}
-    results["tuned_error"] = figures(val_groups, [np.argsort(p, kind="stable") for p in tuned_predicted],
-                                     tuned_predicted, top)
+    started = time.perf_counter()
+    results["tuned_error"] = tuned_figures(train_groups, critic, val_groups, top)
+    tune_s = time.perf_counter() - started
+    # The same fine-tune on a third and two thirds of the train objects: whether more requests would close the gap.
+    objects = list(dict.fromkeys(g.object_id for g in train_groups))
+    curve = []
+    for count in (len(objects) // 3, 2 * len(objects) // 3):
+        subset = [g for g in train_groups if g.object_id in set(objects[:count])]
+        curve.append({"train_objects": count, "train_requests": len(subset)} | tuned_figures(subset, critic, val_groups, top))
+    curve.append({"train_objects": len(objects), "train_requests": len(train_groups)} | results["tuned_error"])
     return {"command": "python bench/critic_ranking.py " + " ".join(sys.argv[1:]), "date": time.strftime("%Y-%m-%d"),
             "code": code_version(), "machine": machine(), "pushed_per_request": PUSHED, "top": top,
             "val_requests": len(val_groups), "val_objects": len({g.object_id for g in val_groups}),
             "train_requests": len(train_groups), "train_objects": len({g.object_id for g in train_groups}),
-            "fine_tune_s": round(tune_s, 1), "orders": results}
+            "fine_tune_s": round(tune_s, 1), "learning_curve": curve, "orders": results}
+
+
+def tuned_figures(train_groups: list[Group], critic: SuccessCritic, val_groups: list[Group], top: int) -> dict[str, Any]:
+    """The val requests in the order of the critic's error head fine-tuned on `train_groups`."""
+    predicted = predicted_errors(val_groups, fine_tune(train_groups, critic))
+    return figures(val_groups, [np.argsort(p, kind="stable") for p in predicted], predicted, top)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -297,6 +310,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:13s} first {summary['top']}: {f['top_pass']:.0%} pass, {f['top_error_cm']:.2f} cm from the target; "
               f"first pose {f['first_pass']:.0%}, {f['first_error_cm']:.2f} cm"
               + (f"; spearman {f['spearman']:.2f}" if "spearman" in f else ""))
+    for point in summary["learning_curve"]:
+        print(f"fine-tuned on {point['train_requests']} requests of {point['train_objects']} train objects: "
+              f"first {summary['top']} {point['top_error_cm']:.2f} cm from the target, spearman {point['spearman']:.2f}")
     if args.json:
         print(json.dumps(summary))
     return 0
