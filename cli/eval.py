@@ -123,7 +123,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "candidates (val): gd2p-robust, gd2p-closed-tight, gd2p-closed-3cm, gd2p-closed-loose, "
                              "gd2p-closed-looser, gd2p-closed-b24x6, gd2p-closed-b12x4, gd2p-closed-b12x4-ddim, "
                              "gd2p-closed-critic-guided, gd2p-closed-critic-p8, gd2p-closed-critic-p0, gd2p-closed-critic-p0x4, "
-                             "gd2p-closed-critic-p0-ddim, gd2p-a30, gd2p-a10, gd2p-closed-critic-slide, fixed-corrected-slide, gd2p-closed-critic-noslide; "
+                             "gd2p-closed-critic-p0-ddim, gd2p-a30, gd2p-a10, gd2p-closed-critic-slide, fixed-corrected-slide, gd2p-closed-critic-noslide, gd2p-closed-critic-rrt; "
                              "sampler-quality: ddpm100, ddim10, nn (default), "
                              "nn-fill (the nearest frames up to K = 200 poses), ddpm100-critic, nn-fill-critic (in the success "
                              "critic's order: $GD2P_CRITIC_CHECKPOINT_<HAND>, else the shipped critic), and with --critic-guidance "

@@ -130,6 +130,9 @@ class Method:
     # Poses also tried slid sideways by these (m) near an obstacle instead of the shipped ones
     # (`PipelineSettings.slide_m`; an empty list: none).
     slide: tuple[float, ...] | None = None
+    # Whether a push's arm paths reuse the ways around found for its earlier plans, instead of the shipped
+    # `PipelineSettings.reuse_arm_paths`.
+    reuse_paths: bool | None = None
     grasp: bool = False  # grasp poses (evaluation/grasp_baseline.py) in place of the sampler's
     tuning: bool = False  # a candidate compared on val objects: a full run leaves it out
 
@@ -611,7 +614,8 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     monitor = None if method.monitor is None else _monitor_thresholds(*method.monitor)
     prescreen, max_plans = method.budget or (None, None)
     pipeline = system.pipeline("grasp" if source is not None else "sampler", source, weights=weights, monitor=monitor,
-                               prescreen=prescreen, max_plans=max_plans, slide_m=method.slide)
+                               prescreen=prescreen, max_plans=max_plans, slide_m=method.slide,
+                               reuse_arm_paths=method.reuse_paths)
     world = execution_world(episode)
     system.robot.execution_world = world
     system.robot.tracking_mode = episode.tracking
@@ -680,6 +684,7 @@ def run_episode(episode: Episode) -> dict[str, Any]:
     record["budget"] = [settings.prescreen if method.options.prescreen else 0, settings.max_plans]
     if settings.slide_m:  # the slides its poses were also tried at near an obstacle (off in older records)
         record["slide_m"] = list(settings.slide_m)
+    record["reuse_arm_paths"] = settings.reuse_arm_paths  # (absent in older records: every path by RRTConnect)
     return record
 
 

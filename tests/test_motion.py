@@ -10,7 +10,7 @@ import torch
 from shared.contracts.messages import CircleObstacle
 from shared.frames import direction_frame, direction_xy, make_transform, matrix_to_r6, pose25_to_matrix
 from shared.planning.candidates import Candidates, Push
-from shared.planning.motion import MotionPlanner, MotionSettings, PlanningError, time_parameterise
+from shared.planning.motion import MotionPlanner, MotionSettings, PlanningError, og, time_parameterise
 from shared.planning.multistep import (
     DirectionInfeasible,
     next_push_target,
@@ -111,6 +111,34 @@ def test_rrtconnect_goes_around_an_obstacle_that_blocks_the_straight_path():
         assert len(path) >= 3
         for q in interpolate_path(path, 0.002):
             assert not obstacle_scene.collisions(q, q_hand), f"collision at {q}"
+
+
+def test_a_pushs_later_paths_go_the_way_around_found_before_without_searching_again(monkeypatch):
+    """Two goals a few cm apart behind the same obstacle: the second path reuses the first's way around (no OMPL
+    search) and is as collision-free; a planner without the setting, or a fresh one, searches."""
+    q_hand = load_hand("allegro").open_joint_positions.double().numpy()
+    with RobotScene("panda", "allegro") as obstacle_scene:
+        obstacle_scene.add_obstacles([CircleObstacle(x=0.35, y=0.10, radius=0.05)])
+        rotation = hand_above_box(0.0)[:3, :3]
+        goals = []
+        for y in (0.30, 0.28):
+            ik = MotionPlanner(obstacle_scene).ik.solve_hand_poses(make_transform(rotation, np.array([0.40, y, 0.15])))
+            assert ik.success[0]
+            goals.append(ik.q[0])
+        home = obstacle_scene.arm.home.double().numpy()
+        searches: list[int] = []
+        solve = og.SimpleSetup.solve
+        monkeypatch.setattr(og.SimpleSetup, "solve", lambda self, *a: searches.append(1) or solve(self, *a))
+        planner = MotionPlanner(obstacle_scene)
+        first = planner.plan_joint_path(home, goals[0], q_hand)
+        second = planner.plan_joint_path(home, goals[1], q_hand)
+        assert len(searches) == 1 and planner.stats.reused_paths == 1
+        assert len(first) >= 3 and np.allclose(second[1:-1], first[1:-1]) and np.allclose(second[-1], goals[1])
+        for q in interpolate_path(second, 0.002):
+            assert not obstacle_scene.collisions(q, q_hand), f"collision at {q}"
+        MotionPlanner(obstacle_scene, settings=MotionSettings(reuse_paths=False)).plan_joint_path(home, goals[1], q_hand)
+        fresh = MotionPlanner(obstacle_scene).plan_joint_path(home, goals[1], q_hand)
+        assert len(searches) == 3 and len(fresh) >= 3
 
 
 def test_time_parameterisation_respects_velocity_limits():

@@ -15,7 +15,9 @@ raised out of it instead, `table_lift_max_m`) and tracks the straight lines of e
    pose (the first workable pair of `approaches`), with the PyBullet scene
    (`shared.world.sim.robot_scene`) as the state validity checker, then OMPL's path simplification —
    unless the straight joint-space edge passes the same motion check, which it does for most
-   approaches in free space (RRTConnect then ends with that edge too, after 3x the checks); then
+   approaches in free space (RRTConnect then ends with that edge too, after 3x the checks), or the
+   waypoints between the ends of one of this planner's earlier paths do (`reuse_paths`: a push's poses
+   lie close together, so its plans mostly need the same way around the object); then
    two straight Cartesian lines: down, and in along the push direction to the pre-contact pose.
    Free-space motion keeps `clearance_m` from everything; the last few centimetres near the table
    and the object cannot, so they are straight lines (where the hand goes is known), checked with a
@@ -105,6 +107,10 @@ class MotionSettings:
     table_lift_max_m: float = 0.02
     planning_time_s: float = 5.0  # RRTConnect time limit
     seed: int = 0  # every RRTConnect call starts from this OMPL seed: the same request plans the same arm paths
+    # A joint path whose straight edge is blocked first tries, in the order they were found, the inner waypoints
+    # of this planner's earlier RRTConnect paths (the pipeline makes one planner per push, so a request still
+    # plans the same arm paths), each edge under the same motion check; RRTConnect only when none passes.
+    reuse_paths: bool = True
     check_resolution_rad: float = 0.01  # joint-space collision-check step (max joint change)
     sample_dt_s: float = 0.02  # waypoint spacing of timed joint-space motions
 
@@ -118,6 +124,7 @@ class PlanStats:
     cartesian_s: float = 0.0
     rrt_calls_s: list[float] = field(default_factory=list)
     rrt_states: list[int] = field(default_factory=list)  # simplified path vertices per call
+    reused_paths: int = 0  # joint paths made from an earlier path's waypoints, without RRTConnect
     configurations: dict[str, np.ndarray] = field(default_factory=dict)  # "pre_contact", "approach", ...
 
 
@@ -165,6 +172,7 @@ class MotionPlanner:
         self.velocity_limits = self.arm.velocity_limits.double().numpy()
         self.stats = PlanStats()
         self._hand_links = {scene.link_names[j] for j in scene.hand_links}
+        self._known_vias: list[np.ndarray] = []  # inner waypoints [n, dof] of the RRTConnect paths found so far
         self._robot_links = set(scene.link_names.values())
 
     # ------------------------------------------------------------------------------------ screen
@@ -556,6 +564,11 @@ class MotionPlanner:
             waypoints = np.array([q_start, q_goal], dtype=np.float64)
             self._count_rrt(started, waypoints)
             return waypoints
+        known = self._known_way(q_start, q_goal, valid) if s.reuse_paths else None
+        if known is not None:
+            self.stats.reused_paths += 1
+            self._count_rrt(started, known)
+            return known
         solved = setup.solve(s.planning_time_s)
         if not (solved and setup.haveExactSolutionPath()):
             self.stats.rrt_s += time.perf_counter() - started
@@ -571,7 +584,22 @@ class MotionPlanner:
         simplifier.reduceVertices(path)
         waypoints = np.array([[st[i] for i in range(dof)] for st in path.getStates()])
         self._count_rrt(started, waypoints)
+        if len(waypoints) > 2:
+            self._known_vias.append(waypoints[1:-1].copy())
         return waypoints
+
+    def _known_way(self, q_start: np.ndarray, q_goal: np.ndarray, valid: Callable[[Any], bool]) -> np.ndarray | None:
+        """A path [n, dof] from `q_start` through the inner waypoints of an earlier path to `q_goal` whose
+        waypoints are valid and every edge passes the motion check (`_straight_edge_free`), as OMPL checks a
+        motion; earlier paths are tried in the order found, None when none passes. A blocked edge fails within a
+        few checks (bisection order)."""
+        for vias in self._known_vias:
+            path = np.concatenate([np.asarray(q_start, dtype=np.float64)[None], vias,
+                                   np.asarray(q_goal, dtype=np.float64)[None]])
+            if all(valid(q) for q in vias) and \
+                    all(self._straight_edge_free(a, b, valid) for a, b in zip(path[:-1], path[1:], strict=True)):
+                return path
+        return None
 
     def _inside_workspace(self) -> bool:
         """Whether the flange and the hand base, as the scene's robot stands, are inside `workspace` (if any)."""

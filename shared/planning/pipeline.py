@@ -59,7 +59,7 @@ from shared.planning.cancellation import Cancellation
 from shared.planning.candidates import Candidates, Feasible, Push, RankedPlan
 from shared.planning.goals import check_goal, check_obstacles, turn_to_make_deg
 from shared.planning.ik import ArmIK
-from shared.planning.motion import MotionPlanner, PlanningError
+from shared.planning.motion import MotionPlanner, MotionSettings, PlanningError
 from shared.planning.multistep import DirectionInfeasible, push_along_path
 from shared.planning.outcome import PushError, PushOutcome
 from shared.planning.ranking import YawTerm
@@ -270,6 +270,7 @@ class PushPipeline:
             scene.add_object(state.urdf, push.T_world_O)
             scene.add_obstacles(request.obstacles)
             planner = MotionPlanner(scene, self._ik(request.arm, request.hand, scene),
+                                    MotionSettings(reuse_paths=self.settings.reuse_arm_paths),
                                     workspace=self._limits(request.arm, request.hand).workspace)
             rolled_out = stages.rolls_out(request)
             candidates, settings, feasible = self._screened(state, planner, push)

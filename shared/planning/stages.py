@@ -124,6 +124,9 @@ class PipelineSettings:
     # corner and clutter tasks (docs/evaluation.md §Tuned settings); () turns it off. Far from obstacles it
     # changes nothing.
     slide_m: tuple[float, ...] = (-0.04, -0.02, 0.02, 0.04)
+    # A push's arm paths first try the way around found for its earlier plans (`MotionSettings.reuse_paths`);
+    # False: RRTConnect for every blocked joint path (the ablation).
+    reuse_arm_paths: bool = True
     validation_timeout_s: float = 240.0  # prescreen / rollout jobs still unanswered after this count as failed
     weights: ranking.Weights = ranking.Weights()
     monitor: MonitorThresholds = MonitorThresholds()  # closed loop: when a push is stopped
