@@ -51,6 +51,7 @@ from shared.contracts.messages import ObjectRef, PushRequest, ValidationJob, Val
 if TYPE_CHECKING:
     from evaluation.local_system import LocalSystem
     from shared.sampling.critic import SuccessCritic
+    from shared.sampling.server import SamplerService
 
 PUSHED = 48  # poses of each request pushed: the prescreen's 24 and as many more
 MISS_CAP_M = 0.10  # a miss counts at most this far in the mean error (a pose that sent the object away)
@@ -160,14 +161,14 @@ class Group:
     error_m: torch.Tensor  # capped at MISS_CAP_M
 
 
-def groups_of(records: list[dict[str, Any]], critic: SuccessCritic) -> list[Group]:
+def groups_of(records: list[dict[str, Any]], critic: SuccessCritic, service: SamplerService) -> list[Group]:
     """The critic's inputs for each record's poses: the object encoded as the sampler service encodes it."""
     from shared.contracts.messages import DirectionFrame
     from shared.robots.hands import load_hand
     from shared.sampling.critic_features import contact_features
-    from shared.sampling.server import SamplerService, object_input
+    from shared.sampling.server import object_input
 
-    sampler, hand = SamplerService().sampler(HAND), load_hand(HAND)
+    sampler, hand = service.sampler(HAND), load_hand(HAND)
     groups = []
     for r in records:
         frame = DirectionFrame.model_validate(r["frame"])
@@ -260,7 +261,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if critic is None:
         raise SystemExit(f"no {HAND} success critic is installed for the shipped sampler checkpoint")
     critic.eval()
-    val_groups, train_groups = groups_of(val, critic), groups_of(train, critic)
+    val_groups, train_groups = groups_of(val, critic, service), groups_of(train, critic, service)
     top = settings.max_plans
     by_order = [orders(g, critic, settings.prescreen) for g in val_groups]
     shipped_predicted = predicted_errors(val_groups, critic)
