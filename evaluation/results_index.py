@@ -450,10 +450,15 @@ def _docs_runs(runs: Sequence[Run]) -> list[Run]:
     """The runs a user cares about: of each experiment in the evaluation's default setting (the `real` world seen by
     3 cameras, the image tracker) on the final split (first: the held-out figures), the development objects and
     the never-trained family, the newest run that compares methods (a run of one method, such as one side of an
-    A/B, does not stand in for it); a suite's task runs are in its section (pooled) and its report."""
+    A/B, does not stand in for it, nor does an A/B of the default against a tuning candidate or ablation of
+    evaluation/methods.yaml); a suite's task runs are in its section (pooled) and its report."""
+    from evaluation.push_protocol import load_methods
+
+    tuning = {name for name, method in load_methods().items() if method.tuning}
     shown: dict[tuple[str, ...], Run] = {}
     for run in sorted(runs, key=lambda r: (len(r.rows) > 1, r.date, r.name)):
-        shown[run.key] = run
+        if not any(row.label in tuning for row in run.rows):
+            shown[run.key] = run
     default = [
         r
         for r in shown.values()

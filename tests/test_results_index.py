@@ -132,3 +132,21 @@ def test_a_newer_run_of_one_method_does_not_stand_in_for_the_run_that_compared_t
     assert [line for line in render_docs(runs).splitlines() if line.startswith("## ")] == [
         "## closed-loop-real-camera3-levelled"]
     assert "closed-loop-real-camera3-hold-on" in render_index(runs)
+
+
+def test_a_newer_ab_of_the_default_against_an_ablation_does_not_stand_in_for_the_comparison(tmp_path):
+    """The default against a tuning candidate of evaluation/methods.yaml (the reused-paths ablation) on the
+    development objects is newer than the run comparing the methods; the results page keeps the comparison."""
+    interval = {"value": 0.9, "low": 0.8, "high": 1.0}
+    one = {"success_rate": 0.9, "trials": 84, "interval_95": interval}
+    for name, date, methods in (
+            ("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("gd2p-closed-critic-p24", "fixed-corrected")),
+            ("closed-loop-real-camera3-reuse", "2026-12-08T00:00:00Z", ("gd2p-closed-critic-p24", "gd2p-closed-critic-rrt"))):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
+        (tmp_path / name / "summary.json").write_text(json.dumps(
+            {"date": date, "title": name, "methods": {m: one for m in methods}}))
+    runs = read_runs(tmp_path)
+    assert [line for line in render_docs(runs).splitlines() if line.startswith("## ")] == [
+        "## closed-loop-real-camera3-levelled"]
+    assert "closed-loop-real-camera3-reuse" in render_index(runs)
