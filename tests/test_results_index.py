@@ -117,36 +117,33 @@ def test_the_results_page_leads_with_the_final_split(tmp_path):
     assert "final split (held out, measured once per release" in page
 
 
-def test_a_newer_run_of_one_method_does_not_stand_in_for_the_run_that_compared_them(tmp_path):
-    """One side of an A/B (the default alone, another setting) is newer than the run of every method, yet the
-    results page keeps showing the comparison; the index lists both."""
-    interval = {"value": 0.9, "low": 0.8, "high": 1.0}
-    one = {"success_rate": 0.9, "trials": 42, "interval_95": interval}
-    for name, date, methods in (("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("a", "b")),
-                                ("closed-loop-real-camera3-hold-on", "2026-12-07T00:00:00Z", ("a",))):
+def headings_of_closed_loop_runs(tmp_path: Path, runs: tuple[tuple[str, str, tuple[str, ...]], ...]) -> tuple[list[str], str]:
+    """The results page's headings and the index for closed-loop runs (name, date, methods) written to `tmp_path`."""
+    one = {"success_rate": 0.9, "trials": 84, "interval_95": {"value": 0.9, "low": 0.8, "high": 1.0}}
+    for name, date, methods in runs:
         (tmp_path / name).mkdir()
         (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
         (tmp_path / name / "summary.json").write_text(json.dumps(
             {"date": date, "title": name, "methods": {m: one for m in methods}}))
-    runs = read_runs(tmp_path)
-    assert [line for line in render_docs(runs).splitlines() if line.startswith("## ")] == [
-        "## closed-loop-real-camera3-levelled"]
-    assert "closed-loop-real-camera3-hold-on" in render_index(runs)
+    read = read_runs(tmp_path)
+    return [line for line in render_docs(read).splitlines() if line.startswith("## ")], render_index(read)
+
+
+def test_a_newer_run_of_one_method_does_not_stand_in_for_the_run_that_compared_them(tmp_path):
+    """One side of an A/B (the default alone, another setting) is newer than the run of every method, yet the
+    results page keeps showing the comparison; the index lists both."""
+    headings, index = headings_of_closed_loop_runs(tmp_path, (
+        ("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("a", "b")),
+        ("closed-loop-real-camera3-hold-on", "2026-12-07T00:00:00Z", ("a",))))
+    assert headings == ["## closed-loop-real-camera3-levelled"]
+    assert "closed-loop-real-camera3-hold-on" in index
 
 
 def test_a_newer_ab_of_the_default_against_an_ablation_does_not_stand_in_for_the_comparison(tmp_path):
     """The default against a tuning candidate of evaluation/methods.yaml (the reused-paths ablation) on the
     development objects is newer than the run comparing the methods; the results page keeps the comparison."""
-    interval = {"value": 0.9, "low": 0.8, "high": 1.0}
-    one = {"success_rate": 0.9, "trials": 84, "interval_95": interval}
-    for name, date, methods in (
-            ("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("gd2p-closed-critic-p24", "fixed-corrected")),
-            ("closed-loop-real-camera3-reuse", "2026-12-08T00:00:00Z", ("gd2p-closed-critic-p24", "gd2p-closed-critic-rrt"))):
-        (tmp_path / name).mkdir()
-        (tmp_path / name / "settings.json").write_text(json.dumps({"hand": "allegro", "cameras": 3}))
-        (tmp_path / name / "summary.json").write_text(json.dumps(
-            {"date": date, "title": name, "methods": {m: one for m in methods}}))
-    runs = read_runs(tmp_path)
-    assert [line for line in render_docs(runs).splitlines() if line.startswith("## ")] == [
-        "## closed-loop-real-camera3-levelled"]
-    assert "closed-loop-real-camera3-reuse" in render_index(runs)
+    headings, index = headings_of_closed_loop_runs(tmp_path, (
+        ("closed-loop-real-camera3-levelled", "2026-12-06T00:00:00Z", ("gd2p-closed-critic-p24", "fixed-corrected")),
+        ("closed-loop-real-camera3-reuse", "2026-12-08T00:00:00Z", ("gd2p-closed-critic-p24", "gd2p-closed-critic-rrt"))))
+    assert headings == ["## closed-loop-real-camera3-levelled"]
+    assert "closed-loop-real-camera3-reuse" in index
